@@ -1,0 +1,40 @@
+"""invphys: inverse physics with non-differentiable simulators.
+
+The public API is small:
+
+* :data:`hookimpl` - decorate ``invphys_register_*`` functions in a plugin module;
+* :mod:`invphys.registry` - look plugins up by kind and name (``registry.get("optimizer", "cma_es")``);
+* :class:`~invphys.core.params.ParameterSpace`, :func:`~invphys.core.objectives.recovery_reward`;
+* :func:`load_spec` and :func:`run` - validate and run a YAML experiment spec.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from invphys.core.hookspecs import hookimpl
+from invphys.core.objectives import recovery_reward
+from invphys.core.params import Parameter, ParameterSpace
+
+__version__ = "0.1.0"
+
+__all__ = ["Parameter", "ParameterSpace", "__version__", "hookimpl", "load_spec", "recovery_reward", "run"]
+
+if TYPE_CHECKING:
+    from pathlib import Path
+
+    from invphys.core.spec import ExperimentSpec
+
+
+def load_spec(path: str | Path) -> ExperimentSpec:
+    """Load and fully validate a YAML experiment spec (raises :class:`~invphys.core.errors.SpecError`)."""
+    from invphys.core.spec import load_spec as _load
+
+    return _load(path)
+
+
+def run(spec: str | Path | ExperimentSpec, out: str | Path, **kwargs: Any) -> dict[str, Any]:
+    """Run the stages a spec names, caching artifacts under ``out``; returns the stage summaries."""
+    from invphys.core.runner import run_spec
+
+    return run_spec(spec, out, **kwargs)

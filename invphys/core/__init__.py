@@ -1,0 +1,1 @@
+"""Core of invphys: interfaces, parameter spaces, objectives, specs, the dataset store and the runner."""

@@ -1,0 +1,295 @@
+"""The plugin interfaces: what a simulator, feature extractor, surrogate, latent model, optimiser,
+validator and executor must provide.
+
+Every plugin class:
+
+* has a class attribute ``name`` (unique per kind; what a spec's ``type:`` field names),
+* has a nested pydantic ``Config`` (``extra="forbid"``) describing its settings; the spec block of a
+  plugin is validated by it, and ``invphys schema`` publishes it,
+* is constructed as ``Plugin(config)`` or ``Plugin(**settings)``.
+
+Arrays follow one convention: ``theta`` is normalised parameters in [0, 1]^d (shape (B, d)),
+``params`` is physical parameters in the simulator's units (shape (B, d)), ``y`` is features (B, M),
+``z`` latent codes (B, k). Heavy libraries (torch, taichi, warp, stable-baselines3) are imported
+inside methods, never at module top level, so that listing plugins stays fast.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict
+
+from invphys.core.params import ParameterSpace
+from invphys.core.results import (
+    OptimizationResult,
+    SimulationResult,
+    Trajectory,
+    ValidationRecord,
+)
+
+
+class PluginConfig(BaseModel):
+    """Base of every plugin's ``Config``: unknown keys are errors."""
+
+    model_config = ConfigDict(extra="forbid", frozen=False)
+
+
+class Plugin(ABC):
+    """Common base: a ``name``, a ``kind`` and a validated ``config``."""
+
+    name: ClassVar[str]
+    kind: ClassVar[str]
+    Config: ClassVar[type[PluginConfig]] = PluginConfig
+
+    def __init__(self, config: PluginConfig | dict[str, Any] | None = None, **settings: Any) -> None:
+        if config is None:
+            config = self.Config(**settings)
+        elif isinstance(config, dict):
+            config = self.Config(**{**config, **settings})
+        elif settings:
+            config = config.model_copy(update=settings)
+        self.config = config
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.config!r})"
+
+
+# --------------------------------------------------------------------------------------------
+# Simulation
+# --------------------------------------------------------------------------------------------
+class Simulator(Plugin):
+    """A (typically expensive, non-differentiable) simulator mapping parameters to trajectories.
+
+    Subclasses define :meth:`parameter_space` and :meth:`simulate`. A simulator simulates a *batch*
+    of physical parameter vectors in one call so that a GPU backend can advance all of them at once.
+    A run that blows up is returned with ``ok=False`` and a ``failure`` reason, never as data.
+    """
+
+    kind: ClassVar[str] = "simulator"
+    #: Version string recorded with every run (change it when results change).
+    version: ClassVar[str] = "0"
+
+    @abstractmethod
+    def parameter_space(self) -> ParameterSpace:
+        """The parameters this simulator takes, in order, with their physical ranges."""
+
+    @abstractmethod
+    def simulate(self, params: np.ndarray,
+                 on_result: Callable[[int, SimulationResult], None] | None = None) -> list[SimulationResult]:
+        """Simulate each row of ``params`` (B, d) (physical units, checked against the ranges).
+
+        Returns one :class:`SimulationResult` per row, in order. ``on_result(i, result)`` is called as
+        soon as row ``i`` finishes so that callers can store results before the batch ends.
+        Raises :class:`~invphys.core.errors.ParameterRangeError` for out-of-range input.
+        """
+
+    def default_feature_extractor(self) -> str | None:
+        """The name of the feature extractor that fits this simulator's trajectories, if any."""
+        return None
+
+    def describe(self) -> dict[str, Any]:
+        """Provenance recorded with datasets (name, version, config)."""
+        return {"simulator": self.name, "version": self.version, "config": self.config.model_dump()}
+
+
+class FeatureExtractor(Plugin):
+    """Turns a :class:`Trajectory` into a fixed-length behavioural feature vector."""
+
+    kind: ClassVar[str] = "feature_extractor"
+
+    @property
+    @abstractmethod
+    def feature_names(self) -> tuple[str, ...]:
+        """Names of the M features, in output order."""
+
+    @abstractmethod
+    def extract(self, trajectory: Trajectory) -> np.ndarray:
+        """Features (M,) float64 of one trajectory; every entry finite (degenerate runs handled)."""
+
+    def extract_many(self, trajectories: Sequence[Trajectory]) -> np.ndarray:
+        """Features (B, M) of several trajectories."""
+        return np.stack([self.extract(t) for t in trajectories])
+
+
+class Executor(Plugin):
+    """Runs batches of simulations somewhere (in-process, a process pool, a Ray cluster).
+
+    Executors yield results as they complete; callers store each result at once so that a killed run
+    loses at most the batches in flight.
+    """
+
+    kind: ClassVar[str] = "executor"
+
+    @abstractmethod
+    def run(self, simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None,
+            params: np.ndarray, batch_size: int) -> Iterator[tuple[int, SimulationResult]]:
+        """Yield ``(row_index, result)`` for every row of ``params`` (B, d), in completion order.
+
+        ``simulator_spec``/``extractor_spec`` are ``{"type": name, **config}`` blocks so that remote
+        workers can rebuild the plugins. When an extractor is given, results carry ``features`` and
+        no trajectory (bounded memory).
+        """
+
+
+# --------------------------------------------------------------------------------------------
+# Learning
+# --------------------------------------------------------------------------------------------
+class Persistent(Plugin):
+    """A trainable plugin that saves to and loads from a directory, with config and metrics."""
+
+    #: metrics of the last fit (e.g. {"r2": 0.93, "r2_per_feature": [...]})
+    metrics: dict[str, Any]
+
+    @abstractmethod
+    def save(self, directory: str | Path) -> Path:
+        """Write weights, config, data fingerprint and metrics under ``directory``; return it."""
+
+    @classmethod
+    @abstractmethod
+    def load(cls, directory: str | Path) -> Persistent:
+        """Rebuild a fitted model saved by :meth:`save` (identical predictions)."""
+
+
+class Surrogate(Persistent):
+    """A fast model of the simulator's features: theta in [0,1]^d -> y in R^M."""
+
+    kind: ClassVar[str] = "surrogate"
+
+    @abstractmethod
+    def fit(self, theta: np.ndarray, y: np.ndarray, progress: bool = False) -> dict[str, Any]:
+        """Train on (N, d) normalised parameters and (N, M) features; return metrics."""
+
+    @abstractmethod
+    def predict(self, theta: np.ndarray) -> np.ndarray:
+        """Predicted features (B, M) for (B, d) normalised parameters (batched, no gradients)."""
+
+    def predict_with_uncertainty(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(mean, std), both (B, M). Surrogates without uncertainty return a zero std."""
+        mean = self.predict(theta)
+        return mean, np.zeros_like(mean)
+
+
+class LatentModel(Persistent):
+    """A learned low-dimensional code z for normalised parameters, with an optional feature head."""
+
+    kind: ClassVar[str] = "latent_model"
+    #: the box the latent search space uses (paper: [-3, 3]^4)
+    latent_bound: ClassVar[float] = 3.0
+
+    @property
+    @abstractmethod
+    def latent_dim(self) -> int:
+        """Dimension k of the latent code."""
+
+    @abstractmethod
+    def fit(self, theta: np.ndarray, y: np.ndarray, progress: bool = False) -> dict[str, Any]:
+        """Train on (N, d) normalised parameters and (N, M) features; return metrics."""
+
+    @abstractmethod
+    def encode(self, theta: np.ndarray) -> np.ndarray:
+        """Deterministic latent codes (B, k) (the mean for a VAE)."""
+
+    @abstractmethod
+    def decode(self, z: np.ndarray) -> np.ndarray:
+        """Normalised parameters (B, d), clipped to [0, 1]."""
+
+    def predict_features(self, z: np.ndarray) -> np.ndarray:
+        """The model's own feature head, (B, M) (the paper's "own head" ablation)."""
+        raise NotImplementedError(f"latent model {self.name!r} has no feature head")
+
+
+# --------------------------------------------------------------------------------------------
+# Optimisation and validation
+# --------------------------------------------------------------------------------------------
+@dataclass
+class SearchSpace:
+    """Where an optimiser searches: a box, and how its points become normalised parameters.
+
+    The raw space is [0, 1]^d with the identity; a latent space is [-b, b]^k with a model's decoder.
+    """
+
+    name: str
+    dim: int
+    low: float
+    high: float
+    to_theta: Callable[[np.ndarray], np.ndarray]
+    from_theta: Callable[[np.ndarray], np.ndarray] | None = None
+
+    def clip(self, points: np.ndarray) -> np.ndarray:
+        return np.clip(points, self.low, self.high)
+
+    def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        return rng.uniform(self.low, self.high, size=(n, self.dim))
+
+
+@dataclass
+class Problem:
+    """One optimisation problem handed to :meth:`Optimizer.optimize`.
+
+    ``evaluate(points)`` maps (B, dim) search points to scores (B,) and counts evaluations;
+    ``predict(points)`` gives the features (B, M) behind the scores. ``target`` is set for recovery
+    problems (the goal a goal-conditioned policy observes).
+    """
+
+    space: SearchSpace
+    predict: Callable[[np.ndarray], np.ndarray]
+    objective: Callable[[np.ndarray], np.ndarray]
+    budget: int
+    target: np.ndarray | None = None
+    initial: np.ndarray | None = None
+    seed: int = 0
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def evaluate(self, points: np.ndarray) -> np.ndarray:
+        """Scores (B,) of (B, dim) search points (clipped to the space first)."""
+        return np.asarray(self.objective(self.predict(self.space.clip(np.atleast_2d(points)))))
+
+
+class Optimizer(Plugin):
+    """Finds search points that maximise a :class:`Problem`'s objective within its budget.
+
+    Goal-conditioned optimisers (``goal_conditioned = True``) are trained once by :meth:`prepare` on
+    a distribution of targets and then answer each :meth:`optimize` call in a few evaluations.
+    """
+
+    kind: ClassVar[str] = "optimizer"
+    goal_conditioned: ClassVar[bool] = False
+
+    def prepare(self, space: SearchSpace, predict: Callable[[np.ndarray], np.ndarray],
+                train_targets: np.ndarray, scales: np.ndarray, progress: bool = False) -> dict[str, Any]:
+        """Train before use (goal-conditioned optimisers); others need nothing. Returns metrics."""
+        return {}
+
+    @abstractmethod
+    def optimize(self, problem: Problem) -> OptimizationResult:
+        """Maximise ``problem``'s objective; never spend more than ``problem.budget`` evaluations."""
+
+
+class Validator(Plugin):
+    """Re-runs recovered parameters through the real simulator and scores them (paper sec. 3.6)."""
+
+    kind: ClassVar[str] = "validator"
+
+    @abstractmethod
+    def validate(self, theta: np.ndarray, targets: np.ndarray, predicted: np.ndarray,
+                 simulator: Simulator, extractor: FeatureExtractor,
+                 scales: np.ndarray) -> list[ValidationRecord]:
+        """One :class:`ValidationRecord` per row of ``theta`` (B, d) and ``targets`` (B, M)."""
+
+
+#: The kinds of plugin, mapped to their base class (the registry's table of contents).
+PLUGIN_KINDS: dict[str, type[Plugin]] = {
+    "simulator": Simulator,
+    "feature_extractor": FeatureExtractor,
+    "executor": Executor,
+    "surrogate": Surrogate,
+    "latent_model": LatentModel,
+    "optimizer": Optimizer,
+    "validator": Validator,
+}

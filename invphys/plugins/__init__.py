@@ -1,0 +1,1 @@
+"""Built-in plugins of invphys (registered by :mod:`invphys.plugins.builtin`)."""

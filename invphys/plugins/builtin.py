@@ -1,0 +1,44 @@
+"""The built-in plugins, registered through the same hooks a third-party distribution uses.
+
+Each hook imports only the light package ``__init__`` that lists its classes; the classes import
+their heavy dependencies (torch, cma, stable-baselines3, ...) inside their methods.
+"""
+
+from __future__ import annotations
+
+from invphys.core.hookspecs import hookimpl
+
+
+@hookimpl
+def invphys_register_executors() -> list[type]:
+    from invphys.plugins.executors import EXECUTORS
+
+    return list(EXECUTORS)
+
+
+@hookimpl
+def invphys_register_surrogates() -> list[type]:
+    from invphys.plugins.surrogates import SURROGATES
+
+    return list(SURROGATES)
+
+
+@hookimpl
+def invphys_register_latent_models() -> list[type]:
+    from invphys.plugins.latents import LATENT_MODELS
+
+    return list(LATENT_MODELS)
+
+
+@hookimpl
+def invphys_register_optimizers() -> list[type]:
+    from invphys.plugins.optimizers import OPTIMIZERS
+
+    return list(OPTIMIZERS)
+
+
+@hookimpl
+def invphys_register_validators() -> list[type]:
+    from invphys.plugins.validators import VALIDATORS
+
+    return list(VALIDATORS)

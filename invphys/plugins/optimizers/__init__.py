@@ -1,0 +1,5 @@
+"""Built-in optimizers plugins."""
+
+from __future__ import annotations
+
+OPTIMIZERS: list[type] = []

@@ -1,0 +1,5 @@
+"""Built-in surrogates plugins."""
+
+from __future__ import annotations
+
+SURROGATES: list[type] = []

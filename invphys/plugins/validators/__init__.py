@@ -1,0 +1,5 @@
+"""Built-in validators plugins."""
+
+from __future__ import annotations
+
+VALIDATORS: list[type] = []
