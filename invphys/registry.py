@@ -50,7 +50,7 @@ class PluginInfo:
 
     kind: str
     name: str
-    cls: type
+    cls: type[Any]
     distribution: str
     version: str
 
@@ -115,7 +115,7 @@ class Registry:
                 continue
             try:
                 module = ep.load()
-            except Exception as exc:  # noqa: BLE001 - re-raised with context
+            except Exception as exc:
                 raise PluginLoadError(
                     f"failed to load invphys plugin {ep.name!r} ({ep.value}) from distribution "
                     f"{dist!r}: {type(exc).__name__}: {exc}"
@@ -138,7 +138,7 @@ class Registry:
                     dist, version = self._dist_of.get(id(impl.plugin), ("<local>", ""))
                     try:
                         classes = impl.function() or []
-                    except Exception as exc:  # noqa: BLE001 - re-raised with context
+                    except Exception as exc:
                         raise PluginLoadError(
                             f"{hook_name} of {impl.plugin_name!r} (distribution {dist!r}) failed: "
                             f"{type(exc).__name__}: {exc}"
@@ -189,7 +189,7 @@ class Registry:
             f"'module:Class' names unpackaged code.)"
         )
 
-    def get(self, kind: str, name: str) -> type:
+    def get(self, kind: str, name: str) -> type[Any]:
         """The plugin class of ``kind`` called ``name`` (or a ``module:Class`` path)."""
         return self.info(kind, name).cls
 
@@ -223,7 +223,7 @@ def _check_class(cls: Any, kind: str, base: type, dist: str, need_name: bool = T
                               f"has no string 'name' attribute")
 
 
-def _import_path(path: str) -> type:
+def _import_path(path: str) -> type[Any]:
     module_name, _, attr = path.partition(":")
     try:
         module = importlib.import_module(module_name)
@@ -264,7 +264,7 @@ def default_registry() -> Registry:
         return _default
 
 
-def get(kind: str, name: str) -> type:
+def get(kind: str, name: str) -> type[Any]:
     """Shortcut for ``default_registry().get(kind, name)``."""
     return default_registry().get(kind, name)
 

@@ -26,37 +26,37 @@ hookimpl = pluggy.HookimplMarker(PROJECT)
 
 
 @hookspec
-def invphys_register_simulators() -> list[type]:
+def invphys_register_simulators() -> list[type]:  # type: ignore[empty-body]
     """Return :class:`~invphys.core.interfaces.Simulator` subclasses."""
 
 
 @hookspec
-def invphys_register_feature_extractors() -> list[type]:
+def invphys_register_feature_extractors() -> list[type]:  # type: ignore[empty-body]
     """Return :class:`~invphys.core.interfaces.FeatureExtractor` subclasses."""
 
 
 @hookspec
-def invphys_register_executors() -> list[type]:
+def invphys_register_executors() -> list[type]:  # type: ignore[empty-body]
     """Return :class:`~invphys.core.interfaces.Executor` subclasses."""
 
 
 @hookspec
-def invphys_register_surrogates() -> list[type]:
+def invphys_register_surrogates() -> list[type]:  # type: ignore[empty-body]
     """Return :class:`~invphys.core.interfaces.Surrogate` subclasses."""
 
 
 @hookspec
-def invphys_register_latent_models() -> list[type]:
+def invphys_register_latent_models() -> list[type]:  # type: ignore[empty-body]
     """Return :class:`~invphys.core.interfaces.LatentModel` subclasses."""
 
 
 @hookspec
-def invphys_register_optimizers() -> list[type]:
+def invphys_register_optimizers() -> list[type]:  # type: ignore[empty-body]
     """Return :class:`~invphys.core.interfaces.Optimizer` subclasses."""
 
 
 @hookspec
-def invphys_register_validators() -> list[type]:
+def invphys_register_validators() -> list[type]:  # type: ignore[empty-body]
     """Return :class:`~invphys.core.interfaces.Validator` subclasses."""
 
 

@@ -46,6 +46,8 @@ class Plugin(ABC):
     name: ClassVar[str]
     kind: ClassVar[str]
     Config: ClassVar[type[PluginConfig]] = PluginConfig
+    #: the validated settings (an instance of the subclass's own ``Config``)
+    config: Any
 
     def __init__(self, config: PluginConfig | dict[str, Any] | None = None, **settings: Any) -> None:
         if config is None:

@@ -179,14 +179,15 @@ def run_spec(spec: str | Path | ExperimentSpec, out: str | Path, stages: Sequenc
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "spec.yaml").write_text(yaml.safe_dump(spec.model_dump(mode="json", by_alias=True), sort_keys=False))
-    selected = list(stages) if stages else list(spec.stages)
+    spec_stages = spec.stages or []
+    selected = list(stages) if stages else list(spec_stages)
     for s in selected:
         if s not in STAGES:
             raise InvphysError(f"unknown stage {s!r}; stages: {', '.join(STAGES)}")
     summaries: dict[str, Any] = {}
     upstream = ""
     for stage in STAGES:
-        if stage not in spec.stages and stage not in selected:
+        if stage not in spec_stages and stage not in selected:
             continue
         module = stage_module(stage)
         inputs = spec.section_dump(getattr(module, "DEPENDS_ON", ()))

@@ -35,6 +35,8 @@ STAGES: tuple[str, ...] = ("dataset", "train", "invert", "validate", "report")
 OPTIMIZER_RUNNER_KEYS: tuple[str, ...] = ("space", "evaluator")
 
 PluginBlock = dict[str, Any]
+ReportFormat = Literal["md", "csv", "json"]
+REPORT_FORMATS: tuple[ReportFormat, ...] = ("md", "csv", "json")
 
 
 class _Section(BaseModel):
@@ -73,7 +75,7 @@ class ReportSection(_Section):
     """Options of the report stage."""
 
     render: bool = Field(True, description="render target and recovered peels side by side when possible")
-    formats: list[Literal["md", "csv", "json"]] = Field(default_factory=lambda: ["md", "csv", "json"])
+    formats: list[ReportFormat] = Field(default_factory=lambda: list(REPORT_FORMATS))
 
 
 class ExperimentSpec(_Section):
@@ -82,7 +84,8 @@ class ExperimentSpec(_Section):
     name: str = Field(min_length=1)
     description: str = ""
     seed: int = 0
-    stages: list[str] = Field(default_factory=lambda: list(STAGES))
+    stages: list[str] | None = Field(
+        None, description="stages to run, in pipeline order; default: every stage whose sections are present")
     simulator: PluginBlock
     features: PluginBlock | None = None
     executor: PluginBlock = Field(default_factory=lambda: {"type": "local"})
@@ -97,7 +100,9 @@ class ExperimentSpec(_Section):
 
     @field_validator("stages")
     @classmethod
-    def _known_stages(cls, value: list[str]) -> list[str]:
+    def _known_stages(cls, value: list[str] | None) -> list[str] | None:
+        if value is None:
+            return None
         for s in value:
             if s not in STAGES:
                 raise ValueError(f"unknown stage {s!r}.{did_you_mean(s, STAGES)} Stages: {', '.join(STAGES)}")
@@ -107,6 +112,10 @@ class ExperimentSpec(_Section):
 
     @model_validator(mode="after")
     def _stage_needs(self) -> ExperimentSpec:
+        if self.stages is None:
+            present = {"dataset": True, "train": self.surrogate is not None, "invert": bool(self.optimizers),
+                       "validate": self.validator is not None, "report": bool(self.optimizers)}
+            self.stages = [s for s in STAGES if present[s]]
         needs = {"train": ("surrogate",), "invert": ("surrogate", "optimizers"), "validate": ("validator",)}
         for stage, sections in needs.items():
             for section in sections:

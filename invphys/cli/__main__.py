@@ -1,0 +1,3 @@
+from invphys.cli import main
+
+main()

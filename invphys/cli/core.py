@@ -1,0 +1,96 @@
+"""Core commands: ``plugins``, ``schema``, ``validate`` and ``run``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from invphys.cli.common import console, emit, escape, handle_errors, out_console
+
+
+def register(app: typer.Typer) -> None:
+    app.command("plugins")(plugins)
+    app.command("schema")(schema)
+    app.command("validate")(validate)
+    app.command("run")(run)
+
+
+@handle_errors
+def plugins(
+    kind: str | None = typer.Option(None, "--kind", help="only this kind (e.g. optimizer)"),
+    as_json: bool = typer.Option(False, "--json", help="machine-readable output"),
+) -> None:
+    """List installed plugins: name, kind, distribution and version."""
+    from invphys import registry
+
+    rows = [info.to_dict() for info in registry.infos(kind)]
+
+    def render(data: list[dict[str, Any]]) -> None:
+        from rich.table import Table
+
+        table = Table("kind", "name", "distribution", "version", "class", title="invphys plugins")
+        for r in data:
+            table.add_row(r["kind"], r["name"], r["distribution"], r["version"], r["class"])
+        out_console.print(table)
+
+    emit(rows, as_json, render)
+
+
+@handle_errors
+def schema(
+    out: Path | None = typer.Option(None, "--out", help="write to this file instead of stdout"),
+) -> None:
+    """Print the JSON Schema of experiment specs, covering the installed plugins' configs."""
+    import json
+
+    from invphys.core.spec import json_schema
+
+    text = json.dumps(json_schema(), indent=2)
+    if out:
+        out.write_text(text + "\n")
+        console.print(f"schema written to {out}")
+    else:
+        typer.echo(text)
+
+
+@handle_errors
+def validate(
+    spec: Path = typer.Argument(..., help="YAML experiment spec"),
+    as_json: bool = typer.Option(False, "--json", help="machine-readable output"),
+) -> None:
+    """Validate a spec (shape, then every plugin block by its plugin's config)."""
+    from invphys.core.spec import load_spec
+
+    s = load_spec(spec)
+    data = {"spec": str(spec), "valid": True, "name": s.name, "stages": s.stages,
+            "plugins": [{"path": p, "kind": k, "type": b.get("type")} for p, k, b in s.plugin_blocks()]}
+    emit(data, as_json, lambda d: out_console.print(
+        f"[green]valid[/]: {escape(str(spec))} (stages: {', '.join(d['stages'])})"))
+
+
+@handle_errors
+def run(
+    spec: Path = typer.Argument(..., help="YAML experiment spec"),
+    out: Path = typer.Option(..., "--out", "-o", help="run directory (artifacts are cached and resumed here)"),
+    stage: list[str] = typer.Option(None, "--stage", "-s", help="run only these stages (repeatable)"),
+    force: list[str] = typer.Option(None, "--force", help="re-run these stages even when cached"),
+    no_progress: bool = typer.Option(False, "--no-progress", help="no progress bars"),
+    as_json: bool = typer.Option(False, "--json", help="print the stage summaries as JSON"),
+) -> None:
+    """Run the stages a spec names, caching each stage's artifacts under OUT and resuming from them."""
+    from invphys.core.runner import run_spec
+
+    def on_stage(name: str, status: str, summary: dict[str, Any] | None) -> None:
+        if status == "cached":
+            console.print(f"[cyan]- {name}[/]: cached (inputs unchanged)")
+        elif status == "start":
+            console.rule(f"[bold]{name}")
+        else:
+            secs = (summary or {}).get("wall_time_s", 0)
+            console.print(f"[green]done {name}[/] in {secs:.1f} s")
+
+    summaries = run_spec(spec, out, stages=stage or None, force=force or (), progress=not no_progress,
+                         console=console, on_stage=on_stage)
+    emit(summaries, as_json, lambda d: out_console.print(f"[green]finished[/]: {', '.join(d)} -> {out}"))

@@ -1,0 +1,138 @@
+"""The plugin registry: hooks, entry points, did-you-mean, duplicates, import failures."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import types
+
+import pytest
+from core_plugins import OtherRandomSearch, RandomSearch
+
+from invphys import hookimpl, registry
+from invphys.core.errors import DuplicatePluginError, PluginLoadError, PluginNotFoundError
+from invphys.registry import Registry
+
+
+class FakeDist:
+    def __init__(self, name: str, version: str = "1.2.3") -> None:
+        self.name, self.version = name, version
+
+
+class FakeEntryPoint:
+    """Stands in for importlib.metadata.EntryPoint (name, value, dist, load())."""
+
+    def __init__(self, name: str, module: object, dist: str, fail: Exception | None = None) -> None:
+        self.name, self.value, self.dist = name, f"{name}.plugin", FakeDist(dist)
+        self._module, self._fail = module, fail
+
+    def load(self) -> object:
+        if self._fail:
+            raise self._fail
+        return self._module
+
+
+def plugin_module(*classes: type, hook: str = "invphys_register_optimizers") -> types.ModuleType:
+    mod = types.ModuleType(f"fake_{id(classes)}")
+
+    def impl() -> list[type]:
+        return list(classes)
+
+    impl.__name__ = hook
+    setattr(mod, hook, hookimpl(impl))
+    return mod
+
+
+def test_registered_fixture_registers_for_one_block_only():
+    with registry.registered(RandomSearch):
+        assert registry.get("optimizer", "test_random_search") is RandomSearch
+        info = next(i for i in registry.infos("optimizer") if i.name == "test_random_search")
+        assert info.distribution == "<test>"
+    with pytest.raises(PluginNotFoundError):
+        registry.get("optimizer", "test_random_search")
+
+
+def test_entry_point_plugins_are_discovered_once_with_their_distribution(monkeypatch):
+    calls = []
+
+    def fake_eps():
+        calls.append(1)
+        return [FakeEntryPoint("food", plugin_module(RandomSearch), "invphys-food")]
+
+    monkeypatch.setattr("invphys.registry._entry_points", fake_eps)
+    reg = Registry(autoload=True)
+    assert reg.get("optimizer", "test_random_search") is RandomSearch
+    reg.names("optimizer")
+    reg.refresh()
+    reg.names("optimizer")
+    assert len(calls) == 1
+    info = reg.info("optimizer", "test_random_search")
+    assert (info.distribution, info.version) == ("invphys-food", "1.2.3")
+
+
+def test_autoload_can_be_turned_off_by_environment(monkeypatch):
+    monkeypatch.setattr("invphys.registry._entry_points",
+                        lambda: [FakeEntryPoint("food", plugin_module(RandomSearch), "invphys-food")])
+    monkeypatch.setenv("INVPHYS_DISABLE_PLUGIN_AUTOLOAD", "1")
+    assert "test_random_search" not in Registry().names("optimizer")
+    monkeypatch.setenv("INVPHYS_DISABLE_PLUGIN_AUTOLOAD", "0")
+    assert "test_random_search" in Registry().names("optimizer")
+
+
+def test_duplicate_names_fail_naming_both_distributions(monkeypatch):
+    monkeypatch.setattr("invphys.registry._entry_points", lambda: [
+        FakeEntryPoint("a", plugin_module(RandomSearch), "dist-alpha"),
+        FakeEntryPoint("b", plugin_module(OtherRandomSearch), "dist-beta"),
+    ])
+    with pytest.raises(DuplicatePluginError) as err:
+        Registry(autoload=True).names("optimizer")
+    assert "dist-alpha" in str(err.value) and "dist-beta" in str(err.value)
+    assert "'test_random_search'" in str(err.value)
+
+
+def test_import_failure_names_plugin_and_distribution(monkeypatch):
+    monkeypatch.setattr("invphys.registry._entry_points", lambda: [
+        FakeEntryPoint("broken", None, "invphys-broken", fail=ModuleNotFoundError("No module named 'zzz'")),
+    ])
+    with pytest.raises(PluginLoadError) as err:
+        Registry(autoload=True).names("optimizer")
+    msg = str(err.value)
+    assert "'broken'" in msg and "invphys-broken" in msg and "zzz" in msg
+
+
+def test_unknown_name_did_you_mean_and_installed_list():
+    with registry.registered(RandomSearch), pytest.raises(PluginNotFoundError) as err:
+        registry.get("optimizer", "test_random_serch")
+    msg = str(err.value)
+    assert msg.startswith("No optimizer named 'test_random_serch'. Did you mean 'test_random_search'?")
+    assert "Installed optimizers:" in msg and "test_random_search" in msg
+
+
+def test_module_class_escape_hatch_and_wrong_base():
+    assert registry.get("optimizer", "core_plugins:RandomSearch") is RandomSearch
+    with pytest.raises(PluginLoadError, match="does not subclass"):
+        registry.get("surrogate", "core_plugins:RandomSearch")
+    with pytest.raises(PluginLoadError, match="cannot import module"):
+        registry.get("optimizer", "no_such_module_xyz:Thing")
+
+
+def test_create_validates_config():
+    opt = registry.create("optimizer", {"type": "core_plugins:RandomSearch", "sigma0": 0.5})
+    assert opt.config.sigma0 == 0.5
+    with pytest.raises(Exception, match="greater than 0"):
+        registry.create("optimizer", {"type": "core_plugins:RandomSearch", "sigma0": -1})
+
+
+def test_registering_a_non_plugin_class_is_an_error(monkeypatch):
+    monkeypatch.setattr("invphys.registry._entry_points",
+                        lambda: [FakeEntryPoint("bad", plugin_module(dict), "invphys-bad")])
+    with pytest.raises(PluginLoadError, match="invphys-bad"):
+        Registry(autoload=True).names("optimizer")
+
+
+def test_listing_plugins_imports_no_heavy_library():
+    code = ("import sys, invphys.registry as r; r.infos(); "
+            "heavy = [m for m in ('torch', 'taichi', 'warp', 'stable_baselines3', 'ray') if m in sys.modules]; "
+            "print(heavy)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
