@@ -1,0 +1,314 @@
+"""Dataset generation: sample parameters, simulate them through an executor, store every row.
+
+:func:`generate_dataset` is what ``invphys dataset generate`` and the ``dataset`` stage run::
+
+    from invphys.core.generate import generate_dataset
+    summary = generate_dataset("data/peel", simulator={"type": "orange_peel", "preset": "tiny"},
+                               n=64, batch_size=8, executor={"type": "process", "workers": 2})
+    print(summary.ok, summary.failed, summary.runs_per_hour)
+
+The design is deterministic in ``(n, sampler, seed)``; rows already in the store (same key) are skipped,
+so re-running the same call resumes a killed or time-limited generation and never duplicates.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import platform
+import signal
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from invphys.core.dataset import DatasetStore, Row, RunIdentity, check_features, round_theta, row_keys
+from invphys.core.errors import InvphysError
+from invphys.core.sampling import sample_unit
+
+
+@dataclass
+class GenerationSummary:
+    """What one generation session did (JSON-ready through :meth:`to_dict`)."""
+
+    path: str
+    requested: int
+    already_present: int
+    ran: int = 0
+    ok: int = 0
+    failed: int = 0
+    wall_s: float = 0.0
+    stop_reason: str = "complete"
+    total_rows: int = 0
+    total_ok: int = 0
+    total_failed: int = 0
+    devices: list[str] = field(default_factory=list)
+    backends: list[str] = field(default_factory=list)
+
+    @property
+    def runs_per_hour(self) -> float:
+        return 3600.0 * self.ran / self.wall_s if self.wall_s > 0 else 0.0
+
+    @property
+    def complete(self) -> bool:
+        """True when every requested row is in the store."""
+        return self.already_present + self.ran >= self.requested
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**asdict(self), "runs_per_hour": round(self.runs_per_hour, 1), "complete": self.complete}
+
+
+class _Terminated(Exception):
+    """SIGTERM arrived: stop cleanly, keeping what is stored."""
+
+
+@contextlib.contextmanager
+def _sigterm_stops() -> Iterator[None]:
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, frame: Any) -> None:
+        raise _Terminated()
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _utcnow() -> str:
+    return datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def host_info() -> dict[str, Any]:
+    """Where a generation ran (recorded in the dataset's metadata)."""
+    return {"hostname": platform.node(), "platform": platform.platform(), "python": sys.version.split()[0],
+            "cpu_count": os.cpu_count()}
+
+
+def generate_dataset(
+    path: str | os.PathLike[str],
+    simulator: dict[str, Any],
+    features: dict[str, Any] | None = None,
+    executor: dict[str, Any] | None = None,
+    n: int = 200,
+    sampler: str = "uniform",
+    batch_size: int = 16,
+    seed: int = 0,
+    limit_minutes: float | None = None,
+    spec: dict[str, Any] | None = None,
+    progress: bool = True,
+    console: Any = None,
+    registry: Any = None,
+    flush_every_s: float = 30.0,
+) -> GenerationSummary:
+    """Generate (or resume) the dataset of ``n`` runs in the store at ``path``.
+
+    ``simulator``/``features``/``executor`` are plugin blocks ``{"type": name, **config}``; ``features``
+    None uses the simulator's default extractor and ``executor`` None the ``local`` executor. Rows are
+    stored after every batch (and at least every ``flush_every_s`` seconds). With ``limit_minutes`` the
+    run stops before starting a batch it expects to finish after the limit (summary ``stop_reason``
+    ``"time_limit"``); SIGTERM and Ctrl-C also stop cleanly. ``spec`` (the experiment spec as a dict)
+    is recorded in the metadata.
+    """
+    from invphys import registry as registry_module
+
+    reg = registry or registry_module.default_registry()
+    if n <= 0:
+        raise InvphysError(f"dataset.n must be > 0, got {n}")
+    if batch_size <= 0:
+        raise InvphysError(f"dataset.batch_size must be > 0, got {batch_size}")
+    sim_block = dict(simulator)
+    sim = reg.create("simulator", sim_block)
+    if features is None:
+        default = sim.default_feature_extractor()
+        if default is None:
+            raise InvphysError(f"simulator {sim.name!r} names no default feature extractor; "
+                               "set a 'features' block")
+        features = {"type": default}
+    ext_block = dict(features)
+    extractor = reg.create("feature_extractor", ext_block)
+    exec_block = dict(executor or {"type": "local"})
+    execu = reg.create("executor", exec_block)
+    space = sim.parameter_space()
+    n_features = len(extractor.feature_names)
+    identity = RunIdentity.of(sim)
+
+    theta = round_theta(sample_unit(n, space.dim, sampler, seed))
+    params = space.denormalize(theta)
+    keys = row_keys(theta, identity)
+    if len(set(keys)) != len(keys):
+        raise InvphysError("the sampled design repeats a point at the key precision; use another seed")
+
+    store = DatasetStore(path)
+    with store.writer():
+        meta = store.create_or_check({
+            "identity": identity.to_dict(),
+            "param_names": list(space.names),
+            "feature_names": list(extractor.feature_names),
+            "parameter_space": space.describe(),
+            "simulator": sim.describe(),
+            "simulator_block": sim_block,
+            "extractor_block": ext_block,
+        })
+        frame = store.frame() if store.parts() else None
+        present = set(frame["key"]) if frame is not None else set()
+        prior_ok = int((frame["status"] == "ok").sum()) if frame is not None else 0
+        prior_failed = (len(frame) - prior_ok) if frame is not None else 0
+        todo = np.array([i for i, k in enumerate(keys) if k not in present], dtype=np.int64)
+        summary = GenerationSummary(path=str(store.path), requested=n, already_present=n - len(todo))
+        session: dict[str, Any] = {
+            "started_at": _utcnow(), "n": n, "sampler": sampler, "seed": seed, "batch_size": batch_size,
+            "executor": exec_block, "limit_minutes": limit_minutes, "host": host_info(),
+            "simulator_config": sim.describe().get("config"),
+        }
+        meta["sessions"] = [*meta.get("sessions", []), session]
+        if spec is not None:
+            meta["spec"] = spec
+
+        t0 = time.monotonic()
+        devices: set[str] = set()
+        backends: set[str] = set()
+
+        def flush(buffer: list[Row]) -> None:
+            store.append(buffer)
+            buffer.clear()
+            summary.wall_s = time.monotonic() - t0
+            summary.devices, summary.backends = sorted(devices), sorted(backends)
+            session.update(finished_at=_utcnow(), wall_s=round(summary.wall_s, 3), ran=summary.ran,
+                           ok=summary.ok, failed=summary.failed, stop_reason=summary.stop_reason,
+                           runs_per_hour=round(summary.runs_per_hour, 1), devices=summary.devices,
+                           backends=summary.backends)
+            summary.total_ok, summary.total_failed = prior_ok + summary.ok, prior_failed + summary.failed
+            summary.total_rows = summary.total_ok + summary.total_failed
+            sessions = meta["sessions"]
+            meta["totals"] = {
+                "rows": summary.total_rows, "ok": summary.total_ok, "failed": summary.total_failed,
+                "generation_wall_s": round(sum(s.get("wall_s", 0.0) for s in sessions), 3),
+                "devices": sorted({d for s in sessions for d in s.get("devices", [])}),
+                "backends": sorted({b for s in sessions for b in s.get("backends", [])}),
+            }
+            store.write_metadata(meta)
+
+        buffer: list[Row] = []
+        flush(buffer)
+        if len(todo):
+            sizes = {b: min(batch_size, len(todo) - b * batch_size) for b in range(-(-len(todo) // batch_size))}
+            received: dict[int, int] = {}
+            deadline = t0 + 60.0 * limit_minutes if limit_minutes else None
+            batches_done = 0
+            last_flush = time.monotonic()
+            bar = _Progress(progress, console, len(todo), summary.already_present)
+            runs = execu.run(sim_block, ext_block, params[todo], batch_size)
+            try:
+                with _sigterm_stops(), bar:
+                    for local_i, result in runs:
+                        i = int(todo[local_i])
+                        check_features(result, n_features)
+                        buffer.append(Row(key=keys[i], sample_index=i, theta=theta[i], params=params[i],
+                                          result=result))
+                        summary.ran += 1
+                        summary.ok += bool(result.ok)
+                        summary.failed = summary.ran - summary.ok
+                        devices.update([result.stats.device] if result.stats.device else [])
+                        backends.update([result.stats.backend] if result.stats.backend else [])
+                        bar.advance(summary)
+                        b = local_i // batch_size
+                        received[b] = received.get(b, 0) + 1
+                        batch_finished = received[b] == sizes[b]
+                        if batch_finished:
+                            del received[b]
+                            batches_done += 1
+                        now = time.monotonic()
+                        if len(buffer) >= batch_size or now - last_flush >= flush_every_s:
+                            flush(buffer)
+                            last_flush = now
+                        if deadline is not None and summary.ran < len(todo):
+                            per_batch = (now - t0) / max(batches_done, 1)
+                            idle = not received  # no batch half-delivered
+                            if (idle and now + per_batch > deadline) or now > deadline + per_batch:
+                                summary.stop_reason = "time_limit"
+                                break
+            except (KeyboardInterrupt, _Terminated) as exc:
+                summary.stop_reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else "terminated"
+            finally:
+                runs_close = getattr(runs, "close", None)
+                if runs_close is not None:
+                    runs_close()
+                flush(buffer)
+        if summary.stop_reason == "complete" and not summary.complete:
+            summary.stop_reason = "incomplete"
+            flush(buffer)
+    return summary
+
+
+class _Progress:
+    """A rich progress bar with ok/failed counts, runs per hour and ETA (a no-op when disabled)."""
+
+    def __init__(self, enabled: bool, console: Any, total: int, skipped: int) -> None:
+        self.enabled = enabled
+        self.t0 = time.monotonic()
+        self.progress: Any = None
+        if not enabled:
+            return
+        from rich.console import Console
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TextColumn,
+            TimeElapsedColumn,
+            TimeRemainingColumn,
+        )
+
+        self.progress = Progress(
+            TextColumn("[bold]simulating"), BarColumn(), MofNCompleteColumn(),
+            TextColumn("[green]{task.fields[ok]} ok[/] [red]{task.fields[failed]} failed[/]"),
+            TextColumn("{task.fields[rate]} runs/h"), TimeElapsedColumn(), TextColumn("ETA"),
+            TimeRemainingColumn(), console=console or Console(stderr=True), transient=False,
+        )
+        self.task = self.progress.add_task("simulate", total=total, ok=0, failed=0, rate="-")
+        if skipped:
+            self.progress.console.print(f"resuming: {skipped} rows already stored, {total} to run")
+
+    def __enter__(self) -> _Progress:
+        if self.progress is not None:
+            self.progress.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.progress is not None:
+            self.progress.stop()
+
+    def advance(self, summary: GenerationSummary) -> None:
+        if self.progress is None:
+            return
+        elapsed = time.monotonic() - self.t0
+        rate = f"{3600.0 * summary.ran / elapsed:,.0f}" if elapsed > 0 else "-"
+        self.progress.update(self.task, advance=1, ok=summary.ok, failed=summary.failed, rate=rate)
+
+
+def generate_from_spec(spec: Any, out: str | os.PathLike[str] | None = None, progress: bool = True,
+                       console: Any = None, registry: Any = None,
+                       limit_minutes: float | None = None) -> GenerationSummary:
+    """Generate the dataset an :class:`~invphys.core.spec.ExperimentSpec` describes into ``out``
+    (default: ``dataset.path``). ``limit_minutes`` overrides ``dataset.limit_minutes``."""
+    ds = spec.dataset
+    target = out if out is not None else ds.path
+    if target is None:
+        raise InvphysError("no output directory: pass --out or set dataset.path in the spec")
+    return generate_dataset(
+        Path(target), simulator=spec.simulator, features=spec.features, executor=spec.executor, n=ds.n,
+        sampler=ds.sampler, batch_size=ds.batch_size, seed=ds.seed if ds.seed is not None else spec.seed,
+        limit_minutes=limit_minutes if limit_minutes is not None else ds.limit_minutes,
+        spec=spec.model_dump(mode="json", by_alias=True), progress=progress, console=console,
+        registry=registry,
+    )

@@ -1,0 +1,98 @@
+"""Running one batch of simulations where an executor puts it (this process, a pool worker, a Ray task).
+
+Plugins are rebuilt from their ``{"type": name, **config}`` blocks and cached per process, so a worker
+initialises a simulator backend (taichi, warp) once and reuses it for every batch it runs.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from typing import Any
+
+import numpy as np
+
+from invphys.core.errors import InvphysError
+from invphys.core.results import RunStats, SimulationResult
+
+_CACHE: dict[str, tuple[Any, Any]] = {}
+
+
+def build_plugins(simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None) -> tuple[Any, Any]:
+    """The (simulator, extractor) for these blocks, built once per process through the registry."""
+    key = json.dumps([simulator_spec, extractor_spec], sort_keys=True, default=str)
+    if key not in _CACHE:
+        from invphys import registry
+
+        simulator = registry.create("simulator", dict(simulator_spec))
+        extractor = registry.create("feature_extractor", dict(extractor_spec)) if extractor_spec else None
+        _CACHE[key] = (simulator, extractor)
+    return _CACHE[key]
+
+
+def failed_result(simulator: Any, params: np.ndarray, reason: str, wall_time_s: float = 0.0) -> SimulationResult:
+    """A failed :class:`SimulationResult` for a run that raised instead of returning."""
+    cfg = getattr(simulator, "config", None)
+    stats = RunStats(wall_time_s=wall_time_s, backend=str(getattr(cfg, "backend", "") or ""),
+                     preset=str(getattr(cfg, "preset", "") or ""), simulator=str(simulator.name),
+                     simulator_version=str(simulator.version))
+    return SimulationResult(params=np.asarray(params, dtype=np.float64), ok=False, stats=stats, failure=reason)
+
+
+def _reason(exc: BaseException) -> str:
+    from invphys.core.dataset import failure_reason
+
+    return failure_reason(exc)
+
+
+def simulate_batch(simulator: Any, extractor: Any, params: np.ndarray,
+                   isolate_failures: bool = True) -> list[SimulationResult]:
+    """Simulate ``params`` (B, d) in one simulator call and extract features.
+
+    An exception from the simulator (other than an :class:`InvphysError`, which is the user's to fix
+    and propagates) becomes failed results: with ``isolate_failures`` the rows of a multi-row batch are
+    re-run one by one so that one bad row does not fail its neighbours. Results carry ``features``,
+    never a trajectory.
+    """
+    params = np.atleast_2d(np.asarray(params, dtype=np.float64))
+    t0 = time.perf_counter()
+    try:
+        results = list(simulator.simulate(params))
+        if len(results) != len(params):
+            raise RuntimeError(f"simulator returned {len(results)} results for {len(params)} rows")
+    except InvphysError:
+        raise
+    except Exception as exc:
+        if isolate_failures and len(params) > 1:
+            results = [simulate_batch(simulator, None, row[None], False)[0] for row in params]
+        else:
+            wall = (time.perf_counter() - t0) / len(params)
+            results = [failed_result(simulator, row, _reason(exc), wall) for row in params]
+    if extractor is not None:
+        for res in results:
+            if res.ok and res.features is None:
+                try:
+                    if res.trajectory is None:
+                        raise RuntimeError("the simulator returned no trajectory")
+                    res.features = np.asarray(extractor.extract(res.trajectory), dtype=np.float64)
+                except InvphysError:
+                    raise
+                except Exception as exc:
+                    res.ok, res.failure = False, f"feature extraction: {_reason(exc)}"
+    for res in results:
+        res.trajectory = None
+    return results
+
+
+def run_batch(simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None, params: np.ndarray,
+              isolate_failures: bool = True) -> list[SimulationResult]:
+    """Build (or reuse) the plugins and simulate one batch: the function workers execute."""
+    simulator, extractor = build_plugins(simulator_spec, extractor_spec)
+    return simulate_batch(simulator, extractor, params, isolate_failures)
+
+
+def batches(n: int, batch_size: int) -> list[np.ndarray]:
+    """Row indices ``0..n-1`` cut into consecutive batches of at most ``batch_size``."""
+    if batch_size <= 0:
+        raise InvphysError(f"batch_size must be > 0, got {batch_size}")
+    return [np.arange(i, min(i + batch_size, n)) for i in range(0, n, batch_size)]

@@ -1,0 +1,33 @@
+"""The ``local`` executor: batches run one after another in this process."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from invphys.core.interfaces import Executor, PluginConfig
+from invphys.core.results import SimulationResult
+from invphys.plugins.executors._batch import batches, build_plugins, simulate_batch
+
+
+class LocalExecutor(Executor):
+    """Runs each batch in this process through the simulator's own batching (a GPU simulator advances
+    the whole batch at once on its device). The default executor."""
+
+    name = "local"
+
+    class Config(PluginConfig):
+        isolate_failures: bool = Field(
+            True, description="when a batch raises, re-run its rows one by one so only the bad row fails")
+
+    def run(self, simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None,
+            params: np.ndarray, batch_size: int) -> Iterator[tuple[int, SimulationResult]]:
+        """Yield ``(row_index, result)`` batch by batch, in row order."""
+        simulator, extractor = build_plugins(simulator_spec, extractor_spec)
+        params = np.atleast_2d(np.asarray(params, dtype=np.float64))
+        for idx in batches(len(params), batch_size):
+            results = simulate_batch(simulator, extractor, params[idx], self.config.isolate_failures)
+            yield from zip(idx.tolist(), results, strict=True)

@@ -1,0 +1,140 @@
+"""The ``process`` executor: a pool of worker processes on this machine (spawn start method)."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from invphys.core.errors import InvphysError
+from invphys.core.interfaces import Executor, PluginConfig
+from invphys.core.results import SimulationResult
+from invphys.plugins.executors._batch import batches, build_plugins, failed_result, run_batch
+
+
+def _init_worker(env: dict[str, str]) -> None:
+    os.environ.update(env)
+
+
+class ProcessExecutor(Executor):
+    """Runs batches in a ``concurrent.futures`` process pool started with *spawn* (taichi and warp
+    must not be initialised before a fork). Each worker rebuilds the simulator and extractor from
+    their spec blocks once (so plugins must be importable there: installed entry points or
+    ``module:Class`` paths) and keeps them for later batches.
+
+    A worker process that dies (segfault, out of memory) breaks the pool: the pool is restarted and
+    the batches it held are re-run one at a time (then row by row), so only the rows that kill a
+    worker are stored as failed ("worker process died").
+    """
+
+    name = "process"
+
+    class Config(PluginConfig):
+        workers: int | None = Field(None, ge=1, description="worker processes (default: CPU count)")
+        max_in_flight: int | None = Field(
+            None, ge=1, description="batches submitted but not finished (default: 2 x workers)")
+        threads_per_worker: int | None = Field(
+            1, ge=1, description="OMP/MKL/taichi CPU threads per worker (None leaves the environment alone)")
+        max_tasks_per_child: int | None = Field(
+            None, ge=1, description="replace a worker after this many batches (bounds leaks)")
+        isolate_failures: bool = Field(
+            True, description="when a batch raises, re-run its rows one by one so only the bad row fails")
+
+    def _pool(self) -> Any:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        env: dict[str, str] = {}
+        if self.config.threads_per_worker is not None:
+            t = str(self.config.threads_per_worker)
+            env = {"OMP_NUM_THREADS": t, "MKL_NUM_THREADS": t, "OPENBLAS_NUM_THREADS": t,
+                   "TI_NUM_THREADS": t}
+        return ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=_init_worker, initargs=(env,),
+                                   max_tasks_per_child=self.config.max_tasks_per_child)
+
+    @property
+    def workers(self) -> int:
+        return self.config.workers or os.cpu_count() or 1
+
+    def run(self, simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None,
+            params: np.ndarray, batch_size: int) -> Iterator[tuple[int, SimulationResult]]:
+        """Yield ``(row_index, result)`` as batches complete (completion order)."""
+        from concurrent.futures import FIRST_COMPLETED, wait
+        from concurrent.futures.process import BrokenProcessPool
+
+        params = np.atleast_2d(np.asarray(params, dtype=np.float64))
+        todo = batches(len(params), batch_size)
+        todo.reverse()
+        limit = self.config.max_in_flight or 2 * self.workers
+        isolate = self.config.isolate_failures
+        suspects: list[np.ndarray] = []  # batches that were in a pool when it broke, re-run alone
+        pool = self._pool()
+        pending: dict[Any, np.ndarray] = {}
+
+        def failed(idx: np.ndarray, exc: BaseException) -> list[SimulationResult]:
+            simulator, _ = build_plugins(simulator_spec, None)
+            reason = (f"worker process died: {exc}" if isinstance(exc, BrokenProcessPool)
+                      else f"{type(exc).__name__}: {exc}")
+            return [failed_result(simulator, params[i], reason[:500]) for i in idx]
+
+        try:
+            while todo or pending or suspects:
+                if suspects and not pending:
+                    # a suspect runs alone, so a pool that breaks now was broken by this batch
+                    idx = suspects.pop()
+                    fut = pool.submit(run_batch, simulator_spec, extractor_spec, params[idx], isolate)
+                    try:
+                        results = fut.result()
+                    except InvphysError:
+                        raise
+                    except BrokenProcessPool as exc:
+                        _terminate(pool)
+                        pool = self._pool()
+                        if isolate and len(idx) > 1:
+                            suspects.extend(np.array([i]) for i in idx[::-1])
+                            continue
+                        results = failed(idx, exc)
+                    except Exception as exc:
+                        results = failed(idx, exc)
+                    yield from zip(idx.tolist(), results, strict=True)
+                    continue
+                while todo and not suspects and len(pending) < limit:
+                    idx = todo.pop()
+                    pending[pool.submit(run_batch, simulator_spec, extractor_spec, params[idx], isolate)] = idx
+                done, _ = wait(list(pending), return_when=FIRST_COMPLETED)
+                broken = False
+                for fut in done:
+                    idx = pending.pop(fut)
+                    try:
+                        results = fut.result()
+                    except InvphysError:
+                        raise
+                    except BrokenProcessPool:
+                        broken = True
+                        suspects.append(idx)
+                        continue
+                    except Exception as exc:
+                        results = failed(idx, exc)
+                    yield from zip(idx.tolist(), results, strict=True)
+                if broken:
+                    suspects.extend(pending.values())
+                    pending.clear()
+                    _terminate(pool)
+                    pool = self._pool()
+        finally:
+            _terminate(pool)
+
+
+def _terminate(pool: Any) -> None:
+    """Stop a pool now: cancel queued batches and end its worker processes."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in processes:
+        if p.is_alive():
+            p.terminate()
+    for p in processes:
+        p.join(timeout=5)
