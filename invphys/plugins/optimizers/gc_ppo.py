@@ -1,0 +1,173 @@
+"""Goal-conditioned PPO (paper sec. 3.4): one policy, trained once, that inverts any target in T steps."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+from pydantic import Field
+
+from invphys.core.errors import InvphysError
+from invphys.core.interfaces import Problem, SearchSpace
+from invphys.core.objectives import recovery_reward
+from invphys.core.results import OptimizationResult
+from invphys.plugins.optimizers._base import BuiltinOptimizer, Tracker
+from invphys.plugins.optimizers._rl import PPOSettings, make_ppo, run_rollouts
+
+
+class GoalConditionedPPO(BuiltinOptimizer):
+    """A PPO policy conditioned on the target features y*.
+
+    :meth:`prepare` trains it on targets drawn uniformly from ``train_targets`` (the training
+    partition's features) plus N(0, ``target_noise``) noise in standardised feature space (z-scores
+    with the training targets' mean and std). Observation ``[s, y_hat, y*, R_gt, t/T]`` (``y_hat``,
+    ``y*`` standardised); every episode starts at the box centre; ``s_{t+1} = clip(s_t + step_scale *
+    a_t)``; sparse reward = the best R_gt (eq. 1, with ``scales`` and ``kappa``) among the T states, at
+    step T. :meth:`optimize` then rolls the policy for T steps towards ``problem.target``: ``rollouts``
+    episodes in parallel (the first deterministic, the rest sampled), ``rollouts * T`` evaluations, and
+    returns the best state. :meth:`save`/:meth:`load` persist the trained policy.
+    """
+
+    name: ClassVar[str] = "gc_ppo"
+    goal_conditioned: ClassVar[bool] = True
+
+    class Config(PPOSettings):
+        total_timesteps: int = Field(500_000, ge=1, description="training environment steps")
+        target_noise: float = Field(0.05, ge=0, description="std of goal noise in standardised feature space")
+        kappa: float = Field(3.0, gt=0, description="sharpness of the recovery reward R_gt")
+        rollouts: int = Field(1, ge=1, description="episodes per optimize call (first deterministic)")
+
+    def __init__(self, config: Any = None, **settings: Any) -> None:
+        super().__init__(config, **settings)
+        self.model: Any = None
+        self.meta: dict[str, Any] = {}
+        self.metrics: dict[str, Any] = {}
+
+    @property
+    def evaluation_budget(self) -> int:
+        return self.config.rollouts * self.config.horizon
+
+    @property
+    def prepared(self) -> bool:
+        return self.model is not None
+
+    # -- training ------------------------------------------------------------------------------
+    def prepare(self, space: SearchSpace, predict: Callable[[np.ndarray], np.ndarray],
+                train_targets: np.ndarray, scales: np.ndarray, progress: bool = False) -> dict[str, Any]:
+        """Train the policy on ``train_targets`` (N, M) in ``space`` with the feature predictor ``predict``."""
+        from invphys.envs.task import EpisodeBatch, InverseTask
+        from invphys.envs.vec import InverseVecEnv
+
+        cfg = self.config
+        targets = np.asarray(train_targets, dtype=np.float64)
+        if targets.ndim != 2 or targets.shape[0] < 2:
+            raise InvphysError(f"gc_ppo needs >= 2 training targets (N, M), got shape {targets.shape}")
+        targets = targets[np.all(np.isfinite(targets), axis=1)]
+        scales = np.asarray(scales, dtype=np.float64).reshape(-1)
+        mean, std = targets.mean(axis=0), np.maximum(targets.std(axis=0), 1e-9)
+        seed = int(0 if cfg.seed is None else cfg.seed)
+        kappa, noise = cfg.kappa, cfg.target_noise
+
+        def sample_goals(rng: np.random.Generator, n: int) -> np.ndarray:
+            z = (targets[rng.integers(0, len(targets), size=n)] - mean) / std
+            return (z + rng.normal(0.0, noise, size=z.shape)) * std + mean
+
+        def score(y: np.ndarray, goals: np.ndarray | None) -> np.ndarray:
+            return recovery_reward(y, goals, scales, kappa)
+
+        task = InverseTask(low=space.low, high=space.high, dim=space.dim, predict=predict, score=score,
+                           feature_mean=mean, feature_std=std, horizon=cfg.horizon, step_scale=cfg.step_scale,
+                           goal_sampler=sample_goals)
+        env = InverseVecEnv(task, cfg.n_envs, seed)
+        self.model = make_ppo(env, cfg, seed)
+        t0 = time.perf_counter()
+        self.model.learn(total_timesteps=cfg.total_timesteps, progress_bar=progress)
+        train_s = time.perf_counter() - t0
+        self.meta = {"space": {"name": space.name, "dim": space.dim, "low": space.low, "high": space.high},
+                     "feature_mean": mean.tolist(), "feature_std": std.tolist(), "scales": scales.tolist(),
+                     "start": task.start.tolist(), "start_features": task.start_features.tolist()}
+        # recovery of the deterministic policy on (noise-free) training targets
+        rng = np.random.default_rng(seed + 1)
+        sample = targets[rng.choice(len(targets), size=min(64, len(targets)), replace=False)]
+        eval_task = InverseTask(low=space.low, high=space.high, dim=space.dim, predict=predict, score=score,
+                                feature_mean=mean, feature_std=std, horizon=cfg.horizon,
+                                step_scale=cfg.step_scale, start=task.start, start_features=task.start_features,
+                                goal_sampler=sample_goals)
+        batch = EpisodeBatch(eval_task, len(sample), rng)
+        batch.reset(goals=sample)
+        run_rollouts(self.model, batch, n_deterministic=len(sample))
+        steps = int(self.model.num_timesteps)
+        self.metrics = {"timesteps": steps, "train_time_s": train_s, "steps_per_s": steps / max(train_s, 1e-9),
+                        "surrogate_calls": env.predict_calls, "train_recovery": float(batch.best.mean())}
+        return dict(self.metrics)
+
+    # -- inference -----------------------------------------------------------------------------
+    def optimize(self, problem: Problem) -> OptimizationResult:
+        from invphys.envs.task import EpisodeBatch, InverseTask
+
+        if self.model is None:
+            raise InvphysError("gc_ppo has no trained policy: call prepare() (the invert stage does) or load()")
+        if problem.target is None:
+            raise InvphysError("gc_ppo inverts targets: the problem needs a target feature vector")
+        cfg = self.config
+        space, meta = problem.space, self.meta
+        if space.dim != meta["space"]["dim"] or (space.low, space.high) != (meta["space"]["low"],
+                                                                             meta["space"]["high"]):
+            raise InvphysError(f"gc_ppo policy was trained in space {meta['space']}, the problem searches "
+                               f"{space.name!r} [{space.low}, {space.high}]^{space.dim}")
+        rollouts = min(cfg.rollouts, problem.budget // cfg.horizon)
+        if rollouts < 1:
+            raise InvphysError(f"gc_ppo needs a budget of at least T = {cfg.horizon} evaluations")
+        tracker = Tracker(problem)
+        scales, kappa = np.asarray(meta["scales"]), cfg.kappa
+        target = np.asarray(problem.target, dtype=np.float64).reshape(-1)
+
+        def record(s: np.ndarray, y: np.ndarray, r: np.ndarray) -> None:
+            tracker.record(s, y, np.asarray(problem.objective(y), dtype=np.float64).reshape(-1))
+
+        task = InverseTask(low=space.low, high=space.high, dim=space.dim, predict=problem.predict,
+                           score=lambda y, g: recovery_reward(y, g, scales, kappa),
+                           feature_mean=np.asarray(meta["feature_mean"]), feature_std=np.asarray(meta["feature_std"]),
+                           horizon=cfg.horizon, step_scale=cfg.step_scale, start=np.asarray(meta["start"]),
+                           start_features=np.asarray(meta["start_features"]),
+                           goal_sampler=lambda rng, n: np.broadcast_to(target, (n, target.size)).copy(),
+                           on_evaluate=record)
+        if cfg.rollouts > 1:
+            import torch
+
+            torch.manual_seed(int(problem.seed))
+        batch = EpisodeBatch(task, rollouts, np.random.default_rng(problem.seed))
+        batch.reset(goals=target[None, :])
+        run_rollouts(self.model, batch, n_deterministic=1)
+        return tracker.result(rollouts=rollouts)
+
+    # -- persistence ---------------------------------------------------------------------------
+    def save(self, directory: str | Path) -> Path:
+        """Write ``policy.zip`` (SB3), ``gc_ppo.json`` (config, feature statistics, space, metrics)."""
+        if self.model is None:
+            raise InvphysError("gc_ppo: nothing to save, the policy is not trained")
+        d = Path(directory)
+        d.mkdir(parents=True, exist_ok=True)
+        self.model.save(d / "policy.zip")
+        (d / "gc_ppo.json").write_text(json.dumps(
+            {"config": self.config.model_dump(), "meta": self.meta, "metrics": self.metrics}, indent=2))
+        return d
+
+    @classmethod
+    def load(cls, directory: str | Path) -> GoalConditionedPPO:
+        """A policy saved by :meth:`save` (identical actions)."""
+        from stable_baselines3 import PPO
+
+        d = Path(directory)
+        if not (d / "gc_ppo.json").is_file() or not (d / "policy.zip").is_file():
+            raise InvphysError(f"no saved gc_ppo policy in {d} (expected gc_ppo.json and policy.zip)")
+        saved = json.loads((d / "gc_ppo.json").read_text())
+        opt = cls(cls.Config(**saved["config"]))
+        opt.meta = saved["meta"]
+        opt.metrics = saved.get("metrics", {})
+        opt.model = PPO.load(d / "policy.zip", device=opt.config.device)
+        return opt
