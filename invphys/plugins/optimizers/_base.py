@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -74,7 +74,13 @@ class Tracker:
 
 
 class BuiltinOptimizer(Optimizer):
-    """Base of the built-in optimisers: exposes the evaluation budget the runner should allow."""
+    """Base of the built-in optimisers: exposes the evaluation budget the runner should allow.
+
+    ``problems`` tells the invert stage what to run the optimiser on: ``"both"`` (held-out targets and
+    named objectives), ``"targets"`` or ``"objectives"``.
+    """
+
+    problems: ClassVar[str] = "both"
 
     @property
     def evaluation_budget(self) -> int:

@@ -34,6 +34,7 @@ class GoalConditionedPPO(BuiltinOptimizer):
 
     name: ClassVar[str] = "gc_ppo"
     goal_conditioned: ClassVar[bool] = True
+    problems: ClassVar[str] = "targets"
 
     class Config(PPOSettings):
         total_timesteps: int = Field(500_000, ge=1, description="training environment steps")

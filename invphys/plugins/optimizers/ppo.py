@@ -27,6 +27,9 @@ class PPOOptimizer(BuiltinOptimizer):
     """
 
     name: ClassVar[str] = "ppo"
+    #: per-objective: the invert stage trains one policy per named objective (per target only when the
+    #: spec has no objectives)
+    problems: ClassVar[str] = "objectives"
 
     class Config(PPOSettings):
         total_timesteps: int = Field(49_152, ge=1, description="environment steps (= evaluations) to train")

@@ -33,6 +33,7 @@ class WarmStart(BuiltinOptimizer):
     """
 
     name: ClassVar[str] = "warm_start"
+    problems: ClassVar[str] = "targets"
 
     class Config(PluginConfig):
         policy: str | None = Field(None, description="label of the gc_ppo entry whose policy starts CMA-ES")

@@ -1,5 +1,9 @@
-"""Built-in validators plugins."""
+"""Built-in validator plugins (paper sec. 3.6)."""
 
 from __future__ import annotations
 
-VALIDATORS: list[type] = []
+from invphys.plugins.validators.simulator import SimulatorValidator
+
+VALIDATORS: list[type] = [SimulatorValidator]
+
+__all__ = ["VALIDATORS", "SimulatorValidator"]

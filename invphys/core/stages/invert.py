@@ -1,0 +1,239 @@
+"""The ``invert`` stage: run every optimiser entry on the held-out targets and the named objectives.
+
+1. Chooses ``targets.n`` held-out targets from the test partition (farthest-point sampling in
+   standardised feature space, :mod:`invphys.core.targets`) and writes ``targets.json``.
+2. For each ``optimizers`` entry builds its search space (``space: raw`` or a latent model's label)
+   and evaluator (``evaluator: shared`` = decode then the shared surrogate, ``own_head`` = the latent
+   model's own head). Goal-conditioned entries are trained once on the training partition's features
+   (:meth:`Optimizer.prepare`) and cached in ``policies/<label>/``; a ``warm_start`` entry borrows the
+   policy, space and evaluator of the ``gc_ppo`` entry it names with ``policy: <label>``.
+3. Optimises each target (recovery reward R_gt, paper eq. 1) and/or each named objective, as the
+   optimiser's ``problems`` attribute says, and writes ``results.json`` and ``results.csv``: one row per
+   (optimiser, problem) with R_surr (the score on the optimiser's evaluator), evaluations, wall time,
+   theta*, physical parameters and the predicted features.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from invphys.core.errors import InvphysError
+
+DEPENDS_ON: tuple[str, ...] = ("dataset", "surrogate", "latent_models", "optimizers", "objectives", "targets")
+
+RESULTS_FILE = "results.json"
+TARGETS_FILE = "targets.json"
+
+
+def select(ctx: Any) -> dict[str, Any]:
+    """The held-out targets: dataset rows, features, true theta and physical parameters."""
+    from invphys.core.targets import select_targets
+
+    data = ctx.dataset()
+    _, test_idx = ctx.split()
+    rows = select_targets(data.y, test_idx, ctx.spec.targets.n, ctx.spec.targets.selection, ctx.seed)
+    return {"rows": rows.tolist(), "features": data.y[rows].tolist(), "theta": data.theta[rows].tolist(),
+            "params": data.params[rows].tolist(), "feature_names": list(data.feature_names),
+            "param_names": list(data.param_names), "scales": ctx.scales().tolist(),
+            "selection": ctx.spec.targets.selection, "validate": ctx.spec.targets.validate_n}
+
+
+def objectives(ctx: Any) -> dict[str, Any]:
+    """The spec's named weighted objectives, with percentiles from the training partition."""
+    from invphys.core.objectives import WeightedObjective
+
+    data = ctx.dataset()
+    train_idx, _ = ctx.split()
+    return {label: WeightedObjective.from_names(sec.weights, data.feature_names, data.y[train_idx], name=label)
+            for label, sec in ctx.spec.objectives.items()}
+
+
+class _Entries:
+    """Builds each optimiser entry's plugin, space and predictor once (goal-conditioned ones trained)."""
+
+    def __init__(self, ctx: Any, train_targets: np.ndarray, scales: np.ndarray) -> None:
+        from invphys.core.spec import optimizer_plugin_block
+
+        self.ctx = ctx
+        self.train_targets = train_targets
+        self.scales = scales
+        self.blocks = {k: dict(v) for k, v in ctx.spec.optimizers.items()}
+        self.plugins = {k: ctx.registry.create("optimizer", optimizer_plugin_block(b)) for k, b in self.blocks.items()}
+        self._built: dict[str, tuple[Any, Any, Any, str]] = {}
+        self.prepare_metrics: dict[str, Any] = {}
+
+    def space(self, label: str) -> tuple[Any, Any, Any, str]:
+        """(space, predict, latent, evaluator) of an entry (a warm start uses its policy's)."""
+        from invphys.core.spaces import latent_space, make_predict, raw_space
+
+        if label in self._built:
+            return self._built[label]
+        plugin = self.plugins[label]
+        if plugin.name == "warm_start":
+            built = self.space(self._policy_label(label))
+        else:
+            block = self.blocks[label]
+            space_label, evaluator = block.get("space", "raw"), block.get("evaluator", "shared")
+            d = self.ctx.dataset().theta.shape[1]
+            latent = None if space_label == "raw" else self.ctx.latent(space_label)
+            space = raw_space(d) if latent is None else latent_space(latent, name=space_label)
+            predict = make_predict(space, self.ctx.surrogate(), latent, evaluator)
+            built = (space, predict, latent, evaluator)
+        self._built[label] = built
+        return built
+
+    def _policy_label(self, label: str) -> str:
+        plugin = self.plugins[label]
+        policy = getattr(plugin.config, "policy", None)
+        if policy is None:
+            if getattr(plugin.config, "policy_path", None):
+                raise InvphysError(f"optimizers.{label}: in a spec, name the gc_ppo entry with `policy: <label>`")
+            raise InvphysError(f"optimizers.{label}: warm_start needs `policy: <label of a gc_ppo entry>`")
+        if policy not in self.plugins or not getattr(self.plugins[policy], "goal_conditioned", False):
+            gc = [k for k, p in self.plugins.items() if getattr(p, "goal_conditioned", False)]
+            raise InvphysError(f"optimizers.{label}.policy: {policy!r} is not a goal-conditioned entry "
+                               f"(goal-conditioned entries: {', '.join(gc) or 'none'})")
+        return policy
+
+    def plugin(self, label: str) -> Any:
+        """The ready-to-use optimiser: trained (goal-conditioned) or attached (warm start)."""
+        plugin = self.plugins[label]
+        if getattr(plugin, "goal_conditioned", False) and not getattr(plugin, "prepared", True):
+            self._prepare(label)
+        if plugin.name == "warm_start" and plugin.policy is None:
+            plugin.attach(self.plugin(self._policy_label(label)))
+        return plugin
+
+    def _prepare(self, label: str) -> None:
+        plugin = self.plugins[label]
+        space, predict, _, _ = self.space(label)
+        cache = self.ctx.stage_dir / "policies" / label
+        if getattr(plugin.config, "seed", 0) is None:
+            plugin.config.seed = self.ctx.seed
+        if hasattr(plugin, "load") and (cache / "gc_ppo.json").is_file() and hasattr(plugin, "save"):
+            loaded = type(plugin).load(cache)
+            if loaded.config == plugin.config and loaded.meta.get("space", {}).get("name") == space.name:
+                self.plugins[label] = loaded
+                self.prepare_metrics[label] = {**loaded.metrics, "cached": True}
+                self.ctx.log(f"{label}: loaded the cached policy from {cache}")
+                return
+        self.ctx.log(f"{label}: training {plugin.name} on {len(self.train_targets)} training targets")
+        metrics = plugin.prepare(space, predict, self.train_targets, self.scales, progress=self.ctx.progress)
+        if hasattr(plugin, "save"):
+            plugin.save(cache)
+        self.prepare_metrics[label] = metrics
+
+
+def _problems_of(plugin: Any, has_objectives: bool) -> tuple[bool, bool]:
+    kind = getattr(plugin, "problems", "both")
+    if plugin.goal_conditioned:
+        return True, False
+    if kind == "objectives" and not has_objectives:
+        return True, False
+    return kind in ("both", "targets"), kind in ("both", "objectives") and has_objectives
+
+
+def run(ctx: Any) -> dict[str, Any]:
+    from invphys.core.objectives import RecoveryObjective
+    from invphys.core.runner import write_json
+    from invphys.core.spaces import build_problem
+
+    data = ctx.dataset()
+    train_idx, _ = ctx.split()
+    scales = ctx.scales()
+    targets = select(ctx)
+    write_json(ctx.stage_dir / TARGETS_FILE, targets)
+    named = objectives(ctx)
+    y_train = data.y[train_idx]
+    mean, std = y_train.mean(axis=0), y_train.std(axis=0)
+    surrogate = ctx.surrogate()
+    entries = _Entries(ctx, y_train, scales)
+    space_of = ctx.dataset().param_names
+    rows: list[dict[str, Any]] = []
+    ctx.log(f"{len(targets['rows'])} targets, {len(named)} objectives, {len(entries.plugins)} optimisers")
+    for label in entries.plugins:
+        plugin = entries.plugin(label)
+        space, predict, latent, evaluator = entries.space(label)
+        budget = int(getattr(plugin, "evaluation_budget", 0) or getattr(plugin.config, "budget", 0) or 5000)
+        on_targets, on_objectives = _problems_of(plugin, bool(named))
+        problems: list[tuple[str, str, Any, np.ndarray | None, int | None]] = []
+        if on_targets:
+            for k, y_star in enumerate(np.asarray(targets["features"])):
+                problems.append(("target", f"t{k:02d}", RecoveryObjective(y_star, scales), y_star, k))
+        if on_objectives:
+            problems += [("objective", name, obj, None, None) for name, obj in named.items()]
+        t_entry = time.perf_counter()
+        for n, (kind, problem_id, objective, y_star, k) in enumerate(problems):
+            problem = build_problem(space, objective, budget, surrogate=surrogate, latent=latent,
+                                    evaluator=evaluator, predict=predict, target=y_star,
+                                    seed=ctx.seed * 1000 + n, feature_mean=mean, feature_std=std)
+            res = plugin.optimize(problem)
+            counted = problem.info["counter"].count
+            predicted = res.info.get("predicted")
+            if predicted is None:
+                predicted = np.asarray(surrogate.predict(np.asarray(res.theta)[None, :]))[0].tolist()
+            theta = np.clip(np.asarray(res.theta, dtype=np.float64), 0.0, 1.0)
+            rows.append({
+                "optimizer": label, "type": plugin.name, "space": space.name, "evaluator": evaluator,
+                "problem": kind, "problem_id": problem_id, "target_index": k,
+                "dataset_row": None if k is None else targets["rows"][k],
+                "r_surrogate": float(res.score), "evaluations": int(res.evaluations),
+                "counted_evaluations": int(counted), "wall_time_s": float(res.wall_time_s),
+                "theta": theta.tolist(), "point": np.asarray(res.point).tolist(),
+                "params": dict(zip(space_of, _physical(ctx, theta), strict=True)),
+                "predicted": list(map(float, predicted)),
+                "history": [[int(e), float(s)] for e, s in res.history],
+            })
+        if problems:
+            mine = [r for r in rows if r["optimizer"] == label]
+            ctx.log(f"{label}: {len(problems)} problems, mean R_surr "
+                    f"{np.mean([r['r_surrogate'] for r in mine]):.3f} in {time.perf_counter() - t_entry:.1f} s")
+    write_json(ctx.stage_dir / RESULTS_FILE, rows)
+    _write_csv(ctx.stage_dir / "results.csv", rows)
+    return {"targets": len(targets["rows"]), "objectives": sorted(named), "rows": len(rows),
+            "prepare": entries.prepare_metrics, "optimizers": summarise(rows)}
+
+
+def _physical(ctx: Any, theta: np.ndarray) -> list[float]:
+    try:
+        return ctx.simulator().parameter_space().denormalize(theta).tolist()
+    except Exception:
+        return [float("nan")] * len(theta)
+
+
+def summarise(rows: list[dict[str, Any]], score: str = "r_surrogate") -> dict[str, Any]:
+    """Per optimiser label and problem kind: count, mean score, mean evaluations and mean time."""
+    out: dict[str, Any] = {}
+    for label in dict.fromkeys(r["optimizer"] for r in rows):
+        mine = [r for r in rows if r["optimizer"] == label]
+        for kind in ("target", "objective"):
+            sel = [r for r in mine if r["problem"] == kind]
+            if sel:
+                vals = np.array([r[score] for r in sel], dtype=np.float64)
+                out.setdefault(label, {})[kind] = {
+                    "n": len(sel), f"mean_{score}": float(np.nanmean(vals)) if np.isfinite(vals).any() else None,
+                    "mean_evaluations": float(np.mean([r["evaluations"] for r in sel])),
+                    "mean_time_s": float(np.mean([r["wall_time_s"] for r in sel]))}
+    return out
+
+
+def _write_csv(path: Any, rows: list[dict[str, Any]]) -> None:
+    import pandas as pd
+
+    flat = [{k: v for k, v in r.items() if k not in ("history", "predicted", "point", "params", "theta")}
+            | {f"theta_{i}": t for i, t in enumerate(r["theta"])} | {f"param_{k}": v for k, v in r["params"].items()}
+            for r in rows]
+    pd.DataFrame(flat).to_csv(path, index=False)
+
+
+def load_results(ctx: Any) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """(rows, targets) written by this stage (for the validate and report stages)."""
+    import json
+
+    d = ctx.stage_dir_of("invert")
+    if not (d / RESULTS_FILE).is_file():
+        raise InvphysError(f"no inversion results in {d}: run the 'invert' stage first")
+    return json.loads((d / RESULTS_FILE).read_text()), json.loads((d / TARGETS_FILE).read_text())

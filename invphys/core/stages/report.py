@@ -1,0 +1,284 @@
+"""The ``report`` stage: tables, a plot and renders from the invert and validate stages.
+
+Writes under ``OUT/report/`` (formats from ``report.formats``):
+
+* ``report.md``: a summary table per optimiser (mean R_surr, R_actual, Delta, evaluations, time, failed
+  runs), one table per target (evaluations, R_surr, R_actual, Delta, time), the named objectives,
+  and the plot and renders embedded;
+* ``report.csv`` / ``report.json``: every (optimiser, problem) row with its validation numbers;
+* ``recovery.png``: mean R_surr vs R_actual per optimiser (targets) and best-so-far R against
+  evaluations (log scale);
+* ``renders/tNN.png``: the target's and the recovered peel's last frames side by side, drawn with the
+  simulator's renderer when it offers one (a ``render(trajectory, path)`` method, or ``render_frame`` and
+  ``particle_colours`` in its package's ``render`` module, as the orange peel has), else a generic
+  particle scatter coloured by damage.
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+DEPENDS_ON: tuple[str, ...] = ("report", "targets")
+
+
+def _fmt(v: Any, digits: int = 3) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        if not math.isfinite(v):
+            return "n/a"
+        return f"{v:.{digits}f}"
+    return str(v)
+
+
+def _merge(rows: list[dict[str, Any]], validation: list[dict[str, Any]] | None) -> list[dict[str, Any]]:
+    key = ("optimizer", "problem", "problem_id")
+    val = {tuple(v[k] for k in key): v for v in validation or []}
+    merged = []
+    for r in rows:
+        v = val.get(tuple(r[k] for k in key))
+        merged.append({
+            "optimizer": r["optimizer"], "type": r["type"], "space": r["space"], "evaluator": r["evaluator"],
+            "problem": r["problem"], "problem_id": r["problem_id"], "target_index": r["target_index"],
+            "evaluations": r["evaluations"], "wall_time_s": r["wall_time_s"],
+            "r_surrogate": v["r_surrogate"] if v else r["r_surrogate"],
+            "r_actual": v["r_actual"] if v else None, "gap": v["gap"] if v else None,
+            "failure": v["failure"] if v else None, "sim_time_s": v.get("sim_time_s") if v else None,
+            "validated": v is not None, "params": r["params"], "history": r["history"]})
+    return merged
+
+
+def _mean(vals: list[Any]) -> float | None:
+    a = np.array([v for v in vals if v is not None], dtype=np.float64)
+    a = a[np.isfinite(a)]
+    return float(a.mean()) if len(a) else None
+
+
+def summary_table(merged: list[dict[str, Any]], problem: str = "target") -> list[dict[str, Any]]:
+    """One row per optimiser: means over its problems of the given kind (validated ones for R_actual)."""
+    out = []
+    for label in dict.fromkeys(r["optimizer"] for r in merged):
+        sel = [r for r in merged if r["optimizer"] == label and r["problem"] == problem]
+        if not sel:
+            continue
+        val = [r for r in sel if r["validated"]]
+        out.append({"optimizer": label, "type": sel[0]["type"], "space": sel[0]["space"],
+                    "evaluator": sel[0]["evaluator"], "n": len(sel), "validated": len(val),
+                    "evaluations": _mean([r["evaluations"] for r in sel]),
+                    "r_surrogate": _mean([r["r_surrogate"] for r in sel]),
+                    "r_surrogate_validated": _mean([r["r_surrogate"] for r in val]),
+                    "r_actual": _mean([r["r_actual"] for r in val]), "gap": _mean([r["gap"] for r in val]),
+                    "time_s": _mean([r["wall_time_s"] for r in sel]),
+                    "failed": sum(1 for r in val if r["failure"])})
+    return out
+
+
+def _md_table(header: list[str], rows: list[list[Any]]) -> list[str]:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(_fmt(c) for c in row) + " |" for row in rows]
+    return lines
+
+
+def markdown(ctx_name: str, merged: list[dict[str, Any]], targets: dict[str, Any], plot: str | None,
+             renders: list[tuple[int, str]]) -> str:
+    lines = [f"# Inverse recovery report: {ctx_name}", ""]
+    n_t = len(targets["rows"])
+    lines += [f"{n_t} held-out targets ({targets['selection']} selection from the test partition), the first "
+              f"{targets['validate']} re-run through the simulator. R = R_gt (paper eq. 1); R_surr on the "
+              f"optimiser's evaluator, R_actual from the simulator, Delta = R_surr - R_actual "
+              f"(over validated targets).", ""]
+    summ = summary_table(merged, "target")
+    if summ:
+        lines += ["## Summary (targets)", ""]
+        lines += _md_table(["optimizer", "type", "space", "evaluator", "evaluations", "R_surr (all)",
+                            "R_surr (validated)", "R_actual", "Delta", "time (s)", "failed"],
+                           [[s["optimizer"], s["type"], s["space"], s["evaluator"], s["evaluations"],
+                             s["r_surrogate"], s["r_surrogate_validated"], s["r_actual"], s["gap"], s["time_s"],
+                             f"{s['failed']}/{s['validated']}"] for s in summ])
+        lines.append("")
+    if plot:
+        lines += [f"![recovery]({plot})", ""]
+    ks = sorted({r["target_index"] for r in merged if r["problem"] == "target"})
+    if ks:
+        lines += ["## Per target", ""]
+    for k in ks:
+        sel = [r for r in merged if r["problem"] == "target" and r["target_index"] == k]
+        lines += [f"### Target {k} (dataset row {targets['rows'][k]})", ""]
+        lines += _md_table(["optimizer", "evaluations", "R_surr", "R_actual", "Delta", "time (s)", "note"],
+                           [[r["optimizer"], r["evaluations"], r["r_surrogate"], r["r_actual"], r["gap"],
+                             r["wall_time_s"], r["failure"] or ("" if r["validated"] else "not validated")]
+                            for r in sel])
+        for kk, path in renders:
+            if kk == k:
+                lines += ["", f"![target {k}: target vs recovered]({path})"]
+        lines.append("")
+    objs = sorted({r["problem_id"] for r in merged if r["problem"] == "objective"})
+    if objs:
+        lines += ["## Named objectives", "", "Score = the weighted objective (higher is better).", ""]
+        lines += _md_table(["objective", "optimizer", "evaluations", "score (surrogate)", "score (simulator)",
+                            "Delta", "time (s)"],
+                           [[r["problem_id"], r["optimizer"], r["evaluations"], r["r_surrogate"], r["r_actual"],
+                             r["gap"], r["wall_time_s"]]
+                            for o in objs for r in merged if r["problem"] == "objective" and r["problem_id"] == o])
+        lines.append("")
+    return "\n".join(lines)
+
+
+def plot_recovery(merged: list[dict[str, Any]], path: Path) -> Path | None:
+    """Bar chart of mean R_surr / R_actual per optimiser and best-so-far curves; None without targets."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    summ = summary_table(merged, "target")
+    if not summ:
+        return None
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
+    x = np.arange(len(summ))
+    surr = [s["r_surrogate_validated"] if s["r_surrogate_validated"] is not None else s["r_surrogate"] for s in summ]
+    act = [s["r_actual"] if s["r_actual"] is not None else np.nan for s in summ]
+    ax1.bar(x - 0.2, surr, 0.4, label="R_surr")
+    ax1.bar(x + 0.2, act, 0.4, label="R_actual (simulator)")
+    ax1.set_xticks(x, [s["optimizer"] for s in summ], rotation=30, ha="right")
+    ax1.set_ylim(0, 1)
+    ax1.set_ylabel("mean recovery R_gt")
+    ax1.legend(fontsize=8)
+    for s in summ:
+        curves = [np.array(r["history"], dtype=np.float64) for r in merged
+                  if r["optimizer"] == s["optimizer"] and r["problem"] == "target" and r["history"]]
+        if not curves:
+            continue
+        grid = np.unique(np.concatenate([c[:, 0] for c in curves]))
+        vals = np.array([np.interp(grid, c[:, 0], np.maximum.accumulate(c[:, 1])) for c in curves])
+        ax2.plot(grid, vals.mean(axis=0), label=s["optimizer"], marker="." if len(grid) < 20 else None)
+    ax2.set_xscale("log")
+    ax2.set_xlabel("surrogate evaluations")
+    ax2.set_ylabel("best-so-far R_surr (mean over targets)")
+    ax2.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+class _Frame:
+    """A saved last frame (validate stage) that looks like a one-frame Trajectory."""
+
+    def __init__(self, npz: Path) -> None:
+        from invphys.core.results import Trajectory
+
+        with np.load(npz) as f:
+            self.traj = Trajectory(positions=f["positions"][None], damage=f["damage"][None], labels=f["labels"],
+                                   frame_indices=np.array([int(f["frame"])]), fps=float(f["fps"]))
+
+
+def render_frame(simulator: Any, traj: Any, path: Path, title: str) -> Path:
+    """Draw a trajectory's last frame with the simulator's renderer, else a generic scatter."""
+    fn = getattr(simulator, "render", None)
+    if callable(fn):
+        fn(traj, path)
+        return path
+    if simulator is not None:
+        package = type(simulator).__module__.rsplit(".", 1)[0]
+        try:
+            mod = importlib.import_module(f"{package}.render")
+            colours = mod.particle_colours(traj.labels, traj.damage[-1])
+            return Path(mod.render_frame(traj.positions[-1], colours, path, title=title, size=(480, 400)))
+        except (ImportError, AttributeError):
+            pass
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    pos = np.asarray(traj.positions[-1], dtype=np.float64)
+    fig, ax = plt.subplots(figsize=(4.8, 4))
+    ax.scatter(pos[:, 0], pos[:, 1], c=np.asarray(traj.damage[-1]), cmap="plasma", vmin=0, vmax=1, s=4)
+    ax.set_title(title)
+    ax.set_aspect("equal", adjustable="datalim")
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def side_by_side(left: Path, right: Path, path: Path, titles: tuple[str, str]) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.image as mpimg
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
+    for ax, img, title in zip(axes, (left, right), titles, strict=True):
+        ax.imshow(mpimg.imread(img))
+        ax.set_title(title, fontsize=10)
+        ax.set_axis_off()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def _renders(ctx: Any, out_dir: Path) -> list[tuple[int, str]]:
+    src = ctx.stage_dir_of("validate") / "renders"
+    if not ctx.spec.report.render or not src.is_dir():
+        return []
+    try:
+        simulator = ctx.simulator()
+    except Exception:  # a simulator that cannot be built here still gets the generic renderer
+        simulator = None
+    done = []
+    for tgt in sorted(src.glob("t*_target.npz")):
+        k = int(tgt.name[1:3])
+        rec = src / f"t{k:02d}_recovered.npz"
+        if not rec.is_file():
+            continue
+        d = out_dir / "renders"
+        d.mkdir(parents=True, exist_ok=True)
+        a = render_frame(simulator, _Frame(tgt).traj, d / f"t{k:02d}_target_frame.png", f"target {k}")
+        b = render_frame(simulator, _Frame(rec).traj, d / f"t{k:02d}_recovered_frame.png", f"recovered {k}")
+        side_by_side(a, b, d / f"t{k:02d}.png", (f"target {k} (ground-truth parameters)",
+                                                 "recovered (best validated optimiser)"))
+        done.append((k, f"renders/t{k:02d}.png"))
+    return done
+
+
+def run(ctx: Any) -> dict[str, Any]:
+    import pandas as pd
+
+    from invphys.core.runner import write_json
+    from invphys.core.stages.invert import load_results
+    from invphys.core.stages.validate import load_validation
+
+    rows, targets = load_results(ctx)
+    validation = load_validation(ctx)
+    merged = _merge(rows, validation)
+    out = ctx.stage_dir
+    plot = plot_recovery(merged, out / "recovery.png")
+    renders = _renders(ctx, out)
+    formats = set(ctx.spec.report.formats)
+    flat = [{k: v for k, v in r.items() if k not in ("params", "history")}
+            | {f"param_{k}": v for k, v in r["params"].items()} for r in merged]
+    files = []
+    if "md" in formats:
+        (out / "report.md").write_text(markdown(ctx.spec.name, merged, targets,
+                                                plot.name if plot else None, renders))
+        files.append("report.md")
+    if "csv" in formats:
+        pd.DataFrame(flat).to_csv(out / "report.csv", index=False)
+        files.append("report.csv")
+    summ = summary_table(merged, "target")
+    if "json" in formats:
+        write_json(out / "report.json", {"summary": summ, "objectives": summary_table(merged, "objective"),
+                                         "rows": flat, "targets": targets})
+        files.append("report.json")
+    ctx.log(f"wrote {', '.join(files)} to {out}")
+    return {"files": files, "plot": plot.name if plot else None, "renders": [p for _, p in renders],
+            "summary": summ}

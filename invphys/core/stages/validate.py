@@ -1,0 +1,159 @@
+"""The ``validate`` stage: re-run recovered parameters through the real simulator (paper sec. 3.6).
+
+Takes the invert stage's rows for the first ``targets.validate`` targets (and every named-objective
+row), simulates their theta* in batches with the spec's ``validator`` (``simulator`` re-runs the
+spec's simulator, with its ``overrides`` applied), and records per row: R_surr, R_actual, the gap
+Delta = R_surr - R_actual, the actual features, the failure reason of a failed run and the run's
+wall time. For objective rows R is the named objective's score instead of R_gt. Identical theta* are
+simulated once.
+
+With ``report.render`` on, the last frame of the best-recovered run of the first ``RENDER_TARGETS``
+targets is kept, and each such target's ground-truth parameters are simulated too, so that the report
+can show target and recovered peels side by side (``renders/tNN_target.npz``, ``tNN_recovered.npz``).
+Writes ``validation.json`` and ``validation.csv``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from invphys.core.errors import InvphysError
+
+DEPENDS_ON: tuple[str, ...] = ("simulator", "features", "validator", "targets")
+
+VALIDATION_FILE = "validation.json"
+RENDER_TARGETS = 3
+
+
+def run(ctx: Any) -> dict[str, Any]:
+    from invphys.core.runner import write_json
+    from invphys.core.stages.invert import load_results, objectives
+
+    rows, targets = load_results(ctx)
+    n_val = int(ctx.spec.targets.validate_n)
+    chosen = [r for r in rows if (r["problem"] == "target" and r["target_index"] < n_val)
+              or r["problem"] == "objective"]
+    if not chosen:
+        write_json(ctx.stage_dir / VALIDATION_FILE, [])
+        return {"validated": 0, "note": "nothing to validate (targets.validate is 0 and no objectives)"}
+    validator = ctx.registry.create("validator", ctx.spec.validator)
+    simulator, extractor = ctx.simulator(), ctx.extractor()
+    scales = np.asarray(targets["scales"])
+    theta = np.array([r["theta"] for r in chosen])
+    unique, inverse = np.unique(np.round(theta, 12), axis=0, return_inverse=True)
+    inverse = np.asarray(inverse).reshape(-1)
+    render = bool(ctx.spec.report.render)
+    ctx.log(f"simulating {len(unique)} recovered parameter vectors ({len(chosen)} rows) "
+            f"with validator {validator.name!r}")
+    out: list[dict[str, Any]] = []
+    target_rows = [i for i, r in enumerate(chosen) if r["problem"] == "target"]
+    if hasattr(validator, "simulate_features"):
+        sim = validator.simulate_features(unique, simulator, extractor, keep_trajectories=render)
+        feats = sim.features[inverse]
+        failures = [sim.failures[j] for j in inverse]
+        stats = [sim.stats[j] for j in inverse]
+        if target_rows:
+            from invphys.plugins.validators.simulator import SimulatedFeatures
+
+            sub = SimulatedFeatures(feats[target_rows], [failures[i] for i in target_rows],
+                                    [stats[i] for i in target_rows], [None] * len(target_rows))
+            recs = validator.records(theta[target_rows], _targets_of(chosen, target_rows, targets),
+                                     _predicted(chosen, target_rows), sub, scales)
+        else:
+            recs = []
+    else:  # a third-party validator: recovery targets only, through the Validator interface
+        sim, feats, failures, stats = None, None, None, None
+        recs = validator.validate(theta[target_rows], _targets_of(chosen, target_rows, targets),
+                                  _predicted(chosen, target_rows), simulator, extractor, scales) if target_rows else []
+    by_row = dict(zip(target_rows, recs, strict=True))
+    named = objectives(ctx) if any(r["problem"] == "objective" for r in chosen) else {}
+    for i, r in enumerate(chosen):
+        base = {k: r[k] for k in ("optimizer", "type", "space", "evaluator", "problem", "problem_id",
+                                  "target_index", "dataset_row", "evaluations", "wall_time_s", "theta")}
+        if i in by_row:
+            rec = by_row[i]
+            base.update(r_surrogate=rec.r_surrogate, r_actual=rec.r_actual, gap=rec.gap, failure=rec.failure,
+                        actual=None if rec.actual is None else rec.actual.tolist(),
+                        sim_time_s=None if rec.stats is None else rec.stats.wall_time_s)
+        elif feats is not None and failures is not None and r["problem"] == "objective":
+            obj = named[r["problem_id"]]
+            ok = failures[i] is None
+            r_surr = float(np.asarray(obj(np.asarray(r["predicted"])[None, :])).reshape(-1)[0])
+            r_act = float(np.asarray(obj(feats[i][None, :])).reshape(-1)[0]) if ok else float("nan")
+            base.update(r_surrogate=r_surr, r_actual=r_act, gap=r_surr - r_act, failure=failures[i],
+                        actual=feats[i].tolist() if ok else None,
+                        sim_time_s=None if stats[i] is None else stats[i].wall_time_s)
+        else:
+            continue
+        out.append(base)
+    renders = _renders(ctx, chosen, out, inverse, sim, validator, simulator, extractor, targets) if render else []
+    write_json(ctx.stage_dir / VALIDATION_FILE, out)
+    import pandas as pd
+
+    pd.DataFrame([{k: v for k, v in r.items() if k not in ("theta", "actual")} for r in out]).to_csv(
+        ctx.stage_dir / "validation.csv", index=False)
+    failed = sum(1 for r in out if r["failure"])
+    from invphys.core.stages.invert import summarise
+
+    ctx.log(f"validated {len(out)} rows ({failed} failed runs)")
+    return {"validated": len(out), "simulated": len(unique), "failed": failed, "renders": renders,
+            "optimizers": summarise(out, "r_actual")}
+
+
+def _targets_of(chosen: list[dict[str, Any]], idx: list[int], targets: dict[str, Any]) -> np.ndarray:
+    feats = np.asarray(targets["features"])
+    return np.array([feats[chosen[i]["target_index"]] for i in idx])
+
+
+def _predicted(chosen: list[dict[str, Any]], idx: list[int]) -> np.ndarray:
+    return np.array([chosen[i]["predicted"] for i in idx])
+
+
+def _save_frame(path: Any, traj: Any) -> None:
+    np.savez_compressed(path, positions=np.asarray(traj.positions[-1]), damage=np.asarray(traj.damage[-1]),
+                        labels=np.asarray(traj.labels), frame=int(traj.frame_indices[-1]), fps=float(traj.fps))
+
+
+def _renders(ctx: Any, chosen: list[dict[str, Any]], out: list[dict[str, Any]], inverse: np.ndarray, sim: Any,
+             validator: Any, simulator: Any, extractor: Any, targets: dict[str, Any]) -> list[dict[str, Any]]:
+    """Keep the last frames of target and best recovered runs for the first RENDER_TARGETS targets."""
+    if sim is None:
+        return []
+    d = ctx.stage_dir / "renders"
+    d.mkdir(exist_ok=True)
+    rendered = []
+    ks = sorted({r["target_index"] for r in out if r["problem"] == "target"})[:RENDER_TARGETS]
+    if not ks:
+        return []
+    truth = validator.simulate_features(np.array([targets["theta"][k] for k in ks]), simulator, extractor,
+                                        keep_trajectories=True)
+    for n, k in enumerate(ks):
+        cands = [(i, r) for i, r in enumerate(chosen) if r["problem"] == "target" and r["target_index"] == k]
+        vals = {i: next((o["r_actual"] for o in out if o["problem"] == "target" and o["target_index"] == k
+                         and o["optimizer"] == r["optimizer"]), float("nan")) for i, r in cands}
+        finite = {i: v for i, v in vals.items() if np.isfinite(v)}
+        if not finite:
+            continue
+        best = max(finite, key=lambda i: finite[i])
+        traj = sim.trajectories[int(inverse[best])]
+        if traj is None or truth.trajectories[n] is None:
+            continue
+        _save_frame(d / f"t{k:02d}_recovered.npz", traj)
+        _save_frame(d / f"t{k:02d}_target.npz", truth.trajectories[n])
+        rendered.append({"target_index": k, "optimizer": chosen[best]["optimizer"], "r_actual": finite[best]})
+    return rendered
+
+
+def load_validation(ctx: Any) -> list[dict[str, Any]] | None:
+    """The validate stage's rows, or None when it has not run."""
+    import json
+
+    p = ctx.stage_dir_of("validate") / VALIDATION_FILE
+    if not p.is_file():
+        return None
+    try:
+        return json.loads(p.read_text())
+    except json.JSONDecodeError as exc:
+        raise InvphysError(f"{p} is not valid JSON ({exc}); re-run the validate stage") from exc
