@@ -64,7 +64,7 @@ class GenerationSummary:
         return {**asdict(self), "runs_per_hour": round(self.runs_per_hour, 1), "complete": self.complete}
 
 
-class _Terminated(Exception):
+class _Terminated(BaseException):  # like KeyboardInterrupt: never caught as a simulation error
     """SIGTERM arrived: stop cleanly, keeping what is stored."""
 
 
