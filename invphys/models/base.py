@@ -1,0 +1,188 @@
+"""The common part of the torch-backed model plugins: training settings, save/load and metadata.
+
+Import-light: torch is imported inside methods. A saved model is a directory holding
+
+* ``model.json``: plugin name and kind, config, input/output sizes, the training data's fingerprint,
+  metrics and free-form ``info`` (feature and parameter names, dataset fingerprint, ...);
+* ``weights.pt``: the network's state dict (standardisers included);
+* ``history.json``: per-epoch training curves.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+from pydantic import Field, ValidationError
+
+from invphys.core.errors import InvphysError
+from invphys.core.interfaces import PluginConfig
+from invphys.models.data import ModelLoadError, NotFittedError, check_input
+
+FORMAT_VERSION = 1
+MODEL_FILE = "model.json"
+WEIGHTS_FILE = "weights.pt"
+HISTORY_FILE = "history.json"
+
+
+class TrainingConfig(PluginConfig):
+    """Training settings shared by every learned model."""
+
+    seed: int = Field(0, description="seed of weight init, batching, dropout and the validation split")
+    device: Literal["auto", "cpu", "cuda"] = Field("cpu", description="torch device; auto = CUDA if available")
+    lr: float = Field(1e-3, gt=0, description="Adam learning rate")
+    weight_decay: float = Field(1e-4, ge=0, description="Adam weight decay")
+    batch_size: int = Field(64, ge=2, description="mini-batch size")
+    max_epochs: int = Field(1000, ge=1, description="upper bound on training epochs")
+    patience: int = Field(50, ge=1, description="early stopping: epochs without a better validation loss")
+    threads: int = Field(
+        1, ge=0, description="torch CPU threads while training (0 = torch's default); small nets train fastest on 1")
+    val_fraction: float = Field(
+        0.2, gt=0, lt=1,
+        description="held-out fraction used for early stopping and metrics when fit() gets no validation set")
+
+
+class TorchModel:
+    """Mixin for plugins backed by one torch module in ``self._net``.
+
+    Subclasses set ``self._net``, ``self.dims`` (d, M) and ``self.metrics`` in ``fit`` and implement
+    :meth:`_build_net`.
+    """
+
+    name: ClassVar[str]
+    kind: ClassVar[str]
+    config: Any
+
+    def _init_state(self) -> None:
+        self._net: Any = None
+        self.dims: tuple[int, int] | None = None
+        self.metrics: dict[str, Any] = {}
+        self.history: dict[str, Any] = {}
+        self.data_fingerprint: str | None = None
+        #: free-form provenance saved with the model (feature_names, param_names, dataset fingerprint, ...)
+        self.info: dict[str, Any] = {}
+        self._device: Any = None
+
+    # -- to implement ----------------------------------------------------------------------------
+    def _build_net(self, d: int, m: int) -> Any:
+        raise NotImplementedError
+
+    # -- helpers ---------------------------------------------------------------------------------
+    @property
+    def fitted(self) -> bool:
+        return self._net is not None
+
+    def _require_fitted(self) -> None:
+        if self._net is None:
+            raise NotFittedError(f"{self.kind} {self.name!r} is not fitted: call fit() or load() first")
+
+    @property
+    def device(self) -> Any:
+        if self._device is None:
+            from invphys.models.torch_utils import pick_device
+
+            self._device = pick_device(self.config.device)
+        return self._device
+
+    def _input(self, x: Any, dim: int, label: str) -> Any:
+        import torch
+
+        self._require_fitted()
+        arr = check_input(x, dim, label, f"{self.kind} {self.name!r}")
+        return torch.from_numpy(arr).to(self.device)
+
+    # -- persistence -----------------------------------------------------------------------------
+    def save(self, directory: str | Path) -> Path:
+        """Write ``model.json``, ``weights.pt`` and ``history.json`` under ``directory``; return it."""
+        import torch
+
+        self._require_fitted()
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        meta = {
+            "format": FORMAT_VERSION, "plugin": self.name, "kind": self.kind,
+            "config": self.config.model_dump(mode="json"),
+            "dims": {"d": self.dims[0], "m": self.dims[1]},  # type: ignore[index]
+            "data_fingerprint": self.data_fingerprint, "metrics": self.metrics, "info": self.info,
+            "saved_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        }
+        state = {k: v.detach().cpu() for k, v in self._net.state_dict().items()}
+        tmp = directory / f".{WEIGHTS_FILE}.tmp{os.getpid()}"
+        torch.save(state, tmp)
+        os.replace(tmp, directory / WEIGHTS_FILE)
+        _write_json(directory / HISTORY_FILE, self.history)
+        _write_json(directory / MODEL_FILE, meta)  # written last: its presence marks a complete save
+        return directory
+
+    @classmethod
+    def load(cls, directory: str | Path, device: str | None = None) -> Any:
+        """Rebuild a model saved by :meth:`save` (same predictions); ``device`` overrides the saved one."""
+        import torch
+
+        directory = Path(directory)
+        meta_path = directory / MODEL_FILE
+        if not meta_path.is_file() or not (directory / WEIGHTS_FILE).is_file():
+            raise ModelLoadError(f"no saved model in {directory} (expected {MODEL_FILE} and {WEIGHTS_FILE})")
+        meta = json.loads(meta_path.read_text())
+        if meta.get("plugin") != cls.name or meta.get("kind") != cls.kind:
+            raise ModelLoadError(
+                f"{directory} holds a {meta.get('kind')} {meta.get('plugin')!r}, not a {cls.kind} {cls.name!r}")
+        config = dict(meta["config"])
+        if device is not None:
+            config["device"] = device
+        try:
+            model = cls(config)  # type: ignore[call-arg]
+        except ValidationError as exc:
+            raise ModelLoadError(f"{directory}: saved config no longer valid: {exc}") from exc
+        d, m = int(meta["dims"]["d"]), int(meta["dims"]["m"])
+        model.dims = (d, m)
+        net = model._build_net(d, m)
+        state = torch.load(directory / WEIGHTS_FILE, map_location="cpu", weights_only=True)
+        try:
+            net.load_state_dict(state)
+        except RuntimeError as exc:
+            raise ModelLoadError(f"{directory}: weights do not fit the saved config: {exc}") from exc
+        model._net = net.to(model.device).eval()
+        model.metrics = meta.get("metrics", {})
+        model.data_fingerprint = meta.get("data_fingerprint")
+        model.info = meta.get("info", {})
+        hist = directory / HISTORY_FILE
+        model.history = json.loads(hist.read_text()) if hist.is_file() else {}
+        return model
+
+
+def _write_json(path: Path, data: Any) -> None:
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp.write_text(json.dumps(data, indent=2, default=_default))
+    os.replace(tmp, path)
+
+
+def _default(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return str(obj)
+
+
+def validation_split(theta: np.ndarray, y: np.ndarray, validation: tuple[np.ndarray, np.ndarray] | None,
+                     val_fraction: float, seed: int, name: str) -> tuple[np.ndarray, ...]:
+    """(theta_train, y_train, theta_val, y_val): the given validation set, or a seeded split."""
+    from invphys.models.data import check_training_data, split_indices
+
+    if validation is not None:
+        tv, yv = np.asarray(validation[0], dtype=np.float64), np.asarray(validation[1], dtype=np.float64)
+        if tv.ndim != 2 or yv.ndim != 2 or tv.shape[1] != theta.shape[1] or yv.shape[1] != y.shape[1] \
+                or len(tv) != len(yv) or len(tv) == 0:
+            raise InvphysError(f"{name}: validation arrays must have shapes (n, {theta.shape[1]}) and "
+                               f"(n, {y.shape[1]}), got {tv.shape} and {yv.shape}")
+        if not (np.isfinite(tv).all() and np.isfinite(yv).all()):
+            raise InvphysError(f"{name}: validation arrays have non-finite values")
+        return theta, y, tv, yv
+    check_training_data(theta, y, name)
+    tr, va = split_indices(len(theta), val_fraction, seed)
+    return theta[tr], y[tr], theta[va], y[va]

@@ -1,0 +1,154 @@
+"""The torch networks behind the model plugins (imported inside plugin methods only).
+
+Every network carries its feature standardiser as buffers, so that a saved state dict is the whole
+model: ``forward`` works on standardised features (training), ``predict_*`` returns physical ones.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+
+def _mlp(sizes: Sequence[int], final_activation: nn.Module | None = None) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for i in range(len(sizes) - 1):
+        layers.append(nn.Linear(sizes[i], sizes[i + 1]))
+        if i < len(sizes) - 2:
+            layers.append(nn.ReLU())
+    if final_activation is not None:
+        layers.append(final_activation)
+    return nn.Sequential(*layers)
+
+
+class _Standardised(nn.Module):
+    """Holds a feature standardiser (mean, std) as buffers."""
+
+    def __init__(self, n_features: int) -> None:
+        super().__init__()
+        self.register_buffer("y_mean", torch.zeros(n_features))
+        self.register_buffer("y_std", torch.ones(n_features))
+
+    def set_standardiser(self, mean: torch.Tensor, std: torch.Tensor) -> None:
+        self.y_mean.copy_(mean)
+        self.y_std.copy_(std)
+
+    def destandardise(self, y_std: torch.Tensor) -> torch.Tensor:
+        return y_std * self.y_std + self.y_mean
+
+    def standardise(self, y: torch.Tensor) -> torch.Tensor:
+        return (y - self.y_mean) / self.y_std
+
+
+class SkipMLP(_Standardised):
+    """The paper's surrogate: d -> h1 -> h2, concat(h1, h2) -> h3 -> M; batch norm, ReLU, dropout."""
+
+    def __init__(self, d: int, m: int, hidden: Sequence[int] = (256, 256, 128), dropout: float = 0.1,
+                 batch_norm: bool = True) -> None:
+        super().__init__(m)
+        h1, h2, h3 = hidden
+
+        def block(i: int, o: int) -> nn.Sequential:
+            parts: list[nn.Module] = [nn.Linear(i, o)]
+            if batch_norm:
+                parts.append(nn.BatchNorm1d(o))
+            parts.append(nn.ReLU())
+            if dropout > 0:
+                parts.append(nn.Dropout(dropout))
+            return nn.Sequential(*parts)
+
+        self.b1 = block(d, h1)
+        self.b2 = block(h1, h2)
+        self.b3 = block(h1 + h2, h3)
+        self.out = nn.Linear(h3, m)
+
+    def forward(self, theta: torch.Tensor) -> torch.Tensor:
+        a = self.b1(theta)
+        b = self.b2(a)
+        return self.out(self.b3(torch.cat([a, b], dim=-1)))
+
+    def predict(self, theta: torch.Tensor) -> torch.Tensor:
+        return self.destandardise(self.forward(theta))
+
+
+class VAENet(_Standardised):
+    """Encoder d -> 128 -> 64 -> (mu, logvar) in R^k, decoder k -> 64 -> 128 -> d (sigmoid), head k -> M."""
+
+    def __init__(self, d: int, m: int, k: int, encoder: Sequence[int], decoder: Sequence[int],
+                 head: Sequence[int]) -> None:
+        super().__init__(m)
+        self.encoder = nn.Sequential(_mlp([d, *encoder]), nn.ReLU())
+        self.mu = nn.Linear(encoder[-1], k)
+        self.logvar = nn.Linear(encoder[-1], k)
+        self.decoder = _mlp([k, *decoder, d], nn.Sigmoid())
+        self.head = _mlp([k, *head, m])
+
+    def encode(self, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        h = self.encoder(theta)
+        return self.mu(h), self.logvar(h).clamp(-20.0, 10.0)
+
+    def predict_features(self, z: torch.Tensor) -> torch.Tensor:
+        return self.destandardise(self.head(z))
+
+
+def _tanh_affine(bound: float):
+    """A zuko univariate transform x -> exp(s) x + t with the log-scale bounded as ``bound * tanh``."""
+    from zuko.transforms import MonotonicAffineTransform
+
+    class TanhAffineTransform(MonotonicAffineTransform):
+        def __init__(self, shift: torch.Tensor, scale: torch.Tensor, **kwargs) -> None:
+            super(MonotonicAffineTransform, self).__init__(**kwargs)
+            self.shift = shift
+            self.log_scale = bound * torch.tanh(scale)
+            self.scale = self.log_scale.exp()
+
+        def __repr__(self) -> str:
+            return f"TanhAffineTransform(bound={bound})"
+
+    return TanhAffineTransform
+
+
+class FlowNet(_Standardised):
+    """Projection d -> 64 -> k, a RealNVP flow on R^k (zuko affine couplings, alternating masks,
+    tanh-bounded log-scales), projection k -> 64 -> d back, and a feature head on the flow's z."""
+
+    def __init__(self, d: int, m: int, k: int, projection: int, n_couplings: int,
+                 coupling_hidden: Sequence[int], scale_bound: float, head: Sequence[int]) -> None:
+        super().__init__(m)
+        from zuko.flows.coupling import GeneralCouplingTransform
+        from zuko.lazy import LazyComposedTransform
+
+        self.proj_in = _mlp([d, projection, k])
+        self.proj_out = _mlp([k, projection, d])
+        univariate = _tanh_affine(scale_bound)
+        base_mask = torch.arange(k) % 2 == 1
+        self.flow = LazyComposedTransform(*[
+            GeneralCouplingTransform(k, 0, mask=base_mask if i % 2 == 0 else ~base_mask,
+                                     univariate=univariate, hidden_features=tuple(coupling_hidden))
+            for i in range(n_couplings)
+        ])
+        self.head = _mlp([k, *head, m])
+
+    def to_latent(self, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(z, log|det J|) of the flow applied to the projected parameters."""
+        return self.flow().call_and_ladj(self.proj_in(theta))
+
+    def from_latent(self, z: torch.Tensor) -> torch.Tensor:
+        """Unclipped reconstructed parameters of latent codes."""
+        return self.proj_out(self.flow().inv(z))
+
+    def predict_features(self, z: torch.Tensor) -> torch.Tensor:
+        return self.destandardise(self.head(z))
+
+
+class Ensemble(nn.Module):
+    """K :class:`SkipMLP` members; ``predict_all`` stacks their physical-unit predictions (K, B, M)."""
+
+    def __init__(self, members: Sequence[SkipMLP]) -> None:
+        super().__init__()
+        self.members = nn.ModuleList(members)
+
+    def predict_all(self, theta: torch.Tensor) -> torch.Tensor:
+        return torch.stack([m.predict(theta) for m in self.members])
