@@ -146,3 +146,20 @@ def test_dataset_stage_generates_then_is_cached(tmp_path) -> None:
     messages = []
     run_spec(spec, tmp_path / "run", progress=False, on_stage=lambda s, status, _: messages.append(status))
     assert messages == ["cached"]
+
+
+def test_dataset_stage_stopped_by_its_time_limit_is_not_marked_done(tmp_path) -> None:
+    from invphys.core.runner import run_spec
+    from invphys.core.spec import parse_spec
+    from invphys.core.stages.dataset import DatasetIncomplete
+
+    text = SPEC.replace("sleep_s: 0.06", "sleep_s: 0.05").replace("sampler: sobol", "limit_minutes: 0.005")
+    spec = parse_spec(text)
+    with pytest.raises(DatasetIncomplete, match="run again to resume"):
+        run_spec(spec, tmp_path / "run", progress=False)
+    assert not (tmp_path / "run" / "dataset" / "DONE.json").exists()
+    stored = len(pd.read_parquet(tmp_path / "run" / "dataset" / "store"))
+    assert 0 < stored < N
+    done = run_spec(parse_spec(text.replace("limit_minutes: 0.005", "limit_minutes: 5")), tmp_path / "run",
+                    progress=False)
+    assert done["dataset"]["already_present"] == stored and done["dataset"]["total_rows"] == N

@@ -1,0 +1,80 @@
+"""Dataset generation throughput: runs per hour of the ``local`` and ``process`` executors.
+
+Generates the same design with each executor (fresh stores) at an orange-peel preset on this machine
+and writes the measurements as JSON::
+
+    .venv/bin/python benchmarks/bench_dataset.py --preset tiny --n 8 --workers 2
+    # -> benchmarks/results/dataset_tiny_<hostname>.json
+
+``runs_per_hour`` is end to end (start-up and kernel compilation included: what a user waits for);
+``sim_s_per_run`` is the simulator's own time per run (the store's ``wall_time_s`` column), which excludes
+start-up and, with several workers, overlaps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def bench(preset: str, n: int, batch_size: int, executors: list[str], workers: int, frames: int | None,
+          backend: str, seed: int) -> dict:
+    import pandas as pd
+
+    from invphys.core.generate import generate_dataset
+
+    sim = {"type": "orange_peel", "preset": preset, "arch": "cpu", "backend": backend,
+           "batch_size": batch_size}
+    if frames:
+        sim["frames"] = frames
+    out: dict = {"benchmark": "dataset_generation", "preset": preset, "n": n, "batch_size": batch_size,
+                 "frames": frames, "backend": backend, "host": platform.node(), "cpu_count": os.cpu_count(),
+                 "python": sys.version.split()[0], "started_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                 "results": {}}
+    for name in executors:
+        block = {"type": name} if name == "local" else {"type": name, "workers": workers}
+        with tempfile.TemporaryDirectory() as tmp:
+            t0 = time.perf_counter()
+            summary = generate_dataset(Path(tmp) / "ds", sim, n=n, batch_size=batch_size, seed=seed,
+                                       executor=block, progress=False)
+            wall = time.perf_counter() - t0
+            df = pd.read_parquet(Path(tmp) / "ds")
+        res = {"executor": block, "wall_s": round(wall, 2), "ok": summary.ok, "failed": summary.failed,
+               "runs_per_hour": round(3600 * n / wall, 1),
+               "sim_s_per_run": round(float(np.mean(df["wall_time_s"])), 3),
+               "substeps_mean": round(float(np.mean(df["substeps"])), 1)}
+        out["results"][name] = res
+        print(json.dumps(res), flush=True)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--preset", default="tiny")
+    ap.add_argument("--n", type=int, default=8)
+    ap.add_argument("--batch-size", type=int, default=2)
+    ap.add_argument("--executors", default="local,process")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--frames", type=int, default=None, help="override the preset's frame count")
+    ap.add_argument("--backend", default="taichi")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+    data = bench(args.preset, args.n, args.batch_size, args.executors.split(","), args.workers, args.frames,
+                 args.backend, args.seed)
+    path = args.out or Path(__file__).parent / "results" / f"dataset_{args.preset}_{platform.node()}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=2) + "\n")
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
