@@ -13,7 +13,7 @@ import typer
 
 from invphys.cli.common import set_debug
 
-COMMAND_MODULES: tuple[str, ...] = ("core", "dataset")
+COMMAND_MODULES: tuple[str, ...] = ("core", "dataset", "simulate", "render")
 
 app = typer.Typer(
     name="invphys",
