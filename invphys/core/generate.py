@@ -44,7 +44,7 @@ class GenerationSummary:
     ok: int = 0
     failed: int = 0
     wall_s: float = 0.0
-    stop_reason: str = "complete"
+    stop_reason: str = "running"
     total_rows: int = 0
     total_ok: int = 0
     total_failed: int = 0
@@ -239,14 +239,17 @@ def generate_dataset(
                                 break
             except (KeyboardInterrupt, _Terminated) as exc:
                 summary.stop_reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else "terminated"
+            except Exception:
+                summary.stop_reason = "error"
+                raise
             finally:
                 runs_close = getattr(runs, "close", None)
                 if runs_close is not None:
                     runs_close()
                 flush(buffer)
-        if summary.stop_reason == "complete" and not summary.complete:
-            summary.stop_reason = "incomplete"
-            flush(buffer)
+        if summary.stop_reason == "running":
+            summary.stop_reason = "complete" if summary.complete else "incomplete"
+        flush(buffer)
     return summary
 
 

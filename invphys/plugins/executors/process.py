@@ -37,7 +37,7 @@ class ProcessExecutor(Executor):
         max_in_flight: int | None = Field(
             None, ge=1, description="batches submitted but not finished (default: 2 x workers)")
         threads_per_worker: int | None = Field(
-            1, ge=1, description="OMP/MKL/taichi CPU threads per worker (None leaves the environment alone)")
+            1, ge=1, description="OMP, MKL, OpenBLAS and taichi CPU threads per worker (None leaves the environment alone)")
         max_tasks_per_child: int | None = Field(
             None, ge=1, description="replace a worker after this many batches (bounds leaks)")
         isolate_failures: bool = Field(
@@ -51,7 +51,7 @@ class ProcessExecutor(Executor):
         if self.config.threads_per_worker is not None:
             t = str(self.config.threads_per_worker)
             env = {"OMP_NUM_THREADS": t, "MKL_NUM_THREADS": t, "OPENBLAS_NUM_THREADS": t,
-                   "TI_NUM_THREADS": t}
+                   "TI_CPU_MAX_NUM_THREADS": t}
         return ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
                                    initializer=_init_worker, initargs=(env,),
                                    max_tasks_per_child=self.config.max_tasks_per_child)
