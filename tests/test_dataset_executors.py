@@ -82,10 +82,22 @@ def test_ray_executor_end_to_end(tmp_path, monkeypatch) -> None:
     sim = {"type": SIM, "substeps": 1, "raise_c_above": 0.6}
     params = _params(24)
     local = _collect(LocalExecutor(), sim, params, batch_size=5)
-    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False)
     try:
-        got = _collect(RayExecutor(max_in_flight=2, max_retries=1), sim, params, batch_size=5)
+        # the executor starts a local instance (kept for the next steps: shutdown=False)
+        got = _collect(RayExecutor(num_cpus=1, max_in_flight=2, max_retries=1, shutdown=False), sim, params,
+                       batch_size=5)
+        assert ray.is_initialized()
         _assert_same(local, got)
+        # a task whose worker dies is retried, then its batch is re-run row by row: only the bad row fails
+        crash = {"type": SIM, "substeps": 8, "crash_c_above": 0.8}
+        cparams = _params(12, seed=5)[:6]
+        crashing = cparams[:, 1] > 0.8
+        assert crashing.sum() == 1
+        got = _collect(RayExecutor(max_retries=0), crash, cparams, batch_size=3)
+        for i, res in got.items():
+            assert res.ok != crashing[i]
+            if crashing[i]:
+                assert res.failure.startswith("ray task failed")
         # and through the generation loop into a store
         summary = generate_dataset(tmp_path / "ds", {"type": SIM, "substeps": 1}, n=16, batch_size=4,
                                    executor={"type": "ray", "max_in_flight": 2}, progress=False)

@@ -19,8 +19,9 @@ class RayExecutor(Executor):
 
     Connects to ``address`` (e.g. ``"auto"`` or ``"ray://head:10001"``) or starts a local Ray instance.
     Tasks ask for ``num_gpus`` GPUs each (fractions share a GPU), are retried ``max_retries`` times
-    when their worker dies, and at most ``max_in_flight`` are submitted at once. A task that still
-    fails stores its rows as failed with the error text. Workers rebuild the plugins from their spec
+    when their worker dies, and at most ``max_in_flight`` are submitted at once. A batch whose task
+    still fails is re-run row by row (with ``isolate_failures``), and the rows that fail alone are
+    stored as failed with the error text. Workers rebuild the plugins from their spec
     blocks, so plugins must be importable on every node.
     """
 
@@ -87,6 +88,9 @@ class RayExecutor(Executor):
                         cause = getattr(exc, "cause", None) or exc
                         if isinstance(cause, InvphysError):
                             raise InvphysError(str(cause)) from exc
+                        if cfg.isolate_failures and len(idx) > 1:
+                            todo.extend(np.array([i]) for i in idx[::-1])  # find the row that fails
+                            continue
                         simulator, _ = build_plugins(simulator_spec, None)
                         reason = f"ray task failed: {type(cause).__name__}: {cause}"[:500]
                         results = [failed_result(simulator, params[i], reason) for i in idx]
