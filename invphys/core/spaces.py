@@ -44,6 +44,17 @@ class EvaluationCounter:
         self.calls += 1
         return np.asarray(self._predict(pts), dtype=np.float64)
 
+    def wrap(self, predict: Callable[[np.ndarray], np.ndarray]) -> Callable[[np.ndarray], np.ndarray]:
+        """Another predictor whose evaluations add to this counter."""
+
+        def counted(points: np.ndarray) -> np.ndarray:
+            pts = np.atleast_2d(np.asarray(points, dtype=np.float64))
+            self.count += int(pts.shape[0])
+            self.calls += 1
+            return np.asarray(predict(pts), dtype=np.float64)
+
+        return counted
+
 
 def raw_space(dim: int, name: str = "raw") -> SearchSpace:
     """The normalised parameter box [0, 1]^dim; points are theta."""
@@ -127,7 +138,7 @@ def build_problem(space: SearchSpace, objective: Callable[[np.ndarray], np.ndarr
     counter = EvaluationCounter(base)
     extra: dict[str, Any] = {"counter": counter, "evaluator": evaluator, "space": space.name}
     if surrogate is not None:
-        extra["theta_predict"] = surrogate.predict
+        extra["theta_predict"] = counter.wrap(surrogate.predict)
     if feature_mean is not None:
         extra["feature_mean"] = np.asarray(feature_mean, dtype=np.float64)
     if feature_std is not None:

@@ -1,0 +1,152 @@
+"""Goal-conditioned PPO, warm start and the inverse-design environments."""
+
+from __future__ import annotations
+
+import functools
+import warnings
+
+import numpy as np
+import pytest
+from test_optim_support import _optim_data, random_search_score, recovery_problem
+
+from invphys.core.errors import InvphysError
+from invphys.core.objectives import recovery_reward
+from invphys.core.spaces import make_predict, raw_space
+from invphys.plugins.optimizers import GoalConditionedPPO, WarmStart
+
+
+@pytest.fixture
+def optim_data() -> dict:
+    """The shared small real problem (trained once per session)."""
+    return _optim_data()
+
+
+@functools.lru_cache(maxsize=1)
+def _trained() -> GoalConditionedPPO:
+    d = _optim_data()
+    space = raw_space(9)
+    gc = GoalConditionedPPO(total_timesteps=12_288, n_steps=128, net_arch=[64, 64], seed=0)
+    gc.prepare(space, make_predict(space, d["surrogate"]), d["y"][d["train_idx"]], d["scales"])
+    return gc
+
+
+def _task(d: dict, goal_conditioned: bool, n_calls: list | None = None):
+    from invphys.envs.task import InverseTask
+
+    surrogate = d["surrogate"]
+
+    def predict(points):
+        if n_calls is not None:
+            n_calls.append(len(points))
+        return surrogate.predict(points)
+
+    y_tr = d["y"][d["train_idx"]]
+    if goal_conditioned:
+        def sampler(rng, n):
+            return y_tr[rng.integers(0, len(y_tr), n)]
+
+        def score(y, g):
+            return recovery_reward(y, g, d["scales"])
+    else:
+        sampler = None
+        target = y_tr[0]
+
+        def score(y, g):
+            return recovery_reward(y, target, d["scales"])
+    return InverseTask(low=0.0, high=1.0, dim=9, predict=predict, score=score, feature_mean=d["mean"],
+                       feature_std=d["std"], goal_sampler=sampler)
+
+
+@pytest.mark.parametrize("goal_conditioned", [False, True])
+def test_env_passes_gymnasium_and_sb3_checkers(optim_data, goal_conditioned) -> None:
+    from gymnasium.utils.env_checker import check_env as gym_check
+    from stable_baselines3.common.env_checker import check_env as sb3_check
+
+    from invphys.envs.single import InverseDesignEnv
+
+    env = InverseDesignEnv(_task(optim_data, goal_conditioned))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        gym_check(env, skip_render_check=True)
+        sb3_check(env, warn=False)
+    m = optim_data["y"].shape[1]
+    assert env.observation_space.shape == (9 + m * (2 if goal_conditioned else 1) + 2,)
+    obs, _ = env.reset(seed=1)
+    assert np.allclose(obs[:9], 0.5) and obs[-1] == 0.0
+    rewards = []
+    for t in range(8):
+        obs, r, term, trunc, info = env.step(np.ones(9, dtype=np.float32))
+        rewards.append(r)
+        assert term == (t == 7) and not trunc
+    # s moved by 0.5 per step and was clipped at 1; sparse reward: only the last step pays the best R
+    assert np.allclose(obs[:9], 1.0) and obs[-1] == 1.0
+    assert all(r == 0.0 for r in rewards[:-1]) and rewards[-1] == pytest.approx(info["best"])
+
+
+def test_vec_env_makes_one_batched_surrogate_call_per_step(optim_data) -> None:
+    from invphys.envs.vec import InverseVecEnv
+
+    calls: list[int] = []
+    task = _task(optim_data, True, calls)
+    calls.clear()  # the start point's features were predicted once when the task was built
+    env = InverseVecEnv(task, n_envs=8, seed=0)
+    obs = env.reset()
+    assert obs.shape == (8, task.obs_dim) and calls == []
+    rng = np.random.default_rng(0)
+    for t in range(16):
+        obs, rew, done, infos = env.step(rng.uniform(-1, 1, size=(8, 9)).astype(np.float32))
+        assert done.all() == ((t + 1) % 8 == 0)
+    assert calls == [8] * 16  # one call of 8 points per step, none for the auto-resets
+    assert "terminal_observation" in infos[0] and np.allclose(obs[:, :9], 0.5)
+    assert np.all(rew > 0)
+
+
+def test_gc_ppo_inverts_held_out_targets_better_than_random_search(optim_data) -> None:
+    gc = _trained()
+    assert gc.metrics["timesteps"] == 12_288
+    targets = optim_data["test_idx"][:10]
+    gc_scores, rs_scores = [], []
+    for i in targets:
+        problem = recovery_problem(optim_data, optim_data["y"][i], budget=8, seed=int(i))
+        res = gc.optimize(problem)
+        assert res.evaluations == problem.info["counter"].count == 8
+        gc_scores.append(res.score)
+        rs_scores.append(np.mean([random_search_score(optim_data, optim_data["y"][i], 8, seed=s) for s in range(5)]))
+    gc_scores, rs_scores = np.array(gc_scores), np.array(rs_scores)
+    assert gc_scores.mean() > rs_scores.mean() + 0.05, (gc_scores, rs_scores)
+    assert (gc_scores > rs_scores).mean() >= 0.7
+
+
+def test_gc_ppo_save_load_gives_identical_inversions(optim_data, tmp_path) -> None:
+    gc = _trained()
+    gc.save(tmp_path / "policy")
+    loaded = GoalConditionedPPO.load(tmp_path / "policy")
+    y = optim_data["y"][optim_data["test_idx"][2]]
+    a = gc.optimize(recovery_problem(optim_data, y, 8))
+    b = loaded.optimize(recovery_problem(optim_data, y, 8))
+    assert np.array_equal(a.theta, b.theta) and a.score == b.score
+    with pytest.raises(InvphysError, match="no saved gc_ppo"):
+        GoalConditionedPPO.load(tmp_path / "nothing")
+    with pytest.raises(InvphysError, match="prepare"):
+        GoalConditionedPPO().optimize(recovery_problem(optim_data, y, 8))
+    with pytest.raises(InvphysError, match="target"):
+        gc.optimize(recovery_problem(optim_data, None, 8))
+
+
+def test_warm_start_is_never_worse_than_its_start_and_counts_540(optim_data) -> None:
+    gc = _trained()
+    ws = WarmStart().attach(gc)
+    assert ws.evaluation_budget == 540
+    gains = []
+    for i in optim_data["test_idx"][10:16]:
+        problem = recovery_problem(optim_data, optim_data["y"][i], budget=540, seed=int(i))
+        res = ws.optimize(problem)
+        assert res.evaluations == problem.info["counter"].count == 540
+        assert res.info["policy_evaluations"] == 40 and res.info["cma_evaluations"] == 500
+        assert res.score >= res.info["start_score"]
+        # the start is the policy's own best proposal among its 5 rollouts
+        assert res.info["start_score"] >= gc.optimize(recovery_problem(optim_data, optim_data["y"][i], 8)).score - 1e-6
+        gains.append(res.score - res.info["start_score"])
+    assert np.mean(gains) > 0.02  # refinement helps on average
+    with pytest.raises(InvphysError, match="no policy"):
+        WarmStart().optimize(recovery_problem(optim_data, optim_data["y"][0], 540))
