@@ -88,10 +88,12 @@ class TorchModel:
             self._device = pick_device(self.config.device)
         return self._device
 
-    def _input(self, x: Any, dim: int, label: str) -> Any:
+    def _input(self, x: Any, label: str = "theta") -> Any:
+        """``x`` as a float32 tensor on the model's device; ``label`` "theta" (B, d) or "z" (B, k)."""
         import torch
 
         self._require_fitted()
+        dim = self.dims[0] if label == "theta" else self.latent_dim  # type: ignore[index, attr-defined]
         arr = check_input(x, dim, label, f"{self.kind} {self.name!r}")
         return torch.from_numpy(arr).to(self.device)
 

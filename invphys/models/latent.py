@@ -95,7 +95,7 @@ class LatentTorchModel(TorchModel):
         """Deterministic latent codes (B, k) of (B, d) normalised parameters."""
         import torch
 
-        x = self._input(theta, self.dims[0], "theta")  # type: ignore[index]
+        x = self._input(theta, "theta")
         with torch.inference_mode():
             return self._encode(x).cpu().numpy().astype(np.float64)
 
@@ -103,7 +103,7 @@ class LatentTorchModel(TorchModel):
         """Normalised parameters (B, d), clipped to [0, 1], of (B, k) latent codes."""
         import torch
 
-        x = self._input(z, self.latent_dim, "z")
+        x = self._input(z, "z")
         with torch.inference_mode():
             return np.clip(self._decode(x).cpu().numpy().astype(np.float64), 0.0, 1.0)
 
@@ -111,7 +111,7 @@ class LatentTorchModel(TorchModel):
         """The feature head's prediction (B, M), in feature units, for (B, k) latent codes."""
         import torch
 
-        x = self._input(z, self.latent_dim, "z")
+        x = self._input(z, "z")
         with torch.inference_mode():
             return self._net.predict_features(x).cpu().numpy().astype(np.float64)
 

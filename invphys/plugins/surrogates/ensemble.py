@@ -64,7 +64,7 @@ class EnsembleSurrogate(MLPSurrogate, Surrogate):
     def _member_predict(self, theta: np.ndarray) -> np.ndarray:
         import torch
 
-        x = self._input(theta, self.dims[0], "theta")  # type: ignore[index]
+        x = self._input(theta, "theta")
         with torch.inference_mode():
             return self._net.predict_all(x).cpu().numpy().astype(np.float64)
 

@@ -63,7 +63,7 @@ class MLPSurrogate(TorchModel, Surrogate):
         """Predicted features (B, M) for (B, d) normalised parameters."""
         import torch
 
-        x = self._input(theta, self.dims[0], "theta")  # type: ignore[index]
+        x = self._input(theta, "theta")
         with torch.inference_mode():
             return self._net.predict(x).cpu().numpy().astype(np.float64)
 
