@@ -15,15 +15,14 @@ GOOD = """\
 name: demo
 seed: 3
 simulator: {type: test_line, frames: 4}
-executor: {type: core_plugins:LineSimulator}
 dataset: {n: 10, sampler: sobol}
-surrogate: {type: core_plugins:LineSimulator}
+surrogate: {type: mlp}
 optimizers:
   rs:
     type: test_random_search
     space: raw
     sigma0: 0.2
-stages: [train, dataset]
+stages: [train, dataset, invert]
 """
 
 
@@ -37,47 +36,48 @@ def parse(text: str):
     return parse_spec(textwrap.dedent(text), source="spec.yaml")
 
 
-def good_without(*drop: str) -> str:
-    return "\n".join(line for line in GOOD.splitlines() if not any(line.startswith(d) for d in drop)) + "\n"
-
-
 def test_good_spec_round_trip(tmp_path):
-    text = good_without("executor", "surrogate") + "surrogate: {type: test_line}\n"
-    # surrogate must be a surrogate plugin: test_line is a simulator, so pass 2 complains
-    with pytest.raises(SpecError, match="No surrogate named 'test_line'"):
-        parse(text)
-    ok = good_without("executor", "surrogate", "stages", "optimizers", "  ") + "stages: [dataset]\n"
     path = tmp_path / "s.yaml"
-    path.write_text(ok)
+    path.write_text(GOOD)
     spec = load_spec(path)
     assert spec.name == "demo" and spec.seed == 3 and spec.dataset.sampler == "sobol"
-    assert spec.executor == {"type": "local"} and spec.stages == ["dataset"]
+    assert spec.executor == {"type": "local"}
+    assert spec.stages == ["dataset", "train", "invert"]  # pipeline order
+    assert [p for p, _, _ in spec.plugin_blocks()] == ["simulator", "executor", "surrogate", "optimizers.rs"]
+    # runner-level keys are not passed to the optimizer's Config
+    assert spec.plugin_blocks()[-1][2] == {"type": "test_random_search", "sigma0": 0.2}
 
 
-def test_stage_order_is_canonical():
-    spec = parse(good_without("executor", "surrogate", "stages", "optimizers", "  ") + "stages: [dataset]\n")
+def test_wrong_kind_is_reported():
+    with pytest.raises(SpecError, match=r"surrogate\.type \(line 5\): No surrogate named 'test_line'"):
+        parse(GOOD.replace("surrogate: {type: mlp}", "surrogate: {type: test_line}"))
+
+
+def test_default_stages_follow_the_sections_present():
+    spec = parse("name: x\nsimulator: {type: test_line}\n")
     assert spec.stages == ["dataset"]
+    spec = parse(GOOD.replace("stages: [train, dataset, invert]\n", ""))
+    assert spec.stages == ["dataset", "train", "invert", "report"]
 
 
 def test_misspelled_plugin_did_you_mean_with_line():
     text = GOOD.replace("type: test_random_search", "type: test_random_serch")
-    text = good_without("executor", "surrogate").replace("type: test_random_search", "type: test_random_serch")
     with pytest.raises(SpecError) as err:
         parse(text)
     msg = str(err.value)
-    assert "optimizers.rs.type (line 6): No optimizer named 'test_random_serch'. Did you mean 'test_random_search'?" in msg
+    assert "optimizers.rs.type (line 8): No optimizer named 'test_random_serch'. Did you mean 'test_random_search'?" in msg
 
 
 def test_bad_field_value_reported_by_path_and_line():
-    text = good_without("executor", "surrogate", "stages").replace("sigma0: 0.2", "sigma0: -1")
+    text = GOOD.replace("sigma0: 0.2", "sigma0: -1")
     with pytest.raises(SpecError) as err:
         parse(text)
-    assert "optimizers.rs.sigma0 (line 9): must be > 0" in str(err.value)
+    assert "optimizers.rs.sigma0 (line 10): must be > 0" in str(err.value)
 
 
 def test_unknown_field_in_plugin_block_suggests_name():
-    text = good_without("executor", "surrogate", "stages").replace("sigma0: 0.2", "sigma: 0.2")
-    with pytest.raises(SpecError, match=r"optimizers\.rs\.sigma \(line 9\): unknown field\. Did you mean 'sigma0'\?"):
+    text = GOOD.replace("sigma0: 0.2", "sigma: 0.2")
+    with pytest.raises(SpecError, match=r"optimizers\.rs\.sigma \(line 10\): unknown field\. Did you mean 'sigma0'\?"):
         parse(text)
 
 
@@ -97,8 +97,7 @@ def test_shape_errors():
 
 
 def test_latent_space_label_checked():
-    text = good_without("executor", "surrogate", "stages").replace("space: raw", "space: flow")
-    text += "surrogate: {type: core_plugins:RandomSearch}\n"
+    text = GOOD.replace("space: raw", "space: flow")
     with pytest.raises(SpecError, match="'flow' is neither 'raw' nor a latent model label"):
         parse(text)
 
