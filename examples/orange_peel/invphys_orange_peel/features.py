@@ -50,7 +50,7 @@ class OrangePeelFeatures(FeatureExtractor):
     """The paper's 11 named features plus skin mean displacement, from an orange-peel trajectory.
 
     Degenerate runs are defined, not NaN: a run that never fractures gets
-    ``fracture_onset_frame = last frame + stride`` (one stride past the end); a run whose skin and
+    ``fracture_onset_frame = last frame + stride`` (stride = first recording interval); a run whose skin and
     interior centroids do not separate by more than ``1e-3 * radius`` gets
     ``separation_half_time = last frame``; an empty region contributes zeros.
     """
@@ -100,7 +100,7 @@ class OrangePeelFeatures(FeatureExtractor):
         else:
             peak_rate = 0.0
 
-        stride = float(frames[-1] - frames[-2]) if len(frames) > 1 else 1.0
+        stride = float(frames[1] - frames[0]) if len(frames) > 1 else 1.0
         fractured = (dmg >= self.config.onset_damage).mean(axis=1)
         hit = np.flatnonzero(fractured >= self.config.onset_fraction)
         onset = float(frames[hit[0]]) if len(hit) else float(frames[-1] + stride)

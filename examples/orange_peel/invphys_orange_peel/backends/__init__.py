@@ -27,6 +27,5 @@ def load_backend(name: str) -> Any:
         raise PluginLoadError(
             f"the orange-peel {name!r} backend is not available: {exc}. "
             f"Install it with `pip install invphys-orange-peel[{name}]`"
-            + (" (the Warp backend is not written yet; use backend='taichi')" if name == "warp" else "")
         ) from exc
     return getattr(module, cls_name)

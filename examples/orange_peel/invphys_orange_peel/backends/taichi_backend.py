@@ -382,5 +382,9 @@ class TaichiBackend:
         """Positions (B, N, 3) and damage (B, N), float32."""
         return self.x.to_numpy(), self.d.to_numpy()
 
+    def grid_mass(self) -> np.ndarray:
+        """(B,) total grid mass deposited by the last P2G (equals the particle mass: a check)."""
+        return self.gm.to_numpy().astype(np.float64).reshape(self.batch, -1).sum(axis=1)
+
     def sync(self) -> None:
         ti.sync()
