@@ -1,0 +1,278 @@
+"""Taichi vs Warp orange-peel backends: feature parity (CPU) and side-by-side speed (GPU).
+
+Both modes simulate the same fixed parameter vectors (``--n`` uniform draws in the unit cube,
+``--seed``) through the shared driver (:func:`invphys_orange_peel.driver.run_batch`), one batch per
+backend, and extract the 12 features with :class:`invphys_orange_peel.features.OrangePeelFeatures`.
+
+    # CPU parity at the tiny preset (writes backends_cpu_parity.json)
+    python benchmarks/bench_backends.py parity --preset tiny --n 16 --batch 4 --out benchmarks/results
+
+    # GPU speed at the paper preset, each backend in its own process (writes backends_gpu.json)
+    python benchmarks/bench_backends.py gpu --preset paper --n 16 --repeats 3 --out $OUT
+
+``gpu`` runs Taichi once and Warp ``--repeats`` times (run-to-run spread), while ``--budget-s``
+allows; it also times Warp with and without CUDA graphs on one small run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+for p in (ROOT, ROOT / "examples" / "orange_peel"):
+    if str(p) not in sys.path:
+        sys.path.insert(0, str(p))
+
+from invphys_orange_peel.driver import RunRecord, StepSettings, run_batch  # noqa: E402
+from invphys_orange_peel.material import materials_from_params  # noqa: E402
+from invphys_orange_peel.parameters import parameter_space  # noqa: E402
+from invphys_orange_peel.presets import get_preset  # noqa: E402
+from invphys_orange_peel.scene import build_scene  # noqa: E402
+
+PAPER_SECONDS_PER_RUN = 156.0
+
+
+def parameter_set(n: int, seed: int) -> np.ndarray:
+    """The fixed benchmark vectors: ``n`` uniform draws in the unit cube, mapped to physical units."""
+    unit = np.random.default_rng(seed).uniform(size=(n, parameter_space().dim))
+    return parameter_space().denormalize(unit)
+
+
+def make_backend(name: str, scene, batch: int, settings: StepSettings, arch: str, use_graphs: bool | None = None):
+    from invphys_orange_peel.backends import load_backend
+
+    cls = load_backend(name)
+    if name == "warp" and use_graphs is not None:
+        return cls(scene, batch, settings, arch=arch, use_graphs=use_graphs)
+    return cls(scene, batch, settings, arch=arch)
+
+
+def features_of(records: list[RunRecord], scene, fps: float) -> list[list[float] | None]:
+    """The 12 features of each successful run (None for failed runs)."""
+    from invphys_orange_peel.features import OrangePeelFeatures
+
+    from invphys.core.results import Trajectory
+
+    fe = OrangePeelFeatures()
+    out: list[list[float] | None] = []
+    for rec in records:
+        if rec.failure is not None:
+            out.append(None)
+            continue
+        traj = Trajectory(positions=np.stack(rec.positions), damage=np.stack(rec.damage), labels=scene.labels,
+                          frame_indices=np.asarray(rec.frames), fps=fps,
+                          extra={"dx": scene.dx, "radius": scene.radius})
+        out.append([float(v) for v in fe.extract(traj)])
+    return out
+
+
+def simulate(backend, scene, params: np.ndarray, frames: int, fps: float, record_every: int,
+             settings: StepSettings) -> dict:
+    """One timed batch; returns wall time, substeps, failures, features and throughput."""
+    records, wall = run_batch(backend, scene, materials_from_params(params), frames, fps, record_every, settings)
+    substeps = [r.substeps for r in records]
+    return {"wall_s": wall, "wall_per_run_s": wall / len(records), "substeps": substeps,
+            "particle_substeps_per_s": scene.n_particles * float(sum(substeps)) / wall,
+            "failures": [r.failure for r in records], "features": features_of(records, scene, fps),
+            "final_positions": [r.positions[-1] if r.failure is None else None for r in records]}
+
+
+def compare(fa: list, fb: list) -> dict:
+    """Per-feature Pearson correlation and median relative difference over runs both finished."""
+    from invphys_orange_peel.features import FEATURE_NAMES
+
+    both = [i for i, (a, b) in enumerate(zip(fa, fb, strict=True)) if a is not None and b is not None]
+    A, B = np.array([fa[i] for i in both]), np.array([fb[i] for i in both])
+    out = {"runs_compared": len(both), "features": {}}
+    for j, name in enumerate(FEATURE_NAMES):
+        a, b = A[:, j], B[:, j]
+        scale = np.maximum(np.maximum(np.abs(a), np.abs(b)), 1e-12)
+        rel = np.abs(a - b) / scale
+        if np.ptp(a) > 0 and np.ptp(b) > 0:
+            corr = float(np.corrcoef(a, b)[0, 1])
+        else:
+            corr = 1.0 if np.allclose(a, b) else float("nan")
+        out["features"][name] = {"correlation": corr, "median_rel_diff": float(np.median(rel)),
+                                 "max_rel_diff": float(rel.max())}
+    corrs = [v["correlation"] for v in out["features"].values()]
+    meds = [v["median_rel_diff"] for v in out["features"].values()]
+    out["min_correlation"] = float(np.nanmin(corrs))
+    out["max_median_rel_diff"] = float(max(meds))
+    return out
+
+
+def machine() -> dict:
+    return {"python": platform.python_version(), "platform": platform.platform(), "cpus": os.cpu_count()}
+
+
+# -- modes ------------------------------------------------------------------------------------
+def cmd_parity(args: argparse.Namespace) -> dict:
+    preset = get_preset(args.preset)
+    scene = build_scene(preset)
+    frames = args.frames or preset.frames
+    params = parameter_set(args.n, args.seed)
+    settings = StepSettings()
+    result: dict = {"mode": "parity", "preset": preset.name, "particles": scene.n_particles, "frames": frames,
+                    "n": args.n, "seed": args.seed, "batch": args.batch, "arch": "cpu",
+                    "params": params.tolist(), "machine": machine(), "backends": {}}
+    for name in ("taichi", "warp"):
+        feats, subs, fails, wall = [], [], [], 0.0
+        backends: dict[int, object] = {}
+        for s in range(0, args.n, args.batch):
+            chunk = params[s:s + args.batch]
+            if len(chunk) not in backends:
+                backends[len(chunk)] = make_backend(name, scene, len(chunk), settings, "cpu")
+            r = simulate(backends[len(chunk)], scene, chunk, frames, preset.fps, preset.record_every, settings)
+            feats += r["features"]
+            subs += r["substeps"]
+            fails += r["failures"]
+            wall += r["wall_s"]
+        result["backends"][name] = {"features": feats, "substeps": subs, "failures": fails, "wall_s": wall,
+                                    "device": backends[min(backends)].device}
+        print(f"{name}: {wall:.1f} s, failures {sum(f is not None for f in fails)}", flush=True)
+    result["comparison"] = compare(result["backends"]["taichi"]["features"], result["backends"]["warp"]["features"])
+    return result
+
+
+def cmd_one(args: argparse.Namespace) -> dict:
+    """One backend on one device (run in its own process by ``gpu``)."""
+    preset = get_preset(args.preset)
+    scene = build_scene(preset)
+    frames = args.frames or preset.frames
+    params = parameter_set(args.n, args.seed)
+    settings = StepSettings()
+    deadline = time.perf_counter() + args.budget_s
+    t0 = time.perf_counter()
+    backend = make_backend(args.backend, scene, len(params), settings, args.arch)
+    init_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    simulate(backend, scene, params, 2, preset.fps, 1, settings)  # compile / capture
+    warmup_s = time.perf_counter() - t0
+    out = {"backend": args.backend, "device": backend.device, "init_s": init_s, "warmup_s": warmup_s, "passes": []}
+    finals = []
+    for rep in range(args.repeats):
+        r = simulate(backend, scene, params, frames, preset.fps, preset.record_every, settings)
+        finals.append(r.pop("final_positions"))
+        out["passes"].append(r)
+        print(f"{args.backend} pass {rep}: {r['wall_s']:.2f} s, {r['particle_substeps_per_s']:.3g} "
+              f"particle-substeps/s", flush=True)
+        if time.perf_counter() + r["wall_s"] > deadline:
+            break
+    if len(finals) > 1:  # run-to-run spread of the final particle positions
+        diffs = [max(float(np.abs(a - b).max()) for a, b in zip(f0, f1, strict=True)
+                     if a is not None and b is not None) for f0, f1 in itertools.pairwise(finals)]
+        out["max_final_position_diff_m"] = max(diffs)
+    if args.backend == "warp" and args.arch == "cuda":
+        small = params[:1]
+        for graphs in (True, False):
+            b1 = make_backend("warp", scene, 1, settings, args.arch, use_graphs=graphs)
+            simulate(b1, scene, small, 2, preset.fps, 1, settings)
+            r = simulate(b1, scene, small, 24, preset.fps, preset.record_every, settings)
+            out[f"graphs_{'on' if graphs else 'off'}_24_frames_batch1"] = {
+                "wall_s": r["wall_s"], "substeps": r["substeps"][0],
+                "substeps_per_s": r["substeps"][0] / r["wall_s"]}
+    return out
+
+
+def spread(values: list[float]) -> dict:
+    v = np.asarray(values, dtype=np.float64)
+    return {"n": len(v), "mean": float(v.mean()), "min": float(v.min()), "max": float(v.max()),
+            "rel_spread": float(np.ptp(v) / v.mean()) if len(v) > 1 else 0.0}
+
+
+def cmd_gpu(args: argparse.Namespace) -> dict:
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    preset = get_preset(args.preset)
+    scene = build_scene(preset)
+    result: dict = {"mode": "gpu", "preset": preset.name, "particles": scene.n_particles,
+                    "frames": args.frames or preset.frames, "n": args.n, "batch": args.n, "seed": args.seed,
+                    "params": parameter_set(args.n, args.seed).tolist(), "machine": machine(), "backends": {}}
+    start = time.perf_counter()
+    for name, repeats in (("taichi", 1), ("warp", args.repeats)):
+        part = out_dir / f"part_{name}.json"
+        left = args.budget_s - (time.perf_counter() - start)
+        cmd = [sys.executable, __file__, "_one", "--backend", name, "--arch", args.arch, "--preset", preset.name,
+               "--n", str(args.n), "--seed", str(args.seed), "--repeats", str(repeats),
+               "--budget-s", str(max(left - 30, 1)), "--json", str(part)]
+        if args.frames:
+            cmd += ["--frames", str(args.frames)]
+        try:
+            code = subprocess.run(cmd, check=False, timeout=max(left, 1)).returncode
+        except subprocess.TimeoutExpired:
+            code = "timeout"
+        if code != 0 or not part.exists():
+            result["backends"][name] = {"error": f"exit status {code}"}
+            continue
+        result["backends"][name] = json.loads(part.read_text())
+        part.unlink()
+    ok = {k: v for k, v in result["backends"].items() if "passes" in v}
+    summary: dict = {}
+    for name, v in ok.items():
+        walls = [p["wall_per_run_s"] for p in v["passes"]]
+        rates = [p["particle_substeps_per_s"] for p in v["passes"]]
+        summary[name] = {"wall_per_run_s": spread(walls), "particle_substeps_per_s": spread(rates),
+                         "mean_substeps_per_run": float(np.mean(v["passes"][0]["substeps"])),
+                         "paper_speedup": PAPER_SECONDS_PER_RUN / float(np.mean(walls))}
+    if len(ok) == 2:
+        t, w = summary["taichi"], summary["warp"]
+        summary["warp_over_taichi_wall"] = w["wall_per_run_s"]["mean"] / t["wall_per_run_s"]["mean"]
+        summary["warp_over_taichi_throughput"] = (w["particle_substeps_per_s"]["mean"]
+                                                  / t["particle_substeps_per_s"]["mean"])
+        summary["feature_parity"] = compare(ok["taichi"]["passes"][0]["features"], ok["warp"]["passes"][0]["features"])
+    if "warp" in ok and len(ok["warp"]["passes"]) > 1:
+        summary["warp_run_to_run_features"] = compare(ok["warp"]["passes"][0]["features"],
+                                                      ok["warp"]["passes"][1]["features"])
+    result["summary"] = summary
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("mode", choices=["parity", "gpu", "_one"])
+    ap.add_argument("--preset", default=None)
+    ap.add_argument("--n", type=int, default=16)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--batch", type=int, default=4, help="parity: runs per batch")
+    ap.add_argument("--frames", type=int, default=None)
+    ap.add_argument("--repeats", type=int, default=3, help="gpu: Warp passes (run-to-run spread)")
+    ap.add_argument("--arch", default="cuda")
+    ap.add_argument("--backend", default="warp")
+    ap.add_argument("--budget-s", type=float, default=480.0)
+    ap.add_argument("--out", default="benchmarks/results")
+    ap.add_argument("--json", default=None, help="_one: where to write its result")
+    args = ap.parse_args(argv)
+    if args.mode == "parity":
+        args.preset = args.preset or "tiny"
+        res = cmd_parity(args)
+        path = Path(args.out) / "backends_cpu_parity.json"
+    elif args.mode == "gpu":
+        args.preset = args.preset or "paper"
+        res = cmd_gpu(args)
+        path = Path(args.out) / "backends_gpu.json"
+    else:
+        args.preset = args.preset or "paper"
+        res = cmd_one(args)
+        path = Path(args.json)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(res, indent=1, default=lambda o: None if o is None else str(o)))
+    if "comparison" in res:
+        print(json.dumps({k: v for k, v in res["comparison"].items() if k != "features"}))
+    if "summary" in res:
+        print(json.dumps(res["summary"], indent=1))
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
