@@ -15,14 +15,17 @@ BACKENDS = {"taichi": "invphys_orange_peel.backends.taichi_backend:TaichiBackend
 
 def load_backend(name: str) -> Any:
     """The backend class called ``name`` (imports its library now)."""
+    import contextlib
     import importlib
+    import sys
 
     if name not in BACKENDS:
         raise InvphysError(f"unknown orange-peel backend {name!r}.{did_you_mean(name, BACKENDS)} "
                            f"Backends: {', '.join(BACKENDS)}")
     module_name, _, cls_name = BACKENDS[name].partition(":")
     try:
-        module = importlib.import_module(module_name)
+        with contextlib.redirect_stdout(sys.stderr):  # keep library banners off stdout (--json)
+            module = importlib.import_module(module_name)
     except ModuleNotFoundError as exc:
         raise PluginLoadError(
             f"the orange-peel {name!r} backend is not available: {exc}. "

@@ -8,6 +8,8 @@ for the current frame is idle.
 """
 
 
+import contextlib
+import sys
 import threading
 
 import numpy as np
@@ -67,8 +69,9 @@ def ensure_taichi(arch: str, allow_cpu_fallback: bool = False) -> str:
                     f"Taichi is already initialised on {_initialised_arch!r} in this process and cannot "
                     f"switch to {want!r}; use one arch per process")
             return want
-        ti.init(arch=ti.cuda if want == "cuda" else ti.cpu, default_fp=ti.f32, random_seed=0,
-                offline_cache=True, log_level=ti.WARN)
+        with contextlib.redirect_stdout(sys.stderr):  # Taichi's start-up banner must not pollute stdout
+            ti.init(arch=ti.cuda if want == "cuda" else ti.cpu, default_fp=ti.f32, random_seed=0,
+                    offline_cache=True, log_level=ti.WARN)
         _initialised_arch = want
         return want
 
