@@ -112,7 +112,8 @@ def train_models(theta: np.ndarray, y: np.ndarray, train_idx: np.ndarray, test_i
         summary["latent_models"][label] = entry
         if getattr(lat, "history", None):
             plot_curves(lat.history, out / f"curves_latent_{label}.png", f"latent {label} ({lat.name})")
-        say(f"latent {label!r}: recon MSE {entry['recon_mse']:.4f}, head R^2 {entry['head_r2']}")
+        head = "n/a" if entry["head_r2"] is None else f"{entry['head_r2']:.3f}"
+        say(f"latent {label!r}: recon MSE {entry['recon_mse']:.4f}, head R^2 {head}")
     (out / METRICS_JSON).write_text(json.dumps(summary, indent=2, default=float))
     (out / METRICS_MD).write_text(metrics_markdown(summary))
     return summary
