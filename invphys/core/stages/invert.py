@@ -64,6 +64,9 @@ class _Entries:
         self.plugins = {k: ctx.registry.create("optimizer", optimizer_plugin_block(b)) for k, b in self.blocks.items()}
         self._built: dict[str, tuple[Any, Any, Any, str]] = {}
         self.prepare_metrics: dict[str, Any] = {}
+        for label, plugin in self.plugins.items():  # fail early on a bad policy label
+            if plugin.name == "warm_start" and plugin.config.policy_path is None:
+                self._policy_label(label)
 
     def space(self, label: str) -> tuple[Any, Any, Any, str]:
         """(space, predict, latent, evaluator) of an entry (a warm start uses its policy's)."""
@@ -103,6 +106,7 @@ class _Entries:
         plugin = self.plugins[label]
         if getattr(plugin, "goal_conditioned", False) and not getattr(plugin, "prepared", True):
             self._prepare(label)
+            plugin = self.plugins[label]  # the cached policy may have replaced it
         if plugin.name == "warm_start" and plugin.policy is None:
             plugin.attach(self.plugin(self._policy_label(label)))
         return plugin
