@@ -320,7 +320,7 @@ class DatasetStore:
         ok = df[df["status"] == "ok"]
         failed = df[df["status"] != "ok"]
         reasons = failed["failure"].fillna("(no reason)").value_counts()
-        features = {}
+        features: dict[str, dict[str, float | None]] = {}
         for name in meta["feature_names"]:
             col = ok[f"f_{name}"].to_numpy(dtype=np.float64, na_value=np.nan)
             if len(col) and np.isfinite(col).any():
