@@ -139,3 +139,13 @@ def test_toy_oscillator_is_deterministic_batched_and_detects_blow_up() -> None:
     light, heavy = space.denormalize(np.array([[0.3, 0.1, 0.5], [0.3, 0.95, 0.5]]))
     fl, fh = (ext.extract(r.trajectory) for r in sim.simulate(np.stack([light, heavy])))
     assert fh[2] < fl[2]
+
+
+def test_toy_plugins_and_the_executors_pass_the_conformance_checks() -> None:
+    from invphys.plugins.executors import EXECUTORS
+    from invphys.testing import check_feature_extractor, check_plugin_class, check_simulator
+
+    for cls in (ToyOscillator, ToyFeatures, *EXECUTORS):
+        check_plugin_class(cls)
+    results = check_simulator(ToyOscillator(), n_runs=6)
+    check_feature_extractor(ToyFeatures(), results)
