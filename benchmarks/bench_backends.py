@@ -269,7 +269,19 @@ def main(argv: list[str] | None = None) -> int:
     if "comparison" in res:
         print(json.dumps({k: v for k, v in res["comparison"].items() if k != "features"}))
     if "summary" in res:
-        print(json.dumps(res["summary"], indent=1))
+        for name in ("taichi", "warp"):
+            if name in res["summary"]:
+                v = res["summary"][name]
+                print(f"{name}: {v['wall_per_run_s']['mean']:.3f} s/run (spread {v['wall_per_run_s']['rel_spread']:.1%}, "
+                      f"n={v['wall_per_run_s']['n']}), {v['particle_substeps_per_s']['mean']:.3g} particle-substeps/s, "
+                      f"{v['paper_speedup']:.0f}x faster than the paper's 156 s/run")
+        for key in ("feature_parity", "warp_run_to_run_features"):
+            if key in res["summary"]:
+                c = res["summary"][key]
+                print(f"{key}: min corr {c['min_correlation']:.6f}, max median rel diff {c['max_median_rel_diff']:.2e}")
+        for key in ("warp_over_taichi_wall", "warp_over_taichi_throughput"):
+            if key in res["summary"]:
+                print(f"{key}: {res['summary'][key]:.3f}")
     print(f"wrote {path}")
     return 0
 
