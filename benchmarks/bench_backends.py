@@ -237,9 +237,41 @@ def cmd_gpu(args: argparse.Namespace) -> dict:
     return result
 
 
+def markdown(paths: list[str]) -> str:
+    """Markdown tables (as in docs/orange-peel/warp.md) from result JSON files of either mode."""
+    lines: list[str] = []
+    for path in paths:
+        res = json.loads(Path(path).read_text())
+        comp = res.get("comparison") or res.get("summary", {}).get("feature_parity")
+        if res["mode"] == "gpu":
+            s = res["summary"]
+            dev = next((v.get("device") for v in res["backends"].values() if "device" in v), "?")
+            lines += [f"{res['preset']} preset, {res['particles']:,} particles, {res['frames']} frames, "
+                      f"one batch of {res['batch']} runs, {dev}:", "",
+                      "| backend | wall time per run (s) | particle-substeps/s | passes | run-to-run spread "
+                      "of wall time | speed-up over the paper's 156 s/run |", "|---|---|---|---|---|---|"]
+            for name in ("taichi", "warp"):
+                if name in s:
+                    v = s[name]
+                    lines.append(f"| {name} | {v['wall_per_run_s']['mean']:.3f} | "
+                                 f"{v['particle_substeps_per_s']['mean']:.3g} | {v['wall_per_run_s']['n']} | "
+                                 f"{v['wall_per_run_s']['rel_spread']:.1%} | {v['paper_speedup']:.0f}x |")
+            if "warp_over_taichi_wall" in s:
+                lines += ["", f"Warp/Taichi: wall time {s['warp_over_taichi_wall']:.3f}, "
+                          f"throughput {s['warp_over_taichi_throughput']:.3f}."]
+            lines.append("")
+        if comp:
+            lines += ["| feature | correlation | median rel. diff | max rel. diff |", "|---|---|---|---|"]
+            for name, v in comp["features"].items():
+                lines.append(f"| {name} | {v['correlation']:.6f} | {v['median_rel_diff']:.1e} | "
+                             f"{v['max_rel_diff']:.1e} |")
+            lines.append("")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("mode", choices=["parity", "gpu", "_one"])
+    ap.add_argument("mode", choices=["parity", "gpu", "markdown", "_one"])
     ap.add_argument("--preset", default=None)
     ap.add_argument("--n", type=int, default=16)
     ap.add_argument("--seed", type=int, default=0)
@@ -251,7 +283,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--budget-s", type=float, default=480.0)
     ap.add_argument("--out", default="benchmarks/results")
     ap.add_argument("--json", default=None, help="_one: where to write its result")
+    ap.add_argument("inputs", nargs="*", help="markdown: result JSON files")
     args = ap.parse_args(argv)
+    if args.mode == "markdown":
+        print(markdown(args.inputs))
+        return 0
     if args.mode == "parity":
         args.preset = args.preset or "tiny"
         res = cmd_parity(args)
