@@ -154,11 +154,13 @@ def test_generate_records_failures_and_resumes_without_duplicates(tmp_path) -> N
     again = generate_dataset(path, sim, n=30, batch_size=4, seed=5, progress=False)
     assert again.ran == 0 and again.already_present == 30
     more = generate_dataset(path, sim, n=45, batch_size=4, seed=5, progress=False)
-    assert more.already_present == 30 and more.ran == 15 and more.total_rows == 45
+    assert more.already_present == 30 and more.ran == 15 and more.total_rows == 45 and more.other_rows == 0
     df = pd.read_parquet(path)
     assert len(df) == 45 and df["key"].is_unique and sorted(df["sample_index"]) == list(range(45))
+    fewer = generate_dataset(path, sim, n=10, batch_size=4, seed=5, progress=False)
+    assert fewer.ran == 0 and fewer.other_rows == 35
     meta = DatasetStore(path).metadata
-    assert len(meta["sessions"]) == 3 and meta["totals"]["rows"] == 45
+    assert len(meta["sessions"]) == 4 and meta["totals"]["rows"] == 45
     assert meta["totals"]["failed"] == int((df["status"] == "failed").sum())
     assert meta["identity"]["simulator"] == "toy_oscillator" and meta["simulator"]["config"]["substeps"] == 1
     assert meta["parameter_space"][0]["name"] == "k" and meta["totals"]["devices"] == ["cpu"]

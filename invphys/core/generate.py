@@ -40,6 +40,8 @@ class GenerationSummary:
     path: str
     requested: int
     already_present: int
+    #: stored rows that are not points of this design (another n, seed or sampler made them)
+    other_rows: int = 0
     ran: int = 0
     ok: int = 0
     failed: int = 0
@@ -164,7 +166,14 @@ def generate_dataset(
         prior_ok = int((frame["status"] == "ok").sum()) if frame is not None else 0
         prior_failed = (len(frame) - prior_ok) if frame is not None else 0
         todo = np.array([i for i, k in enumerate(keys) if k not in present], dtype=np.int64)
-        summary = GenerationSummary(path=str(store.path), requested=n, already_present=n - len(todo))
+        summary = GenerationSummary(path=str(store.path), requested=n, already_present=n - len(todo),
+                                    other_rows=len(present - set(keys)))
+        if summary.other_rows and progress:
+            from rich.console import Console
+
+            (console or Console(stderr=True)).print(
+                f"[yellow]note:[/] {summary.other_rows} stored rows are not points of this design "
+                f"(sampler {sampler!r}, n={n}, seed={seed}); they stay in the dataset")
         session: dict[str, Any] = {
             "started_at": _utcnow(), "n": n, "sampler": sampler, "seed": seed, "batch_size": batch_size,
             "executor": exec_block, "limit_minutes": limit_minutes, "host": host_info(),
