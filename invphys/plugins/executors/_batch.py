@@ -45,41 +45,48 @@ def _reason(exc: BaseException) -> str:
     return failure_reason(exc)
 
 
+def _finish(res: SimulationResult, extractor: Any) -> None:
+    """Extract the features of an ok result and drop its trajectory (idempotent)."""
+    if extractor is None:
+        return
+    if res.ok and res.features is None:
+        try:
+            if res.trajectory is None:
+                raise RuntimeError("the simulator returned no trajectory")
+            res.features = np.asarray(extractor.extract(res.trajectory), dtype=np.float64)
+        except InvphysError:
+            raise
+        except Exception as exc:
+            res.ok, res.failure = False, f"feature extraction: {_reason(exc)}"
+    res.trajectory = None
+
+
 def simulate_batch(simulator: Any, extractor: Any, params: np.ndarray,
                    isolate_failures: bool = True) -> list[SimulationResult]:
     """Simulate ``params`` (B, d) in one simulator call and extract features.
 
-    An exception from the simulator (other than an :class:`InvphysError`, which is the user's to fix
-    and propagates) becomes failed results: with ``isolate_failures`` the rows of a multi-row batch are
-    re-run one by one so that one bad row does not fail its neighbours. Results carry ``features``,
-    never a trajectory.
+    Features are extracted as the simulator reports each run (``on_result``), so trajectories are
+    dropped as soon as possible and a large call holds few of them at once. An exception from the
+    simulator (other than an :class:`InvphysError`, which is the user's to fix and propagates) becomes
+    failed results: with ``isolate_failures`` the rows of a multi-row batch are re-run one by one so
+    that one bad row does not fail its neighbours. Results carry ``features``, never a trajectory.
     """
     params = np.atleast_2d(np.asarray(params, dtype=np.float64))
     t0 = time.perf_counter()
     try:
-        results = list(simulator.simulate(params))
+        results = list(simulator.simulate(params, on_result=lambda i, res: _finish(res, extractor)))
         if len(results) != len(params):
             raise RuntimeError(f"simulator returned {len(results)} results for {len(params)} rows")
     except InvphysError:
         raise
     except Exception as exc:
         if isolate_failures and len(params) > 1:
-            results = [simulate_batch(simulator, None, row[None], False)[0] for row in params]
+            results = [simulate_batch(simulator, extractor, row[None], False)[0] for row in params]
         else:
             wall = (time.perf_counter() - t0) / len(params)
             results = [failed_result(simulator, row, _reason(exc), wall) for row in params]
-    if extractor is not None:
-        for res in results:
-            if res.ok and res.features is None:
-                try:
-                    if res.trajectory is None:
-                        raise RuntimeError("the simulator returned no trajectory")
-                    res.features = np.asarray(extractor.extract(res.trajectory), dtype=np.float64)
-                except InvphysError:
-                    raise
-                except Exception as exc:
-                    res.ok, res.failure = False, f"feature extraction: {_reason(exc)}"
     for res in results:
+        _finish(res, extractor)
         res.trajectory = None
     return results
 
