@@ -77,10 +77,12 @@ def test_mlp_is_deterministic_given_a_seed() -> None:
     assert not np.allclose(a.predict(q), c.predict(q))
 
 
-def test_ensemble_uncertainty_grows_away_from_the_data(tmp_path) -> None:
+@pytest.mark.parametrize("bootstrap", [False, True])
+def test_ensemble_uncertainty_grows_away_from_the_data(tmp_path, bootstrap) -> None:
     # train only inside the box [0, 0.5]^9; query inside it and in the far corner [0.8, 1]^9
     t, y = smooth(300, seed=0, high=0.5)
-    ens = EnsembleSurrogate(members=3, hidden=(64, 64, 32), max_epochs=80, patience=20, seed=0)
+    ens = EnsembleSurrogate(members=3, hidden=(64, 64, 32), max_epochs=80, patience=20, seed=0,
+                            bootstrap=bootstrap)
     metrics = ens.fit(t, y)
     assert metrics["r2"] > 0.7 and len(metrics["member_r2"]) == 3
     near = smooth(200, seed=1, high=0.5)[0]
@@ -94,6 +96,16 @@ def test_ensemble_uncertainty_grows_away_from_the_data(tmp_path) -> None:
     back = EnsembleSurrogate.load(tmp_path / "e")
     m2, s2 = back.predict_with_uncertainty(far)
     assert np.array_equal(s2, std_far) and np.array_equal(m2, ens.predict(far))
+
+
+def test_folded_inference_matches_the_trained_modules(fitted_mlp, orange) -> None:
+    import torch
+
+    tv = orange[2]
+    with torch.inference_mode():
+        ref = fitted_mlp._net.predict(torch.as_tensor(tv, dtype=torch.float32)).numpy()
+    fast = fitted_mlp.predict(tv)
+    assert np.allclose(fast, ref, rtol=1e-5, atol=1e-6 * np.abs(ref).max())
 
 
 def test_plain_mlp_reports_zero_uncertainty(fitted_mlp, orange) -> None:

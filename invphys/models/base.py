@@ -66,6 +66,7 @@ class TorchModel:
         #: free-form provenance saved with the model (feature_names, param_names, dataset fingerprint, ...)
         self.info: dict[str, Any] = {}
         self._device: Any = None
+        self._folded: Any = None
 
     # -- to implement ----------------------------------------------------------------------------
     def _build_net(self, d: int, m: int) -> Any:

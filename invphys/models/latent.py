@@ -9,7 +9,7 @@ from __future__ import annotations
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, PositiveInt
 
 from invphys.models.base import TorchModel, TrainingConfig, validation_split
 from invphys.models.data import array_fingerprint, check_training_data, r2_scores, standardiser
@@ -21,7 +21,7 @@ class LatentConfig(TrainingConfig):
     latent_dim: int = Field(4, ge=1, description="dimension k of the latent code")
     gamma: float = Field(1.0, ge=0, description="weight of the feature-prediction head's loss")
     warmup_epochs: int = Field(50, ge=0, description="epochs of linear warm-up of the regulariser's weight")
-    head_hidden: tuple[int, ...] = Field((64, 64), description="hidden widths of the feature head (z -> M)")
+    head_hidden: tuple[PositiveInt, ...] = Field((64, 64), description="hidden widths of the feature head (z -> M)")
     loss_reduction: Literal["sum", "mean"] = Field(
         "sum", description="sum: squared norms over dimensions as in the paper's losses; mean: per-element")
     max_epochs: int = Field(500, ge=1, description="upper bound on training epochs")

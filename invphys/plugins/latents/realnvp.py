@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any, ClassVar
 
-from pydantic import Field
+from pydantic import Field, PositiveInt
 
 from invphys.core.interfaces import LatentModel
 from invphys.models.latent import LatentConfig, LatentTorchModel
@@ -28,7 +28,7 @@ class RealNVPLatent(LatentTorchModel, LatentModel):
         alpha: float = Field(0.1, ge=0, description="weight of the flow NLL after warm-up")
         projection_hidden: int = Field(64, ge=1, description="width of the d -> k and k -> d projections")
         n_couplings: int = Field(6, ge=1, description="number of affine coupling layers")
-        coupling_hidden: tuple[int, ...] = Field((64, 64), min_length=1,
+        coupling_hidden: tuple[PositiveInt, ...] = Field((64, 64), min_length=1,
                                                  description="hidden widths of each coupling's network")
         scale_bound: float = Field(1.0, gt=0, description="bound B of the log-scales, B * tanh(.)")
 

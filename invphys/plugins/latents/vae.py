@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any, ClassVar
 
-from pydantic import Field
+from pydantic import Field, PositiveInt
 
 from invphys.core.interfaces import LatentModel
 from invphys.models.latent import LatentConfig, LatentTorchModel
@@ -24,8 +24,8 @@ class VAELatent(LatentTorchModel, LatentModel):
 
     class Config(LatentConfig):
         beta: float = Field(0.1, ge=0, description="weight of the KL term after warm-up")
-        encoder_hidden: tuple[int, ...] = Field((128, 64), min_length=1, description="encoder widths")
-        decoder_hidden: tuple[int, ...] = Field((64, 128), min_length=1, description="decoder widths")
+        encoder_hidden: tuple[PositiveInt, ...] = Field((128, 64), min_length=1, description="encoder widths")
+        decoder_hidden: tuple[PositiveInt, ...] = Field((64, 128), min_length=1, description="decoder widths")
 
     def __init__(self, config: Any = None, **settings: Any) -> None:
         super().__init__(config, **settings)

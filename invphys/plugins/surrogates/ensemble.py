@@ -16,8 +16,9 @@ from invphys.plugins.surrogates.mlp import MLPSurrogate, train_mlp
 class EnsembleSurrogate(MLPSurrogate, Surrogate):
     """K independently trained :class:`MLPSurrogate` networks (Lakshminarayanan et al., 2017).
 
-    Member k is initialised with seed ``seed + k`` and, with ``bootstrap``, trained on a resample
-    (with replacement) of the training rows; all members early-stop on the same held-out set.
+    Member k is initialised with seed ``seed + k`` (its own weights, batch order and dropout) and,
+    with ``bootstrap``, trained on a resample (with replacement) of the training rows; all members
+    early-stop on the same held-out set.
     :meth:`predict` is the members' mean and :meth:`predict_with_uncertainty` adds their standard
     deviation, which grows away from the training data: optimisers can penalise it to avoid
     exploiting the surrogate where it is guessing.
@@ -27,7 +28,7 @@ class EnsembleSurrogate(MLPSurrogate, Surrogate):
 
     class Config(MLPSurrogate.Config):
         members: int = Field(5, ge=2, le=64, description="number of networks K")
-        bootstrap: bool = Field(True, description="train each member on a bootstrap resample")
+        bootstrap: bool = Field(False, description="train each member on a bootstrap resample (on 410 orange-peel rows this lowered held-out R^2 from 0.894 to 0.872)")
 
     def _build_net(self, d: int, m: int) -> Any:
         from invphys.models.nets import Ensemble
@@ -52,6 +53,7 @@ class EnsembleSurrogate(MLPSurrogate, Surrogate):
             nets.append(net)
             hists.append(hist)
         self._net = Ensemble(nets).to(self.device).eval()
+        self._folded = None
         self.dims = (theta.shape[1], y.shape[1])
         self.data_fingerprint = array_fingerprint(theta, y)
         self.history = {"members": [h.to_dict() for h in hists]}
@@ -60,13 +62,6 @@ class EnsembleSurrogate(MLPSurrogate, Surrogate):
                         "epochs": [h.epochs for h in hists], "best_epoch": [h.best_epoch for h in hists],
                         "train_time_s": round(sum(h.train_time_s for h in hists), 3)}
         return self.metrics
-
-    def _member_predict(self, theta: np.ndarray) -> np.ndarray:
-        import torch
-
-        x = self._input(theta, "theta")
-        with torch.inference_mode():
-            return self._net.predict_all(x).cpu().numpy().astype(np.float64)
 
     def predict(self, theta: np.ndarray) -> np.ndarray:
         """The members' mean prediction (B, M)."""

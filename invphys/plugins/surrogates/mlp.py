@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any, ClassVar
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, PositiveInt
 
 from invphys.core.interfaces import Surrogate
 from invphys.models.base import TorchModel, TrainingConfig, validation_split
@@ -23,7 +23,7 @@ class MLPSurrogate(TorchModel, Surrogate):
     name: ClassVar[str] = "mlp"
 
     class Config(TrainingConfig):
-        hidden: tuple[int, int, int] = Field((256, 256, 128), description="widths of the three hidden layers")
+        hidden: tuple[PositiveInt, PositiveInt, PositiveInt] = Field((256, 256, 128), description="widths of the three hidden layers")
         dropout: float = Field(0.1, ge=0, lt=1, description="dropout after every hidden layer")
         batch_norm: bool = Field(True, description="batch normalisation after every hidden linear layer")
 
@@ -52,6 +52,7 @@ class MLPSurrogate(TorchModel, Surrogate):
         tt, yt, tv, yv = validation_split(theta, y, validation, self.config.val_fraction, self.config.seed,
                                           f"surrogate {self.name!r}")
         self._net, hist = train_mlp(self, tt, yt, tv, yv, self.config.seed, progress, f"surrogate {self.name}")
+        self._folded = None
         self.dims = (theta.shape[1], y.shape[1])
         self.data_fingerprint = array_fingerprint(theta, y)
         self.history = hist.to_dict()
@@ -61,11 +62,24 @@ class MLPSurrogate(TorchModel, Surrogate):
 
     def predict(self, theta: np.ndarray) -> np.ndarray:
         """Predicted features (B, M) for (B, d) normalised parameters."""
+        return self._member_predict(theta)[0]
+
+    def _member_predict(self, theta: np.ndarray) -> np.ndarray:
+        """(K, B, M) predictions of the K networks (K = 1 here), through the folded inference form."""
         import torch
 
         x = self._input(theta, "theta")
         with torch.inference_mode():
-            return self._net.predict(x).cpu().numpy().astype(np.float64)
+            return self._folded_net()(x).cpu().numpy().astype(np.float64)
+
+    def _folded_net(self) -> Any:
+        """The networks with batch norm folded into their linear layers (built once per fit/load)."""
+        if getattr(self, "_folded", None) is None:
+            from invphys.models.nets import FoldedMLPs
+
+            net = self._net
+            self._folded = FoldedMLPs(list(net.members) if hasattr(net, "members") else [net])
+        return self._folded
 
     def evaluate(self, theta: np.ndarray, y: np.ndarray) -> dict[str, Any]:
         """R^2 (overall = mean over features, and per feature) and standardised MSE on (theta, y)."""
