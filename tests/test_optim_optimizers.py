@@ -41,6 +41,17 @@ def test_cma_es_improves_and_spends_exactly_its_budget(optim_data) -> None:
     assert CMAES(budget=5000).optimize(small).evaluations == 37 == small.info["counter"].count
 
 
+def test_cma_es_restarts_to_spend_its_budget_on_a_flat_objective(optim_data) -> None:
+    def flat(y):
+        return np.zeros(len(y))
+
+    problem = build_problem(raw_space(9), flat, 1000, surrogate=optim_data["surrogate"])
+    res = CMAES(budget=1000).optimize(problem)
+    assert res.evaluations == problem.info["counter"].count == 1000 and res.info["restarts"] >= 1
+    once = build_problem(raw_space(9), flat, 1000, surrogate=optim_data["surrogate"])
+    assert CMAES(budget=1000, restarts=False).optimize(once).evaluations < 1000
+
+
 def test_cma_es_starts_at_the_problems_initial_point(optim_data) -> None:
     target = optim_data["y"][optim_data["test_idx"][4]]
     truth = optim_data["theta"][optim_data["test_idx"][4]]

@@ -148,6 +148,10 @@ def run(ctx: Any) -> dict[str, Any]:
     data = ctx.dataset()
     train_idx, _ = ctx.split()
     scales = ctx.scales()
+    flat = [n for n, s in zip(data.feature_names, scales, strict=True) if s <= 1e-10]
+    if flat:
+        ctx.log(f"[yellow]warning:[/] feature(s) {', '.join(flat)} have no spread in the training data "
+                f"(p95 - p5 = 0): any predicted deviation there drives R_gt to 0")
     targets = select(ctx)
     write_json(ctx.stage_dir / TARGETS_FILE, targets)
     named = objectives(ctx)
@@ -165,8 +169,8 @@ def run(ctx: Any) -> dict[str, Any]:
         on_targets, on_objectives = _problems_of(plugin, bool(named))
         problems: list[tuple[str, str, Any, np.ndarray | None, int | None]] = []
         if on_targets:
-            for k, y_star in enumerate(np.asarray(targets["features"])):
-                problems.append(("target", f"t{k:02d}", RecoveryObjective(y_star, scales), y_star, k))
+            for j, y_t in enumerate(np.asarray(targets["features"])):
+                problems.append(("target", f"t{j:02d}", RecoveryObjective(y_t, scales), y_t, j))
         if on_objectives:
             problems += [("objective", name, obj, None, None) for name, obj in named.items()]
         t_entry = time.perf_counter()

@@ -77,7 +77,7 @@ def run(ctx: Any) -> dict[str, Any]:
             base.update(r_surrogate=rec.r_surrogate, r_actual=rec.r_actual, gap=rec.gap, failure=rec.failure,
                         actual=None if rec.actual is None else rec.actual.tolist(),
                         sim_time_s=None if rec.stats is None else rec.stats.wall_time_s)
-        elif feats is not None and failures is not None and r["problem"] == "objective":
+        elif feats is not None and failures is not None and stats is not None and r["problem"] == "objective":
             obj = named[r["problem_id"]]
             ok = failures[i] is None
             r_surr = float(np.asarray(obj(np.asarray(r["predicted"])[None, :])).reshape(-1)[0])

@@ -21,6 +21,9 @@ class CMAES(BuiltinOptimizer):
     [-3, 3]^4 it is 0.3 * 6). It starts at ``problem.initial`` when the problem has one, else at the
     box centre (``x0: center``) or a seeded random point (``x0: random``). It never evaluates more than
     ``min(budget, problem.budget)`` points; the last generation is truncated to the remaining budget.
+    When cma stops on its own criteria before the budget is spent (converged, or a flat objective), it
+    restarts from a seeded random point with the same ``sigma0`` (``restarts: true``), so the whole
+    budget is used; the result is the best point over all restarts.
     """
 
     name: ClassVar[str] = "cma_es"
@@ -32,6 +35,7 @@ class CMAES(BuiltinOptimizer):
         x0: Literal["center", "random"] = Field("center", description="start when the problem has none")
         seed: int | None = Field(None, description="random seed (default: the problem's seed)")
         tolfun: float = Field(1e-11, ge=0, description="cma's tolfun stopping tolerance")
+        restarts: bool = Field(True, description="restart from a random point when cma stops before the budget")
 
     def optimize(self, problem: Problem) -> OptimizationResult:
         import cma
@@ -52,24 +56,31 @@ class CMAES(BuiltinOptimizer):
         else:
             x0 = np.full(space.dim, 0.5)
         x0 = np.clip(x0, 0.0, 1.0)
-        opts = {"popsize": cfg.popsize, "bounds": [0.0, 1.0], "seed": seed % (2**31 - 2) + 1,
-                "verbose": -9, "tolfun": cfg.tolfun, "maxfevals": tracker.budget}
-        es = cma.CMAEvolutionStrategy(x0.tolist(), cfg.sigma0, opts)
+        restarts = -1
         stop: dict = {}
         try:
             while tracker.remaining > 0:
-                stop = dict(es.stop())
-                if stop:
+                restarts += 1
+                start = x0 if restarts == 0 else rng.uniform(0.0, 1.0, space.dim)
+                opts = {"popsize": cfg.popsize, "bounds": [0.0, 1.0], "seed": (seed + restarts) % (2**31 - 2) + 1,
+                        "verbose": -9, "tolfun": cfg.tolfun, "maxfevals": tracker.remaining}
+                es = cma.CMAEvolutionStrategy(start.tolist(), cfg.sigma0, opts)
+                stop = {}
+                while tracker.remaining > 0:
+                    stop = dict(es.stop())
+                    if stop:
+                        break
+                    unit = np.clip(np.asarray(es.ask(), dtype=np.float64), 0.0, 1.0)
+                    n = min(len(unit), tracker.remaining)
+                    scores = tracker.evaluate(space.low + unit[:n] * width)
+                    if n < len(unit):
+                        break  # truncated last generation: cma needs full populations
+                    es.tell(list(unit), list(-scores))
+                if not cfg.restarts:
                     break
-                unit = np.clip(np.asarray(es.ask(), dtype=np.float64), 0.0, 1.0)
-                n = min(len(unit), tracker.remaining)
-                scores = tracker.evaluate(space.low + unit[:n] * width)
-                if n < len(unit):
-                    break  # truncated last generation: cma needs full populations
-                es.tell(list(unit), list(-scores))
         except BudgetExhausted:
             pass
         if not stop:
             stop = {"budget": tracker.budget}
         return tracker.result(stop={k: str(v) for k, v in stop.items()}, x0=(space.low + x0 * width).tolist(),
-                              sigma0=cfg.sigma0)
+                              sigma0=cfg.sigma0, restarts=restarts)
