@@ -21,6 +21,8 @@ optimizers:
   cma: {type: cma_es, budget: 200}
   ng: {type: nevergrad, optimizer: OnePlusOne, budget: 100}
   cma_flow: {type: cma_es, space: flow, budget: 100}
+  cma_head: {type: cma_es, space: flow, evaluator: own_head, budget: 100}
+  ppo: {type: ppo, total_timesteps: 512, n_steps: 64, n_envs: 4, net_arch: [16, 16]}
   gc: {type: gc_ppo, total_timesteps: 1024, n_steps: 64, n_envs: 4, net_arch: [32, 32]}
   ws: {type: warm_start, policy: gc, budget: 60}
 objectives:
@@ -58,7 +60,8 @@ def test_invert_runs_every_entry_on_targets_and_objectives(run_dir) -> None:
         assert r["evaluations"] == r["counted_evaluations"]  # what the optimiser reports is what it spent
         assert 0.0 <= min(r["theta"]) and max(r["theta"]) <= 1.0
     assert count == {("cma", "target"): 4, ("cma", "objective"): 1, ("ng", "target"): 4, ("ng", "objective"): 1,
-                     ("cma_flow", "target"): 4, ("cma_flow", "objective"): 1, ("gc", "target"): 4,
+                     ("cma_flow", "target"): 4, ("cma_flow", "objective"): 1, ("cma_head", "target"): 4,
+                     ("cma_head", "objective"): 1, ("ppo", "objective"): 1, ("gc", "target"): 4,
                      ("ws", "target"): 4}
     by = {(r["optimizer"], r["problem_id"]): r for r in rows}
     assert all(by[("cma", f"t{k:02d}")]["evaluations"] == 200 for k in range(4))
@@ -66,6 +69,8 @@ def test_invert_runs_every_entry_on_targets_and_objectives(run_dir) -> None:
     assert all(by[("ws", f"t{k:02d}")]["evaluations"] == 40 + 60 for k in range(4))
     assert by[("cma_flow", "t00")]["space"] == "flow" and len(by[("cma_flow", "t00")]["point"]) == 2
     assert by[("ws", "t00")]["space"] == "raw"  # the warm start borrows its policy's space
+    assert by[("cma_head", "t00")]["evaluator"] == "own_head"
+    assert by[("ppo", "lively")]["evaluations"] == 1 + 512 + 8
     # the cached policy is saved in the stage directory
     assert (out / "invert" / "policies" / "gc" / "policy.zip").is_file()
     # CMA-ES with 200 evaluations beats the policy's 8 evaluations on average
@@ -81,10 +86,10 @@ def test_validate_re_simulates_recovered_parameters(run_dir) -> None:
     out, _, _ = run_dir
     val = json.loads((out / "validate" / "validation.json").read_text())
     targets = json.loads((out / "invert" / "targets.json").read_text())
-    # the first 2 targets of 5 target-solving entries, and the objective rows of the 3 others
-    assert sum(v["problem"] == "target" for v in val) == 10
+    # the first 2 targets of the 6 target-solving entries, and the 5 objective rows
+    assert sum(v["problem"] == "target" for v in val) == 12
     assert {v["target_index"] for v in val if v["problem"] == "target"} == {0, 1}
-    assert sum(v["problem"] == "objective" for v in val) == 3
+    assert sum(v["problem"] == "objective" for v in val) == 5
     sim, ext = ToyOscillator(), ToyFeatures()
     scales = np.asarray(targets["scales"])
     for v in [v for v in val if v["problem"] == "target"][:3]:
@@ -119,11 +124,15 @@ def test_report_writes_tables_plot_and_renders_and_reruns_are_cached(run_dir) ->
     import pandas as pd
 
     csv = pd.read_csv(out / "report" / "report.csv")
-    assert len(csv) == len(rep["rows"]) == 23 and {"r_surrogate", "r_actual", "gap"} <= set(csv.columns)
+    assert len(csv) == len(rep["rows"]) == 29 and {"r_surrogate", "r_actual", "gap"} <= set(csv.columns)
     events: list[tuple[str, str]] = []
     run_spec(spec, out, progress=False, console=Console(file=io.StringIO()),
              on_stage=lambda s, status, _: events.append((s, status)))
     assert all(st == "cached" for _, st in events) and len(events) == 5
+    # own-head rows: R_surr is scored on the flow's head, R_actual on the simulator
+    val = json.loads((out / "validate" / "validation.json").read_text())
+    head = [v for v in val if v["optimizer"] == "cma_head" and v["problem"] == "target"]
+    assert len(head) == 2 and all(np.isfinite(v["r_surrogate"]) for v in head)
     # a bad policy label is a clear error
     from invphys.core.errors import InvphysError
     from invphys.core.spec import parse_spec
