@@ -375,6 +375,34 @@ class TaichiBackend:
                       self.gripped, self.x0, self.grip, self.x, self.v, self.C, self.F, self.d, self.dtil,
                       self.gv, self.gd)
 
+    def kernel_times(self, n_steps: int = 20) -> dict[str, float]:
+        """Mean seconds per launch of each substep kernel over ``n_steps`` synced substeps (profiling;
+        advances the state, so call it on a throw-away batch)."""
+        import time
+
+        s = self.settings
+        dx, vol = float(self.scene.dx), float(self.scene.volume)
+        calls = {
+            "clear": lambda k: self._clear(k, self.nsub, self.gv, self.gm, self.gd, self.gg),
+            "p2g": lambda k: self._p2g(k, dx, vol, s.apic_blend, self.nsub, self.dt, self.mat, self.label,
+                                       self.fibre, self.gripped, self.x, self.v, self.C, self.F, self.d,
+                                       self.dtil, self.gv, self.gm, self.gd, self.gg),
+            "grid": lambda k: self._grid(k, s.gravity, s.boundary_cells, self.nsub, self.dt, self.grip,
+                                         self.held, self.gv, self.gm, self.gg),
+            "g2p": lambda k: self._g2p(k, dx, s.l0_cells ** 2, int(s.damage_on), self.nsub, self.dt, self.mat,
+                                       self.label, self.gripped, self.x0, self.grip, self.x, self.v, self.C,
+                                       self.F, self.d, self.dtil, self.gv, self.gd),
+        }
+        total = dict.fromkeys(calls, 0.0)
+        for _ in range(n_steps):
+            for name, call in calls.items():
+                ti.sync()
+                t0 = time.perf_counter()
+                call(0)
+                ti.sync()
+                total[name] += time.perf_counter() - t0
+        return {k: v / n_steps for k, v in total.items()}
+
     def frame_stats(self, lo: float, hi: float) -> np.ndarray:
         """(B, 4): max speed, kinetic energy, non-finite particle count, particles outside [lo, hi]."""
         self.stats_out.fill(0.0)
