@@ -25,7 +25,7 @@ def optim_data() -> dict:
 def _trained() -> GoalConditionedPPO:
     d = _optim_data()
     space = raw_space(9)
-    gc = GoalConditionedPPO(total_timesteps=12_288, n_steps=128, net_arch=[64, 64], seed=0)
+    gc = GoalConditionedPPO(total_timesteps=24_576, n_steps=128, net_arch=[64, 64], seed=0)
     gc.prepare(space, make_predict(space, d["surrogate"]), d["y"][d["train_idx"]], d["scales"])
     return gc
 
@@ -103,8 +103,8 @@ def test_vec_env_makes_one_batched_surrogate_call_per_step(optim_data) -> None:
 
 def test_gc_ppo_inverts_held_out_targets_better_than_random_search(optim_data) -> None:
     gc = _trained()
-    assert gc.metrics["timesteps"] == 12_288
-    targets = optim_data["test_idx"][:10]
+    assert gc.metrics["timesteps"] == 24_576
+    targets = optim_data["test_idx"][:20]
     gc_scores, rs_scores = [], []
     for i in targets:
         problem = recovery_problem(optim_data, optim_data["y"][i], budget=8, seed=int(i))
@@ -113,8 +113,9 @@ def test_gc_ppo_inverts_held_out_targets_better_than_random_search(optim_data) -
         gc_scores.append(res.score)
         rs_scores.append(np.mean([random_search_score(optim_data, optim_data["y"][i], 8, seed=s) for s in range(5)]))
     gc_scores, rs_scores = np.array(gc_scores), np.array(rs_scores)
-    assert gc_scores.mean() > rs_scores.mean() + 0.05, (gc_scores, rs_scores)
-    assert (gc_scores > rs_scores).mean() >= 0.7
+    # measured (seeds 0 and 1): 0.71 vs 0.57 on the orange-peel fixture, better on 95-100 % of targets
+    assert gc_scores.mean() > rs_scores.mean() + 0.07, (gc_scores, rs_scores)
+    assert (gc_scores > rs_scores).mean() >= 0.75
 
 
 def test_gc_ppo_save_load_gives_identical_inversions(optim_data, tmp_path) -> None:
