@@ -140,3 +140,15 @@ def test_backend_warp_from_spec_block_and_cli(tmp_path) -> None:
     run, = summary["runs"]
     assert run["ok"] and run["stats"]["backend"] == "warp" and run["stats"]["substeps"] > 0
     assert set(run["features"]) == set(FEATURE_NAMES)
+
+
+def test_warp_grid_mass_and_kernel_times() -> None:
+    """P2G deposits exactly the particles' mass; the profiling hook times each stage."""
+    sim = OrangePeelSimulator(backend="warp", preset="tiny", arch="cpu", batch_size=2, frames=12)
+    params = SPACE.denormalize(BENCH_UNIT[[4, 12]])
+    assert all(r.ok for r in sim.simulate(params))
+    backend = sim._backend(2)
+    particle_mass = params[:, 1] * 1000.0 * sim.scene.volume * sim.scene.n_particles
+    np.testing.assert_allclose(np.sort(backend.grid_mass()), np.sort(particle_mass), rtol=1e-4)
+    times = backend.kernel_times(2)
+    assert set(times) == {"clear", "p2g", "grid", "g2p"} and all(t > 0 for t in times.values())

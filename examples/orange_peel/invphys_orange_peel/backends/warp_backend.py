@@ -378,27 +378,39 @@ class WarpBackend:
         self.grip.assign(table)
 
     # -- stepping -----------------------------------------------------------------------------
-    def _substep(self) -> None:
-        """Launch one substep (reads the substep index from ``kstep`` and increments it)."""
-        s, dev = self.settings, self.wp_device
-        dx = float(self.scene.dx)
-        B, N, G = self.batch, self.scene.n_particles, self.scene.preset.grid
+    def _clear(self) -> None:
         self.gv.zero_()
         self.gm.zero_()
         self.gd.zero_()
         self.gg.zero_()
-        wp.launch(p2g_kernel, dim=(B, N), device=dev, inputs=[
-            self.kstep, dx, float(self.scene.volume), float(s.apic_blend), self.nsub, self.dt, self.mat,
-            self.label, self.fibre, self.gripped, self.x, self.v, self.C, self.F, self.d, self.dtil,
+
+    def _p2g(self) -> None:
+        s = self.settings
+        wp.launch(p2g_kernel, dim=(self.batch, self.scene.n_particles), device=self.wp_device, inputs=[
+            self.kstep, float(self.scene.dx), float(self.scene.volume), float(s.apic_blend), self.nsub, self.dt,
+            self.mat, self.label, self.fibre, self.gripped, self.x, self.v, self.C, self.F, self.d, self.dtil,
             self.gv, self.gm, self.gd, self.gg])
-        wp.launch(grid_update_kernel, dim=(B, G, G, G), device=dev, inputs=[
+
+    def _grid(self) -> None:
+        s, G = self.settings, self.scene.preset.grid
+        wp.launch(grid_update_kernel, dim=(self.batch, G, G, G), device=self.wp_device, inputs=[
             self.kstep, float(s.gravity), int(s.boundary_cells), self.nsub, self.dt, self.grip, self.held,
             self.gv, self.gm, self.gg])
-        wp.launch(g2p_kernel, dim=(B, N), device=dev, inputs=[
-            self.kstep, dx, float(s.l0_cells) ** 2, int(s.damage_on), self.nsub, self.dt, self.mat,
-            self.label, self.gripped, self.x0, self.grip, self.x, self.v, self.C, self.F, self.d, self.dtil,
-            self.gv, self.gd])
-        wp.launch(next_substep_kernel, dim=1, device=dev, inputs=[self.kstep])
+
+    def _g2p(self) -> None:
+        s = self.settings
+        wp.launch(g2p_kernel, dim=(self.batch, self.scene.n_particles), device=self.wp_device, inputs=[
+            self.kstep, float(self.scene.dx), float(s.l0_cells) ** 2, int(s.damage_on), self.nsub, self.dt,
+            self.mat, self.label, self.gripped, self.x0, self.grip, self.x, self.v, self.C, self.F, self.d,
+            self.dtil, self.gv, self.gd])
+
+    def _substep(self) -> None:
+        """Launch one substep (reads the substep index from ``kstep`` and increments it)."""
+        self._clear()
+        self._p2g()
+        self._grid()
+        self._g2p()
+        wp.launch(next_substep_kernel, dim=1, device=self.wp_device, inputs=[self.kstep])
 
     def _graph(self, n: int):
         """The captured CUDA graph of ``n`` substeps (captured on first use)."""
@@ -424,6 +436,23 @@ class WarpBackend:
         for _ in range(rest):
             wp.capture_launch(self._graph(1))
 
+    def kernel_times(self, n_steps: int = 20) -> dict[str, float]:
+        """Mean seconds per launch of each substep stage over ``n_steps`` synced substeps (profiling;
+        advances the state as substep 0 of the current frame, so call it on a throw-away batch)."""
+        import time
+
+        calls = {"clear": self._clear, "p2g": self._p2g, "grid": self._grid, "g2p": self._g2p}
+        total = dict.fromkeys(calls, 0.0)
+        self.kstep.zero_()
+        for _ in range(n_steps):
+            for name, call in calls.items():
+                wp.synchronize_device(self.wp_device)
+                t0 = time.perf_counter()
+                call()
+                wp.synchronize_device(self.wp_device)
+                total[name] += time.perf_counter() - t0
+        return {k: v / n_steps for k, v in total.items()}
+
     # -- read-back ----------------------------------------------------------------------------
     def frame_stats(self, lo: float, hi: float) -> np.ndarray:
         """(B, 4): max speed, kinetic energy, non-finite particle count, particles outside [lo, hi]."""
@@ -435,6 +464,10 @@ class WarpBackend:
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         """Positions (B, N, 3) and damage (B, N), float32."""
         return self.x.numpy(), self.d.numpy()
+
+    def grid_mass(self) -> np.ndarray:
+        """(B,) total grid mass deposited by the last P2G (equals the particle mass: a check)."""
+        return self.gm.numpy().astype(np.float64).reshape(self.batch, -1).sum(axis=1)
 
     def sync(self) -> None:
         wp.synchronize_device(self.wp_device)
