@@ -159,7 +159,7 @@ def run(ctx: Any) -> dict[str, Any]:
     mean, std = y_train.mean(axis=0), y_train.std(axis=0)
     surrogate = ctx.surrogate()
     entries = _Entries(ctx, y_train, scales)
-    space_of = ctx.dataset().param_names
+    param_names = data.param_names
     rows: list[dict[str, Any]] = []
     ctx.log(f"{len(targets['rows'])} targets, {len(named)} objectives, {len(entries.plugins)} optimisers")
     for label in entries.plugins:
@@ -191,7 +191,7 @@ def run(ctx: Any) -> dict[str, Any]:
                 "r_surrogate": float(res.score), "evaluations": int(res.evaluations),
                 "counted_evaluations": int(counted), "wall_time_s": float(res.wall_time_s),
                 "theta": theta.tolist(), "point": np.asarray(res.point).tolist(),
-                "params": dict(zip(space_of, _physical(ctx, theta), strict=True)),
+                "params": dict(zip(param_names, _physical(ctx, theta), strict=True)),
                 "predicted": list(map(float, predicted)),
                 "history": [[int(e), float(s)] for e, s in res.history],
             })

@@ -108,6 +108,10 @@ class GoalConditionedPPO(BuiltinOptimizer):
 
     # -- inference -----------------------------------------------------------------------------
     def optimize(self, problem: Problem) -> OptimizationResult:
+        return self.propose(problem, self.config.rollouts)
+
+    def propose(self, problem: Problem, rollouts: int) -> OptimizationResult:
+        """Best of ``rollouts`` policy episodes towards ``problem.target`` (the first deterministic)."""
         from invphys.envs.task import EpisodeBatch, InverseTask
 
         if self.model is None:
@@ -120,7 +124,7 @@ class GoalConditionedPPO(BuiltinOptimizer):
                                                                              meta["space"]["high"]):
             raise InvphysError(f"gc_ppo policy was trained in space {meta['space']}, the problem searches "
                                f"{space.name!r} [{space.low}, {space.high}]^{space.dim}")
-        rollouts = min(cfg.rollouts, problem.budget // cfg.horizon)
+        rollouts = min(rollouts, problem.budget // cfg.horizon)
         if rollouts < 1:
             raise InvphysError(f"gc_ppo needs a budget of at least T = {cfg.horizon} evaluations")
         tracker = Tracker(problem)
@@ -137,7 +141,7 @@ class GoalConditionedPPO(BuiltinOptimizer):
                            start_features=np.asarray(meta["start_features"]),
                            goal_sampler=lambda rng, n: np.broadcast_to(target, (n, target.size)).copy(),
                            on_evaluate=record)
-        if cfg.rollouts > 1:
+        if rollouts > 1:
             import torch
 
             torch.manual_seed(int(problem.seed))

@@ -50,8 +50,9 @@ class WarmStart(BuiltinOptimizer):
 
     def attach(self, policy: Any) -> WarmStart:
         """Use ``policy`` (a prepared goal-conditioned optimiser) for the proposals."""
-        if not getattr(policy, "goal_conditioned", False):
-            raise InvphysError(f"warm_start needs a goal-conditioned policy, got {type(policy).__name__}")
+        if not getattr(policy, "goal_conditioned", False) or not hasattr(policy, "propose"):
+            raise InvphysError(f"warm_start needs a gc_ppo-like policy (goal-conditioned, with propose()), "
+                               f"got {type(policy).__name__}")
         self.policy = policy
         return self
 
@@ -81,12 +82,7 @@ class WarmStart(BuiltinOptimizer):
         rollouts = min(cfg.rollouts, max(problem.budget // horizon, 1))
         sub = Problem(space=problem.space, predict=problem.predict, objective=problem.objective,
                       budget=rollouts * horizon, target=problem.target, seed=problem.seed, info=problem.info)
-        old = policy.config.rollouts
-        policy.config.rollouts = rollouts
-        try:
-            proposal = policy.optimize(sub)
-        finally:
-            policy.config.rollouts = old
+        proposal = policy.propose(sub, rollouts)
         theta0 = np.asarray(proposal.theta, dtype=np.float64)
         theta_predict = problem.info.get("theta_predict")
         if theta_predict is None:
