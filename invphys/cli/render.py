@@ -11,7 +11,7 @@ from invphys.cli.common import console, emit, handle_errors
 from invphys.core.errors import InvphysError
 
 
-def render_run(source: Path, out: Path, *, azim: float = -30.0, elev: float = 20.0,
+def render_run(source: Path, out: Path, *, azim: float = 60.0, elev: float = 30.0,
                animation: str = "gif", ply: bool = True) -> dict[str, Any]:
     """Render a run directory (holding ``trajectory.npz``) or a trajectory ``.npz`` into ``out``."""
     if animation not in ("gif", "mp4", "none"):
@@ -35,8 +35,8 @@ def register(app: typer.Typer) -> None:
     def render(
         source: Path = typer.Argument(..., help="run directory (with trajectory.npz) or a trajectory .npz"),
         out: Path = typer.Option(..., "--out", help="output directory"),
-        azim: float = typer.Option(-30.0, "--azim", help="camera azimuth (degrees)"),
-        elev: float = typer.Option(20.0, "--elev", help="camera elevation (degrees)"),
+        azim: float = typer.Option(60.0, "--azim", help="camera azimuth (degrees)"),
+        elev: float = typer.Option(30.0, "--elev", help="camera elevation (degrees)"),
         animation: str = typer.Option("gif", "--animation", help="gif, mp4 (needs imageio-ffmpeg) or none"),
         ply: bool = typer.Option(True, "--ply/--no-ply", help="write .ply files for ParaView"),
         as_json: bool = typer.Option(False, "--json", help="print the result as JSON"),

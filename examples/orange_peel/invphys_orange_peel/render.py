@@ -37,11 +37,15 @@ def project(points: np.ndarray, azim: float, elev: float) -> tuple[np.ndarray, n
     return u, v, depth
 
 
-def render_frame(points: np.ndarray, colours: np.ndarray, path: str | Path, *, azim: float = -30.0,
-                 elev: float = 20.0, bounds: tuple[float, float, float, float] | None = None,
+def render_frame(points: np.ndarray, colours: np.ndarray, path: str | Path, *, azim: float = 60.0,
+                 elev: float = 30.0, bounds: tuple[float, float, float, float] | None = None,
                  title: str = "", size: tuple[int, int] = (640, 480), extra_points: np.ndarray | None = None,
-                 point_size: float | None = None) -> Path:
-    """Draw one frame to a PNG and return its path."""
+                 point_size: float | None = None, spacing: float | None = None) -> Path:
+    """Draw one frame to a PNG and return its path.
+
+    Markers are sized from the particle ``spacing`` (m) so that the surface reads as opaque; without
+    it, from the median nearest-neighbour distance of ``points``.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -62,7 +66,11 @@ def render_frame(points: np.ndarray, colours: np.ndarray, path: str | Path, *, a
     ax.set_xlim(cu - span / 2, cu + span / 2)
     ax.set_ylim(cv - span / 2 * size[1] / size[0], cv + span / 2 * size[1] / size[0])
     if point_size is None:
-        point_size = float(np.clip(6e4 / max(len(points), 1), 1.0, 30.0))
+        if spacing is None:
+            spacing = particle_spacing(points)
+        px_per_m = size[0] / span
+        diameter_pt = 0.9 * spacing * px_per_m * 72.0 / dpi
+        point_size = float(np.clip(diameter_pt ** 2, 0.5, 400.0))
     ax.scatter(u[order], v[order], c=colours[order], s=point_size, linewidths=0)
     if extra_points is not None and len(extra_points):
         eu, ev, _ = project(np.atleast_2d(extra_points), azim, elev)
@@ -75,6 +83,18 @@ def render_frame(points: np.ndarray, colours: np.ndarray, path: str | Path, *, a
     fig.savefig(path, dpi=dpi)
     plt.close(fig)
     return path
+
+
+def particle_spacing(points: np.ndarray) -> float:
+    """Median nearest-neighbour distance of (a sample of) ``points``."""
+    from scipy.spatial import cKDTree
+
+    pts = points[np.isfinite(points).all(axis=1)]
+    if len(pts) < 2:
+        return 1.0
+    sample = pts[:: max(1, len(pts) // 2000)]
+    d, _ = cKDTree(pts).query(sample, k=2)
+    return float(np.median(d[:, 1]))
 
 
 def write_ply(path: str | Path, points: np.ndarray, damage: np.ndarray, labels: np.ndarray) -> Path:
@@ -95,7 +115,7 @@ def write_ply(path: str | Path, points: np.ndarray, damage: np.ndarray, labels: 
     return path
 
 
-def render_trajectory(traj: Trajectory, out: str | Path, *, azim: float = -30.0, elev: float = 20.0,
+def render_trajectory(traj: Trajectory, out: str | Path, *, azim: float = 60.0, elev: float = 30.0,
                       animation: str = "gif", ply: bool = True, size: tuple[int, int] = (640, 480),
                       fps: float = 6.0) -> dict[str, Any]:
     """Write ``frame_XXXX.png`` for every recorded frame, an animation and ``.ply`` files under ``out``.
@@ -111,13 +131,16 @@ def render_trajectory(traj: Trajectory, out: str | Path, *, azim: float = -30.0,
     u, v, _ = project(all_pts[finite], azim, elev)
     bounds = (float(u.min()), float(u.max()), float(v.min()), float(v.max()))
     grip = traj.extra.get("gripper_path")
+    dx = traj.extra.get("dx")
+    spacing = float(dx) / 2 if dx is not None else particle_spacing(traj.positions[0])
     pngs, plys = [], []
     for i, frame in enumerate(traj.frame_indices):
         colours = particle_colours(traj.labels, traj.damage[i])
         title = f"frame {int(frame)}  t = {frame / traj.fps:.2f} s"
         g = None if grip is None else np.asarray(grip)[i][None]
         pngs.append(render_frame(traj.positions[i], colours, out / f"frame_{int(frame):04d}.png", azim=azim,
-                                 elev=elev, bounds=bounds, title=title, size=size, extra_points=g))
+                                 elev=elev, bounds=bounds, title=title, size=size, extra_points=g,
+                                 spacing=spacing))
         if ply:
             plys.append(write_ply(out / f"frame_{int(frame):04d}.ply", traj.positions[i], traj.damage[i],
                                   traj.labels))
