@@ -50,7 +50,9 @@ def run(ctx: Any) -> dict[str, Any]:
     out: list[dict[str, Any]] = []
     target_rows = [i for i, r in enumerate(chosen) if r["problem"] == "target"]
     if hasattr(validator, "simulate_features"):
-        sim = validator.simulate_features(unique, simulator, extractor, keep_trajectories=render)
+        # keep trajectories only of runs that may be rendered (the first RENDER_TARGETS targets)
+        keep = {int(inverse[i]) for i in target_rows if chosen[i]["target_index"] < RENDER_TARGETS} if render else False
+        sim = validator.simulate_features(unique, simulator, extractor, keep_trajectories=keep)
         feats = sim.features[inverse]
         failures = [sim.failures[j] for j in inverse]
         stats = [sim.stats[j] for j in inverse]

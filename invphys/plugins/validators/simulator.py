@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -52,8 +53,12 @@ class SimulatorValidator(Validator):
             raise InvphysError(f"validator.overrides do not fit simulator {simulator.name!r}: {exc}") from exc
 
     def simulate_features(self, theta: np.ndarray, simulator: Simulator, extractor: FeatureExtractor,
-                          keep_trajectories: bool = False) -> SimulatedFeatures:
-        """Simulate rows of ``theta`` (B, d) in [0, 1]^d and extract their features (NaN rows on failure)."""
+                          keep_trajectories: bool | Collection[int] = False) -> SimulatedFeatures:
+        """Simulate rows of ``theta`` (B, d) in [0, 1]^d and extract their features (NaN rows on failure).
+
+        ``keep_trajectories``: True keeps every successful run's trajectory, a collection of row indices
+        keeps only those (trajectories can be large), False none.
+        """
         sim = self.simulator_for(simulator)
         theta = np.atleast_2d(np.asarray(theta, dtype=np.float64))
         params = sim.parameter_space().denormalize(theta)
@@ -92,7 +97,7 @@ class SimulatorValidator(Validator):
                     failures[r] = f"feature extraction gave {feats.shape} / non-finite features"
                     continue
                 out[r] = feats
-                if keep_trajectories:
+                if keep_trajectories is True or (keep_trajectories and r in keep_trajectories):
                     trajs[r] = res.trajectory
         return SimulatedFeatures(out, failures, stats, trajs)
 
