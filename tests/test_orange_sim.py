@@ -178,3 +178,42 @@ def test_presets_have_the_documented_sizes() -> None:
     radial /= np.linalg.norm(radial, axis=1, keepdims=True)
     assert np.abs(np.sum(radial * scene.fibres[skin], axis=1)).max() < 1e-6
     assert PRESETS["paper"].frames == 240
+
+
+def test_taichi_is_initialised_once_and_refuses_another_arch(monkeypatch) -> None:
+    from invphys_orange_peel.backends import taichi_backend as tb
+
+    from invphys.core.errors import InvphysError
+
+    assert tb.ensure_taichi("cpu") == "cpu"          # already initialised by the runs above: free
+    assert tb.ensure_taichi("auto") == "cpu"
+    monkeypatch.setattr(tb, "cuda_available", lambda: True)
+    with pytest.raises(InvphysError, match=r"already initialised on 'cpu'.*cannot switch to 'cuda'"):
+        tb.ensure_taichi("cuda")
+
+
+def test_plugins_conform_and_register_through_the_entry_point() -> None:
+    from invphys.registry import Registry
+    from invphys.testing import check_feature_extractor, check_plugin_class, check_simulator
+
+    check_plugin_class(OrangePeelSimulator)
+    check_plugin_class(OrangePeelFeatures)
+    reg = Registry(autoload=True)
+    assert reg.get("simulator", "orange_peel") is OrangePeelSimulator
+    assert reg.get("feature_extractor", "orange_peel_features") is OrangePeelFeatures
+    sim = reg.create("simulator", {"type": "orange_peel", "preset": "tiny", "arch": "cpu", "frames": 6,
+                                   "batch_size": 2})
+    results = check_simulator(sim, n_runs=2)
+    y = check_feature_extractor(OrangePeelFeatures(), results)
+    assert y.shape == (2, 12)
+
+
+def test_plugin_modules_do_not_import_taichi_or_warp() -> None:
+    import subprocess
+    import sys
+
+    code = ("import sys, invphys_orange_peel.plugin, invphys_orange_peel.simulator, "
+            "invphys_orange_peel.features, invphys_orange_peel.render\n"
+            "heavy = [m for m in ('taichi', 'warp', 'torch') if m in sys.modules]\n"
+            "assert not heavy, heavy")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
