@@ -75,6 +75,7 @@ def test_recovery_reward_hand_computed():
 def test_percentile_scales_and_weighted_objective():
     y = np.stack([np.arange(101.0), np.full(101, 7.0)], axis=1)
     s = percentile_scales(y)
-    assert s[0] == pytest.approx(90.0) and s[1] == pytest.approx(1e-12)
+    # a constant feature gets scale max(1, |median|) = 7, not ~0 (it must not dominate R_gt)
+    assert s[0] == pytest.approx(90.0) and s[1] == pytest.approx(7.0)
     obj = WeightedObjective.from_names({"a": 1.0, "b": 0.0}, ["a", "b"], y)
     assert obj(np.array([[95.0, 7.0], [5.0, 7.0]])) == pytest.approx([1.0, 0.0])

@@ -14,16 +14,30 @@ import numpy as np
 
 
 def percentile_scales(features: np.ndarray, low: float = 5.0, high: float = 95.0,
-                      floor: float = 1e-12) -> np.ndarray:
+                      rtol: float = 1e-9) -> np.ndarray:
     """Per-feature scale ``s_k = p_high - p_low`` over a dataset (paper: p95 - p5).
 
-    Zero spreads (a constant feature) are raised to ``floor`` so that dividing by them stays finite.
+    A feature without spread in the data (``s_k <= rtol * max(1, |median_k|)``, e.g. a damage that is
+    always 0) carries no information about the parameters; it gets the scale ``max(1, |median_k|)``
+    instead, so that a surrogate's tiny deviation on it cannot drive R_gt to 0.
     """
     y = np.asarray(features, dtype=np.float64)
     if y.ndim != 2 or y.shape[0] < 2:
         raise ValueError(f"percentile_scales needs a (N >= 2, M) array, got shape {y.shape}")
     s = np.nanpercentile(y, high, axis=0) - np.nanpercentile(y, low, axis=0)
-    return np.maximum(s, floor)
+    fallback = np.maximum(1.0, np.abs(np.nanmedian(y, axis=0)))
+    return np.where(s > rtol * fallback, s, fallback)
+
+
+def feature_standardiser(features: np.ndarray, rtol: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, std) per feature for z-scores; a feature without spread gets std ``max(1, |mean|)``.
+
+    The same rule as :func:`percentile_scales`: a constant feature is only centred, never blown up.
+    """
+    y = np.asarray(features, dtype=np.float64)
+    mean, std = np.nanmean(y, axis=0), np.nanstd(y, axis=0)
+    fallback = np.maximum(1.0, np.abs(mean))
+    return mean, np.where(std > rtol * fallback, std, fallback)
 
 
 def recovery_reward(y: np.ndarray, target: np.ndarray, scales: np.ndarray, kappa: float = 3.0) -> np.ndarray:

@@ -141,7 +141,7 @@ def _problems_of(plugin: Any, has_objectives: bool) -> tuple[bool, bool]:
 
 
 def run(ctx: Any) -> dict[str, Any]:
-    from invphys.core.objectives import RecoveryObjective
+    from invphys.core.objectives import RecoveryObjective, feature_standardiser
     from invphys.core.runner import write_json
     from invphys.core.spaces import build_problem
 
@@ -156,7 +156,7 @@ def run(ctx: Any) -> dict[str, Any]:
     write_json(ctx.stage_dir / TARGETS_FILE, targets)
     named = objectives(ctx)
     y_train = data.y[train_idx]
-    mean, std = y_train.mean(axis=0), y_train.std(axis=0)
+    mean, std = feature_standardiser(y_train)
     surrogate = ctx.surrogate()
     entries = _Entries(ctx, y_train, scales)
     param_names = data.param_names

@@ -13,7 +13,7 @@ from pydantic import Field
 
 from invphys.core.errors import InvphysError
 from invphys.core.interfaces import Problem, SearchSpace
-from invphys.core.objectives import recovery_reward
+from invphys.core.objectives import feature_standardiser, recovery_reward
 from invphys.core.results import OptimizationResult
 from invphys.plugins.optimizers._base import BuiltinOptimizer, Tracker
 from invphys.plugins.optimizers._rl import PPOSettings, make_ppo, run_rollouts
@@ -69,7 +69,7 @@ class GoalConditionedPPO(BuiltinOptimizer):
             raise InvphysError(f"gc_ppo needs >= 2 training targets (N, M), got shape {targets.shape}")
         targets = targets[np.all(np.isfinite(targets), axis=1)]
         scales = np.asarray(scales, dtype=np.float64).reshape(-1)
-        mean, std = targets.mean(axis=0), np.maximum(targets.std(axis=0), 1e-9)
+        mean, std = feature_standardiser(targets)
         seed = int(0 if cfg.seed is None else cfg.seed)
         kappa, noise = cfg.kappa, cfg.target_noise
 

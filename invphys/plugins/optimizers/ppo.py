@@ -9,6 +9,7 @@ from pydantic import Field
 
 from invphys.core.errors import InvphysError
 from invphys.core.interfaces import Problem
+from invphys.core.objectives import feature_standardiser
 from invphys.core.results import OptimizationResult
 from invphys.plugins.optimizers._base import BuiltinOptimizer, Tracker
 from invphys.plugins.optimizers._rl import PPOSettings, make_ppo, run_rollouts
@@ -59,7 +60,7 @@ class PPOOptimizer(BuiltinOptimizer):
             pts = space.sample(cfg.stat_samples, rng)
             y = np.asarray(problem.predict(space.clip(pts)), dtype=np.float64)
             tracker.record(pts, y, np.asarray(problem.objective(y), dtype=np.float64).reshape(-1))
-            mean, std = y.mean(axis=0), y.std(axis=0) + 1e-9
+            mean, std = feature_standardiser(y)
         start = (np.full(space.dim, 0.5 * (space.low + space.high)) if problem.initial is None
                  else np.asarray(problem.initial, dtype=np.float64).reshape(space.dim))
         y0 = np.asarray(problem.predict(space.clip(start[None, :])), dtype=np.float64)
