@@ -124,13 +124,21 @@ def test_cuda_request_without_gpu() -> None:
 
 
 def test_backend_warp_from_spec_block_and_cli(tmp_path) -> None:
-    """`backend: warp` in a simulator block and `invphys simulate --backend warp` select Warp."""
+    """`backend: warp` in a spec and `invphys simulate --backend warp` select Warp; a typo is located."""
+    import invphys
     from invphys import registry
+    from invphys.core.errors import SpecError
 
-    sim = registry.create("simulator", {"type": "orange_peel", "backend": "warp", "preset": "tiny",
-                                        "arch": "cpu", "frames": 2})
-    res, = sim.simulate(SPACE.center()[None])
+    text = ("name: warp-tiny\nseed: 0\nstages: [dataset]\n"
+            "simulator: {type: orange_peel, preset: tiny, backend: warp, arch: cpu, frames: 2}\n"
+            "dataset: {n: 2, batch_size: 2}\n")
+    (tmp_path / "spec.yaml").write_text(text)
+    spec = invphys.load_spec(tmp_path / "spec.yaml")
+    res, = registry.create("simulator", spec.simulator).simulate(SPACE.center()[None])
     assert res.ok and res.stats.backend == "warp"
+    (tmp_path / "bad.yaml").write_text(text.replace("backend: warp", "backend: wrap"))
+    with pytest.raises(SpecError, match=r"simulator\.backend .*'taichi' or 'warp'"):
+        invphys.load_spec(tmp_path / "bad.yaml")
     out = tmp_path / "sim"
     proc = subprocess.run([sys.executable, "-m", "invphys.cli", "simulate", "--backend", "warp", "--preset", "tiny",
                            "--arch", "cpu", "--config", '{"frames": 3}', "--out", str(out), "--json"],
