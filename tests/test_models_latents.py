@@ -111,3 +111,10 @@ def test_bad_configs_and_inputs(fitted) -> None:
         VAELatent().encode(np.zeros((1, 9)))
     with pytest.raises(TrainingDataError, match=r"\(B, 4\)"):
         fitted.decode(np.zeros((2, 3)))
+
+
+def test_conformance_check_passes(fitted, orange) -> None:
+    from invphys.testing import check_latent_model
+
+    mse = check_latent_model(fitted, orange[2])
+    assert mse == pytest.approx(fitted.metrics["recon_mse"])

@@ -151,3 +151,13 @@ def test_registered_and_listing_stays_torch_free(fresh_registry) -> None:
             "bad = [m for m in ('torch', 'zuko', 'matplotlib') if m in sys.modules]; print(bad); sys.exit(bool(bad))")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_conformance_checks_pass(fitted_mlp, orange, tmp_path) -> None:
+    from invphys.testing import check_surrogate
+
+    _, _, tv, yv = orange
+    check_surrogate(fitted_mlp, tv, yv, tmp_path / "mlp")
+    ens = EnsembleSurrogate(members=2, hidden=(32, 32, 16), max_epochs=5)
+    ens.fit(*orange[:2])
+    check_surrogate(ens, tv, yv, tmp_path / "ens")
