@@ -291,7 +291,8 @@ class WarpBackend:
     """Batched AnisoMPM state and kernels on one Warp device (CPU or CUDA).
 
     Same interface as :class:`~invphys_orange_peel.backends.taichi_backend.TaichiBackend`:
-    ``load``, ``set_frame``, ``advance``, ``frame_stats``, ``read``, ``sync``. ``settings`` is the
+    ``load``, ``set_frame``, ``advance``, ``frame_stats``, ``read``, ``sync`` (and ``grid_mass``,
+    ``kernel_times`` for checks and profiling). ``settings`` is the
     driver's :class:`~invphys_orange_peel.driver.StepSettings`. ``use_graphs`` (default: on CUDA)
     replays captured CUDA graphs for the substeps.
     """
