@@ -11,8 +11,8 @@ from dataclasses import asdict, dataclass
 from invphys.core.errors import InvphysError, did_you_mean
 
 
-class UnknownPresetError(InvphysError, LookupError):
-    """A preset name that does not exist."""
+class UnknownPresetError(InvphysError, ValueError):
+    """A preset name that does not exist (a ValueError, so pydantic reports it at the `preset` field)."""
 
 
 @dataclass(frozen=True)
