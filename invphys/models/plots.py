@@ -32,7 +32,9 @@ def plot_curves(history: dict[str, Any], path: str | Path, title: str) -> Path:
         ax.plot(h.get("val_loss", []), lw=1, ls="--", label=f"validation{sfx}")
         if "best_epoch" in h and h.get("val_loss"):
             ax.axvline(h["best_epoch"], color="grey", lw=0.6, alpha=0.5)
-    ax.set_yscale("log")
+    losses = [v for h in histories for key in ("train_loss", "val_loss") for v in h.get(key, [])]
+    if losses and min(losses) > 0:  # a flow's NLL can make the total negative: keep a linear axis then
+        ax.set_yscale("log")
     ax.set_xlabel("epoch")
     ax.set_ylabel("loss")
     ax.set_title(title)
@@ -40,11 +42,7 @@ def plot_curves(history: dict[str, Any], path: str | Path, title: str) -> Path:
     if parts:
         ax2 = axes[0, 1]
         for k, v in parts.items():
-            arr = np.asarray(v, dtype=float)
-            if np.all(arr > 0):
-                ax2.plot(arr, lw=1, label=k)
-            else:
-                ax2.plot(arr, lw=1, label=f"{k} (linear)")
+            ax2.plot(np.asarray(v, dtype=float), lw=1, label=k)
         if all(np.all(np.asarray(v, dtype=float) > 0) for v in parts.values()):
             ax2.set_yscale("log")
         ax2.set_xlabel("epoch")
