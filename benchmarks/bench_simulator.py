@@ -122,7 +122,9 @@ def main(argv: list[str] | None = None) -> dict:
             "max_rel_feature_diff_per_feature": dict(zip(ex.feature_names, np.max(fd, axis=0).tolist(),
                                                          strict=True)) if fd else None,
         }
-    if args.profile:
+    if args.profile and not hasattr(sim._backend(min(args.batch, runs)), "kernel_times"):
+        out["kernel_seconds_per_substep"] = f"not available for the {args.backend} backend"
+    elif args.profile:
         backend = sim._backend(min(args.batch, runs))
         from invphys_orange_peel.material import materials_from_params as mfp
 
