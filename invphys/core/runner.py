@@ -109,9 +109,15 @@ class StageContext:
 
     # -- data ----------------------------------------------------------------------------------
     def dataset_path(self) -> Path:
-        if self.spec.dataset.path:
-            return Path(self.spec.dataset.path)
+        """``dataset.path`` when set (and present, or ``if_missing: error``), else ``OUT/dataset/store``."""
+        ds = self.spec.dataset
+        if ds.path and (Path(ds.path).exists() or ds.if_missing == "error"):
+            return Path(ds.path)
         return self.stage_dir_of("dataset") / "store"
+
+    def uses_existing_dataset(self) -> bool:
+        """True when the spec names an existing dataset store (nothing to generate)."""
+        return bool(self.spec.dataset.path) and self.dataset_path() == Path(self.spec.dataset.path)
 
     def dataset(self) -> Any:
         """The dataset's arrays (``DatasetArrays``): the dataset stage's store, or ``dataset.path``."""

@@ -50,6 +50,8 @@ class DatasetSection(_Section):
     sampler: Literal["uniform", "sobol", "lhs"] = Field("uniform", description="sampling of [0,1]^d")
     batch_size: int = Field(16, gt=0, description="parameter vectors per simulator call")
     path: str | None = Field(None, description="use this existing dataset instead of generating one")
+    if_missing: Literal["error", "generate"] = Field(
+        "error", description="when `path` does not exist: fail, or generate `n` runs into the run directory")
     test_fraction: float = Field(0.2, gt=0, lt=1, description="held-out fraction (paper: 0.2)")
     seed: int | None = Field(None, description="sampling seed (defaults to the spec's seed)")
     limit_minutes: float | None = Field(None, gt=0, description="stop generating after this long (resumable)")

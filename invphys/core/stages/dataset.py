@@ -1,7 +1,8 @@
 """The ``dataset`` stage: generate (or resume) the spec's dataset, or check an existing one.
 
 Generates into ``OUT/dataset/store`` (:meth:`StageContext.dataset_path`); with ``dataset.path`` set it
-generates nothing and summarises that store instead. A generation stopped early (time limit, SIGTERM,
+generates nothing and summarises that store instead (unless the store is absent and
+``dataset.if_missing: generate``, as in the quick start: then it generates ``dataset.n`` runs). A generation stopped early (time limit, SIGTERM,
 Ctrl-C) raises :class:`DatasetIncomplete` after storing what finished, so the stage is not marked done
 and the next ``invphys run`` resumes it.
 """
@@ -24,7 +25,7 @@ def run(ctx: Any) -> dict[str, Any]:
 
     spec = ctx.spec
     path = ctx.dataset_path()
-    if spec.dataset.path:
+    if ctx.uses_existing_dataset():
         info = DatasetStore(path).info()
         ctx.log(f"using the existing dataset {path}: {info['ok']} ok rows, {info['failed']} failed")
         return {"path": str(path), "generated": False, "rows": info["rows"], "ok": info["ok"],
