@@ -129,5 +129,3 @@ class LatentTorchModel(TorchModel):
             "latent_std": [float(v) for v in z.std(axis=0)],
             "in_bounds_fraction": float((np.abs(z) <= b).all(axis=1).mean()),
         }
-
-    latent_bound: float = 3.0

@@ -76,8 +76,22 @@ def main() -> None:
               flush=True)
 
 
+def _source_hash() -> str:
+    """sha256 (16 hex) of the simulator package's Python sources: which code made the data."""
+    import hashlib
+
+    import invphys_orange_peel
+
+    h = hashlib.sha256()
+    for f in sorted(Path(invphys_orange_peel.__file__).parent.rglob("*.py")):
+        h.update(f.name.encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()[:16]
+
+
 def _write(out: Path, done: dict, failed: list, n_att: int, args: argparse.Namespace, sim, ext) -> None:
-    prov = {"simulator": sim.name, "simulator_version": sim.version, "preset": args.preset,
+    prov = {"simulator": sim.name, "simulator_version": sim.version, "source_sha256": _source_hash(),
+            "preset": args.preset,
             "backend": args.backend, "arch": args.arch, "sampler": "sobol(scrambled)", "seed": args.seed,
             "n_requested": args.n, "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             "config": sim.config.model_dump(mode="json")}
