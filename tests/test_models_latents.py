@@ -105,7 +105,7 @@ def test_bad_configs_and_inputs(fitted) -> None:
         VAELatent(beta=-1)
     with pytest.raises(ValidationError, match="scale_bound"):
         RealNVPLatent(scale_bound=0)
-    with pytest.raises(TrainingDataError, match="latent_dim"):
+    with pytest.raises(ValidationError, match="latent_dim"):
         RealNVPLatent(latent_dim=1)
     with pytest.raises(NotFittedError):
         VAELatent().encode(np.zeros((1, 9)))

@@ -81,3 +81,17 @@ def test_train_models_directly_on_the_orange_fixture(tmp_path) -> None:
     with pytest.raises(SpecError, match=r"surrogate\.dropout"):
         train_models(d["theta"], d["y"], idx[:400], idx[400:], surrogate={"type": "mlp", "dropout": 3},
                      latent_models={}, out=tmp_path / "bad", registry=Registry(autoload=False))
+
+
+def test_spec_validation_locates_bad_model_settings() -> None:
+    from invphys.core.spec import parse_spec
+
+    bad = SPEC.replace("hidden: [64, 64, 32]", "hidden: [64, 0, 32], dropout: 2").replace(
+        "latent_dim: 2, max_epochs: 25, warmup_epochs: 5, n_couplings: 2", "latent_dim: 1").replace(
+        "vae: {type: vae,", "vae: {type: vae, betta: 1,")
+    with pytest.raises(SpecError) as err:
+        parse_spec(bad)
+    text = str(err.value)
+    for where in ("surrogate.hidden.1", "surrogate.dropout", "latent_models.flow.latent_dim",
+                  "latent_models.vae.betta"):
+        assert where in text, text

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any, ClassVar
 
-from pydantic import Field, PositiveInt
+from pydantic import Field, PositiveInt, field_validator
 
 from invphys.core.interfaces import LatentModel
 from invphys.models.latent import LatentConfig, LatentTorchModel
@@ -32,12 +32,15 @@ class RealNVPLatent(LatentTorchModel, LatentModel):
                                                  description="hidden widths of each coupling's network")
         scale_bound: float = Field(1.0, gt=0, description="bound B of the log-scales, B * tanh(.)")
 
+        @field_validator("latent_dim")
+        @classmethod
+        def _two_or_more(cls, value: int) -> int:
+            if value < 2:
+                raise ValueError("must be >= 2 for realnvp (each coupling splits z in two)")
+            return value
+
     def __init__(self, config: Any = None, **settings: Any) -> None:
         super().__init__(config, **settings)
-        if self.config.latent_dim < 2:
-            from invphys.models.data import TrainingDataError
-
-            raise TrainingDataError("latent model 'realnvp': latent_dim must be >= 2 (couplings split z in two)")
         self._init_state()
 
     def _build_net(self, d: int, m: int) -> Any:
