@@ -17,13 +17,15 @@ class MLPSurrogate(TorchModel, Surrogate):
 
     Trained with MSE on standardised features, Adam (lr 1e-3, weight decay 1e-4) and early stopping
     (patience 50) on a held-out set; the best epoch's weights are kept. Metrics (``r2``,
-    ``r2_per_feature``, ``mse``) are measured on that held-out set.
+    ``r2_per_feature``, ``mse``) are measured on that held-out set. Predictions run through an
+    inference form with batch norm folded into the linear layers (equal to float32 rounding).
     """
 
     name: ClassVar[str] = "mlp"
 
     class Config(TrainingConfig):
-        hidden: tuple[PositiveInt, PositiveInt, PositiveInt] = Field((256, 256, 128), description="widths of the three hidden layers")
+        hidden: tuple[PositiveInt, PositiveInt, PositiveInt] = Field(
+            (256, 256, 128), description="widths of the three hidden layers")
         dropout: float = Field(0.1, ge=0, lt=1, description="dropout after every hidden layer")
         batch_norm: bool = Field(True, description="batch normalisation after every hidden linear layer")
 
