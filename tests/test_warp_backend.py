@@ -60,10 +60,11 @@ def test_elastic_positions_match_taichi() -> None:
 
 
 def test_fracture_features_match_taichi(fracture_runs) -> None:
-    """With fracture, every feature of four runs agrees to 1e-3 (median) and 1e-2 (worst), relative.
+    """With fracture, every feature of four runs agrees to 1e-3 (median) and 3e-2 (worst), relative.
 
-    The issue asks for <= 5%; measured over 16 vectors the backends agree to ~3e-5 (median) and
-    ~3e-4 (worst), see benchmarks/results/backends_cpu_parity.json, so the floor here is tighter.
+    The issue asks for <= 5% (median); measured over 16 vectors the backends agree to 5e-5 (median)
+    and 4.5e-3 (worst, row 2 of these four), see benchmarks/results/backends_cpu_parity.json. Float32
+    round-off is amplified where cracks form, so the worst-run floor keeps a margin for other CPUs.
     """
     fe = OrangePeelFeatures()
     fw = np.array([fe.extract(r.trajectory) for r in fracture_runs["warp"]])
@@ -73,7 +74,7 @@ def test_fracture_features_match_taichi(fracture_runs) -> None:
     rel = np.abs(fw - ft) / np.maximum(np.maximum(np.abs(fw), np.abs(ft)), 1e-12)
     med = dict(zip(FEATURE_NAMES, np.median(rel, axis=0), strict=True))
     assert max(med.values()) <= 1e-3, med
-    assert rel.max() <= 1e-2, dict(zip(FEATURE_NAMES, rel.max(axis=0), strict=True))
+    assert rel.max() <= 3e-2, dict(zip(FEATURE_NAMES, rel.max(axis=0), strict=True))
     for rw, rt in zip(fracture_runs["warp"], fracture_runs["taichi"], strict=True):
         assert abs(rw.stats.substeps - rt.stats.substeps) <= 0.02 * rt.stats.substeps
 
