@@ -48,13 +48,43 @@ def parameter_set(n: int, seed: int) -> np.ndarray:
     return parameter_space().denormalize(unit)
 
 
-def make_backend(name: str, scene, batch: int, settings: StepSettings, arch: str, use_graphs: bool | None = None):
+def make_backend(name: str, scene, batch: int, settings: StepSettings, arch: str, use_graphs: bool | None = None,
+                 gpu_deterministic: bool = False):
     from invphys_orange_peel.backends import load_backend
 
     cls = load_backend(name)
-    if name == "warp" and use_graphs is not None:
-        return cls(scene, batch, settings, arch=arch, use_graphs=use_graphs)
+    if name == "warp":
+        return cls(scene, batch, settings, arch=arch, use_graphs=use_graphs, gpu_deterministic=gpu_deterministic)
     return cls(scene, batch, settings, arch=arch)
+
+
+def max_diff(fa: list, fb: list) -> float:
+    """Largest |difference| between two lists of per-run arrays (None entries skipped)."""
+    return max((float(np.abs(np.asarray(a) - np.asarray(b)).max()) for a, b in zip(fa, fb, strict=True)
+                if a is not None and b is not None), default=0.0)
+
+
+def deterministic_check(backend, scene, params, frames: int, preset, settings, arch: str) -> dict:
+    """Warp on CUDA with and without deterministic atomics: two passes each, same batch, ``frames``."""
+    out: dict = {"frames": frames}
+    a = simulate(backend, scene, params, frames, preset.fps, preset.record_every, settings)
+    b = simulate(backend, scene, params, frames, preset.fps, preset.record_every, settings)
+    out["default"] = {"wall_s": [a["wall_s"], b["wall_s"]],
+                      "max_final_position_diff_m": max_diff(a["final_positions"], b["final_positions"])}
+    for graphs in (True, False):
+        try:
+            det = make_backend("warp", scene, len(params), settings, arch, use_graphs=graphs, gpu_deterministic=True)
+            simulate(det, scene, params, 2, preset.fps, 1, settings)
+            a = simulate(det, scene, params, frames, preset.fps, preset.record_every, settings)
+            b = simulate(det, scene, params, frames, preset.fps, preset.record_every, settings)
+        except Exception as exc:  # record why, then try without graphs
+            out[f"deterministic_graphs_{graphs}_error"] = repr(exc)[:500]
+            continue
+        out["deterministic"] = {"graphs": graphs, "wall_s": [a["wall_s"], b["wall_s"]],
+                                "max_final_position_diff_m": max_diff(a["final_positions"], b["final_positions"]),
+                                "features_identical": a["features"] == b["features"]}
+        break
+    return out
 
 
 def features_of(records: list[RunRecord], scene, fps: float) -> list[list[float] | None]:
@@ -172,6 +202,10 @@ def cmd_one(args: argparse.Namespace) -> dict:
         diffs = [max(float(np.abs(a - b).max()) for a, b in zip(f0, f1, strict=True)
                      if a is not None and b is not None) for f0, f1 in itertools.pairwise(finals)]
         out["max_final_position_diff_m"] = max(diffs)
+    if args.backend == "warp" and args.deterministic_frames and time.perf_counter() < deadline:
+        out["gpu_determinism"] = deterministic_check(backend, scene, params, args.deterministic_frames, preset,
+                                                     settings, args.arch)
+        print("determinism:", json.dumps(out["gpu_determinism"]), flush=True)
     # one run alone (launch-overhead bound): Warp with and without CUDA graphs, Taichi as is
     variants = {"graphs_on": True, "graphs_off": False} if args.backend == "warp" and args.arch == "cuda" \
         else {"default": None}
@@ -207,6 +241,8 @@ def cmd_gpu(args: argparse.Namespace) -> dict:
                "--budget-s", str(max(left - 30, 1)), "--json", str(part)]
         if args.frames:
             cmd += ["--frames", str(args.frames)]
+        if name == "warp" and args.deterministic_frames:
+            cmd += ["--deterministic-frames", str(args.deterministic_frames)]
         try:
             code = subprocess.run(cmd, check=False, timeout=max(left, 1)).returncode
         except subprocess.TimeoutExpired:
@@ -280,6 +316,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=None)
     ap.add_argument("--repeats", type=int, default=3, help="gpu: Warp passes (run-to-run spread)")
     ap.add_argument("--taichi-repeats", type=int, default=1, help="gpu: Taichi passes")
+    ap.add_argument("--deterministic-frames", type=int, default=0,
+                    help="gpu: also compare Warp with deterministic atomics over this many frames (0: skip)")
     ap.add_argument("--arch", default="cuda")
     ap.add_argument("--backend", default="warp")
     ap.add_argument("--budget-s", type=float, default=480.0)

@@ -92,8 +92,7 @@ def _base(x: wp.vec3, inv_dx: float, G: int):
                     wp.clamp(int(Xp[2] - 0.5), 0, G - 3))
 
 
-@wp.kernel
-def p2g_kernel(kstep: wp.array(dtype=wp.int32), dx: float, vol: float, apic: float,
+def _p2g(kstep: wp.array(dtype=wp.int32), dx: float, vol: float, apic: float,
                nsub: wp.array(dtype=wp.int32), dt: wp.array(dtype=wp.float32),
                mat: wp.array2d(dtype=wp.float32), label: wp.array(dtype=wp.int32),
                fibre: wp.array(dtype=wp.vec3), gripped: wp.array(dtype=wp.int32),
@@ -165,6 +164,21 @@ def p2g_kernel(kstep: wp.array(dtype=wp.int32), dx: float, vol: float, apic: flo
                 wp.atomic_add(gd, b, ni, nj, nl, weight * wp.vec2(dp, 1.0))
                 if gp != 0:
                     wp.atomic_add(gg, b, ni, nj, nl, weight * mass)
+
+
+p2g_kernel = wp.kernel(_p2g, name="p2g_kernel")
+_P2G_DETERMINISTIC: list = []
+
+
+def p2g_deterministic_kernel():
+    """The P2G kernel compiled in Warp's RUN_TO_RUN deterministic mode (its own module, built on first
+    use): its grid atomics are recorded, sorted and reduced in a fixed order, so CUDA runs repeat
+    bit-for-bit, at a cost in speed (see docs/orange-peel/warp.md)."""
+    if not _P2G_DETERMINISTIC:
+        _P2G_DETERMINISTIC.append(wp.kernel(
+            _p2g, name="p2g_kernel_deterministic", module="unique",
+            module_options={"deterministic": wp.DeterministicMode.RUN_TO_RUN, "enable_backward": False}))
+    return _P2G_DETERMINISTIC[0]
 
 
 @wp.kernel
@@ -294,13 +308,14 @@ class WarpBackend:
     ``load``, ``set_frame``, ``advance``, ``frame_stats``, ``read``, ``sync`` (and ``grid_mass``,
     ``kernel_times`` for checks and profiling). ``settings`` is the
     driver's :class:`~invphys_orange_peel.driver.StepSettings`. ``use_graphs`` (default: on CUDA)
-    replays captured CUDA graphs for the substeps.
+    replays captured CUDA graphs for the substeps; ``gpu_deterministic`` (default off) compiles the
+    particle-to-grid scatter in Warp's deterministic mode so that CUDA runs repeat bit-for-bit.
     """
 
     name = "warp"
 
     def __init__(self, scene, batch: int, settings, arch: str = "cpu", allow_cpu_fallback: bool = False,
-                 use_graphs: bool | None = None):
+                 use_graphs: bool | None = None, gpu_deterministic: bool = False):
         self.wp_device = resolve_device(arch, allow_cpu_fallback)
         self.arch = "cuda" if self.wp_device.startswith("cuda") else "cpu"
         self.device = device_name(self.wp_device)
@@ -308,6 +323,9 @@ class WarpBackend:
         self.settings = settings
         self.batch = int(batch)
         self.use_graphs = (self.arch == "cuda") if use_graphs is None else bool(use_graphs and self.arch == "cuda")
+        # CPU kernels already run serially (deterministic); on CUDA, opt in to sorted grid atomics
+        self.gpu_deterministic = bool(gpu_deterministic and self.arch == "cuda")
+        self._p2g_kernel = p2g_deterministic_kernel() if self.gpu_deterministic else p2g_kernel
         B, N, G = self.batch, scene.n_particles, scene.preset.grid
         dev = self.wp_device
         with wp.ScopedDevice(dev):
@@ -387,7 +405,7 @@ class WarpBackend:
 
     def _p2g(self) -> None:
         s = self.settings
-        wp.launch(p2g_kernel, dim=(self.batch, self.scene.n_particles), device=self.wp_device, inputs=[
+        wp.launch(self._p2g_kernel, dim=(self.batch, self.scene.n_particles), device=self.wp_device, inputs=[
             self.kstep, float(self.scene.dx), float(self.scene.volume), float(s.apic_blend), self.nsub, self.dt,
             self.mat, self.label, self.fibre, self.gripped, self.x, self.v, self.C, self.F, self.d, self.dtil,
             self.gv, self.gm, self.gd, self.gg])
