@@ -118,3 +118,11 @@ def test_conformance_check_passes(fitted, orange) -> None:
 
     mse = check_latent_model(fitted, orange[2])
     assert mse == pytest.approx(fitted.metrics["recon_mse"])
+
+
+def test_fitted_models_pickle(fitted, orange) -> None:
+    import pickle
+
+    back = pickle.loads(pickle.dumps(fitted))  # e.g. to ship to Ray or process-pool workers
+    z = fitted.encode(orange[2][:5])
+    assert np.array_equal(back.encode(orange[2][:5]), z) and np.array_equal(back.decode(z), fitted.decode(z))

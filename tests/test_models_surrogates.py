@@ -161,3 +161,7 @@ def test_conformance_checks_pass(fitted_mlp, orange, tmp_path) -> None:
     ens = EnsembleSurrogate(members=2, hidden=(32, 32, 16), max_epochs=5)
     ens.fit(*orange[:2])
     check_surrogate(ens, tv, yv, tmp_path / "ens")
+    import pickle
+
+    for model in (fitted_mlp, ens):  # e.g. to ship to Ray or process-pool workers
+        assert np.array_equal(pickle.loads(pickle.dumps(model)).predict(tv), model.predict(tv))

@@ -6,10 +6,12 @@ model: ``forward`` works on standardised features (training), ``predict_*`` retu
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import torch
 from torch import nn
+from zuko.transforms import MonotonicAffineTransform
 
 
 def _mlp(sizes: Sequence[int], final_activation: nn.Module | None = None) -> nn.Sequential:
@@ -93,21 +95,18 @@ class VAENet(_Standardised):
         return self.destandardise(self.head(z))
 
 
-def _tanh_affine(bound: float):
-    """A zuko univariate transform x -> exp(s) x + t with the log-scale bounded as ``bound * tanh``."""
-    from zuko.transforms import MonotonicAffineTransform
+class TanhAffineTransform(MonotonicAffineTransform):
+    """zuko univariate transform x -> exp(s) x + t with the log-scale bounded as ``bound * tanh(raw)``."""
 
-    class TanhAffineTransform(MonotonicAffineTransform):
-        def __init__(self, shift: torch.Tensor, scale: torch.Tensor, **kwargs) -> None:
-            super(MonotonicAffineTransform, self).__init__(**kwargs)
-            self.shift = shift
-            self.log_scale = bound * torch.tanh(scale)
-            self.scale = self.log_scale.exp()
+    def __init__(self, shift: torch.Tensor, scale: torch.Tensor, bound: float = 1.0, **kwargs) -> None:
+        super(MonotonicAffineTransform, self).__init__(**kwargs)
+        self.bound = bound
+        self.shift = shift
+        self.log_scale = bound * torch.tanh(scale)
+        self.scale = self.log_scale.exp()
 
-        def __repr__(self) -> str:
-            return f"TanhAffineTransform(bound={bound})"
-
-    return TanhAffineTransform
+    def __repr__(self) -> str:
+        return f"TanhAffineTransform(bound={self.bound})"
 
 
 class FlowNet(_Standardised):
@@ -129,7 +128,7 @@ class FlowNet(_Standardised):
         self.scale_bound = float(scale_bound)
         self.proj_in = _mlp([d, projection, k])
         self.proj_out = _mlp([k, projection, d])
-        univariate = _tanh_affine(scale_bound)
+        univariate = functools.partial(TanhAffineTransform, bound=float(scale_bound))
         base_mask = torch.arange(k) % 2 == 1
         self.flow = LazyComposedTransform(*[
             GeneralCouplingTransform(k, 0, mask=base_mask if i % 2 == 0 else ~base_mask,
