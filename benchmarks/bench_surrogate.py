@@ -145,6 +145,18 @@ def main() -> None:
             "config": model.config.model_dump(mode="json"), "metrics": metrics,
             "decode_latency_us": _latency(model.decode, z, repeats),
             "encode_latency_us": _latency(model.encode, tv[:1], repeats)}
+    # learning curve: the MLP's held-out R^2 against the number of training rows (same held-out set)
+    curve = []
+    sizes = [50, 100, 200, len(tt)] if not args.quick else [50, len(tt)]
+    for n in sizes:
+        r2s = []
+        for rep in range(3 if not args.quick else 1):
+            idx = np.random.default_rng(100 + rep).permutation(len(tt))[:n]
+            m = MLPSurrogate(device=args.device, seed=rep, **quick)
+            r2s.append(m.fit(tt[idx], yt[idx], validation=(tv, yv))["r2"])
+        curve.append({"n_train": n, "r2_mean": float(np.mean(r2s)), "r2_runs": r2s})
+        print(f"learning curve: {n} rows -> R^2 {np.mean(r2s):.4f}", flush=True)
+    result["learning_curve_mlp"] = curve
     out = Path(args.out) if args.out else ROOT / "benchmarks" / "results" / f"surrogate_{args.device}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2))
