@@ -32,6 +32,8 @@ def _fmt(v: Any, digits: int = 3) -> str:
     if isinstance(v, float):
         if not math.isfinite(v):
             return "n/a"
+        if v.is_integer() and abs(v) >= 1:  # counts such as mean evaluations
+            return f"{int(v):,}"
         return f"{v:.{digits}f}"
     return str(v)
 

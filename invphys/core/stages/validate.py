@@ -15,6 +15,8 @@ Writes ``validation.json`` and ``validation.csv``.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -25,6 +27,20 @@ DEPENDS_ON: tuple[str, ...] = ("simulator", "features", "validator", "targets")
 
 VALIDATION_FILE = "validation.json"
 RENDER_TARGETS = 3
+
+
+@contextmanager
+def _run_bar(ctx: Any, total: int, label: str) -> Iterator[Any]:
+    """A progress bar over simulator runs; yields the ``on_run`` callback (None without progress)."""
+    if not ctx.progress or total == 0:
+        yield None
+        return
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=ctx.console, transient=False) as bar:
+        task = bar.add_task(label, total=total)
+        yield lambda _row: bar.advance(task)
 
 
 def run(ctx: Any) -> dict[str, Any]:
@@ -52,7 +68,9 @@ def run(ctx: Any) -> dict[str, Any]:
     if hasattr(validator, "simulate_features"):
         # keep trajectories only of runs that may be rendered (the first RENDER_TARGETS targets)
         keep = {int(inverse[i]) for i in target_rows if chosen[i]["target_index"] < RENDER_TARGETS} if render else False
-        sim = validator.simulate_features(unique, simulator, extractor, keep_trajectories=keep)
+        with _run_bar(ctx, len(unique), "validating") as on_run:
+            sim = validator.simulate_features(unique, simulator, extractor, keep_trajectories=keep,
+                                              on_run=on_run)
         feats = sim.features[inverse]
         failures = [sim.failures[j] for j in inverse]
         stats = [sim.stats[j] for j in inverse]
@@ -129,8 +147,9 @@ def _renders(ctx: Any, chosen: list[dict[str, Any]], out: list[dict[str, Any]], 
     ks = sorted({r["target_index"] for r in out if r["problem"] == "target"})[:RENDER_TARGETS]
     if not ks:
         return []
-    truth = validator.simulate_features(np.array([targets["theta"][k] for k in ks]), simulator, extractor,
-                                        keep_trajectories=True)
+    with _run_bar(ctx, len(ks), "simulating targets for renders") as on_run:
+        truth = validator.simulate_features(np.array([targets["theta"][k] for k in ks]), simulator, extractor,
+                                            keep_trajectories=True, on_run=on_run)
     for n, k in enumerate(ks):
         cands = [(i, r) for i, r in enumerate(chosen) if r["problem"] == "target" and r["target_index"] == k]
         vals = {i: next((o["r_actual"] for o in out if o["problem"] == "target" and o["target_index"] == k

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -53,11 +53,13 @@ class SimulatorValidator(Validator):
             raise InvphysError(f"validator.overrides do not fit simulator {simulator.name!r}: {exc}") from exc
 
     def simulate_features(self, theta: np.ndarray, simulator: Simulator, extractor: FeatureExtractor,
-                          keep_trajectories: bool | Collection[int] = False) -> SimulatedFeatures:
+                          keep_trajectories: bool | Collection[int] = False,
+                          on_run: Callable[[int], None] | None = None) -> SimulatedFeatures:
         """Simulate rows of ``theta`` (B, d) in [0, 1]^d and extract their features (NaN rows on failure).
 
         ``keep_trajectories``: True keeps every successful run's trajectory, a collection of row indices
-        keeps only those (trajectories can be large), False none.
+        keeps only those (trajectories can be large), False none. ``on_run(row)`` is called as each
+        run finishes (progress bars).
         """
         sim = self.simulator_for(simulator)
         theta = np.atleast_2d(np.asarray(theta, dtype=np.float64))
@@ -71,7 +73,8 @@ class SimulatorValidator(Validator):
         for start in range(0, len(theta), bs):
             rows = list(range(start, min(start + bs, len(theta))))
             try:
-                results = sim.simulate(params[rows])
+                results = sim.simulate(params[rows], on_result=None if on_run is None else
+                                       lambda i, _res, rows=rows: on_run(rows[i]))
             except SimulationFailed:
                 results = []
                 for r in rows:  # isolate the failing row(s)
