@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from invphys.core.atomic import atomic_write_bytes, write_json
 from invphys.core.errors import InvphysError
 from invphys.core.results import SimulationResult
 
@@ -187,8 +188,7 @@ class DatasetStore:
         """Replace ``_metadata.json`` atomically (temp file, fsync, rename)."""
         self.path.mkdir(parents=True, exist_ok=True)
         data = dict(metadata, updated_at=_utcnow())
-        blob = json.dumps(data, indent=2, sort_keys=True, default=_json_default).encode()
-        _atomic_write(self.metadata_path, blob)
+        write_json(self.metadata_path, data)
 
     @property
     def param_names(self) -> tuple[str, ...]:
@@ -259,7 +259,7 @@ class DatasetStore:
         name = f"part-{seq:06d}-{uuid.uuid4().hex[:8]}.parquet"
         sink = pa.BufferOutputStream()
         pq.write_table(table, sink, compression="zstd")
-        _atomic_write(self.path / name, sink.getvalue().to_pybytes(), tmp_name=f".{name}.tmp")
+        atomic_write_bytes(self.path / name, sink.getvalue().to_pybytes(), tmp_name=f".{name}.tmp")
         return self.path / name
 
     # -- reading -------------------------------------------------------------------------------
@@ -406,38 +406,3 @@ def rows_to_table(rows: Sequence[Row], param_names: tuple[str, ...], feature_nam
     schema = table_schema(param_names, feature_names)
     return pa.table({name: columns[name] for name in schema.names}, schema=schema)
 
-
-# ----------------------------------------------------------------------------------------------
-# Atomic files
-# ----------------------------------------------------------------------------------------------
-def _atomic_write(path: Path, data: bytes, tmp_name: str | None = None) -> None:
-    tmp = path.with_name(tmp_name or f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-    _fsync_dir(path.parent)
-
-
-def _fsync_dir(directory: Path) -> None:
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, Path):
-        return str(obj)
-    return str(obj)

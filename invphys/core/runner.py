@@ -18,7 +18,6 @@ from __future__ import annotations
 import hashlib
 import importlib
 import json
-import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -28,6 +27,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from invphys.core.atomic import write_json
 from invphys.core.errors import InvphysError
 from invphys.core.spec import STAGES, ExperimentSpec, load_spec
 
@@ -39,24 +39,6 @@ def fingerprint(obj: Any) -> str:
     """A short stable hash of a JSON-able object."""
     blob = json.dumps(obj, sort_keys=True, default=str, separators=(",", ":")).encode()
     return hashlib.sha256(blob).hexdigest()[:16]
-
-
-def write_json(path: Path, data: Any) -> None:
-    """Write JSON atomically (temp file + rename), so a killed run never leaves half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(json.dumps(data, indent=2, sort_keys=True, default=_json_default))
-    os.replace(tmp, path)
-
-
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, Path):
-        return str(obj)
-    return str(obj)
 
 
 @dataclass
@@ -117,7 +99,8 @@ class StageContext:
 
     def uses_existing_dataset(self) -> bool:
         """True when the spec names an existing dataset store (nothing to generate)."""
-        return bool(self.spec.dataset.path) and self.dataset_path() == Path(self.spec.dataset.path)
+        path = self.spec.dataset.path
+        return path is not None and self.dataset_path() == Path(path)
 
     def dataset(self) -> Any:
         """The dataset's arrays (``DatasetArrays``): the dataset stage's store, or ``dataset.path``."""

@@ -19,6 +19,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from pydantic import Field, ValidationError
 
+from invphys.core.atomic import write_json
 from invphys.core.errors import InvphysError
 from invphys.core.interfaces import PluginConfig
 from invphys.models.data import ModelLoadError, NotFittedError, check_input
@@ -117,8 +118,8 @@ class TorchModel:
         tmp = directory / f".{WEIGHTS_FILE}.tmp{os.getpid()}"
         torch.save(state, tmp)
         os.replace(tmp, directory / WEIGHTS_FILE)
-        _write_json(directory / HISTORY_FILE, self.history)
-        _write_json(directory / MODEL_FILE, meta)  # written last: its presence marks a complete save
+        write_json(directory / HISTORY_FILE, self.history)
+        write_json(directory / MODEL_FILE, meta)  # written last: its presence marks a complete save
         return directory
 
     @classmethod
@@ -156,20 +157,6 @@ class TorchModel:
         hist = directory / HISTORY_FILE
         model.history = json.loads(hist.read_text()) if hist.is_file() else {}
         return model
-
-
-def _write_json(path: Path, data: Any) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(json.dumps(data, indent=2, default=_default))
-    os.replace(tmp, path)
-
-
-def _default(obj: Any) -> Any:
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    return str(obj)
 
 
 def validation_split(theta: np.ndarray, y: np.ndarray, validation: tuple[np.ndarray, np.ndarray] | None,

@@ -141,8 +141,8 @@ def _problems_of(plugin: Any, has_objectives: bool) -> tuple[bool, bool]:
 
 
 def run(ctx: Any) -> dict[str, Any]:
+    from invphys.core.atomic import write_json
     from invphys.core.objectives import RecoveryObjective, feature_standardiser
-    from invphys.core.runner import write_json
     from invphys.core.spaces import build_problem
 
     data = ctx.dataset()

@@ -255,7 +255,7 @@ def _renders(ctx: Any, out_dir: Path) -> list[tuple[int, str]]:
 def run(ctx: Any) -> dict[str, Any]:
     import pandas as pd
 
-    from invphys.core.runner import write_json
+    from invphys.core.atomic import write_json
     from invphys.core.stages.invert import load_results
     from invphys.core.stages.validate import load_validation
 

@@ -44,7 +44,7 @@ def _run_bar(ctx: Any, total: int, label: str) -> Iterator[Any]:
 
 
 def run(ctx: Any) -> dict[str, Any]:
-    from invphys.core.runner import write_json
+    from invphys.core.atomic import write_json
     from invphys.core.stages.invert import load_results, objectives
 
     rows, targets = load_results(ctx)
