@@ -69,6 +69,21 @@ class TorchModel:
         self._device: Any = None
         self._folded: Any = None
 
+    def _record_fit(self, theta: np.ndarray, y: np.ndarray, n_train: int, val: tuple[np.ndarray, np.ndarray],
+                    history: dict[str, Any], epochs: Any, best_epoch: Any, train_time_s: float,
+                    **extra: Any) -> dict[str, Any]:
+        """Store what a finished ``fit`` leaves behind (dims, data fingerprint, history, metrics)."""
+        from invphys.models.data import array_fingerprint
+
+        self._folded = None
+        self.dims = (theta.shape[1], y.shape[1])
+        self.data_fingerprint = array_fingerprint(theta, y)
+        self.history = history
+        tv, yv = val
+        self.metrics = {**self.evaluate(tv, yv), **extra, "n_train": n_train, "n_val": len(tv),  # type: ignore[attr-defined]
+                        "epochs": epochs, "best_epoch": best_epoch, "train_time_s": round(train_time_s, 3)}
+        return self.metrics
+
     # -- to implement ----------------------------------------------------------------------------
     def _build_net(self, d: int, m: int) -> Any:
         raise NotImplementedError

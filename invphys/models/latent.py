@@ -12,7 +12,7 @@ import numpy as np
 from pydantic import Field, PositiveInt
 
 from invphys.models.base import TorchModel, TrainingConfig, validation_split
-from invphys.models.data import array_fingerprint, check_training_data, r2_scores, standardiser
+from invphys.models.data import check_training_data, r2_scores, standardiser
 
 
 class LatentConfig(TrainingConfig):
@@ -83,12 +83,8 @@ class LatentTorchModel(TorchModel):
                             min_epochs=c.warmup_epochs, seed=c.seed, progress=progress,
                             description=f"latent {self.name}")
         self._net = net.eval()
-        self.dims = (theta.shape[1], y.shape[1])
-        self.data_fingerprint = array_fingerprint(theta, y)
-        self.history = hist.to_dict()
-        self.metrics = {**self.evaluate(tv, yv), "n_train": len(tt), "n_val": len(tv), "epochs": hist.epochs,
-                        "best_epoch": hist.best_epoch, "train_time_s": round(hist.train_time_s, 3)}
-        return self.metrics
+        return self._record_fit(theta, y, len(tt), (tv, yv), hist.to_dict(), hist.epochs, hist.best_epoch,
+                                hist.train_time_s)
 
     # -- numpy API -------------------------------------------------------------------------------
     def encode(self, theta: np.ndarray) -> np.ndarray:

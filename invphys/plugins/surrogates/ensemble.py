@@ -9,7 +9,7 @@ from pydantic import Field
 
 from invphys.core.interfaces import Surrogate
 from invphys.models.base import validation_split
-from invphys.models.data import array_fingerprint, check_training_data, r2_scores
+from invphys.models.data import check_training_data, r2_scores
 from invphys.plugins.surrogates.mlp import MLPSurrogate, train_mlp
 
 
@@ -53,14 +53,10 @@ class EnsembleSurrogate(MLPSurrogate, Surrogate):
             nets.append(net)
             hists.append(hist)
         self._net = Ensemble(nets).to(self.device).eval()
-        self._folded = None
-        self.dims = (theta.shape[1], y.shape[1])
-        self.data_fingerprint = array_fingerprint(theta, y)
-        self.history = {"members": [h.to_dict() for h in hists]}
-        member_r2 = [r2_scores(yv, self._member_predict(tv)[k])[0] for k in range(c.members)]
-        self.metrics = {**self.evaluate(tv, yv), "member_r2": member_r2, "n_train": len(tt), "n_val": len(tv),
-                        "epochs": [h.epochs for h in hists], "best_epoch": [h.best_epoch for h in hists],
-                        "train_time_s": round(sum(h.train_time_s for h in hists), 3)}
+        self._record_fit(theta, y, len(tt), (tv, yv), {"members": [h.to_dict() for h in hists]},
+                         [h.epochs for h in hists], [h.best_epoch for h in hists],
+                         sum(h.train_time_s for h in hists))
+        self.metrics["member_r2"] = [r2_scores(yv, self._member_predict(tv)[k])[0] for k in range(c.members)]
         return self.metrics
 
     def predict(self, theta: np.ndarray) -> np.ndarray:

@@ -9,7 +9,7 @@ from pydantic import Field, PositiveInt
 
 from invphys.core.interfaces import Surrogate
 from invphys.models.base import TorchModel, TrainingConfig, validation_split
-from invphys.models.data import array_fingerprint, check_training_data, r2_scores, standardiser
+from invphys.models.data import check_training_data, r2_scores, standardiser
 
 
 class MLPSurrogate(TorchModel, Surrogate):
@@ -54,13 +54,8 @@ class MLPSurrogate(TorchModel, Surrogate):
         tt, yt, tv, yv = validation_split(theta, y, validation, self.config.val_fraction, self.config.seed,
                                           f"surrogate {self.name!r}")
         self._net, hist = train_mlp(self, tt, yt, tv, yv, self.config.seed, progress, f"surrogate {self.name}")
-        self._folded = None
-        self.dims = (theta.shape[1], y.shape[1])
-        self.data_fingerprint = array_fingerprint(theta, y)
-        self.history = hist.to_dict()
-        self.metrics = {**self.evaluate(tv, yv), "n_train": len(tt), "n_val": len(tv), "epochs": hist.epochs,
-                        "best_epoch": hist.best_epoch, "train_time_s": round(hist.train_time_s, 3)}
-        return self.metrics
+        return self._record_fit(theta, y, len(tt), (tv, yv), hist.to_dict(), hist.epochs, hist.best_epoch,
+                                hist.train_time_s)
 
     def predict(self, theta: np.ndarray) -> np.ndarray:
         """Predicted features (B, M) for (B, d) normalised parameters."""
