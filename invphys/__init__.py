@@ -35,6 +35,6 @@ def load_spec(path: str | Path) -> ExperimentSpec:
 
 def run(spec: str | Path | ExperimentSpec, out: str | Path, **kwargs: Any) -> dict[str, Any]:
     """Run the stages a spec names, caching artifacts under ``out``; returns the stage summaries."""
-    from invphys.core.runner import run_spec
+    from invphys.pipeline.runner import run_spec
 
     return run_spec(spec, out, **kwargs)

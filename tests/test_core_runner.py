@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import json
 
-from invphys.core.runner import run_spec
 from invphys.core.spec import parse_spec
+from invphys.pipeline.runner import run_spec
 
 SPEC = """\
 name: runner-test

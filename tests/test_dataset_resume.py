@@ -134,8 +134,8 @@ def test_cli_info_json_and_bad_input(tmp_path) -> None:
 
 
 def test_dataset_stage_generates_then_is_cached(tmp_path) -> None:
-    from invphys.core.runner import run_spec
     from invphys.core.spec import parse_spec
+    from invphys.pipeline.runner import run_spec
 
     spec = parse_spec(SPEC.replace("sleep_s: 0.06", "sleep_s: 0").replace(f"n: {N}", "n: 20"))
     first = run_spec(spec, tmp_path / "run", progress=False)
@@ -149,9 +149,9 @@ def test_dataset_stage_generates_then_is_cached(tmp_path) -> None:
 
 
 def test_dataset_stage_stopped_by_its_time_limit_is_not_marked_done(tmp_path) -> None:
-    from invphys.core.runner import run_spec
     from invphys.core.spec import parse_spec
-    from invphys.core.stages.dataset import DatasetIncomplete
+    from invphys.pipeline.runner import run_spec
+    from invphys.pipeline.stages.dataset import DatasetIncomplete
 
     text = SPEC.replace("sleep_s: 0.06", "sleep_s: 0.05").replace("sampler: sobol", "limit_minutes: 0.005")
     spec = parse_spec(text)

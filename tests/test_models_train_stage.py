@@ -24,8 +24,8 @@ latent_models:
 
 
 def test_train_stage_trains_saves_and_is_cached(tmp_path) -> None:
-    from invphys.core.runner import StageContext, run_spec
     from invphys.core.spec import parse_spec
+    from invphys.pipeline.runner import StageContext, run_spec
     from invphys.plugins.latents.realnvp import RealNVPLatent
     from invphys.plugins.surrogates.mlp import MLPSurrogate
 
@@ -65,7 +65,7 @@ def test_train_stage_trains_saves_and_is_cached(tmp_path) -> None:
 
 
 def test_train_models_directly_on_the_orange_fixture(tmp_path) -> None:
-    from invphys.core.stages.train import train_models
+    from invphys.pipeline.stages.train import train_models
     from invphys.registry import Registry
 
     d = orange_tiny()

@@ -37,8 +37,8 @@ report: {render: true}
 def run_dir(tmp_path_factory):
     from rich.console import Console
 
-    from invphys.core.runner import run_spec
     from invphys.core.spec import parse_spec
+    from invphys.pipeline.runner import run_spec
 
     out = tmp_path_factory.mktemp("run")
     spec = parse_spec(SPEC)
@@ -108,7 +108,7 @@ def test_validate_re_simulates_recovered_parameters(run_dir) -> None:
 def test_report_writes_tables_plot_and_renders_and_reruns_are_cached(run_dir) -> None:
     from rich.console import Console
 
-    from invphys.core.runner import run_spec
+    from invphys.pipeline.runner import run_spec
 
     out, spec, _ = run_dir
     md = (out / "report" / "report.md").read_text()

@@ -80,7 +80,7 @@ def run(
     as_json: bool = typer.Option(False, "--json", help="print the stage summaries as JSON"),
 ) -> None:
     """Run the stages a spec names, caching each stage's artifacts under OUT and resuming from them."""
-    from invphys.core.runner import run_spec
+    from invphys.pipeline.runner import run_spec
 
     def on_stage(name: str, status: str, summary: dict[str, Any] | None) -> None:
         if status == "cached":

@@ -45,7 +45,7 @@ def _run_bar(ctx: Any, total: int, label: str) -> Iterator[Any]:
 
 def run(ctx: Any) -> dict[str, Any]:
     from invphys.core.atomic import write_json
-    from invphys.core.stages.invert import load_results, objectives
+    from invphys.pipeline.stages.invert import load_results, objectives
 
     rows, targets = load_results(ctx)
     n_val = int(ctx.spec.targets.validate_n)
@@ -115,7 +115,7 @@ def run(ctx: Any) -> dict[str, Any]:
     pd.DataFrame([{k: v for k, v in r.items() if k not in ("theta", "actual")} for r in out]).to_csv(
         ctx.stage_dir / "validation.csv", index=False)
     failed = sum(1 for r in out if r["failure"])
-    from invphys.core.stages.invert import summarise
+    from invphys.pipeline.stages.invert import summarise
 
     ctx.log(f"validated {len(out)} rows ({failed} failed runs)")
     return {"validated": len(out), "simulated": len(unique), "failed": failed, "renders": renders,

@@ -256,8 +256,8 @@ def run(ctx: Any) -> dict[str, Any]:
     import pandas as pd
 
     from invphys.core.atomic import write_json
-    from invphys.core.stages.invert import load_results
-    from invphys.core.stages.validate import load_validation
+    from invphys.pipeline.stages.invert import load_results
+    from invphys.pipeline.stages.validate import load_validation
 
     rows, targets = load_results(ctx)
     validation = load_validation(ctx)

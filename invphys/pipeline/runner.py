@@ -144,8 +144,8 @@ class StageContext:
 
 
 def stage_module(stage: str) -> Any:
-    """The module implementing a stage (``invphys.core.stages.<stage>``)."""
-    return importlib.import_module(f"invphys.core.stages.{stage}")
+    """The module implementing a stage (``invphys.pipeline.stages.<stage>``)."""
+    return importlib.import_module(f"invphys.pipeline.stages.{stage}")
 
 
 def run_spec(spec: str | Path | ExperimentSpec, out: str | Path, stages: Sequence[str] | None = None,

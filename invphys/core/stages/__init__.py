@@ -1,1 +1,0 @@
-"""Pipeline stages run by :mod:`invphys.core.runner`: one module per stage, each with ``run(ctx)`` and ``DEPENDS_ON``."""
