@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml examples/orange_peel/pyproject.toml
 	touch $(STAMP)
 
 demo: setup
-	$(BIN)/invphys run examples/orange_peel/specs/quickstart.yaml --out runs/quickstart
+	$(BIN)/invphys run examples/orange_peel/invphys_orange_peel/specs/quickstart.yaml --out runs/quickstart
 
 lint: setup
 	$(BIN)/ruff check invphys examples tests benchmarks

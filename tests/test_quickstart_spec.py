@@ -8,7 +8,7 @@ from invphys.core.dataset import DatasetStore
 from invphys.core.spec import load_spec
 
 ROOT = Path(__file__).resolve().parent.parent
-QUICKSTART = ROOT / "examples" / "orange_peel" / "specs" / "quickstart.yaml"
+QUICKSTART = ROOT / "examples" / "orange_peel" / "invphys_orange_peel" / "specs" / "quickstart.yaml"
 
 
 def test_quickstart_spec_is_valid_and_its_dataset_is_committed():
@@ -23,7 +23,7 @@ def test_quickstart_spec_is_valid_and_its_dataset_is_committed():
 
 
 def test_paper_spec_is_valid_and_names_every_method_of_the_paper():
-    spec = load_spec(ROOT / "examples" / "orange_peel" / "specs" / "paper.yaml")
+    spec = load_spec(ROOT / "examples" / "orange_peel" / "invphys_orange_peel" / "specs" / "paper.yaml")
     types = {b["type"] for b in spec.optimizers.values()}
     assert types == {"cma_es", "ppo", "gc_ppo", "warm_start"}
     assert {b.get("space", "raw") for b in spec.optimizers.values()} == {"raw", "flow", "vae"}
