@@ -8,10 +8,11 @@ a short message (``invphys --debug ...`` shows the traceback).
 from __future__ import annotations
 
 import importlib
+import sys
 
 import typer
 
-from invphys.cli.common import set_debug
+from invphys.cli.common import debug_enabled, exit_code_for, set_debug
 
 COMMAND_MODULES: tuple[str, ...] = ("core", "dataset", "simulate", "render")
 
@@ -21,11 +22,26 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    # plain click help: flags print without a `<bool>` type, and piped help is not boxed or cut
+    rich_markup_mode=None,
+    context_settings={"help_option_names": ["-h", "--help"]},
 )
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        from invphys import __version__
+
+        typer.echo(f"invphys {__version__}")
+        raise typer.Exit()
+
+
 @app.callback()
-def _root(debug: bool = typer.Option(False, "--debug", help="show tracebacks instead of short errors")) -> None:
+def _root(
+    debug: bool = typer.Option(False, "--debug", help="show tracebacks and the back-ends' own log lines"),
+    version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                 help="print the version and exit"),
+) -> None:
     set_debug(debug)
 
 
@@ -34,5 +50,13 @@ for _name in COMMAND_MODULES:
 
 
 def main() -> None:
-    """Console-script entry point."""
-    app()
+    """Console-script entry point: any exception that escapes a command becomes one line (exit 2 or 1)."""
+    try:
+        app()
+    except KeyboardInterrupt:
+        sys.stderr.write("interrupted\n")
+        raise SystemExit(130) from None
+    except Exception as exc:
+        if debug_enabled():
+            raise
+        raise SystemExit(exit_code_for(exc)) from None

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import json
+import os
 import sys
 from collections.abc import Callable
 from typing import Any, TypeVar
@@ -15,23 +16,58 @@ from invphys.core.errors import InvphysError
 
 F = TypeVar("F", bound=Callable[..., Any])
 
+#: piped output is never cut to 80 columns: tables keep full plugin and class names
+PIPED_WIDTH = 200
+
+
+def _console(stderr: bool) -> Console:
+    stream = sys.stderr if stderr else sys.stdout
+    return Console(stderr=stderr, width=None if stream.isatty() else PIPED_WIDTH)
+
+
 #: human-readable output (tables, progress) goes to stderr so that stdout stays machine-readable
-console = Console(stderr=True)
-out_console = Console()
+console = _console(stderr=True)
+out_console = _console(stderr=False)
 
 _state = {"debug": False}
 
 
 def set_debug(value: bool) -> None:
+    """``--debug``: tracebacks instead of short errors, and the heavy back-ends' own log lines."""
     _state["debug"] = value
+    if value:
+        os.environ["INVPHYS_DEBUG"] = "1"
 
 
 def debug_enabled() -> bool:
     return _state["debug"]
 
 
+#: exit status of a user error (bad spec, unknown plugin, out-of-range value, corrupt input)
+EXIT_USER_ERROR = 2
+#: exit status of a bug: an exception nobody meant a user to see
+EXIT_INTERNAL_ERROR = 1
+
+
+def exit_code_for(exc: BaseException) -> int:
+    """Print one short line for ``exc`` and return the exit status it deserves.
+
+    :class:`InvphysError` is the user's to fix (``error: ...``, exit 2); anything else is ours
+    (``internal error: <type>: <msg> (run with --debug for the traceback)``, exit 1).
+    """
+    if isinstance(exc, InvphysError):
+        console.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True)
+        return EXIT_USER_ERROR
+    message = " ".join(str(exc).split()) or "(no message)"
+    if len(message) > 300:
+        message = message[:297] + "..."
+    console.print(f"[bold red]internal error:[/] {type(exc).__name__}: {escape(message)} "
+                  "(run with --debug for the traceback)", soft_wrap=True)
+    return EXIT_INTERNAL_ERROR
+
+
 def handle_errors(func: F) -> F:
-    """Turn :class:`InvphysError` (and pydantic/YAML input errors) into a short message and exit 2.
+    """Turn any exception of a command into one short line: exit 2 for user errors, 1 for bugs.
 
     With ``invphys --debug ...`` the traceback is shown instead.
     """
@@ -40,13 +76,12 @@ def handle_errors(func: F) -> F:
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
             return func(*args, **kwargs)
-        except (typer.Exit, typer.Abort, KeyboardInterrupt):
+        except (typer.Exit, typer.Abort, KeyboardInterrupt, SystemExit):
             raise
-        except InvphysError as exc:
+        except Exception as exc:
             if debug_enabled():
                 raise
-            console.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True)
-            raise typer.Exit(2) from None
+            raise typer.Exit(exit_code_for(exc)) from None
 
     return wrapper  # type: ignore[return-value]
 

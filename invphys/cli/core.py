@@ -74,8 +74,8 @@ def validate(
 def run(
     spec: Path = typer.Argument(..., help="YAML experiment spec"),
     out: Path = typer.Option(..., "--out", "-o", help="run directory (artifacts are cached and resumed here)"),
-    stage: list[str] = typer.Option(None, "--stage", "-s", help="run only these stages (repeatable)"),
-    force: list[str] = typer.Option(None, "--force", help="re-run these stages even when cached"),
+    stage: list[str] = typer.Option(None, "--stage", "-s", metavar="STAGE", help="run only these stages (repeatable)"),
+    force: list[str] = typer.Option(None, "--force", metavar="STAGE", help="re-run these stages even when cached"),
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bars"),
     as_json: bool = typer.Option(False, "--json", help="print the stage summaries as JSON"),
 ) -> None:
