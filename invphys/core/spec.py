@@ -62,7 +62,8 @@ class TargetsSection(_Section):
 
     n: int = Field(20, gt=0)
     validate_n: int = Field(10, ge=0, alias="validate", description="how many to re-run through the simulator")
-    selection: Literal["farthest_point", "random"] = "farthest_point"
+    selection: Literal["farthest_point", "random", "farthest_point+random"] = Field(
+        "farthest_point", description="farthest_point+random: the evaluation protocol's two sets (half each)")
 
     model_config = ConfigDict(extra="forbid", populate_by_name=True)
 

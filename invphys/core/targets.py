@@ -60,12 +60,31 @@ def farthest_point_indices(y: np.ndarray, n: int, reference: np.ndarray | None =
     return np.asarray(chosen, dtype=np.int64)
 
 
+#: the evaluation protocol's two held-out sets: farthest-point first, then uniformly random ones
+PROTOCOL_SELECTION = "farthest_point+random"
+
+
+def protocol_split(n: int) -> int:
+    """How many of ``n`` protocol targets are farthest-point (the first ``ceil(n / 2)``; the rest random)."""
+    return (int(n) + 1) // 2
+
+
+def target_set_labels(n: int, selection: str) -> list[str]:
+    """The set each of ``n`` selected targets belongs to (``"farthest_point"`` or ``"random"``)."""
+    if selection == PROTOCOL_SELECTION:
+        k = protocol_split(n)
+        return ["farthest_point"] * k + ["random"] * (int(n) - k)
+    return [selection] * int(n)
+
+
 def select_targets(y: np.ndarray, test_idx: np.ndarray, n: int, selection: str = "farthest_point",
                    seed: int = 0) -> np.ndarray:
     """Dataset row indices of ``n`` targets from the test partition ``test_idx``.
 
-    ``selection`` is ``"farthest_point"`` (standardised with the whole dataset's statistics) or
-    ``"random"`` (seeded).
+    ``selection`` is ``"farthest_point"`` (standardised with the whole dataset's statistics),
+    ``"random"`` (seeded), or ``"farthest_point+random"`` (the evaluation protocol: the first
+    ``ceil(n / 2)`` by farthest-point sampling, then the rest uniformly at random from the remaining
+    test rows; :func:`target_set_labels` names each one's set).
     """
     test_idx = np.asarray(test_idx, dtype=np.int64)
     y = np.asarray(y, dtype=np.float64)
@@ -77,4 +96,12 @@ def select_targets(y: np.ndarray, test_idx: np.ndarray, n: int, selection: str =
     if selection == "random":
         rng = np.random.default_rng(seed)
         return np.sort(rng.choice(test_idx, size=n, replace=False))
-    raise InvphysError(f"unknown target selection {selection!r}; choose farthest_point or random")
+    if selection == PROTOCOL_SELECTION:
+        k = protocol_split(n)
+        fp = test_idx[farthest_point_indices(y[test_idx], k, reference=y)]
+        rest = np.setdiff1d(test_idx, fp)
+        rng = np.random.default_rng(seed)
+        rnd = np.sort(rng.choice(rest, size=min(n - k, len(rest)), replace=False))
+        return np.concatenate([fp, rnd]).astype(np.int64)
+    raise InvphysError(f"unknown target selection {selection!r}; choose farthest_point, random or "
+                       f"{PROTOCOL_SELECTION}")
