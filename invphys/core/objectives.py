@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from invphys.core.standardiser import Standardiser
+
 
 def percentile_scales(features: np.ndarray, low: float = 5.0, high: float = 95.0,
                       rtol: float = 1e-9) -> np.ndarray:
@@ -30,14 +32,9 @@ def percentile_scales(features: np.ndarray, low: float = 5.0, high: float = 95.0
 
 
 def feature_standardiser(features: np.ndarray, rtol: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
-    """(mean, std) per feature for z-scores; a feature without spread gets std ``max(1, |mean|)``.
-
-    The same rule as :func:`percentile_scales`: a constant feature is only centred, never blown up.
-    """
-    y = np.asarray(features, dtype=np.float64)
-    mean, std = np.nanmean(y, axis=0), np.nanstd(y, axis=0)
-    fallback = np.maximum(1.0, np.abs(mean))
-    return mean, np.where(std > rtol * fallback, std, fallback)
+    """(mean, std) per feature for z-scores: :meth:`Standardiser.fit <invphys.core.standardiser.Standardiser.fit>`."""
+    mean, std = Standardiser.fit(features, rtol)
+    return mean, std
 
 
 def recovery_reward(y: np.ndarray, target: np.ndarray, scales: np.ndarray, kappa: float = 3.0) -> np.ndarray:

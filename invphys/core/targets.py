@@ -12,15 +12,14 @@ from __future__ import annotations
 import numpy as np
 
 from invphys.core.errors import InvphysError
-from invphys.core.objectives import feature_standardiser
+from invphys.core.standardiser import Standardiser
 
 
 def standardise(y: np.ndarray, reference: np.ndarray | None = None) -> np.ndarray:
     """z-scores of ``y`` (N, M) with the mean/std of ``reference`` (default ``y``); constant features -> 0."""
     y = np.asarray(y, dtype=np.float64)
     ref = y if reference is None else np.asarray(reference, dtype=np.float64)
-    mean, std = feature_standardiser(ref)
-    return (y - mean) / std
+    return Standardiser.fit(ref).transform(y)
 
 
 def farthest_point_indices(y: np.ndarray, n: int, reference: np.ndarray | None = None,

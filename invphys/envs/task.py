@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from invphys.core.errors import InvphysError
+from invphys.core.standardiser import Standardiser
 
 #: scores (B,) of features (B, M) against per-episode goals (B, M) (None when not goal-conditioned)
 ScoreFn = Callable[[np.ndarray, np.ndarray | None], np.ndarray]
@@ -71,8 +72,13 @@ class InverseTask:
         high = np.concatenate([np.full(self.dim, self.high), np.full(m + 1, np.inf), [1.0]])
         return low.astype(np.float32), high.astype(np.float32)
 
+    @property
+    def standardiser(self) -> Standardiser:
+        """The observation's feature standardiser (``feature_mean``, ``feature_std``)."""
+        return Standardiser(self.feature_mean, self.feature_std)
+
     def standardise(self, y: np.ndarray) -> np.ndarray:
-        return (np.asarray(y, dtype=np.float64) - self.feature_mean) / self.feature_std
+        return self.standardiser.transform(y)
 
     def observe(self, s: np.ndarray, y: np.ndarray, goals: np.ndarray | None, r: np.ndarray,
                 t: np.ndarray) -> np.ndarray:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from typing import Any
 
@@ -17,8 +18,9 @@ class InverseVecEnv(VecEnv):
 
     ``step`` evaluates the new states of all envs in ONE ``task.predict`` call (the point of the class:
     the surrogate is batched). Finished episodes auto-reset, with the final observation in
-    ``infos[i]["terminal_observation"]`` as stable-baselines3 expects; restarting costs no evaluation
-    (the start point's features are cached).
+    ``infos[i]["terminal_observation"]`` and the episode's return, length and time in
+    ``infos[i]["episode"]`` (as SB3's ``VecMonitor`` writes them: SB3 logs ``rollout/ep_rew_mean``
+    from them); restarting costs no evaluation (the start point's features are cached).
     """
 
     def __init__(self, task: InverseTask, n_envs: int = 8, seed: int = 0) -> None:
@@ -32,6 +34,7 @@ class InverseVecEnv(VecEnv):
         self._batch = EpisodeBatch(task, n_envs, self._rng)
         self._actions: np.ndarray | None = None
         self.predict_calls = 0
+        self._started = np.full(n_envs, time.perf_counter())
 
     def reset(self) -> np.ndarray:
         if self._seeds[0] is not None:
@@ -39,6 +42,7 @@ class InverseVecEnv(VecEnv):
             self._batch.rng = self._rng
         self._reset_seeds()
         self._batch.reset()
+        self._started[:] = time.perf_counter()
         self.reset_infos = [{} for _ in range(self.num_envs)]
         return self._batch.observe()
 
@@ -55,6 +59,9 @@ class InverseVecEnv(VecEnv):
         for i in rows:
             infos[i]["terminal_observation"] = obs[i].copy()
             infos[i]["best"] = float(self._batch.best[i])
+            infos[i]["episode"] = {"r": float(rewards[i]), "l": int(self.task.horizon),
+                                   "t": round(time.perf_counter() - self._started[i], 6)}
+            self._started[i] = time.perf_counter()
         if len(rows):
             self._batch.reset(rows)
             obs = self._batch.observe()

@@ -95,10 +95,3 @@ def split_indices(n: int, val_fraction: float, seed: int) -> tuple[np.ndarray, n
     n_val = min(max(n_val, 1), n - 1)
     return np.sort(perm[n_val:]), np.sort(perm[:n_val])
 
-
-def standardiser(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(mean, std) per column of ``y``; a constant column gets std 1 (so it is left centred only)."""
-    mean = y.mean(axis=0)
-    std = y.std(axis=0)
-    std = np.where(std > 1e-12 * np.maximum(1.0, np.abs(mean)), std, 1.0)
-    return mean, std

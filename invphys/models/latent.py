@@ -11,8 +11,9 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field, PositiveInt
 
+from invphys.core.standardiser import Standardiser
 from invphys.models.base import TorchModel, TrainingConfig, validation_split
-from invphys.models.data import check_training_data, r2_scores, standardiser
+from invphys.models.data import check_training_data, r2_scores
 
 
 class LatentConfig(TrainingConfig):
@@ -45,14 +46,14 @@ class LatentTorchModel(TorchModel):
         return sq.sum(dim=1).mean() if self.config.loss_reduction == "sum" else sq.mean()
 
     def fit(self, theta: np.ndarray, y: np.ndarray, progress: bool = False,
-            validation: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, Any]:
+            validation: tuple[np.ndarray, np.ndarray] | None = None, tracker: Any = None) -> dict[str, Any]:
         """Train on (N, d) normalised parameters and (N, M) features; return held-out metrics.
 
         ``validation=(theta_val, y_val)`` is the held-out set for early stopping and metrics; without
         it, ``val_fraction`` of the rows is held out (seeded). Early stopping counts from the end of
-        the warm-up; the validation loss always uses the final regulariser weight.
+        the warm-up; the validation loss always uses the final regulariser weight. ``tracker`` receives
+        the per-epoch losses (``train_loss``, ``val_loss``, ``val_recon``, ...).
         """
-        import torch
 
         from invphys.models.torch_utils import fit_loop, seeded, to_tensor, torch_threads
 
@@ -61,12 +62,10 @@ class LatentTorchModel(TorchModel):
         theta, y = check_training_data(theta, y, label)
         tt, yt, tv, yv = validation_split(theta, y, validation, c.val_fraction, c.seed, label)
         dev = self.device
-        mean, std = standardiser(yt)
         reg = float(getattr(c, self._reg_field))
         with seeded(c.seed, dev), torch_threads(c.threads):
             net = self._build_net(theta.shape[1], y.shape[1])
-            net.set_standardiser(torch.as_tensor(mean, dtype=torch.float32),
-                                 torch.as_tensor(std, dtype=torch.float32))
+            net.set_standardiser(Standardiser.fit(yt))
             net = net.to(dev)
             train = (to_tensor(tt, dev), net.standardise(to_tensor(yt, dev)))
             val = (to_tensor(tv, dev), net.standardise(to_tensor(yv, dev)))
@@ -81,7 +80,7 @@ class LatentTorchModel(TorchModel):
             hist = fit_loop(net, loss_fn, train, val, lr=c.lr, weight_decay=c.weight_decay,
                             batch_size=c.batch_size, max_epochs=c.max_epochs, patience=c.patience,
                             min_epochs=c.warmup_epochs, seed=c.seed, progress=progress,
-                            description=f"latent {self.name}")
+                            description=f"latent {self.name}", tracker=tracker)
         self._net = net.eval()
         return self._record_fit(theta, y, len(tt), (tv, yv), hist.to_dict(), hist.epochs, hist.best_epoch,
                                 hist.train_time_s)

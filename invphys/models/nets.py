@@ -13,6 +13,8 @@ import torch
 from torch import nn
 from zuko.transforms import MonotonicAffineTransform
 
+from invphys.core.standardiser import Standardiser
+
 
 def _mlp(sizes: Sequence[int], final_activation: nn.Module | None = None) -> nn.Sequential:
     layers: list[nn.Module] = []
@@ -26,16 +28,21 @@ def _mlp(sizes: Sequence[int], final_activation: nn.Module | None = None) -> nn.
 
 
 class _Standardised(nn.Module):
-    """Holds a feature standardiser (mean, std) as buffers."""
+    """Holds the features' :class:`~invphys.core.standardiser.Standardiser` (mean, std) as buffers."""
 
     def __init__(self, n_features: int) -> None:
         super().__init__()
         self.register_buffer("y_mean", torch.zeros(n_features))
         self.register_buffer("y_std", torch.ones(n_features))
 
-    def set_standardiser(self, mean: torch.Tensor, std: torch.Tensor) -> None:
-        self.y_mean.copy_(mean)
-        self.y_std.copy_(std)
+    def set_standardiser(self, standardiser: Standardiser) -> None:
+        self.y_mean.copy_(torch.as_tensor(standardiser.mean, dtype=torch.float32))
+        self.y_std.copy_(torch.as_tensor(standardiser.std, dtype=torch.float32))
+
+    def get_standardiser(self) -> Standardiser:
+        """The buffers as a (float64) :class:`~invphys.core.standardiser.Standardiser`."""
+        return Standardiser(mean=self.y_mean.detach().cpu().double().numpy(),
+                            std=self.y_std.detach().cpu().double().numpy())
 
     def destandardise(self, y_std: torch.Tensor) -> torch.Tensor:
         return y_std * self.y_std + self.y_mean

@@ -86,8 +86,11 @@ LossFn = Callable[[tuple[torch.Tensor, ...], int | None], tuple[torch.Tensor, di
 def fit_loop(module: nn.Module, loss_fn: LossFn, train: tuple[torch.Tensor, ...],
              val: tuple[torch.Tensor, ...], *, lr: float, weight_decay: float, batch_size: int,
              max_epochs: int, patience: int, min_epochs: int = 0, seed: int = 0,
-             progress: bool = False, description: str = "training") -> History:
+             progress: bool = False, description: str = "training", tracker: Any = None) -> History:
     """Adam with mini-batches and early stopping on the validation loss; restores the best weights.
+
+    ``tracker`` (a :class:`~invphys.tracking.Tracker`, already scoped to the model) receives
+    ``train_loss``, ``val_loss`` and ``val_<part>`` for each loss part, every epoch.
 
     Early stopping counts from ``min_epochs`` (the end of a loss-weight warm-up), so that a loss
     whose weights still change is not compared with its final form.
@@ -125,6 +128,9 @@ def fit_loop(module: nn.Module, loss_fn: LossFn, train: tuple[torch.Tensor, ...]
             for k, v in parts.items():
                 hist.parts.setdefault(k, []).append(float(v))
             hist.epochs = epoch + 1
+            if tracker is not None:
+                tracker.log_scalars({"train_loss": hist.train_loss[-1], "val_loss": vloss_f,
+                                     **{f"val_{k}": float(v) for k, v in parts.items()}}, epoch)
             if not np.isfinite(vloss_f) or not np.isfinite(hist.train_loss[-1]):
                 raise FloatingPointError(f"{description}: loss became non-finite at epoch {epoch}")
             if vloss_f < hist.best_val_loss:
@@ -142,6 +148,8 @@ def fit_loop(module: nn.Module, loss_fn: LossFn, train: tuple[torch.Tensor, ...]
         bar.close()
     module.load_state_dict(best_state)
     module.eval()
+    if tracker is not None:
+        tracker.flush()
     hist.train_time_s = time.perf_counter() - start
     return hist
 

@@ -20,16 +20,17 @@ import importlib
 import json
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import yaml
 
 from invphys.core.atomic import write_json
 from invphys.core.errors import InvphysError
 from invphys.core.spec import STAGES, ExperimentSpec, load_spec
+from invphys.pipeline.context import StageContext
+
+__all__ = ["StageContext", "fingerprint", "run_spec", "stage_module"]
 
 DONE_FILE = "DONE.json"
 SUMMARY_FILE = "summary.json"
@@ -41,108 +42,6 @@ def fingerprint(obj: Any) -> str:
     return hashlib.sha256(blob).hexdigest()[:16]
 
 
-@dataclass
-class StageContext:
-    """What a stage receives: the spec, where to write, and loaders for earlier stages' artifacts."""
-
-    spec: ExperimentSpec
-    out: Path
-    stage: str
-    registry: Any
-    console: Any
-    progress: bool = True
-    _cache: dict[str, Any] = field(default_factory=dict)
-
-    @property
-    def seed(self) -> int:
-        return self.spec.seed
-
-    @property
-    def stage_dir(self) -> Path:
-        d = self.out / self.stage
-        d.mkdir(parents=True, exist_ok=True)
-        return d
-
-    def stage_dir_of(self, stage: str) -> Path:
-        return self.out / stage
-
-    def log(self, message: str) -> None:
-        self.console.print(f"[dim]{self.stage}:[/] {message}")
-
-    # -- plugins -------------------------------------------------------------------------------
-    def simulator(self) -> Any:
-        if "simulator" not in self._cache:
-            self._cache["simulator"] = self.registry.create("simulator", self.spec.simulator)
-        return self._cache["simulator"]
-
-    def extractor_block(self) -> dict[str, Any]:
-        """The feature-extractor block: the spec's, or the simulator's default extractor."""
-        if self.spec.features is not None:
-            return dict(self.spec.features)
-        default = self.simulator().default_feature_extractor()
-        if default is None:
-            raise InvphysError("the spec has no 'features' block and the simulator names no default extractor")
-        return {"type": default}
-
-    def extractor(self) -> Any:
-        if "extractor" not in self._cache:
-            self._cache["extractor"] = self.registry.create("feature_extractor", self.extractor_block())
-        return self._cache["extractor"]
-
-    # -- data ----------------------------------------------------------------------------------
-    def dataset_path(self) -> Path:
-        """``dataset.path`` when set (and present, or ``if_missing: error``), else ``OUT/dataset/store``."""
-        ds = self.spec.dataset
-        if ds.path and (Path(ds.path).exists() or ds.if_missing == "error"):
-            return Path(ds.path)
-        return self.stage_dir_of("dataset") / "store"
-
-    def uses_existing_dataset(self) -> bool:
-        """True when the spec names an existing dataset store (nothing to generate)."""
-        path = self.spec.dataset.path
-        return path is not None and self.dataset_path() == Path(path)
-
-    def dataset(self) -> Any:
-        """The dataset's arrays (``DatasetArrays``): the dataset stage's store, or ``dataset.path``."""
-        if "dataset" not in self._cache:
-            from invphys.core.dataset import DatasetStore
-
-            path = self.dataset_path()
-            if not path.exists():
-                raise InvphysError(f"no dataset at {path}: run the 'dataset' stage or set dataset.path")
-            self._cache["dataset"] = DatasetStore(path).arrays(ok_only=True)
-        return self._cache["dataset"]
-
-    def split(self) -> tuple[np.ndarray, np.ndarray]:
-        """(train_idx, test_idx) of the dataset's ok rows, deterministic by seed and test_fraction."""
-        n = len(self.dataset().theta)
-        rng = np.random.default_rng(self.spec.seed)
-        perm = rng.permutation(n)
-        n_test = max(1, round(n * self.spec.dataset.test_fraction))
-        return np.sort(perm[n_test:]), np.sort(perm[:n_test])
-
-    def scales(self) -> np.ndarray:
-        """The paper's per-feature scales s_k = p95 - p5 over the training split."""
-        from invphys.core.objectives import percentile_scales
-
-        train, _ = self.split()
-        return percentile_scales(self.dataset().y[train])
-
-    def surrogate(self) -> Any:
-        if "surrogate" not in self._cache:
-            cls = self.registry.get("surrogate", self.spec.surrogate["type"])  # type: ignore[index]
-            self._cache["surrogate"] = cls.load(self.stage_dir_of("train") / "surrogate")
-        return self._cache["surrogate"]
-
-    def latent(self, label: str) -> Any:
-        key = f"latent:{label}"
-        if key not in self._cache:
-            block = self.spec.latent_models[label]
-            cls = self.registry.get("latent_model", block["type"])
-            self._cache[key] = cls.load(self.stage_dir_of("train") / "latent" / label)
-        return self._cache[key]
-
-
 def stage_module(stage: str) -> Any:
     """The module implementing a stage (``invphys.pipeline.stages.<stage>``)."""
     return importlib.import_module(f"invphys.pipeline.stages.{stage}")
@@ -151,15 +50,19 @@ def stage_module(stage: str) -> Any:
 def run_spec(spec: str | Path | ExperimentSpec, out: str | Path, stages: Sequence[str] | None = None,
              force: Sequence[str] = (), progress: bool = True, console: Any = None,
              registry: Any = None,
-             on_stage: Callable[[str, str, dict[str, Any] | None], None] | None = None) -> dict[str, Any]:
+             on_stage: Callable[[str, str, dict[str, Any] | None], None] | None = None,
+             tracker: Any = None) -> dict[str, Any]:
     """Run the spec's stages (or ``stages``) into ``out``; returns ``{stage: summary}``.
 
     ``force`` names stages to re-run even when cached. ``on_stage(stage, status, summary)`` is called
-    with status ``"cached"``, ``"start"`` or ``"done"``.
+    with status ``"cached"``, ``"start"`` or ``"done"``. ``tracker`` (a :class:`~invphys.tracking.Tracker`)
+    overrides the spec's ``tracker`` setting; the run's tracker receives every training curve and, after
+    each stage that ran, its summary's numbers (``<stage>/...``) and its files as artifacts.
     """
     from rich.console import Console
 
     from invphys import registry as registry_module
+    from invphys.tracking import create_tracker
 
     if not isinstance(spec, ExperimentSpec):
         spec = load_spec(spec, registry=registry)
@@ -174,6 +77,19 @@ def run_spec(spec: str | Path | ExperimentSpec, out: str | Path, stages: Sequenc
         if s not in STAGES:
             raise InvphysError(f"unknown stage {s!r}; stages: {', '.join(STAGES)}")
     summaries: dict[str, Any] = {}
+    own_tracker = tracker is None
+    tracker = tracker or create_tracker(getattr(spec, "tracker", None), out, run_name=spec.name)
+    try:
+        _run_stages(spec, out, selected, force, progress, console, reg, on_stage, tracker, summaries)
+    finally:
+        if own_tracker:
+            tracker.close()
+    return summaries
+
+
+def _run_stages(spec: ExperimentSpec, out: Path, selected: list[str], force: Sequence[str], progress: bool,
+                console: Any, reg: Any, on_stage: Any, tracker: Any, summaries: dict[str, Any]) -> None:
+    spec_stages = spec.stages or []
     upstream = ""
     for stage in STAGES:
         if stage not in spec_stages and stage not in selected:
@@ -196,7 +112,8 @@ def run_spec(spec: str | Path | ExperimentSpec, out: str | Path, stages: Sequenc
                 continue
         if done_path.exists():
             done_path.unlink()
-        ctx = StageContext(spec=spec, out=out, stage=stage, registry=reg, console=console, progress=progress)
+        ctx = StageContext(spec=spec, out=out, stage=stage, registry=reg, console=console, progress=progress,
+                           tracker=tracker)
         if on_stage:
             on_stage(stage, "start", None)
         t0 = time.perf_counter()
@@ -205,6 +122,15 @@ def run_spec(spec: str | Path | ExperimentSpec, out: str | Path, stages: Sequenc
         write_json(out / stage / SUMMARY_FILE, summary)
         write_json(done_path, {"fingerprint": fp, "finished_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())})
         summaries[stage] = summary
+        _track_stage(tracker, stage, out / stage, summary)
         if on_stage:
             on_stage(stage, "done", summary)
-    return summaries
+
+
+def _track_stage(tracker: Any, stage: str, stage_dir: Path, summary: dict[str, Any]) -> None:
+    """A finished stage's summary numbers (``<stage>/...``, step 0) and top-level files as artifacts."""
+    tracker.log_scalars(summary, step=0, prefix=stage)
+    for path in sorted(stage_dir.iterdir()):
+        if path.is_file() and path.name != DONE_FILE:
+            tracker.log_artifact(path, f"{stage}/{path.name}")
+    tracker.flush()

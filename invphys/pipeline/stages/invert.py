@@ -15,12 +15,17 @@
 
 from __future__ import annotations
 
+import inspect
+import logging
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from invphys.core.errors import InvphysError
+
+if TYPE_CHECKING:
+    from invphys.pipeline.context import StageContext
 
 DEPENDS_ON: tuple[str, ...] = ("dataset", "surrogate", "latent_models", "optimizers", "objectives", "targets")
 
@@ -28,7 +33,7 @@ RESULTS_FILE = "results.json"
 TARGETS_FILE = "targets.json"
 
 
-def select(ctx: Any) -> dict[str, Any]:
+def select(ctx: StageContext) -> dict[str, Any]:
     """The held-out targets: dataset rows, features, true theta and physical parameters."""
     from invphys.core.targets import select_targets
 
@@ -41,7 +46,7 @@ def select(ctx: Any) -> dict[str, Any]:
             "selection": ctx.spec.targets.selection, "validate": ctx.spec.targets.validate_n}
 
 
-def objectives(ctx: Any) -> dict[str, Any]:
+def objectives(ctx: StageContext) -> dict[str, Any]:
     """The spec's named weighted objectives, with percentiles from the training partition."""
     from invphys.core.objectives import WeightedObjective
 
@@ -54,7 +59,7 @@ def objectives(ctx: Any) -> dict[str, Any]:
 class _Entries:
     """Builds each optimiser entry's plugin, space and predictor once (goal-conditioned ones trained)."""
 
-    def __init__(self, ctx: Any, train_targets: np.ndarray, scales: np.ndarray) -> None:
+    def __init__(self, ctx: StageContext, train_targets: np.ndarray, scales: np.ndarray) -> None:
         from invphys.core.spec import optimizer_plugin_block
 
         self.ctx = ctx
@@ -125,7 +130,11 @@ class _Entries:
                 self.ctx.log(f"{label}: loaded the cached policy from {cache}")
                 return
         self.ctx.log(f"{label}: training {plugin.name} on {len(self.train_targets)} training targets")
-        metrics = plugin.prepare(space, predict, self.train_targets, self.scales, progress=self.ctx.progress)
+        extra: dict[str, Any] = {}
+        if "tracker" in inspect.signature(plugin.prepare).parameters:
+            extra["tracker"] = self.ctx.tracker.scoped(f"invert/policy/{label}")
+        metrics = plugin.prepare(space, predict, self.train_targets, self.scales, progress=self.ctx.progress,
+                                 **extra)
         if hasattr(plugin, "save"):
             plugin.save(cache)
         self.prepare_metrics[label] = metrics
@@ -140,7 +149,7 @@ def _problems_of(plugin: Any, has_objectives: bool) -> tuple[bool, bool]:
     return kind in ("both", "targets"), kind in ("both", "objectives") and has_objectives
 
 
-def run(ctx: Any) -> dict[str, Any]:
+def run(ctx: StageContext) -> dict[str, Any]:
     from invphys.core.atomic import write_json
     from invphys.core.objectives import RecoveryObjective, feature_standardiser
     from invphys.core.spaces import build_problem
@@ -150,8 +159,8 @@ def run(ctx: Any) -> dict[str, Any]:
     scales = ctx.scales()
     flat = [n for n, s in zip(data.feature_names, scales, strict=True) if s <= 1e-10]
     if flat:
-        ctx.log(f"[yellow]warning:[/] feature(s) {', '.join(flat)} have no spread in the training data "
-                f"(p95 - p5 = 0): any predicted deviation there drives R_gt to 0")
+        ctx.log(f"feature(s) {', '.join(flat)} have no spread in the training data "
+                f"(p95 - p5 = 0): any predicted deviation there drives R_gt to 0", logging.WARNING)
     targets = select(ctx)
     write_json(ctx.stage_dir / TARGETS_FILE, targets)
     named = objectives(ctx)
@@ -178,6 +187,7 @@ def run(ctx: Any) -> dict[str, Any]:
             problem = build_problem(space, objective, budget, surrogate=surrogate, latent=latent,
                                     evaluator=evaluator, predict=predict, target=y_star,
                                     seed=ctx.seed * 1000 + n, feature_mean=mean, feature_std=std)
+            problem.info["tracker"] = ctx.tracker.scoped(f"invert/{label}/{problem_id}")
             res = plugin.optimize(problem)
             counted = problem.info["counter"].count
             predicted = res.info.get("predicted")
@@ -205,7 +215,7 @@ def run(ctx: Any) -> dict[str, Any]:
             "prepare": entries.prepare_metrics, "optimizers": summarise(rows)}
 
 
-def _physical(ctx: Any, theta: np.ndarray) -> list[float]:
+def _physical(ctx: StageContext, theta: np.ndarray) -> list[float]:
     try:
         return ctx.simulator().parameter_space().denormalize(theta).tolist()
     except Exception:
@@ -237,7 +247,7 @@ def _write_csv(path: Any, rows: list[dict[str, Any]]) -> None:
     pd.DataFrame(flat).to_csv(path, index=False)
 
 
-def load_results(ctx: Any) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+def load_results(ctx: StageContext) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """(rows, targets) written by this stage (for the validate and report stages)."""
     import json
 

@@ -15,11 +15,14 @@ from __future__ import annotations
 import inspect
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from invphys.core.errors import InvphysError
+
+if TYPE_CHECKING:
+    from invphys.pipeline.context import StageContext
 
 DEPENDS_ON: tuple[str, ...] = ("dataset", "surrogate", "latent_models")
 
@@ -27,7 +30,7 @@ METRICS_JSON = "metrics.json"
 METRICS_MD = "metrics.md"
 
 
-def run(ctx: Any) -> dict[str, Any]:
+def run(ctx: StageContext) -> dict[str, Any]:
     """Train and save every model of the spec; returns the metrics summary."""
     spec = ctx.spec
     if spec.surrogate is None:
@@ -39,7 +42,7 @@ def run(ctx: Any) -> dict[str, Any]:
         surrogate=dict(spec.surrogate), latent_models={k: dict(v) for k, v in spec.latent_models.items()},
         out=ctx.stage_dir, registry=ctx.registry, seed=ctx.seed, progress=ctx.progress,
         feature_names=list(data.feature_names), param_names=list(data.param_names),
-        dataset_fingerprint=data.fingerprint, log=ctx.log,
+        dataset_fingerprint=data.fingerprint, log=ctx.log, tracker=ctx.tracker.scoped("train"),
     )
 
 
@@ -47,11 +50,12 @@ def train_models(theta: np.ndarray, y: np.ndarray, train_idx: np.ndarray, test_i
                  surrogate: dict[str, Any] | None, latent_models: dict[str, dict[str, Any]], out: str | Path,
                  registry: Any = None, seed: int = 0, progress: bool = False,
                  feature_names: list[str] | None = None, param_names: list[str] | None = None,
-                 dataset_fingerprint: str | None = None, log: Any = None) -> dict[str, Any]:
+                 dataset_fingerprint: str | None = None, log: Any = None, tracker: Any = None) -> dict[str, Any]:
     """Fit, evaluate on ``test_idx`` and save the surrogate and each latent model under ``out``.
 
     ``surrogate`` and each ``latent_models`` value are plugin blocks ``{"type": name, **config}``; a
     block without ``seed`` gets ``seed``. Returns the summary (also written as ``metrics.json``).
+    ``tracker`` receives the per-epoch curves under ``surrogate/`` and ``latent_models/<label>/``.
     """
     from invphys import registry as registry_module
     from invphys.models.data import r2_scores
@@ -79,7 +83,7 @@ def train_models(theta: np.ndarray, y: np.ndarray, train_idx: np.ndarray, test_i
         sur = _create(reg, "surrogate", surrogate, seed, "surrogate")
         sur.info = {**getattr(sur, "info", {}), **info}
         say(f"training surrogate {sur.name!r} on {len(tt)} rows")
-        _fit(sur, tt, yt, tv, yv, progress)
+        _fit(sur, tt, yt, tv, yv, progress, _scope(tracker, "surrogate"))
         pred = sur.predict(tv)
         r2, per = r2_scores(yv, pred)
         _, std = sur.predict_with_uncertainty(tv)
@@ -96,7 +100,7 @@ def train_models(theta: np.ndarray, y: np.ndarray, train_idx: np.ndarray, test_i
         lat = _create(reg, "latent_model", block, seed, f"latent_models.{label}")
         lat.info = {**getattr(lat, "info", {}), **info, "label": label}
         say(f"training latent model {label!r} ({lat.name}) on {len(tt)} rows")
-        _fit(lat, tt, yt, tv, yv, progress)
+        _fit(lat, tt, yt, tv, yv, progress, _scope(tracker, f"latent_models/{label}"))
         z = lat.encode(tv)
         rec = lat.decode(z)
         entry = {"type": lat.name, "latent_dim": lat.latent_dim, "recon_mse": float(((rec - tv) ** 2).mean()),
@@ -138,12 +142,20 @@ def _create(reg: Any, kind: str, block: dict[str, Any], seed: int, where: str) -
         raise SpecError(problems) from None
 
 
-def _fit(model: Any, tt: np.ndarray, yt: np.ndarray, tv: np.ndarray, yv: np.ndarray, progress: bool) -> None:
-    """Fit with the held-out split as validation set when the plugin's ``fit`` accepts one."""
-    if "validation" in inspect.signature(model.fit).parameters:
-        model.fit(tt, yt, progress=progress, validation=(tv, yv))
-    else:
-        model.fit(tt, yt, progress=progress)
+def _fit(model: Any, tt: np.ndarray, yt: np.ndarray, tv: np.ndarray, yv: np.ndarray, progress: bool,
+         tracker: Any = None) -> None:
+    """Fit with the held-out split as validation set and the tracker, when the plugin's ``fit`` accepts them."""
+    accepted = inspect.signature(model.fit).parameters
+    extra: dict[str, Any] = {}
+    if "validation" in accepted:
+        extra["validation"] = (tv, yv)
+    if "tracker" in accepted and tracker is not None:
+        extra["tracker"] = tracker
+    model.fit(tt, yt, progress=progress, **extra)
+
+
+def _scope(tracker: Any, prefix: str) -> Any:
+    return None if tracker is None else tracker.scoped(prefix)
 
 
 def metrics_markdown(summary: dict[str, Any]) -> str:

@@ -38,8 +38,8 @@ class PPOSettings(PluginConfig):
         return v
 
 
-def make_ppo(env: Any, cfg: PPOSettings, seed: int) -> Any:
-    """A stable-baselines3 PPO over ``env`` with ``cfg``'s settings."""
+def make_ppo(env: Any, cfg: PPOSettings, seed: int, tracker: Any = None) -> Any:
+    """A stable-baselines3 PPO over ``env`` with ``cfg``'s settings; its logs go to ``tracker``."""
     from stable_baselines3 import PPO
 
     if cfg.torch_threads is not None:
@@ -47,10 +47,15 @@ def make_ppo(env: Any, cfg: PPOSettings, seed: int) -> Any:
 
         torch.set_num_threads(cfg.torch_threads)
     arch = list(cfg.net_arch)
-    return PPO("MlpPolicy", env, learning_rate=cfg.learning_rate, n_steps=cfg.n_steps,
+    model = PPO("MlpPolicy", env, learning_rate=cfg.learning_rate, n_steps=cfg.n_steps,
                batch_size=min(cfg.batch_size, cfg.n_steps * cfg.n_envs), n_epochs=cfg.n_epochs,
                gamma=cfg.gamma, gae_lambda=cfg.gae_lambda, clip_range=cfg.clip_range, ent_coef=cfg.ent_coef,
                policy_kwargs={"net_arch": {"pi": arch, "vf": arch}}, seed=seed, device=cfg.device, verbose=0)
+    if tracker is not None:
+        from invphys.tracking.sb3 import attach
+
+        attach(model, tracker)
+    return model
 
 
 def policy_actions(model: Any, obs: np.ndarray, stochastic_from: int) -> np.ndarray:

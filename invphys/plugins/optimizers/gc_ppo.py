@@ -13,8 +13,9 @@ from pydantic import Field
 
 from invphys.core.errors import InvphysError
 from invphys.core.interfaces import Problem, SearchSpace
-from invphys.core.objectives import feature_standardiser, recovery_reward
+from invphys.core.objectives import recovery_reward
 from invphys.core.results import OptimizationResult
+from invphys.core.standardiser import Standardiser
 from invphys.plugins.optimizers._base import BuiltinOptimizer, Tracker
 from invphys.plugins.optimizers._rl import PPOSettings, make_ppo, run_rollouts
 
@@ -58,8 +59,13 @@ class GoalConditionedPPO(BuiltinOptimizer):
 
     # -- training ------------------------------------------------------------------------------
     def prepare(self, space: SearchSpace, predict: Callable[[np.ndarray], np.ndarray],
-                train_targets: np.ndarray, scales: np.ndarray, progress: bool = False) -> dict[str, Any]:
-        """Train the policy on ``train_targets`` (N, M) in ``space`` with the feature predictor ``predict``."""
+                train_targets: np.ndarray, scales: np.ndarray, progress: bool = False,
+                tracker: Any = None) -> dict[str, Any]:
+        """Train the policy on ``train_targets`` (N, M) in ``space`` with the feature predictor ``predict``.
+
+        ``tracker`` receives stable-baselines3's logs once per rollout (``rollout/ep_rew_mean``,
+        ``train/value_loss``, ...) at ``step = timesteps``, and the final ``train_recovery``.
+        """
         from invphys.envs.task import EpisodeBatch, InverseTask
         from invphys.envs.vec import InverseVecEnv
 
@@ -69,7 +75,7 @@ class GoalConditionedPPO(BuiltinOptimizer):
             raise InvphysError(f"gc_ppo needs >= 2 training targets (N, M), got shape {targets.shape}")
         targets = targets[np.all(np.isfinite(targets), axis=1)]
         scales = np.asarray(scales, dtype=np.float64).reshape(-1)
-        mean, std = feature_standardiser(targets)
+        mean, std = Standardiser.fit(targets)
         seed = int(0 if cfg.seed is None else cfg.seed)
         kappa, noise = cfg.kappa, cfg.target_noise
 
@@ -84,7 +90,7 @@ class GoalConditionedPPO(BuiltinOptimizer):
                            feature_mean=mean, feature_std=std, horizon=cfg.horizon, step_scale=cfg.step_scale,
                            goal_sampler=sample_goals)
         env = InverseVecEnv(task, cfg.n_envs, seed)
-        self.model = make_ppo(env, cfg, seed)
+        self.model = make_ppo(env, cfg, seed, tracker)
         t0 = time.perf_counter()
         self.model.learn(total_timesteps=cfg.total_timesteps, progress_bar=progress)
         train_s = time.perf_counter() - t0
@@ -104,6 +110,9 @@ class GoalConditionedPPO(BuiltinOptimizer):
         steps = int(self.model.num_timesteps)
         self.metrics = {"timesteps": steps, "train_time_s": train_s, "steps_per_s": steps / max(train_s, 1e-9),
                         "surrogate_calls": env.predict_calls, "train_recovery": float(batch.best.mean())}
+        if tracker is not None:
+            tracker.log_scalar("train_recovery", self.metrics["train_recovery"], steps)
+            tracker.flush()
         return dict(self.metrics)
 
     # -- inference -----------------------------------------------------------------------------

@@ -9,8 +9,8 @@ from pydantic import Field
 
 from invphys.core.errors import InvphysError
 from invphys.core.interfaces import Problem
-from invphys.core.objectives import feature_standardiser
 from invphys.core.results import OptimizationResult
+from invphys.core.standardiser import Standardiser
 from invphys.plugins.optimizers._base import BuiltinOptimizer, Tracker
 from invphys.plugins.optimizers._rl import PPOSettings, make_ppo, run_rollouts
 
@@ -25,6 +25,7 @@ class PPOOptimizer(BuiltinOptimizer):
     is one surrogate evaluation, so training spends ``total_timesteps`` (rounded down to whole updates
     of ``n_steps * n_envs``) and the budget is ``1 + total_timesteps + T`` (start point, training,
     a final deterministic rollout). A smaller ``problem.budget`` shrinks training to fit.
+    ``problem.info["tracker"]``, when set, receives stable-baselines3's logs once per rollout.
     """
 
     name: ClassVar[str] = "ppo"
@@ -60,7 +61,7 @@ class PPOOptimizer(BuiltinOptimizer):
             pts = space.sample(cfg.stat_samples, rng)
             y = np.asarray(problem.predict(space.clip(pts)), dtype=np.float64)
             tracker.record(pts, y, np.asarray(problem.objective(y), dtype=np.float64).reshape(-1))
-            mean, std = feature_standardiser(y)
+            mean, std = Standardiser.fit(y)
         start = (np.full(space.dim, 0.5 * (space.low + space.high)) if problem.initial is None
                  else np.asarray(problem.initial, dtype=np.float64).reshape(space.dim))
         y0 = np.asarray(problem.predict(space.clip(start[None, :])), dtype=np.float64)
@@ -79,7 +80,7 @@ class PPOOptimizer(BuiltinOptimizer):
                 f"ppo: one update needs n_steps * n_envs = {rollout} evaluations plus T = {cfg.horizon}; "
                 f"the budget leaves {tracker.remaining} (raise total_timesteps/budget or lower n_steps/n_envs)")
         env = InverseVecEnv(task, cfg.n_envs, seed)
-        model = make_ppo(env, cfg, seed)
+        model = make_ppo(env, cfg, seed, problem.info.get("tracker"))
         model.learn(total_timesteps=updates * rollout)
         batch = EpisodeBatch(task, 1, rng)
         batch.reset()

@@ -36,8 +36,11 @@ class EnsembleSurrogate(MLPSurrogate, Surrogate):
         return Ensemble([self._build_member(d, m) for _ in range(self.config.members)])
 
     def fit(self, theta: np.ndarray, y: np.ndarray, progress: bool = False,
-            validation: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, Any]:
-        """Train the K members; metrics are the ensemble mean's (``r2`` ...) plus ``member_r2``."""
+            validation: tuple[np.ndarray, np.ndarray] | None = None, tracker: Any = None) -> dict[str, Any]:
+        """Train the K members; metrics are the ensemble mean's (``r2`` ...) plus ``member_r2``.
+
+        ``tracker`` receives each member's per-epoch losses under ``member_<k>/`` (k from 1).
+        """
         from invphys.models.nets import Ensemble
 
         c = self.config
@@ -49,7 +52,8 @@ class EnsembleSurrogate(MLPSurrogate, Surrogate):
         for k in range(c.members):
             idx = rng.integers(0, len(tt), size=len(tt)) if c.bootstrap else np.arange(len(tt))
             net, hist = train_mlp(self, tt[idx], yt[idx], tv, yv, c.seed + k, progress,
-                                  f"ensemble member {k + 1}/{c.members}")
+                                  f"ensemble member {k + 1}/{c.members}",
+                                  None if tracker is None else tracker.scoped(f"member_{k + 1}"))
             nets.append(net)
             hists.append(hist)
         self._net = Ensemble(nets).to(self.device).eval()

@@ -9,7 +9,7 @@ from pydantic import Field, PositiveInt
 
 from invphys.core.interfaces import Surrogate
 from invphys.models.base import TorchModel, TrainingConfig, validation_split
-from invphys.models.data import check_training_data, r2_scores, standardiser
+from invphys.models.data import check_training_data, r2_scores
 
 
 class MLPSurrogate(TorchModel, Surrogate):
@@ -44,16 +44,18 @@ class MLPSurrogate(TorchModel, Surrogate):
         return SkipMLP(d, m, hidden=c.hidden, dropout=c.dropout, batch_norm=c.batch_norm)
 
     def fit(self, theta: np.ndarray, y: np.ndarray, progress: bool = False,
-            validation: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, Any]:
+            validation: tuple[np.ndarray, np.ndarray] | None = None, tracker: Any = None) -> dict[str, Any]:
         """Train on (N, d) normalised parameters and (N, M) features; return held-out metrics.
 
         ``validation=(theta_val, y_val)`` is the held-out set for early stopping and metrics; without
-        it, ``val_fraction`` of the rows is held out (seeded).
+        it, ``val_fraction`` of the rows is held out (seeded). ``tracker`` receives the per-epoch
+        ``train_loss`` and ``val_loss``.
         """
         theta, y = check_training_data(theta, y, f"surrogate {self.name!r}")
         tt, yt, tv, yv = validation_split(theta, y, validation, self.config.val_fraction, self.config.seed,
                                           f"surrogate {self.name!r}")
-        self._net, hist = train_mlp(self, tt, yt, tv, yv, self.config.seed, progress, f"surrogate {self.name}")
+        self._net, hist = train_mlp(self, tt, yt, tv, yv, self.config.seed, progress, f"surrogate {self.name}",
+                                    tracker)
         return self._record_fit(theta, y, len(tt), (tv, yv), hist.to_dict(), hist.epochs, hist.best_epoch,
                                 hist.train_time_s)
 
@@ -82,27 +84,25 @@ class MLPSurrogate(TorchModel, Surrogate):
         """R^2 (overall = mean over features, and per feature) and standardised MSE on (theta, y)."""
         pred = self.predict(theta)
         r2, per = r2_scores(y, pred)
-        _, std = self._standardiser()
+        std = self._net.get_standardiser().std
         mse = float((((pred - y) / std) ** 2).mean())
         return {"r2": r2, "r2_per_feature": per, "mse": mse}
 
-    def _standardiser(self) -> tuple[np.ndarray, np.ndarray]:
-        return self._net.y_mean.cpu().numpy().astype(np.float64), self._net.y_std.cpu().numpy().astype(np.float64)
 
 
 def train_mlp(model: Any, tt: np.ndarray, yt: np.ndarray, tv: np.ndarray, yv: np.ndarray, seed: int,
-              progress: bool, description: str) -> tuple[Any, Any]:
+              progress: bool, description: str, tracker: Any = None) -> tuple[Any, Any]:
     """Build and train one :class:`~invphys.models.nets.SkipMLP` of ``model``'s config; (net, history)."""
     import torch
 
+    from invphys.core.standardiser import Standardiser
     from invphys.models.torch_utils import fit_loop, seeded, to_tensor, torch_threads
 
     c = model.config
     dev = model.device
-    mean, std = standardiser(yt)
     with seeded(seed, dev), torch_threads(c.threads):
         net = model._build_member(tt.shape[1], yt.shape[1])
-        net.set_standardiser(torch.as_tensor(mean, dtype=torch.float32), torch.as_tensor(std, dtype=torch.float32))
+        net.set_standardiser(Standardiser.fit(yt))
         net = net.to(dev)
         train = (to_tensor(tt, dev), net.standardise(to_tensor(yt, dev)))
         val = (to_tensor(tv, dev), net.standardise(to_tensor(yv, dev)))
@@ -114,5 +114,5 @@ def train_mlp(model: Any, tt: np.ndarray, yt: np.ndarray, tv: np.ndarray, yv: np
 
         hist = fit_loop(net, loss_fn, train, val, lr=c.lr, weight_decay=c.weight_decay,
                         batch_size=c.batch_size, max_epochs=c.max_epochs, patience=c.patience, seed=seed,
-                        progress=progress, description=description)
+                        progress=progress, description=description, tracker=tracker)
     return net, hist

@@ -1,0 +1,126 @@
+"""The typed context every stage's ``run(ctx)`` receives: the spec, the run directory, the plugins,
+the run's tracker, and loaders for earlier stages' artifacts (each loaded once per stage).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from invphys.core.errors import InvphysError
+from invphys.core.spec import ExperimentSpec
+from invphys.tracking import NullTracker, Tracker
+
+
+@dataclass
+class StageContext:
+    """What a stage receives: the spec, where to write, and loaders for earlier stages' artifacts."""
+
+    spec: ExperimentSpec
+    out: Path
+    stage: str
+    registry: Any
+    console: Any = None
+    progress: bool = True
+    #: the run's tracker (TensorBoard, MLflow or none): training curves and final metrics go there
+    tracker: Tracker = field(default_factory=NullTracker)
+    _cache: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def seed(self) -> int:
+        return self.spec.seed
+
+    @property
+    def stage_dir(self) -> Path:
+        d = self.out / self.stage
+        d.mkdir(parents=True, exist_ok=True)
+        return d
+
+    def stage_dir_of(self, stage: str) -> Path:
+        return self.out / stage
+
+    @property
+    def logger(self) -> logging.Logger:
+        """``invphys.pipeline.stages.<stage>``: the stage's standard-library logger."""
+        return logging.getLogger(f"invphys.pipeline.stages.{self.stage}")
+
+    def log(self, message: str, level: int = logging.INFO) -> None:
+        """Log ``message`` (rich markup allowed) on the stage's logger."""
+        self.logger.log(level, message)
+
+    # -- plugins -------------------------------------------------------------------------------
+    def simulator(self) -> Any:
+        if "simulator" not in self._cache:
+            self._cache["simulator"] = self.registry.create("simulator", self.spec.simulator)
+        return self._cache["simulator"]
+
+    def extractor_block(self) -> dict[str, Any]:
+        """The feature-extractor block: the spec's, or the simulator's default extractor."""
+        if self.spec.features is not None:
+            return dict(self.spec.features)
+        default = self.simulator().default_feature_extractor()
+        if default is None:
+            raise InvphysError("the spec has no 'features' block and the simulator names no default extractor")
+        return {"type": default}
+
+    def extractor(self) -> Any:
+        if "extractor" not in self._cache:
+            self._cache["extractor"] = self.registry.create("feature_extractor", self.extractor_block())
+        return self._cache["extractor"]
+
+    # -- data ----------------------------------------------------------------------------------
+    def dataset_path(self) -> Path:
+        """``dataset.path`` when set (and present, or ``if_missing: error``), else ``OUT/dataset/store``."""
+        ds = self.spec.dataset
+        if ds.path and (Path(ds.path).exists() or ds.if_missing == "error"):
+            return Path(ds.path)
+        return self.stage_dir_of("dataset") / "store"
+
+    def uses_existing_dataset(self) -> bool:
+        """True when the spec names an existing dataset store (nothing to generate)."""
+        path = self.spec.dataset.path
+        return path is not None and self.dataset_path() == Path(path)
+
+    def dataset(self) -> Any:
+        """The dataset's arrays (``DatasetArrays``): the dataset stage's store, or ``dataset.path``."""
+        if "dataset" not in self._cache:
+            from invphys.core.dataset import DatasetStore
+
+            path = self.dataset_path()
+            if not path.exists():
+                raise InvphysError(f"no dataset at {path}: run the 'dataset' stage or set dataset.path")
+            self._cache["dataset"] = DatasetStore(path).arrays(ok_only=True)
+        return self._cache["dataset"]
+
+    def split(self) -> tuple[np.ndarray, np.ndarray]:
+        """(train_idx, test_idx) of the dataset's ok rows, deterministic by seed and test_fraction."""
+        n = len(self.dataset().theta)
+        rng = np.random.default_rng(self.spec.seed)
+        perm = rng.permutation(n)
+        n_test = max(1, round(n * self.spec.dataset.test_fraction))
+        return np.sort(perm[n_test:]), np.sort(perm[:n_test])
+
+    def scales(self) -> np.ndarray:
+        """The paper's per-feature scales s_k = p95 - p5 over the training split."""
+        from invphys.core.objectives import percentile_scales
+
+        train, _ = self.split()
+        return percentile_scales(self.dataset().y[train])
+
+    def surrogate(self) -> Any:
+        if "surrogate" not in self._cache:
+            cls = self.registry.get("surrogate", self.spec.surrogate["type"])  # type: ignore[index]
+            self._cache["surrogate"] = cls.load(self.stage_dir_of("train") / "surrogate")
+        return self._cache["surrogate"]
+
+    def latent(self, label: str) -> Any:
+        key = f"latent:{label}"
+        if key not in self._cache:
+            block = self.spec.latent_models[label]
+            cls = self.registry.get("latent_model", block["type"])
+            self._cache[key] = cls.load(self.stage_dir_of("train") / "latent" / label)
+        return self._cache[key]

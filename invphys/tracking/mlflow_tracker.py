@@ -1,0 +1,76 @@
+"""``tracker: mlflow``: one MLflow run per invphys run (``pip install "invphys[mlflow]"``).
+
+Uses :class:`mlflow.tracking.MlflowClient` explicitly (no global active run), so that two runs in one
+process never mix. The store is ``tracking_uri``, else ``$MLFLOW_TRACKING_URI``, else a SQLite file
+``OUT/mlflow.db`` with artifacts in ``OUT/mlartifacts/`` (``mlflow ui --backend-store-uri
+sqlite:///OUT/mlflow.db`` shows it).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+from invphys.core.errors import InvphysError
+from invphys.tracking.base import Tracker
+
+log = logging.getLogger(__name__)
+
+_MISSING = 'tracker: mlflow needs the mlflow client: pip install "invphys[mlflow]"'
+
+
+class MLflowTracker(Tracker):
+    """Logs scalars as MLflow metrics (``/`` kept in keys), text and artifacts as run artifacts."""
+
+    name = "mlflow"
+
+    def __init__(self, run_dir: str | Path, tracking_uri: str | None = None, experiment: str = "invphys",
+                 run_name: str | None = None) -> None:
+        try:
+            from mlflow.tracking import MlflowClient
+        except ImportError as exc:
+            raise InvphysError(_MISSING) from exc
+        run_dir = Path(run_dir).resolve()
+        run_dir.mkdir(parents=True, exist_ok=True)
+        self.tracking_uri = (tracking_uri or os.environ.get("MLFLOW_TRACKING_URI")
+                             or f"sqlite:///{run_dir / 'mlflow.db'}")
+        self.client = MlflowClient(tracking_uri=self.tracking_uri)
+        found = self.client.get_experiment_by_name(experiment)
+        if found is not None:
+            experiment_id = found.experiment_id
+        else:
+            location = (run_dir / "mlartifacts").as_uri() if self.tracking_uri.startswith("sqlite:") else None
+            experiment_id = self.client.create_experiment(experiment, artifact_location=location)
+        self.run_id: str = self.client.create_run(experiment_id, run_name=run_name).info.run_id
+        self._closed = False
+        log.info("MLflow run %s in %s", self.run_id, self.tracking_uri)
+
+    def log_scalar(self, tag: str, value: float, step: int) -> None:
+        self.client.log_metric(self.run_id, _key(tag), float(value), step=int(step))
+
+    def log_text(self, tag: str, text: str) -> None:
+        self.client.log_text(self.run_id, text, f"text/{_key(tag)}.md")
+
+    def log_artifact(self, path: str | Path, name: str | None = None) -> None:
+        path = Path(path)
+        folder = str(Path(name).parent) if name and str(Path(name).parent) != "." else None
+        if path.is_dir():
+            self.client.log_artifacts(self.run_id, str(path), name or path.name)
+        else:
+            self.client.log_artifact(self.run_id, str(path), folder)
+
+    def close(self) -> None:
+        if not self._closed:
+            self.client.set_terminated(self.run_id)
+            self._closed = True
+
+    @property
+    def run(self) -> Any:
+        return self.client.get_run(self.run_id)
+
+
+def _key(tag: str) -> str:
+    """MLflow metric keys allow alphanumerics, ``_-./`` and spaces; anything else becomes ``_``."""
+    return "".join(c if c.isalnum() or c in "_-./ " else "_" for c in tag)
