@@ -101,7 +101,10 @@ def features_of(records: list[RunRecord], scene, fps: float) -> list[list[float]
             continue
         traj = Trajectory(positions=np.stack(rec.positions), damage=np.stack(rec.damage), labels=scene.labels,
                           frame_indices=np.asarray(rec.frames), fps=fps,
-                          extra={"dx": scene.dx, "radius": scene.radius})
+                          extra={"dx": scene.dx, "radius": scene.radius, "gripped": scene.gripped,
+                                 "frame_separation": np.asarray(rec.separation),
+                                 "frame_mean_damage": np.asarray(rec.mean_damage),
+                                 "frame_work": np.asarray(rec.work)})
         out.append([float(v) for v in fe.extract(traj)])
     return out
 

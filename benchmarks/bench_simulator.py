@@ -44,6 +44,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--nondeterministic", action="store_true", help="parallel CPU scatter (faster, not bitwise)")
     ap.add_argument("--spread", action="store_true", help="repeat the first batch and measure differences")
     ap.add_argument("--profile", action="store_true", help="time each substep kernel")
+    ap.add_argument("--config", default="{}", help="JSON of simulator settings to override, e.g. "
+                                                   "'{\"eta_dt_factor\": 1000}' (no eta bound)")
     ap.add_argument("--tag", default="")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
@@ -57,6 +59,7 @@ def main(argv: list[str] | None = None) -> dict:
                deterministic=not args.nondeterministic)
     if args.frames:
         cfg["frames"] = args.frames
+    cfg.update(json.loads(args.config))
     sim = OrangePeelSimulator(**cfg)
     space = sim.parameter_space()
     if args.params == "centre":
@@ -89,6 +92,7 @@ def main(argv: list[str] | None = None) -> dict:
         "command": "python " + " ".join([Path(sys.argv[0]).name if argv is None else "bench_simulator.py",
                                          *(sys.argv[1:] if argv is None else argv)]),
         "backend": args.backend, "preset": args.preset, "arch": args.arch, "device": device,
+        "simulator_version": sim.version, "config": sim.config.model_dump(mode="json"),
         "host": {"cpus": os.cpu_count(), "machine": platform.machine(), "python": platform.python_version()},
         "particles": n, "frames": sim.frames, "runs": runs, "batch": args.batch, "params": args.params,
         "seed": args.seed, "deterministic": not args.nondeterministic,

@@ -1,10 +1,18 @@
-"""Orange-peel features on hand-built trajectories (exact values) and degenerate runs."""
+"""Orange-peel features on hand-built trajectories (exact values), smoothness and degenerate runs."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from invphys_orange_peel.features import FEATURE_NAMES, OrangePeelFeatures, TrajectoryError
+from invphys_orange_peel.features import (
+    FEATURE_NAMES,
+    OrangePeelFeatures,
+    TrajectoryError,
+    first_crossing,
+    onset_index,
+    top_mean,
+    windowed_peak_rate,
+)
 
 from invphys.core.results import Trajectory
 
@@ -23,80 +31,112 @@ def _features(t: Trajectory) -> dict[str, float]:
     return dict(zip(FEATURE_NAMES, out, strict=True))
 
 
-def test_twelve_named_features() -> None:
+def test_twelve_named_features_keep_the_papers_eleven() -> None:
     assert len(FEATURE_NAMES) == len(set(FEATURE_NAMES)) == 12
     assert EX.feature_names == FEATURE_NAMES
+    assert FEATURE_NAMES[-1] == "peeling_work" and "skin_mean_displacement" not in FEATURE_NAMES
 
 
 def test_exact_values_on_a_two_particle_story() -> None:
-    """One skin particle lifts by 0.1 m per recorded frame (10 frames apart); one interior stays."""
+    """One skin particle lifts 0.01 m per frame for 30 frames at 10 fps; one interior stays put.
+
+    Series every frame: sep(f) = 0.01 f; mean damage 0.001 f; the gripper's work grows to 2 J.
+    """
     labels = [0, 1]
     frames = [0, 10, 20, 30]
     pos = [[[0, 0.1 * k, 0], [0, 0, 0]] for k in range(4)]
     dmg = [[0.0, 0.0], [0.2, 0.0], [0.6, 0.1], [0.9, 0.3]]
-    f = _features(_traj(pos, dmg, labels, frames, fps=10.0, radius=0.15, dx=0.02))
-    assert f["final_separation"] == pytest.approx(0.3)
-    assert f["peak_separation_rate"] == pytest.approx(0.1 / 1.0)          # 0.1 m per 10 frames at 10 fps
-    # fractured (d >= 0.5) fraction: 0, 0, 0.5, 0.5 -> onset at frame 20
-    assert f["fracture_onset_frame"] == 20
-    # rise 0, 0.1, 0.2, 0.3: half (0.15) reached halfway between frames 10 and 20
-    assert f["separation_half_time"] == pytest.approx(15.0)
+    f31 = np.arange(31.0)
+    t = _traj(pos, dmg, labels, frames, fps=10.0, radius=0.15, dx=0.02, frame_separation=0.01 * f31,
+              frame_mean_damage=0.001 * f31, frame_work=2.0 * f31 / 30)
+    f = _features(t)
+    # tail: the last second = frames 20..30 of the series (mean 0.25) and recorded frames 20, 30
+    assert f["final_separation"] == pytest.approx(0.25)
+    assert f["peak_separation_rate"] == pytest.approx(0.1)              # 0.01 m per frame at 10 fps
+    assert f["fracture_onset_frame"] == pytest.approx(5.0)              # mean damage reaches 0.005 at f = 5
+    assert f["separation_half_time"] == pytest.approx(12.5)             # rise reaches 0.125 at f = 12.5
     assert f["skin_dispersion"] == 0.0 and f["interior_dispersion"] == 0.0
-    # detachment threshold: initial distance 0 + dx/4 = 0.005 m; final distance 0.3 -> detached
+    # detachment: tau = 0 + dx/4 = 0.005, width dx/2 = 0.01; distances 0.2 and 0.3 are far past it
     assert f["skin_detachment_fraction"] == 1.0
     assert f["interior_mean_displacement"] == 0.0 and f["interior_max_displacement"] == 0.0
-    assert f["skin_mean_damage"] == pytest.approx(0.9) and f["interior_mean_damage"] == pytest.approx(0.3)
-    assert f["skin_mean_displacement"] == pytest.approx(0.3)
+    assert f["skin_mean_damage"] == pytest.approx(0.75) and f["interior_mean_damage"] == pytest.approx(0.2)
+    assert f["peeling_work"] == pytest.approx(np.log10(2.0))
 
 
-def test_dispersion_and_displacement_statistics() -> None:
-    rng = np.random.default_rng(0)
-    n = 50
-    labels = np.r_[np.zeros(n), np.ones(n)]
-    first = rng.normal(size=(2 * n, 3))
-    shift = rng.normal(size=(2 * n, 3)) * 0.1
-    t = _traj([first, first + shift], np.zeros((2, 2 * n)), labels, [0, 10])
+def test_robust_top_statistic_and_gripper_exclusion() -> None:
+    """interior_max_displacement: mean of the top 1 % away from the gripped patch, not the maximum."""
+    n = 400
+    labels = np.r_[np.zeros(1), np.ones(n)]
+    first = np.zeros((n + 1, 3))
+    first[:, 0] = np.r_[0.0, np.linspace(0.0, 1.0, n)]  # the skin particle (gripped) sits at x = 0
+    final = first.copy()
+    final[1:, 1] = np.linspace(0.0, 0.2, n)[::-1]        # interior next to the gripper moves the most
+    gripped = np.r_[True, np.zeros(n, bool)]
+    series = {"frame_separation": np.zeros(11), "frame_mean_damage": np.zeros(11), "frame_work": np.ones(11)}
+    t = _traj([first, final], np.zeros((2, n + 1)), labels, [0, 10], fps=1.0, dx=0.1, gripped=gripped, **series)
     f = _features(t)
-    final = first + shift
-    inner = final[n:]
-    assert f["interior_dispersion"] == pytest.approx(
-        np.sqrt(np.mean(np.sum((inner - inner.mean(0)) ** 2, 1))), rel=1e-5)
-    disp = np.linalg.norm(shift, axis=1)
-    assert f["interior_max_displacement"] == pytest.approx(disp[n:].max(), rel=1e-5)
-    assert f["skin_mean_displacement"] == pytest.approx(disp[:n].mean(), rel=1e-5)
+    disp = np.linspace(0.0, 0.2, n)[::-1]
+    far = first[1:, 0] > 0.2                               # 2 cells of 0.1 m from the gripped particle
+    expect = np.sort(disp[far])[-int(np.ceil(0.01 * far.sum())):].mean()
+    assert f["interior_max_displacement"] == pytest.approx(expect, rel=1e-5)
+    assert f["interior_max_displacement"] < disp.max() - 0.01
+    assert top_mean(np.arange(200.0), 0.01) == pytest.approx(198.5)
+
+
+def test_onset_is_continuous_and_extrapolates_runs_that_never_fracture() -> None:
+    d = np.array([0.0, 0.002, 0.004, 0.006, 0.008])
+    assert onset_index(d, 0.005) == pytest.approx(2.5)
+    assert first_crossing(d, 0.0) == 0.0 and first_crossing(d, 1.0) is None
+    # never reaching the level: F (1 + min(1, ln(level / D_F))), continuous at D_F = level
+    assert onset_index(np.array([0.0, 0.005 * 0.999]), 0.005) == pytest.approx(1.0, abs=2e-3)
+    assert onset_index(np.zeros(11), 0.005) == 20.0
+    # a small change of the series moves the onset a little, not by a recording stride
+    assert abs(onset_index(d * 1.01, 0.005) - onset_index(d, 0.005)) < 0.05
+
+
+def test_windowed_rate_uses_every_frame() -> None:
+    s = np.r_[np.zeros(10), np.linspace(0, 1, 11), np.ones(10)]  # +0.1 per frame during 10 frames
+    assert windowed_peak_rate(s, 10.0, 5) == pytest.approx(1.0)
+    assert windowed_peak_rate(s[::-1], 10.0, 5) == 0.0
 
 
 def test_degenerate_full_fracture_and_no_motion() -> None:
     pos = np.zeros((3, 4, 3))
     pos[:, :, 0] = [0.0, 0.1, 0.2, 0.3]
-    full = _traj(pos, np.ones((3, 4)), [0, 0, 1, 1], [0, 5, 10])
+    series = {"frame_separation": np.full(11, 0.05), "frame_work": np.zeros(11)}
+    full = _traj(pos, np.ones((3, 4)), [0, 0, 1, 1], [0, 5, 10], frame_mean_damage=np.ones(11), **series)
     f = _features(full)
     assert f["fracture_onset_frame"] == 0              # fractured from the first frame
     assert f["separation_half_time"] == 10             # nothing separates: the last frame
     assert f["peak_separation_rate"] == 0.0
     assert f["skin_mean_damage"] == 1.0 == f["interior_mean_damage"]
-    none = _traj(pos, np.zeros((3, 4)), [0, 0, 1, 1], [0, 5, 10])
-    assert _features(none)["fracture_onset_frame"] == 15  # censored: last frame + stride
+    assert f["peeling_work"] == -9.0                   # no work: the floor, 1e-9 J
+    none = _traj(pos, np.zeros((3, 4)), [0, 0, 1, 1], [0, 5, 10], frame_mean_damage=np.zeros(11), **series)
+    assert _features(none)["fracture_onset_frame"] == 20  # never: twice the run
+
+
+def test_recorded_frames_stand_in_for_missing_series_except_work() -> None:
+    pos = [[[0, 0.1 * k, 0], [0, 0, 0]] for k in range(3)]
+    t = _traj(pos, np.zeros((3, 2)), [0, 1], [0, 10, 20], fps=10.0, frame_work=np.linspace(0, 1, 21))
+    f = _features(t)
+    assert f["final_separation"] == pytest.approx(0.15)  # recorded frames 10 and 20 are the last second
+    assert f["separation_half_time"] == pytest.approx(7.5)
+    with pytest.raises(TrajectoryError, match="frame_work"):
+        EX.extract(_traj(pos, np.zeros((3, 2)), [0, 1], [0, 10, 20]))
 
 
 def test_single_frame_and_missing_region_are_defined() -> None:
-    f = _features(_traj(np.zeros((1, 3, 3)), np.zeros((1, 3)), [0, 0, 0], [0]))
+    f = _features(_traj(np.zeros((1, 3, 3)), np.zeros((1, 3)), [0, 0, 0], [0], frame_work=np.zeros(1)))
     assert f["interior_mean_displacement"] == 0.0 and f["skin_detachment_fraction"] == 0.0
 
 
-def test_non_finite_trajectories_are_rejected() -> None:
+def test_non_finite_and_inconsistent_trajectories_are_rejected() -> None:
     pos = np.zeros((2, 2, 3))
     pos[1, 0, 0] = np.nan
     with pytest.raises(TrajectoryError, match="non-finite"):
-        EX.extract(_traj(pos, np.zeros((2, 2)), [0, 1], [0, 1]))
-    with pytest.raises(TrajectoryError, match="shapes"):
-        EX.extract(_traj(np.zeros((2, 2, 3)), np.zeros((3, 2)), [0, 1], [0, 1]))
-
-
-def test_frame_stride_reads_every_nth_recorded_frame() -> None:
-    pos = [[[0, 0.1 * k * k, 0], [0, 0, 0]] for k in range(5)]
-    t = _traj(pos, np.zeros((5, 2)), [0, 1], [0, 10, 20, 30, 40])
-    strided = OrangePeelFeatures(frame_stride=2).extract(t)
-    assert strided[0] == pytest.approx(1.6)
-    # rate from frames 0, 20, 40 only: (1.6 - 0.4) / (20 / 24)
-    assert strided[1] == pytest.approx(1.2 / (20 / 24))
+        EX.extract(_traj(pos, np.zeros((2, 2)), [0, 1], [0, 1], frame_work=np.zeros(2)))
+    with pytest.raises(TrajectoryError, match="do not match"):
+        EX.extract(_traj(np.zeros((2, 2, 3)), np.zeros((2, 2)), [0, 1], [0, 5], frame_separation=np.zeros(3),
+                         frame_mean_damage=np.zeros(3), frame_work=np.zeros(6)))
+    with pytest.raises(TrajectoryError, match="non-finite"):
+        EX.extract(_traj(np.zeros((2, 2, 3)), np.zeros((2, 2)), [0, 1], [0, 1], frame_work=[0.0, np.nan]))

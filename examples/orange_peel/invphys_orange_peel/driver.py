@@ -1,8 +1,8 @@
-"""The host-side step driver shared by every backend: dt rule, gripper table, recording, failures.
+"""The host-side step driver shared by every backend: dt rule, settling, gripper table, recording, failures.
 
-A backend (Taichi, Warp) only owns state and kernels: ``load(materials)``, ``set_frame(dt, nsub,
-grip)``, ``advance(n)``, ``frame_stats(lo, hi)``, ``read()``. Everything that decides *what* is
-simulated lives here so that backends agree bit-for-bit on it.
+A backend (Taichi, Warp) only owns state and kernels: ``load(materials)``, ``set_damage_gate(on)``,
+``set_frame(dt, nsub, grip)``, ``advance(n)``, ``frame_stats(lo, hi, ref)``, ``read()``. Everything that
+decides *what* is simulated lives here so that backends agree bit-for-bit on it.
 """
 
 from __future__ import annotations
@@ -12,20 +12,30 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from invphys_orange_peel.failure import energy_bound, frame_failure, substep_failure
+from invphys_orange_peel.failure import (
+    STAT_DSUM,
+    STAT_ISUM,
+    STAT_SSUM,
+    STAT_WORK,
+    energy_bound,
+    frame_failure,
+    substep_failure,
+)
 from invphys_orange_peel.material import Materials
 from invphys_orange_peel.scene import Scene
 
 
 @dataclass(frozen=True)
 class StepSettings:
-    """Numerical settings of a run (identical for every run of a batch)."""
+    """Numerical and physical settings of a run (identical for every run of a batch)."""
 
     cfl: float = 0.4
     velocity_cfl: float = 0.3
     min_substeps_per_frame: int = 4
     max_substeps_per_frame: int = 2000
-    gravity: float = 0.0            # m/s^2 along +y (negative pulls down)
+    eta_dt_factor: float = 0.1      # dt <= eta_dt_factor * min(eta_s, eta_i)
+    gravity: float = -0.3           # m/s^2 along +y (negative pulls down); see physics.md
+    settle_seconds: float = 0.5     # gravity-only settling before frame 0 (gripper at rest, no damage)
     apic_blend: float = 0.0         # 0 = PIC momentum transfer, 1 = APIC
     l0_cells: float = 0.5           # phase-field length scale l0 in cells
     boundary_cells: int = 3
@@ -37,23 +47,48 @@ class StepSettings:
 
 @dataclass
 class RunRecord:
-    """What the driver returns for one run of a batch."""
+    """What the driver returns for one run of a batch (per-frame series have ``frames + 1`` entries)."""
 
     positions: list[np.ndarray] = field(default_factory=list)
     damage: list[np.ndarray] = field(default_factory=list)
     frames: list[int] = field(default_factory=list)
     substeps: int = 0
+    settle_substeps: int = 0
+    dt: float = 0.0                  # the run's own time step (s) when no velocity guard binds
+    guard_frames: int = 0            # frames whose substeps the velocity CFL raised above the run's own
     failure: str | None = None
     max_speed: list[float] = field(default_factory=list)
     kinetic_energy: list[float] = field(default_factory=list)
+    separation: list[float] = field(default_factory=list)   # |c_S - c_I| every frame (m)
+    mean_damage: list[float] = field(default_factory=list)  # mean d over all particles every frame
+    work: list[float] = field(default_factory=list)         # gripper work done so far, every frame (J)
 
 
-def frame_plan(frame: int, fps: float, dt_bound: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def run_dt_bound(materials: Materials, dx: float, fps: float, settings: StepSettings) -> np.ndarray:
+    """Each run's own dt bound (s): min(elastic CFL, frame_dt / min_substeps, eta_dt_factor * min eta)."""
+    dt_el = materials.elastic_dt(dx, settings.cfl)
+    dt_cap = 1.0 / fps / settings.min_substeps_per_frame
+    dt_eta = settings.eta_dt_factor * materials.eta.min(axis=1)
+    return np.minimum(np.minimum(dt_el, dt_cap), dt_eta)
+
+
+def frame_plan(fps: float, dt_bound: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(nsub, dt) per run for one frame: nsub = ceil(frame_dt / dt_bound), dt = frame_dt / nsub."""
     frame_dt = 1.0 / fps
     nsub = np.ceil(frame_dt / dt_bound - 1e-9).astype(np.int64)
     nsub = np.maximum(nsub, 1)
     return nsub, frame_dt / nsub
+
+
+def velocity_guard(nsub_run: np.ndarray, vmax: np.ndarray, dx: float, fps: float,
+                   velocity_cfl: float) -> np.ndarray:
+    """Substeps per run for the next frame: the run's own count, raised only where the previous frame's
+    peak speed needs more (a safety net: a run's dt stays fixed unless its material moves too fast)."""
+    with np.errstate(divide="ignore"):
+        dt_v = np.where(vmax > 0, velocity_cfl * dx / np.maximum(vmax, 1e-30), np.inf)
+    need = np.ceil((1.0 / fps) / dt_v - 1e-9)
+    need = np.where(np.isfinite(need), need, 0).astype(np.int64)
+    return np.maximum(nsub_run, need)
 
 
 def gripper_table(scene: Scene, frame: int, fps: float, nsub: np.ndarray, dt: np.ndarray,
@@ -74,17 +109,30 @@ def gripper_table(scene: Scene, frame: int, fps: float, nsub: np.ndarray, dt: np
     return table
 
 
+def frame_series(stats: np.ndarray, scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """(separation (B,), mean damage (B,)) from the frame statistics (sums relative to the scene centre)."""
+    n_skin = max(int((scene.labels == 0).sum()), 1)
+    n_int = max(int((scene.labels == 1).sum()), 1)
+    cs = stats[:, STAT_SSUM:STAT_SSUM + 3] / n_skin
+    ci = stats[:, STAT_ISUM:STAT_ISUM + 3] / n_int
+    return np.linalg.norm(cs - ci, axis=1), stats[:, STAT_DSUM] / scene.n_particles
+
+
 def run_batch(backend, scene: Scene, materials: Materials, frames: int, fps: float, record_every: int,
               settings: StepSettings) -> tuple[list[RunRecord], float]:
-    """Simulate every run of a loaded batch; returns per-run records and the wall time (s)."""
+    """Simulate every run of a loaded batch; returns per-run records and the wall time (s).
+
+    Order: ``settle_seconds`` of gravity-only settling (gripper at rest, damage frozen, not recorded),
+    then frame 0 (recorded: the settled state) and ``frames`` frames of peeling. Every run keeps its
+    own dt (:func:`run_dt_bound`) for the whole run unless the velocity guard raises a frame's substeps.
+    """
     B = materials.batch
     start = time.perf_counter()
     backend.load(materials)
     records = [RunRecord() for _ in range(B)]
     dx = scene.dx
     lo, hi = 1.5 * dx, scene.domain - 1.5 * dx
-    dt_el = materials.elastic_dt(dx, settings.cfl)
-    dt_cap = 1.0 / fps / settings.min_substeps_per_frame
+    nsub_run, dt_run = frame_plan(fps, run_dt_bound(materials, dx, fps, settings))
     ts = np.linspace(0.0, frames / fps, 20 * frames + 1)
     path = scene.gripper_position(ts)
     grip_speed = float(np.max(np.linalg.norm(np.diff(path, axis=0), axis=1) / np.diff(ts))) \
@@ -92,53 +140,82 @@ def run_batch(backend, scene: Scene, materials: Materials, frames: int, fps: flo
     total_mass = materials.rho * scene.volume * scene.n_particles
     bounds = energy_bound(total_mass, materials.wave_speed, grip_speed, settings.energy_factor)
     alive = np.ones(B, bool)
+    work = np.zeros(B)
+    for b in range(B):
+        records[b].dt = float(dt_run[b])
 
-    def record(frame: int) -> None:
-        x, d = backend.read()
+    def step_frame(frame: int, settling: bool, stats: np.ndarray) -> np.ndarray:
+        nsub = velocity_guard(nsub_run, stats[:, 0], dx, fps, settings.velocity_cfl)
+        dt = (1.0 / fps) / nsub
         for b in np.flatnonzero(alive):
-            records[b].positions.append(x[b].copy())
-            records[b].damage.append(d[b].copy())
-            records[b].frames.append(frame)
-
-    stats = backend.frame_stats(lo, hi)
-    record(0)
-    for frame in range(frames):
-        vmax = stats[:, 0]
-        with np.errstate(divide="ignore"):
-            dt_v = np.where(vmax > 0, settings.velocity_cfl * dx / np.maximum(vmax, 1e-30), np.inf)
-        nsub, dt = frame_plan(frame, fps, np.minimum(np.minimum(dt_cap, dt_el), dt_v))
-        for b in np.flatnonzero(alive):
-            reason = substep_failure(int(nsub[b]), settings.max_substeps_per_frame, frame, float(vmax[b]))
+            reason = substep_failure(int(nsub[b]), settings.max_substeps_per_frame, frame, float(stats[b, 0]))
             if reason:
                 records[b].failure, alive[b] = reason, False
+            elif nsub[b] > nsub_run[b]:
+                records[b].guard_frames += 1
         nsub = np.where(alive, nsub, 0)
         if not alive.any():
-            break
-        if settings.gripper_on:
+            return stats
+        if settings.gripper_on and not settling:
             grip = gripper_table(scene, frame, fps, nsub, dt, alive)
         else:
-            grip = np.zeros((B, 1, 6))
+            grip = np.zeros((B, int(max(1, nsub.max())), 6))
         backend.set_frame(dt, nsub, grip)
         backend.advance(int(nsub.max()))
-        stats = backend.frame_stats(lo, hi)
+        stats = backend.frame_stats(lo, hi, scene.centre)
         for b in np.flatnonzero(alive):
-            records[b].substeps += int(nsub[b])
-            records[b].max_speed.append(float(stats[b, 0]))
-            records[b].kinetic_energy.append(float(stats[b, 1]))
+            if settling:
+                records[b].settle_substeps += int(nsub[b])
+            else:
+                records[b].substeps += int(nsub[b])
             reason = frame_failure(stats[b], float(bounds[b]), frame + 1)
             if reason:
                 records[b].failure, alive[b] = reason, False
-        if (frame + 1) % record_every == 0 or frame + 1 == frames:
-            record(frame + 1)
+        return stats
+
+    def record(frame: int, stats: np.ndarray, recorded: bool) -> None:
+        sep, dmean = frame_series(stats, scene)
+        work[:] += stats[:, STAT_WORK]
+        x = d = None
+        if recorded:
+            x, d = backend.read()
+        for b in np.flatnonzero(alive):
+            r = records[b]
+            r.separation.append(float(sep[b]))
+            r.mean_damage.append(float(dmean[b]))
+            r.work.append(float(work[b]))
+            if frame > 0:
+                r.max_speed.append(float(stats[b, 0]))
+                r.kinetic_energy.append(float(stats[b, 1]))
+            if recorded:
+                r.positions.append(x[b].copy())
+                r.damage.append(d[b].copy())
+                r.frames.append(frame)
+
+    stats = backend.frame_stats(lo, hi, scene.centre)
+    backend.set_damage_gate(False)
+    for s in range(round(settings.settle_seconds * fps)):
+        stats = step_frame(-1 - s, True, stats)
+        if not alive.any():
+            break
+    backend.set_damage_gate(settings.damage_on)
+    stats[:, STAT_WORK] = 0.0
+    record(0, stats, True)
+    for frame in range(frames):
+        if not alive.any():
+            break
+        stats = step_frame(frame, False, stats)
+        record(frame + 1, stats, (frame + 1) % record_every == 0 or frame + 1 == frames)
     backend.sync()
     return records, time.perf_counter() - start
 
 
 def estimated_substeps(materials: Materials, scene: Scene, frames: int, fps: float,
                        settings: StepSettings) -> np.ndarray:
-    """Substeps per run if only the elastic CFL and the dt cap bind (used to group similar runs)."""
-    dt = np.minimum(materials.elastic_dt(scene.dx, settings.cfl), 1.0 / fps / settings.min_substeps_per_frame)
-    return frames * np.ceil(1.0 / fps / dt - 1e-9)
+    """Substeps per run if no velocity guard binds (used to group runs of similar cost)."""
+    nsub, _ = frame_plan(fps, run_dt_bound(materials, scene.dx, fps, settings))
+    return (frames + round(settings.settle_seconds * fps)) * nsub
 
 
-__all__ = ["RunRecord", "StepSettings", "estimated_substeps", "frame_plan", "gripper_table", "run_batch"]
+__all__ = ["RunRecord", "StepSettings", "estimated_substeps", "frame_plan", "frame_series", "gripper_table",
+           "run_batch", "run_dt_bound", "velocity_guard"]

@@ -1,8 +1,11 @@
-"""The 12 behavioural features of an orange-peel run (paper sec. 3.2; exact definitions in
+"""The 12 behavioural features of an orange-peel run (paper sec. 3.2; exact definitions and formulas in
 docs/orange-peel/features.md).
 
-Notation: recorded frames k = 0..K-1 with frame indices f_k and times t_k; S = skin particles
-(label 0), I = interior particles (label 1); c_S(k), c_I(k) their centroids; sep(k) = |c_S(k) - c_I(k)|.
+Every feature is a smooth functional of the run: series measured every frame on the device (skin-interior
+centroid distance, mean damage, gripper work; ``Trajectory.extra``) are read at frame resolution with
+interpolated threshold crossings, and end-of-run statistics are averaged over the recorded frames of the
+last ``tail_seconds``. Notation: recorded frames k with frame indices f_k; S = skin particles (label 0),
+I = interior particles (label 1); x_p(0) is the settled state (frame 0).
 """
 
 from __future__ import annotations
@@ -19,40 +22,126 @@ from invphys.core.results import Trajectory
 FEATURE_NAMES: tuple[str, ...] = (
     "final_separation",            # m
     "peak_separation_rate",        # m/s
-    "fracture_onset_frame",        # frame index
-    "separation_half_time",        # frame index
+    "fracture_onset_frame",        # frame index (real-valued)
+    "separation_half_time",        # frame index (real-valued)
     "skin_dispersion",             # m
     "skin_detachment_fraction",    # [0, 1]
     "interior_mean_displacement",  # m
-    "interior_max_displacement",   # m
+    "interior_max_displacement",   # m (robust top statistic away from the gripper)
     "interior_dispersion",         # m
     "skin_mean_damage",            # [0, 1]
     "interior_mean_damage",        # [0, 1]
-    "skin_mean_displacement",      # m (our 12th feature)
+    "peeling_work",                # log10 of the gripper's work in J (our 12th feature)
 )
+
+#: the floor of the gripper work before the logarithm (J)
+WORK_FLOOR = 1e-9
 
 
 class TrajectoryError(InvphysError, ValueError):
-    """A trajectory that cannot be summarised (non-finite values, wrong shapes)."""
+    """A trajectory that cannot be summarised (non-finite values, wrong shapes, missing series)."""
 
 
-def _centroid(x: np.ndarray) -> np.ndarray:
+# -- small named statistics (each documented in features.md) ---------------------------------------
+
+def centroid(x: np.ndarray) -> np.ndarray:
     return x.mean(axis=0) if len(x) else np.zeros(3)
 
 
-def _dispersion(x: np.ndarray) -> float:
+def dispersion(x: np.ndarray) -> float:
+    """Root-mean-square distance of the points from their centroid (0 when empty)."""
     if len(x) == 0:
         return 0.0
     return float(np.sqrt(np.mean(np.sum((x - x.mean(axis=0)) ** 2, axis=1))))
 
 
-class OrangePeelFeatures(FeatureExtractor):
-    """The paper's 11 named features plus skin mean displacement, from an orange-peel trajectory.
+def top_mean(values: np.ndarray, fraction: float) -> float:
+    """Mean of the largest ``ceil(fraction * n)`` values (0 when empty): a robust maximum."""
+    if values.size == 0:
+        return 0.0
+    k = max(1, int(np.ceil(fraction * values.size)))
+    return float(np.mean(np.partition(values, values.size - k)[values.size - k:]))
 
-    Degenerate runs are defined, not NaN: a run that never fractures gets
-    ``fracture_onset_frame = last frame + stride`` (stride = first recording interval); a run whose skin and
-    interior centroids do not separate by more than ``1e-3 * radius`` gets
-    ``separation_half_time = last frame``; an empty region contributes zeros.
+
+def first_crossing(series: np.ndarray, level: float) -> float | None:
+    """The real-valued index at which ``series`` first reaches ``level`` (linear interpolation), or None."""
+    hit = np.flatnonzero(series >= level)
+    if len(hit) == 0:
+        return None
+    k = int(hit[0])
+    if k == 0:
+        return 0.0
+    a, b = float(series[k - 1]), float(series[k])
+    return k - 1 + ((level - a) / (b - a) if b > a else 1.0)
+
+
+def onset_index(mean_damage: np.ndarray, level: float) -> float:
+    """Fracture onset (frame): the interpolated crossing of ``level`` by the mean damage; a run that
+    never gets there is extrapolated smoothly from its final mean damage D_F:
+    ``F (1 + min(1, ln(level / D_F)))`` (equal to F at D_F = level, 2F for no damage)."""
+    hit = first_crossing(mean_damage, level)
+    if hit is not None:
+        return hit
+    last = len(mean_damage) - 1
+    dfinal = max(float(mean_damage[-1]), 1e-30)
+    return last * (1.0 + min(1.0, float(np.log(level / dfinal))))
+
+
+def windowed_peak_rate(series: np.ndarray, fps: float, window: int) -> float:
+    """max(0, max_f (s(f + w) - s(f)) / (w / fps)) over every frame f: a peak rate that is continuous in
+    the series (every frame is used, the window smooths frame-to-frame vibration)."""
+    w = int(min(max(1, window), len(series) - 1))
+    if w < 1:
+        return 0.0
+    rates = (series[w:] - series[:-w]) * (fps / w)
+    return float(max(rates.max(), 0.0))
+
+
+def half_time(separation: np.ndarray, final: float, radius: float) -> float:
+    """The interpolated frame at which sep - sep(0) first reaches half of (final - sep(0)); the last
+    frame when the centroids separate by no more than 1e-3 R."""
+    rise = separation - separation[0]
+    target = final - separation[0]
+    if target <= 1e-3 * radius:
+        return float(len(separation) - 1)
+    hit = first_crossing(rise, 0.5 * target)
+    return float(len(separation) - 1) if hit is None else hit
+
+
+def soft_detached(first: np.ndarray, final: np.ndarray, skin: np.ndarray, inner: np.ndarray,
+                  dx: float | None) -> float:
+    """Soft fraction of skin particles away from all flesh: mean of smoothstep((d1 - tau) / w) with d1
+    a skin particle's distance to the nearest interior particle, tau = max initial d + dx/4, w = dx/2."""
+    if not skin.any() or not inner.any():
+        return 0.0
+    from scipy.spatial import cKDTree
+
+    d0, _ = cKDTree(first[inner]).query(first[skin])
+    scale = float(dx) if dx is not None else float(d0.max())
+    tau, width = float(d0.max()) + 0.25 * scale, max(0.5 * scale, 1e-12)
+    d1, _ = cKDTree(final[inner]).query(final[skin])
+    s = np.clip((d1 - tau) / width, 0.0, 1.0)
+    return float(np.mean(s * s * (3.0 - 2.0 * s)))
+
+
+def away_from_gripper(first: np.ndarray, inner: np.ndarray, gripped: np.ndarray | None,
+                      cells: float, dx: float | None) -> np.ndarray:
+    """Interior mask without the particles within ``cells * dx`` of a gripped particle at frame 0."""
+    if gripped is None or dx is None or not np.any(gripped) or cells <= 0:
+        return inner
+    from scipy.spatial import cKDTree
+
+    dist, _ = cKDTree(first[np.asarray(gripped, bool)]).query(first)
+    return inner & (dist > cells * float(dx))
+
+
+class OrangePeelFeatures(FeatureExtractor):
+    """The paper's 11 named features plus the gripper's peeling work, from an orange-peel trajectory.
+
+    Reads the per-frame series ``frame_separation``, ``frame_mean_damage`` and ``frame_work`` from
+    ``Trajectory.extra`` (the simulator records them every frame); without them separation and mean damage
+    are taken from the recorded frames, and ``peeling_work`` needs ``frame_work``. Degenerate runs are
+    defined, never NaN (docs/orange-peel/features.md).
     """
 
     name: ClassVar[str] = "orange_peel_features"
@@ -60,10 +149,17 @@ class OrangePeelFeatures(FeatureExtractor):
     class Config(PluginConfig):
         """Settings of the orange-peel feature extractor."""
 
-        frame_stride: int = Field(1, ge=1, description="use every n-th recorded frame (plus the last)")
-        onset_damage: float = Field(0.5, gt=0, le=1, description="a particle counts as fractured at d >= this")
-        onset_fraction: float = Field(0.005, gt=0, lt=1,
-                                      description="fracture onset: fraction of fractured particles reached")
+        tail_seconds: float = Field(1.0, ge=0, description="end-of-run statistics: mean over the recorded "
+                                                           "frames of the last this many seconds")
+        onset_mean_damage: float = Field(0.005, gt=0, lt=1,
+                                         description="fracture onset: the mean damage of all particles "
+                                                     "reaches this")
+        rate_window_seconds: float = Field(0.5, gt=0, description="separation-rate window (s)")
+        top_fraction: float = Field(0.01, gt=0, le=1, description="interior_max_displacement: mean of the "
+                                                                   "top this fraction")
+        gripper_exclusion_cells: float = Field(2.0, ge=0, description="interior_max_displacement ignores "
+                                                                      "particles this close to the gripped "
+                                                                      "patch (cells)")
 
     @property
     def feature_names(self) -> tuple[str, ...]:
@@ -72,10 +168,48 @@ class OrangePeelFeatures(FeatureExtractor):
     def extract(self, trajectory: Trajectory) -> np.ndarray:
         """Features (12,) float64 of one trajectory, all finite."""
         t = trajectory
+        pos, dmg, frames, labels = self._arrays(t)
+        fps = float(t.fps)
+        skin, inner = labels == 0, labels == 1
+        radius = float(t.extra.get("radius", np.ptp(pos[0][:, 0]) / 2 or 1.0))
+        dx = t.extra.get("dx")
+        dx = float(dx) if dx is not None else None
+        sep, mean_d, series_fps = self._series(t, pos, dmg, skin, inner, frames, fps)
+        work = self._work(t)
+
+        times = frames / fps
+        tail = times >= times[-1] - self.config.tail_seconds - 1e-9
+        tail_series = np.arange(len(sep)) / series_fps >= (len(sep) - 1) / series_fps \
+            - self.config.tail_seconds - 1e-9
+        final_sep = float(sep[tail_series].mean())
+        peak = windowed_peak_rate(sep, series_fps, round(self.config.rate_window_seconds * series_fps))
+        to_frames = fps / series_fps  # series index -> frame index (1 when the series is per frame)
+        onset = onset_index(mean_d, self.config.onset_mean_damage) * to_frames
+        half = half_time(sep, final_sep, radius) * to_frames
+
+        first = pos[0]
+        far = away_from_gripper(first, inner, t.extra.get("gripped"), self.config.gripper_exclusion_cells, dx)
+        rows = []
+        for k in np.flatnonzero(tail):
+            x, d = pos[k], dmg[k]
+            disp = np.linalg.norm(x - first, axis=1)
+            rows.append([
+                dispersion(x[skin]), soft_detached(first, x, skin, inner, dx),
+                _mean(disp[inner]), top_mean(disp[far], self.config.top_fraction), dispersion(x[inner]),
+                _mean(d[skin]), _mean(d[inner]),
+            ])
+        ends = np.mean(np.asarray(rows, np.float64), axis=0)
+        out = np.array([final_sep, peak, onset, half, *ends, np.log10(max(work, WORK_FLOOR))], dtype=np.float64)
+        if not np.isfinite(out).all():  # pragma: no cover - guarded above; never return NaN silently
+            raise TrajectoryError(f"non-finite features {dict(zip(FEATURE_NAMES, out, strict=True))}")
+        return out
+
+    # -- inputs ----------------------------------------------------------------------------------
+    @staticmethod
+    def _arrays(t: Trajectory) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         pos = np.asarray(t.positions, dtype=np.float64)
         dmg = np.asarray(t.damage, dtype=np.float64)
         frames = np.asarray(t.frame_indices, dtype=np.float64)
-        labels = np.asarray(t.labels)
         if pos.ndim != 3 or pos.shape[2] != 3 or dmg.shape != pos.shape[:2] or len(frames) != len(pos):
             raise TrajectoryError(f"inconsistent trajectory shapes: positions {pos.shape}, damage {dmg.shape}, "
                                   f"frames {frames.shape}")
@@ -84,68 +218,41 @@ class OrangePeelFeatures(FeatureExtractor):
         if not (np.isfinite(pos).all() and np.isfinite(dmg).all()):
             raise TrajectoryError("trajectory contains non-finite positions or damage; failed runs carry no "
                                   "trajectory and have no features")
-        sel = np.arange(0, len(pos), self.config.frame_stride)
-        if sel[-1] != len(pos) - 1:
-            sel = np.append(sel, len(pos) - 1)
-        pos, dmg, frames = pos[sel], dmg[sel], frames[sel]
-        times = frames / float(t.fps)
-        skin, inner = labels == 0, labels == 1
-        radius = float(t.extra.get("radius", np.ptp(pos[0][:, 0]) / 2 or 1.0))
-
-        sep = np.array([np.linalg.norm(_centroid(p[skin]) - _centroid(p[inner])) for p in pos])
-        final_sep = float(sep[-1])
-        if len(sep) > 1:
-            rates = np.diff(sep) / np.maximum(np.diff(times), 1e-12)
-            peak_rate = float(max(rates.max(), 0.0))
-        else:
-            peak_rate = 0.0
-
-        stride = float(frames[1] - frames[0]) if len(frames) > 1 else 1.0
-        fractured = (dmg >= self.config.onset_damage).mean(axis=1)
-        hit = np.flatnonzero(fractured >= self.config.onset_fraction)
-        onset = float(frames[hit[0]]) if len(hit) else float(frames[-1] + stride)
-
-        rise = sep - sep[0]
-        if rise[-1] <= 1e-3 * radius:
-            half = float(frames[-1])
-        else:
-            k = int(np.flatnonzero(rise >= 0.5 * rise[-1])[0])
-            if k == 0:
-                half = float(frames[0])
-            else:
-                a, b = rise[k - 1], rise[k]
-                frac = (0.5 * rise[-1] - a) / (b - a) if b > a else 1.0
-                half = float(frames[k - 1] + frac * (frames[k] - frames[k - 1]))
-
-        final, first = pos[-1], pos[0]
-        disp = np.linalg.norm(final - first, axis=1)
-        detach = self._detachment(first, final, skin, inner, t)
-
-        def mean(a: np.ndarray) -> float:
-            return float(a.mean()) if a.size else 0.0
-
-        out = np.array([
-            final_sep, peak_rate, onset, half,
-            _dispersion(final[skin]), detach,
-            mean(disp[inner]), float(disp[inner].max()) if inner.any() else 0.0, _dispersion(final[inner]),
-            mean(dmg[-1][skin]), mean(dmg[-1][inner]), mean(disp[skin]),
-        ], dtype=np.float64)
-        if not np.isfinite(out).all():  # pragma: no cover - guarded above; never return NaN silently
-            raise TrajectoryError(f"non-finite features {dict(zip(FEATURE_NAMES, out, strict=True))}")
-        return out
+        return pos, dmg, frames, np.asarray(t.labels)
 
     @staticmethod
-    def _detachment(first: np.ndarray, final: np.ndarray, skin: np.ndarray, inner: np.ndarray,
-                    t: Trajectory) -> float:
-        """Fraction of skin particles farther from every interior particle than any skin particle was
-        at the start, plus half a particle spacing."""
-        if not skin.any() or not inner.any():
-            return 0.0
-        from scipy.spatial import cKDTree
+    def _series(t: Trajectory, pos: np.ndarray, dmg: np.ndarray, skin: np.ndarray, inner: np.ndarray,
+                frames: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray, float]:
+        """(separation, mean damage, series rate in 1/s): every frame when the simulator recorded them,
+        else from the recorded frames (then uniformly spaced recorded frames are required)."""
+        sep = t.extra.get("frame_separation")
+        mean_d = t.extra.get("frame_mean_damage")
+        if sep is not None and mean_d is not None:
+            sep, mean_d = np.asarray(sep, np.float64), np.asarray(mean_d, np.float64)
+            if sep.shape != mean_d.shape or len(sep) != int(frames[-1]) + 1:
+                raise TrajectoryError(f"per-frame series of length {len(sep)}/{len(mean_d)} do not match the "
+                                      f"last recorded frame {int(frames[-1])}")
+            if not (np.isfinite(sep).all() and np.isfinite(mean_d).all()):
+                raise TrajectoryError("non-finite per-frame series")
+            return sep, mean_d, fps
+        steps = np.diff(frames)
+        if len(steps) and not np.allclose(steps, steps[0]):
+            raise TrajectoryError("without per-frame series the recorded frames must be evenly spaced")
+        stride = float(steps[0]) if len(steps) else 1.0
+        sep = np.array([np.linalg.norm(centroid(p[skin]) - centroid(p[inner])) for p in pos])
+        return sep, dmg.mean(axis=1), fps / stride
 
-        d0, _ = cKDTree(first[inner]).query(first[skin])
-        dx = t.extra.get("dx")
-        margin = 0.5 * float(dx) / 2 if dx is not None else 0.25 * float(d0.max())
-        threshold = float(d0.max()) + margin
-        d1, _ = cKDTree(final[inner]).query(final[skin])
-        return float(np.mean(d1 > threshold))
+    @staticmethod
+    def _work(t: Trajectory) -> float:
+        work = t.extra.get("frame_work")
+        if work is None:
+            raise TrajectoryError("peeling_work needs the per-frame gripper work 'frame_work' in the trajectory's "
+                                  "extra (recorded by the orange-peel simulator)")
+        work = np.asarray(work, np.float64)
+        if work.size == 0 or not np.isfinite(work).all():
+            raise TrajectoryError("non-finite or empty gripper work series")
+        return float(work[-1])
+
+
+def _mean(a: np.ndarray) -> float:
+    return float(a.mean()) if a.size else 0.0

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from invphys.core.results import Trajectory
+from invphys.core.results import Trajectory, frame_selection
 
 INTACT = np.array([[1.0, 0.55, 0.0], [1.0, 0.9, 0.15]])     # skin, flesh
 DAMAGED = np.array([[0.5, 0.1, 0.65], [0.0, 0.8, 0.9]])     # skin, flesh
@@ -117,8 +117,9 @@ def write_ply(path: str | Path, points: np.ndarray, damage: np.ndarray, labels: 
 
 def render_trajectory(traj: Trajectory, out: str | Path, *, azim: float = 60.0, elev: float = 30.0,
                       animation: str = "gif", ply: bool = True, size: tuple[int, int] = (640, 480),
-                      fps: float = 6.0) -> dict[str, Any]:
-    """Write ``frame_XXXX.png`` for every recorded frame, an animation and ``.ply`` files under ``out``.
+                      fps: float = 6.0, max_frames: int | None = None) -> dict[str, Any]:
+    """Write ``frame_XXXX.png`` for every recorded frame (at most ``max_frames``, evenly spread, ending on
+    the last), an animation and ``.ply`` files under ``out``.
 
     ``animation`` is ``"gif"``, ``"mp4"`` (needs imageio-ffmpeg) or ``"none"``. Returns the paths.
     """
@@ -134,10 +135,12 @@ def render_trajectory(traj: Trajectory, out: str | Path, *, azim: float = 60.0, 
     dx = traj.extra.get("dx")
     spacing = float(dx) / 2 if dx is not None else particle_spacing(traj.positions[0])
     pngs, plys = [], []
-    for i, frame in enumerate(traj.frame_indices):
+    chosen = range(traj.n_frames) if max_frames is None else frame_selection(traj.n_frames, max_frames)
+    for i in chosen:
+        frame = traj.frame_indices[i]
         colours = particle_colours(traj.labels, traj.damage[i])
         title = f"frame {int(frame)}  t = {frame / traj.fps:.2f} s"
-        g = None if grip is None else np.asarray(grip)[i][None]
+        g = None if grip is None or len(grip) != traj.n_frames else np.asarray(grip)[i][None]
         pngs.append(render_frame(traj.positions[i], colours, out / f"frame_{int(frame):04d}.png", azim=azim,
                                  elev=elev, bounds=bounds, title=title, size=size, extra_points=g,
                                  spacing=spacing))

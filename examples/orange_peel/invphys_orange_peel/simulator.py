@@ -18,6 +18,9 @@ from invphys_orange_peel.parameters import parameter_space
 from invphys_orange_peel.presets import PRESETS, Preset, get_preset
 from invphys_orange_peel.scene import Scene, build_scene
 
+#: default gravity (m/s^2); see docs/orange-peel/physics.md for why it is not -9.81
+GRAVITY = -0.3
+
 
 class OrangePeelSimulator(Simulator):
     """Half an orange peeled by a gripper along a fixed arc, simulated with AnisoMPM-style MPM.
@@ -46,7 +49,12 @@ class OrangePeelSimulator(Simulator):
         velocity_cfl: float = Field(0.3, gt=0, le=10, description="particle-velocity CFL number")
         min_substeps_per_frame: int = Field(4, ge=1, description="dt cap: at least this many substeps/frame")
         max_substeps_per_frame: int = Field(2000, ge=1, description="more than this fails the run")
-        gravity: float = Field(0.0, le=0, description="vertical gravity in m/s^2 (<= 0); off by default")
+        eta_dt_factor: float = Field(0.1, gt=0, le=10, description="dt <= this * min(eta_s, eta_i): damage "
+                                                                    "resolved in time")
+        gravity: float = Field(GRAVITY, le=0, description="vertical gravity in m/s^2 (<= 0)")
+        settle_seconds: float = Field(0.5, ge=0, le=10, description="gravity-only settling before frame 0 "
+                                                                    "(gripper at rest, damage frozen)")
+        l0_cells: float = Field(0.5, gt=0, le=4, description="phase-field length scale l0 in grid cells")
         apic_blend: float = Field(0.0, ge=0, le=1, description="0 = PIC (damped), 1 = APIC")
         gripper: bool = Field(True, description="drive the gripper (False: no load at all)")
         damage: bool = Field(True, description="evolve the phase-field damage")
@@ -93,7 +101,8 @@ class OrangePeelSimulator(Simulator):
     def step_settings(self) -> StepSettings:
         c = self.config
         return StepSettings(cfl=c.cfl, velocity_cfl=c.velocity_cfl, min_substeps_per_frame=c.min_substeps_per_frame,
-                            max_substeps_per_frame=c.max_substeps_per_frame, gravity=c.gravity,
+                            max_substeps_per_frame=c.max_substeps_per_frame, eta_dt_factor=c.eta_dt_factor,
+                            gravity=c.gravity, settle_seconds=c.settle_seconds, l0_cells=c.l0_cells,
                             apic_blend=c.apic_blend, damage_on=c.damage, gripper_on=c.gripper,
                             deterministic=c.deterministic, energy_factor=c.energy_factor)
 
@@ -124,7 +133,7 @@ class OrangePeelSimulator(Simulator):
             records, wall = run_batch(backend, scene, materials.take(idx), self.frames, self.preset.fps,
                                       self.record_every, settings)
             for j, (row, rec) in enumerate(zip(idx, records, strict=True)):
-                stats = RunStats(substeps=rec.substeps, wall_time_s=wall / len(idx),
+                stats = RunStats(substeps=rec.substeps + rec.settle_substeps, wall_time_s=wall / len(idx),
                                  backend=self.config.backend, device=backend.device, preset=self.preset.name,
                                  simulator=self.name, simulator_version=self.version)
                 res = self._result(x[row], rec, stats, batch_wall=wall, batch_size=len(idx), slot=j)
@@ -153,7 +162,34 @@ class OrangePeelSimulator(Simulator):
                 "record_every": self.record_every, "preset": self.preset.name,
                 "max_speed": np.asarray(rec.max_speed, np.float32),
                 "kinetic_energy": np.asarray(rec.kinetic_energy, np.float32),
+                # every frame 0..frames (not only recorded ones): the smooth features read these
+                "frame_separation": np.asarray(rec.separation, np.float64),
+                "frame_mean_damage": np.asarray(rec.mean_damage, np.float64),
+                "frame_work": np.asarray(rec.work, np.float64),
+                "dt": rec.dt, "settle_substeps": rec.settle_substeps, "guard_frames": rec.guard_frames,
                 **extra,
             },
         )
         return SimulationResult(params=params, ok=True, stats=stats, trajectory=traj)
+
+    # -- rendering ----------------------------------------------------------------------------
+    def render(self, trajectory: Trajectory, path: Any, *, max_frames: int = 60, animation: str = "gif",
+               **options: Any) -> Any:
+        """Paper Fig. 3 colours from a fixed orthographic camera (:func:`invphys_orange_peel.render.render_trajectory`).
+
+        Options: ``azim``, ``elev`` (degrees), ``ply`` (write ``.ply`` files), ``size`` ((w, h) pixels),
+        ``fps`` (animation speed).
+        """
+        from pathlib import Path
+
+        from invphys.core.errors import InvphysError
+        from invphys.core.results import Rendering
+        from invphys_orange_peel.render import render_trajectory
+
+        unknown = sorted(set(options) - {"azim", "elev", "ply", "size", "fps"})
+        if unknown:
+            raise InvphysError(f"unknown orange-peel render option(s) {', '.join(unknown)} "
+                               "(known: azim, elev, ply, size, fps)")
+        res = render_trajectory(trajectory, path, max_frames=max_frames, animation=animation, **options)
+        return Rendering(images=[Path(p) for p in res["frames"]], files=[Path(p) for p in res["ply"]],
+                         animation=Path(res["animation"]) if res.get("animation") else None)

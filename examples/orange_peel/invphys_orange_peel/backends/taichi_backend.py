@@ -16,6 +16,7 @@ import numpy as np
 import taichi as ti
 
 from invphys.core.errors import DeviceUnavailableError, InvphysError
+from invphys_orange_peel.failure import N_STATS, STAT_WORK
 
 _init_lock = threading.Lock()
 _initialised_arch: str | None = None
@@ -101,8 +102,8 @@ mat3 = ti.math.mat3
 ND = ti.types.ndarray
 
 # per-run material table columns (float32): see TaichiBackend.load
-M_MU, M_LAM, M_KF, M_MASS, M_SC0, M_SC1, M_ETA0, M_ETA1, M_RES0, M_RES1 = range(10)
-N_MAT = 10
+M_MU, M_LAM, M_KF, M_MASS, M_SC0, M_SC1, M_ETA0, M_ETA1, M_RES0, M_RES1, M_GATE = range(11)
+N_MAT = 11
 
 
 @ti.func
@@ -156,7 +157,8 @@ def _build_kernels(serial_p2g: bool):
                     dev = 2.0 * mu * (sig[a, a] - 1.0) * sig[a, a]
                     vol_t = lam * (J - 1.0) * J
                     tau_d[a] = g * dev + gvol * vol_t
-                    s_pos[a] = ti.max((dev + vol_t) / J, 0.0)
+                    if J > J_MIN:  # an inverted or collapsed particle has no tensile driving force
+                        s_pos[a] = ti.max((dev + vol_t) / J, 0.0)
                 tau = U @ ti.Matrix([[tau_d[0], 0.0, 0.0], [0.0, tau_d[1], 0.0], [0.0, 0.0, tau_d[2]]]) \
                     @ U.transpose()
                 sigp = U @ ti.Matrix([[s_pos[0], 0.0, 0.0], [0.0, s_pos[1], 0.0], [0.0, 0.0, s_pos[2]]]) \
@@ -192,7 +194,7 @@ def _build_kernels(serial_p2g: bool):
     @ti.kernel
     def grid_update(k: ti.i32, gravity: ti.f32, bc: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
                     grip: ND(ti.f32, 3), held: ND(ti.i32, 3), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
-                    gg: ND(ti.f32, 4)):
+                    gg: ND(ti.f32, 4), work: ND(ti.f32, 1)):
         G = gm.shape[1]
         for b, i, j, q in gm:
             m = gm[b, i, j, q]
@@ -200,7 +202,10 @@ def _build_kernels(serial_p2g: bool):
                 vel = gv[b, i, j, q] / m
                 vel[1] += dt[b] * gravity
                 if gg[b, i, j, q] > 0.5 * m:
-                    vel = vec3(grip[b, k, 3], grip[b, k, 4], grip[b, k, 5])
+                    vg = vec3(grip[b, k, 3], grip[b, k, 4], grip[b, k, 5])
+                    # the gripper's impulse on this node, dotted with its velocity: work this substep
+                    work[b] += m * (vg - vel).dot(vg)
+                    vel = vg
                 if held[i, j, q] != 0:
                     vel = vec3(0.0)
                 if i < bc and vel[0] < 0.0:
@@ -248,7 +253,7 @@ def _build_kernels(serial_p2g: bool):
                         hess = hs[i] * w[j][1] * w[q][2] + w[i][0] * hs[j] * w[q][2] \
                             + w[i][0] * w[j][1] * hs[q]
                         lap += (g2[0] / g2[1] - dp) * hess
-                if damage_on != 0:
+                if damage_on != 0 and mat[b, M_GATE] > 0.5:
                     reg = label[p]
                     Dc = dp - l0sq * lap
                     rate = (1.0 - dp) * dtil[b, p] - Dc
@@ -263,14 +268,16 @@ def _build_kernels(serial_p2g: bool):
                     x[b, p] += h * new_v
 
     @ti.kernel
-    def frame_stats(lo: ti.f32, hi: ti.f32, mat: ND(ti.f32, 2), x: ND(vec3, 2), v: ND(vec3, 2),
-                    F: ND(mat3, 2), out: ND(ti.f32, 2)):
+    def frame_stats(lo: ti.f32, hi: ti.f32, ref: vec3, mat: ND(ti.f32, 2), label: ND(ti.i32, 1),
+                    x: ND(vec3, 2), v: ND(vec3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2), out: ND(ti.f32, 2)):
         for b, p in x:
             xp = x[b, p]
             vp = v[b, p]
+            dp = d[b, p]
             s = vp.norm()
             bad = 0
-            if not (s < 1e20) or not (ti.abs(xp).max() < 1e20) or not (ti.abs(F[b, p]).max() < 1e20):
+            if not (s < 1e20) or not (ti.abs(xp).max() < 1e20) or not (ti.abs(F[b, p]).max() < 1e20) \
+                    or not (ti.abs(dp) < 1e20):
                 bad = 1
             if bad != 0:
                 ti.atomic_add(out[b, 2], 1.0)
@@ -279,11 +286,18 @@ def _build_kernels(serial_p2g: bool):
                 ti.atomic_add(out[b, 1], 0.5 * mat[b, M_MASS] * s * s)
                 if xp.min() < lo or xp.max() > hi:
                     ti.atomic_add(out[b, 3], 1.0)
+                rel = xp - ref
+                col = 4 + 3 * label[p]
+                for a in ti.static(range(3)):
+                    ti.atomic_add(out[b, col + a], rel[a])
+                ti.atomic_add(out[b, 10], dp)
 
     return clear_grid, p2g, grid_update, g2p, frame_stats
 
 
 _KERNELS: dict[bool, tuple] = {}
+#: below this volume ratio a particle is treated as inverted: no tensile driving force (audit item 7)
+J_MIN = 1e-6
 
 
 class TaichiBackend:
@@ -319,7 +333,8 @@ class TaichiBackend:
         self.nsub = ti.ndarray(ti.i32, (B,))
         self.dt = ti.ndarray(ti.f32, (B,))
         self.grip = ti.ndarray(ti.f32, (B, 1, 6))
-        self.stats_out = ti.ndarray(ti.f32, (B, 4))
+        self.stats_out = ti.ndarray(ti.f32, (B, N_STATS))
+        self.work = ti.ndarray(ti.f32, (B,))
         self.label = ti.ndarray(ti.i32, (N,))
         self.label.from_numpy(scene.labels.astype(np.int32))
         self.fibre = ti.ndarray(vec3, (N,))
@@ -342,7 +357,10 @@ class TaichiBackend:
         table[:, M_SC0:M_SC1 + 1] = materials.sigma_c
         table[:, M_ETA0:M_ETA1 + 1] = materials.eta
         table[:, M_RES0:M_RES1 + 1] = materials.residual
+        table[:, M_GATE] = 1.0
+        self._table = table
         self.mat.from_numpy(table)
+        self.work.fill(0.0)
         self.x.from_numpy(np.broadcast_to(self.scene.positions.astype(np.float32), (B, N, 3)).copy())
         zeros3 = np.zeros((B, N, 3), np.float32)
         self.v.from_numpy(zeros3)
@@ -350,6 +368,11 @@ class TaichiBackend:
         self.F.from_numpy(np.broadcast_to(np.eye(3, dtype=np.float32), (B, N, 3, 3)).copy())
         self.d.from_numpy(np.zeros((B, N), np.float32))
         self.dtil.from_numpy(np.zeros((B, N), np.float32))
+
+    def set_damage_gate(self, on: bool) -> None:
+        """Let damage evolve (``on``) or freeze it (settling) for every run of the batch."""
+        self._table[:, M_GATE] = 1.0 if on else 0.0
+        self.mat.from_numpy(self._table)
 
     def set_frame(self, dt: np.ndarray, nsub: np.ndarray, grip: np.ndarray) -> None:
         """Per-run dt (B,), substep counts (B,) and gripper table (B, K, 6) for the next frame."""
@@ -370,7 +393,7 @@ class TaichiBackend:
                       self.gripped, self.x, self.v, self.C, self.F, self.d, self.dtil,
                       self.gv, self.gm, self.gd, self.gg)
             self._grid(k, s.gravity, s.boundary_cells, self.nsub, self.dt, self.grip, self.held,
-                       self.gv, self.gm, self.gg)
+                       self.gv, self.gm, self.gg, self.work)
             self._g2p(k, dx, s.l0_cells ** 2, int(s.damage_on), self.nsub, self.dt, self.mat, self.label,
                       self.gripped, self.x0, self.grip, self.x, self.v, self.C, self.F, self.d, self.dtil,
                       self.gv, self.gd)
@@ -388,7 +411,7 @@ class TaichiBackend:
                                        self.fibre, self.gripped, self.x, self.v, self.C, self.F, self.d,
                                        self.dtil, self.gv, self.gm, self.gd, self.gg),
             "grid": lambda k: self._grid(k, s.gravity, s.boundary_cells, self.nsub, self.dt, self.grip,
-                                         self.held, self.gv, self.gm, self.gg),
+                                         self.held, self.gv, self.gm, self.gg, self.work),
             "g2p": lambda k: self._g2p(k, dx, s.l0_cells ** 2, int(s.damage_on), self.nsub, self.dt, self.mat,
                                        self.label, self.gripped, self.x0, self.grip, self.x, self.v, self.C,
                                        self.F, self.d, self.dtil, self.gv, self.gd),
@@ -403,11 +426,17 @@ class TaichiBackend:
                 total[name] += time.perf_counter() - t0
         return {k: v / n_steps for k, v in total.items()}
 
-    def frame_stats(self, lo: float, hi: float) -> np.ndarray:
-        """(B, 4): max speed, kinetic energy, non-finite particle count, particles outside [lo, hi]."""
+    def frame_stats(self, lo: float, hi: float, ref: np.ndarray) -> np.ndarray:
+        """(B, N_STATS) statistics of the frame just simulated (columns: :mod:`..failure`); the
+        gripper-work accumulator is read and reset."""
         self.stats_out.fill(0.0)
-        self._stats(lo, hi, self.mat, self.x, self.v, self.F, self.stats_out)
-        return self.stats_out.to_numpy().astype(np.float64)
+        r = np.asarray(ref, np.float32)
+        self._stats(lo, hi, vec3(float(r[0]), float(r[1]), float(r[2])), self.mat, self.label, self.x, self.v,
+                    self.F, self.d, self.stats_out)
+        out = self.stats_out.to_numpy().astype(np.float64)
+        out[:, STAT_WORK] = self.work.to_numpy().astype(np.float64)
+        self.work.fill(0.0)
+        return out
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         """Positions (B, N, 3) and damage (B, N), float32."""

@@ -21,6 +21,7 @@ import numpy as np
 import warp as wp
 
 from invphys.core.errors import DeviceUnavailableError
+from invphys_orange_peel.failure import N_STATS, STAT_WORK
 
 wp.config.log_level = wp.LOG_WARNING  # no greeting, no per-module load lines
 wp.set_module_options({"enable_backward": False})
@@ -31,8 +32,10 @@ _init_lock = threading.Lock()
 GRAPH_CHUNK = 8
 
 # per-run material table columns (float32): same layout as the Taichi backend
-M_MU, M_LAM, M_KF, M_MASS, M_SC0, M_SC1, M_ETA0, M_ETA1, M_RES0, M_RES1 = range(10)
-N_MAT = 10
+M_MU, M_LAM, M_KF, M_MASS, M_SC0, M_SC1, M_ETA0, M_ETA1, M_RES0, M_RES1, M_GATE = range(11)
+N_MAT = 11
+#: below this volume ratio a particle is treated as inverted: no tensile driving force (audit item 7)
+J_MIN = wp.constant(1.0e-6)
 
 
 def cuda_available() -> bool:
@@ -131,7 +134,8 @@ def _p2g(kstep: wp.array(dtype=wp.int32), dx: float, vol: float, apic: float,
     for a in range(3):
         dev = 2.0 * mu * (sig[a] - 1.0) * sig[a]
         tau_d[a] = g * dev + gvol * vol_t
-        s_pos[a] = wp.max((dev + vol_t) / J, 0.0)
+        if J > J_MIN:  # an inverted or collapsed particle has no tensile driving force
+            s_pos[a] = wp.max((dev + vol_t) / J, 0.0)
     tau = U @ wp.diag(tau_d) @ wp.transpose(U)
     sigp = U @ wp.diag(s_pos) @ wp.transpose(U)
     A = wp.identity(n=3, dtype=wp.float32)
@@ -186,7 +190,7 @@ def grid_update_kernel(kstep: wp.array(dtype=wp.int32), gravity: float, bc: int,
                        nsub: wp.array(dtype=wp.int32), dt: wp.array(dtype=wp.float32),
                        grip: wp.array3d(dtype=wp.float32), held: wp.array3d(dtype=wp.int32),
                        gv: wp.array4d(dtype=wp.vec3), gm: wp.array4d(dtype=wp.float32),
-                       gg: wp.array4d(dtype=wp.float32)):
+                       gg: wp.array4d(dtype=wp.float32), work: wp.array(dtype=wp.float32)):
     b, i, j, q = wp.tid()
     k = kstep[0]
     m = gm[b, i, j, q]
@@ -196,7 +200,10 @@ def grid_update_kernel(kstep: wp.array(dtype=wp.int32), gravity: float, bc: int,
     vel = gv[b, i, j, q] / m
     vel[1] += dt[b] * gravity
     if gg[b, i, j, q] > 0.5 * m:
-        vel = wp.vec3(grip[b, k, 3], grip[b, k, 4], grip[b, k, 5])
+        vg = wp.vec3(grip[b, k, 3], grip[b, k, 4], grip[b, k, 5])
+        # the gripper's impulse on this node, dotted with its velocity: work this substep
+        wp.atomic_add(work, b, m * wp.dot(vg - vel, vg))
+        vel = vg
     if held[i, j, q] != 0:
         vel = wp.vec3(0.0)
     if i < bc and vel[0] < 0.0:
@@ -252,7 +259,7 @@ def g2p_kernel(kstep: wp.array(dtype=wp.int32), dx: float, l0sq: float, damage_o
                 if g2[1] > 0.0:
                     hess = hs[i] * w[j, 1] * w[q, 2] + w[i, 0] * hs[j] * w[q, 2] + w[i, 0] * w[j, 1] * hs[q]
                     lap += (g2[0] / g2[1] - dp) * hess
-    if damage_on != 0:
+    if damage_on != 0 and mat[b, M_GATE] > 0.5:
         reg = label[p]
         Dc = dp - l0sq * lap
         rate = (1.0 - dp) * dtil[b, p] - Dc
@@ -273,12 +280,14 @@ def next_substep_kernel(kstep: wp.array(dtype=wp.int32)):
 
 
 @wp.kernel
-def frame_stats_kernel(lo: float, hi: float, mat: wp.array2d(dtype=wp.float32), x: wp.array2d(dtype=wp.vec3),
+def frame_stats_kernel(lo: float, hi: float, ref: wp.vec3, mat: wp.array2d(dtype=wp.float32),
+                       label: wp.array(dtype=wp.int32), x: wp.array2d(dtype=wp.vec3),
                        v: wp.array2d(dtype=wp.vec3), F: wp.array2d(dtype=wp.mat33),
-                       out: wp.array2d(dtype=wp.float32)):
+                       d: wp.array2d(dtype=wp.float32), out: wp.array2d(dtype=wp.float32)):
     b, p = wp.tid()
     xp = x[b, p]
     vp = v[b, p]
+    dp = d[b, p]
     s = wp.length(vp)
     Fp = F[b, p]
     fmax = wp.float32(0.0)
@@ -286,7 +295,7 @@ def frame_stats_kernel(lo: float, hi: float, mat: wp.array2d(dtype=wp.float32), 
         for j in range(3):
             fmax = wp.max(fmax, wp.abs(Fp[i, j]))
     bad = wp.int32(0)
-    if not (s < 1.0e20) or not (wp.max(wp.abs(xp)) < 1.0e20) or not (fmax < 1.0e20):
+    if not (s < 1.0e20) or not (wp.max(wp.abs(xp)) < 1.0e20) or not (fmax < 1.0e20) or not (wp.abs(dp) < 1.0e20):
         bad = 1
     if bad != 0:
         wp.atomic_add(out, b, 2, 1.0)
@@ -295,6 +304,11 @@ def frame_stats_kernel(lo: float, hi: float, mat: wp.array2d(dtype=wp.float32), 
         wp.atomic_add(out, b, 1, 0.5 * mat[b, M_MASS] * s * s)
         if wp.min(xp) < lo or wp.max(xp) > hi:
             wp.atomic_add(out, b, 3, 1.0)
+        rel = xp - ref
+        col = 4 + 3 * label[p]
+        for a in range(3):
+            wp.atomic_add(out, b, col + a, rel[a])
+        wp.atomic_add(out, b, 10, dp)
 
 
 # --------------------------------------------------------------------------------------------
@@ -343,7 +357,8 @@ class WarpBackend:
             self.nsub = wp.zeros(B, dtype=wp.int32)
             self.dt = wp.zeros(B, dtype=wp.float32)
             self.kstep = wp.zeros(1, dtype=wp.int32)
-            self.stats_out = wp.zeros((B, 4), dtype=wp.float32)
+            self.stats_out = wp.zeros((B, N_STATS), dtype=wp.float32)
+            self.work = wp.zeros(B, dtype=wp.float32)
             self.label = wp.array(scene.labels.astype(np.int32), dtype=wp.int32)
             self.fibre = wp.array(scene.fibres.astype(np.float32), dtype=wp.vec3)
             self.gripped = wp.array((scene.gripped & settings.gripper_on).astype(np.int32), dtype=wp.int32)
@@ -378,13 +393,21 @@ class WarpBackend:
         table[:, M_SC0:M_SC1 + 1] = materials.sigma_c
         table[:, M_ETA0:M_ETA1 + 1] = materials.eta
         table[:, M_RES0:M_RES1 + 1] = materials.residual
+        table[:, M_GATE] = 1.0
+        self._table = table
         self.mat.assign(table)
+        self.work.zero_()
         self.x.assign(self._x_init)
         self.v.zero_()
         self.C.zero_()
         self.F.assign(self._F_init)
         self.d.zero_()
         self.dtil.zero_()
+
+    def set_damage_gate(self, on: bool) -> None:
+        """Let damage evolve (``on``) or freeze it (settling) for every run of the batch."""
+        self._table[:, M_GATE] = 1.0 if on else 0.0
+        self.mat.assign(self._table)
 
     def set_frame(self, dt: np.ndarray, nsub: np.ndarray, grip: np.ndarray) -> None:
         """Per-run dt (B,), substep counts (B,) and gripper table (B, K, 6) for the next frame."""
@@ -414,7 +437,7 @@ class WarpBackend:
         s, G = self.settings, self.scene.preset.grid
         wp.launch(grid_update_kernel, dim=(self.batch, G, G, G), device=self.wp_device, inputs=[
             self.kstep, float(s.gravity), int(s.boundary_cells), self.nsub, self.dt, self.grip, self.held,
-            self.gv, self.gm, self.gg])
+            self.gv, self.gm, self.gg, self.work])
 
     def _g2p(self) -> None:
         s = self.settings
@@ -473,12 +496,18 @@ class WarpBackend:
         return {k: v / n_steps for k, v in total.items()}
 
     # -- read-back ----------------------------------------------------------------------------
-    def frame_stats(self, lo: float, hi: float) -> np.ndarray:
-        """(B, 4): max speed, kinetic energy, non-finite particle count, particles outside [lo, hi]."""
+    def frame_stats(self, lo: float, hi: float, ref: np.ndarray) -> np.ndarray:
+        """(B, N_STATS) statistics of the frame just simulated (columns: :mod:`..failure`); the
+        gripper-work accumulator is read and reset."""
         self.stats_out.zero_()
+        r = np.asarray(ref, np.float32)
         wp.launch(frame_stats_kernel, dim=(self.batch, self.scene.n_particles), device=self.wp_device,
-                  inputs=[float(lo), float(hi), self.mat, self.x, self.v, self.F, self.stats_out])
-        return self.stats_out.numpy().astype(np.float64)
+                  inputs=[float(lo), float(hi), wp.vec3(float(r[0]), float(r[1]), float(r[2])), self.mat,
+                          self.label, self.x, self.v, self.F, self.d, self.stats_out])
+        out = self.stats_out.numpy().astype(np.float64)
+        out[:, STAT_WORK] = self.work.numpy().astype(np.float64)
+        self.work.zero_()
+        return out
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         """Positions (B, N, 3) and damage (B, N), float32."""
