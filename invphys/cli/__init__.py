@@ -12,7 +12,7 @@ import sys
 
 import typer
 
-from invphys.cli.common import debug_enabled, exit_code_for, set_debug
+from invphys.cli.common import configure_logging, debug_enabled, exit_code_for, set_debug
 
 COMMAND_MODULES: tuple[str, ...] = ("core", "dataset", "simulate", "render")
 
@@ -41,8 +41,13 @@ def _root(
     debug: bool = typer.Option(False, "--debug", help="show tracebacks and the back-ends' own log lines"),
     version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
                                  help="print the version and exit"),
+    verbose: int = typer.Option(0, "--verbose", "-v", count=True, show_default=False,
+                                 help="more log lines (-v: debug)"),
+    quiet: int = typer.Option(0, "--quiet", "-q", count=True, show_default=False,
+                               help="fewer log lines (-q: warnings, -qq: errors)"),
 ) -> None:
     set_debug(debug)
+    configure_logging(verbose, quiet)
 
 
 for _name in COMMAND_MODULES:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import json
+import logging
 import os
 import sys
 from collections.abc import Callable
@@ -41,6 +42,28 @@ def set_debug(value: bool) -> None:
 
 def debug_enabled() -> bool:
     return _state["debug"]
+
+
+def configure_logging(verbose: int = 0, quiet: int = 0) -> int:
+    """Send the ``invphys`` loggers to stderr (rich); returns the level set.
+
+    Default INFO (what each stage did); ``-v`` DEBUG; ``-q`` WARNING; ``-qq`` ERROR. Library use
+    (no CLI) keeps Python's defaults: only warnings and errors surface unless the caller configures.
+    """
+    from rich.logging import RichHandler
+
+    level = {-2: logging.ERROR, -1: logging.WARNING, 0: logging.INFO}.get(max(verbose - quiet, -2), logging.DEBUG)
+    logger = logging.getLogger("invphys")
+    for handler in [h for h in logger.handlers if getattr(h, "_invphys_cli", False)]:
+        logger.removeHandler(handler)
+    handler = RichHandler(console=console, show_time=False, show_path=False, show_level=level < logging.INFO,
+                          markup=True, rich_tracebacks=False)
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    handler._invphys_cli = True  # type: ignore[attr-defined]
+    logger.addHandler(handler)
+    logger.setLevel(level)
+    logger.propagate = False
+    return level
 
 
 #: exit status of a user error (bad spec, unknown plugin, out-of-range value, corrupt input)

@@ -49,8 +49,8 @@ class StageContext:
         return logging.getLogger(f"invphys.pipeline.stages.{self.stage}")
 
     def log(self, message: str, level: int = logging.INFO) -> None:
-        """Log ``message`` (rich markup allowed) on the stage's logger."""
-        self.logger.log(level, message)
+        """Log ``<stage>: message`` on the stage's logger."""
+        self.logger.log(level, "%s: %s", self.stage, message)
 
     # -- plugins -------------------------------------------------------------------------------
     def simulator(self) -> Any:
