@@ -6,12 +6,30 @@
 * :class:`~invphys.envs.vec.InverseVecEnv`: ``n_envs`` episodes as a stable-baselines3 ``VecEnv``
   whose step makes ONE batched surrogate call for all its envs.
 
+* :func:`~invphys.envs.inversion.make_inversion_env`: the Gymnasium id ``invphys/Inversion-v0``,
+  registered when this package is imported (``import invphys.envs``; ``gym.make`` then finds it).
+
 Import the submodules directly (they import gymnasium / stable-baselines3).
 """
 
 from __future__ import annotations
 
-__all__ = ["InverseDesignEnv", "InverseTask", "InverseVecEnv"]
+__all__ = ["ENV_IDS", "InverseDesignEnv", "InverseTask", "InverseVecEnv", "register_envs"]
+
+#: Gymnasium ids this package registers, and their entry points
+ENV_IDS: dict[str, str] = {"invphys/Inversion-v0": "invphys.envs.inversion:make_inversion_env"}
+
+
+def register_envs() -> list[str]:
+    """Register :data:`ENV_IDS` with Gymnasium (idempotent); returns the ids now registered."""
+    try:
+        import gymnasium
+    except ImportError:  # the rl extra is not installed: nothing to register
+        return []
+    for env_id, entry_point in ENV_IDS.items():
+        if env_id not in gymnasium.registry:
+            gymnasium.register(id=env_id, entry_point=entry_point, disable_env_checker=False)
+    return list(ENV_IDS)
 
 
 def __getattr__(name: str):  # lazy: keep ``import invphys.envs`` cheap
@@ -28,3 +46,6 @@ def __getattr__(name: str):  # lazy: keep ``import invphys.envs`` cheap
 
         return InverseVecEnv
     raise AttributeError(name)
+
+
+register_envs()

@@ -14,6 +14,8 @@ from invphys.core.standardiser import Standardiser
 ScoreFn = Callable[[np.ndarray, np.ndarray | None], np.ndarray]
 #: goals (n, M) in feature units drawn with a generator
 GoalSampler = Callable[[np.random.Generator, int], np.ndarray]
+#: bound of the observation's standardised features and score (non-finite values are mapped to it)
+OBS_LIMIT = 1e6
 
 
 @dataclass
@@ -66,10 +68,10 @@ class InverseTask:
         return self.dim + self.n_features * (2 if self.goal_conditioned else 1) + 2
 
     def obs_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Lower/upper observation bounds (inf where unbounded)."""
+        """Lower/upper observation bounds (standardised features and the score within +-OBS_LIMIT)."""
         m = self.n_features * (2 if self.goal_conditioned else 1)
-        low = np.concatenate([np.full(self.dim, self.low), np.full(m + 1, -np.inf), [0.0]])
-        high = np.concatenate([np.full(self.dim, self.high), np.full(m + 1, np.inf), [1.0]])
+        low = np.concatenate([np.full(self.dim, self.low), np.full(m + 1, -OBS_LIMIT), [0.0]])
+        high = np.concatenate([np.full(self.dim, self.high), np.full(m + 1, OBS_LIMIT), [1.0]])
         return low.astype(np.float32), high.astype(np.float32)
 
     @property
@@ -89,8 +91,8 @@ class InverseTask:
             parts.append(self.standardise(goals))
         parts += [np.asarray(r, dtype=np.float64).reshape(-1, 1),
                   (np.asarray(t, dtype=np.float64) / self.horizon).reshape(-1, 1)]
-        obs = np.concatenate(parts, axis=1)
-        return np.nan_to_num(obs, nan=0.0, posinf=1e6, neginf=-1e6).astype(np.float32)
+        obs = np.nan_to_num(np.concatenate(parts, axis=1), nan=0.0, posinf=OBS_LIMIT, neginf=-OBS_LIMIT)
+        return np.clip(obs, -OBS_LIMIT, OBS_LIMIT).astype(np.float32)
 
 
 class EpisodeBatch:

@@ -1,0 +1,105 @@
+"""``invphys/Inversion-v0``: registered with Gymnasium, passes its env checker, and means what it says."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+from models_data import smooth
+
+gym = pytest.importorskip("gymnasium")
+
+
+@pytest.fixture(scope="module")
+def surrogate(tmp_path_factory):
+    from invphys.plugins.surrogates.mlp import MLPSurrogate
+
+    theta, y = smooth(96, d=4 + 5, seed=1)
+    model = MLPSurrogate(hidden=(16, 16, 8), max_epochs=8, seed=0)
+    model.fit(theta, y)
+    directory = model.save(tmp_path_factory.mktemp("sur") / "surrogate")
+    return model, directory
+
+
+def _checked(env) -> list[str]:
+    from gymnasium.utils.env_checker import check_env
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(env.unwrapped)
+    return [str(w.message) for w in caught]
+
+
+def test_the_id_is_registered_and_passes_the_env_checker(surrogate) -> None:
+    import invphys.envs
+
+    assert "invphys/Inversion-v0" in gym.registry and invphys.envs.register_envs() == ["invphys/Inversion-v0"]
+    model, directory = surrogate
+    for source in (model, str(directory)):
+        env = gym.make("invphys/Inversion-v0", surrogate=source, horizon=4)
+        assert _checked(env) == []  # no error and not one warning (bounded spaces, seeding, dtypes)
+        assert env.action_space.shape == (9,) and env.observation_space.shape == (9 + 5 + 5 + 2,)
+
+
+def test_a_step_onto_the_goal_scores_one_and_the_reward_is_the_best_at_t(surrogate) -> None:
+    model, _ = surrogate
+    action = np.array([0.4, -0.6, 0.2, 0.0, 1.0, -1.0, 0.3, -0.2, 0.5], dtype=np.float32)
+    goal = model.predict(0.5 + 0.5 * action[None, :].astype(np.float64))[0]
+    env = gym.make("invphys/Inversion-v0", surrogate=model, target=goal, horizon=3)
+    obs, _ = env.reset(seed=0)
+    assert np.allclose(obs[:9], 0.5) and obs[-1] == 0.0
+    obs, reward, terminated, _, info = env.step(action)
+    assert info["score"] == pytest.approx(1.0, abs=1e-6) and reward == 0.0 and not terminated
+    _, reward, terminated, _, _ = env.step(-action)  # away from the goal: worse score
+    _, reward, terminated, truncated, info = env.step(np.zeros(9, dtype=np.float32))
+    assert terminated and not truncated and info["score"] < 0.99
+    assert reward == pytest.approx(1.0, abs=1e-6)  # the sparse reward is the best of the T states
+
+
+def test_goals_are_reachable_predictions_and_seeded(surrogate) -> None:
+    model, _ = surrogate
+    env = gym.make("invphys/Inversion-v0", surrogate=model, goal_samples=64, goal_seed=2)
+    task = env.unwrapped.task
+    a, _ = env.reset(seed=7)
+    b, _ = env.reset(seed=7)
+    c, _ = env.reset(seed=8)
+    goal_part = slice(9 + 5, 9 + 10)
+    assert np.array_equal(a, b) and not np.array_equal(a[goal_part], c[goal_part])
+    # the goal in the observation is one of the surrogate's own predictions (standardised)
+    goal = task.standardiser.inverse(a[goal_part].astype(np.float64))
+    pool = model.predict(np.random.default_rng(2).uniform(0, 1, size=(64, 9)))
+    assert np.min(np.abs(pool - goal).max(axis=1)) < 1e-4 * (1 + np.abs(goal).max())
+
+
+def test_a_latent_space_of_a_bundle(surrogate) -> None:
+    """``bundle=`` searches a bundle's latent box with its scales and kappa (duck-typed bundle of real models)."""
+    from invphys.core.spaces import latent_space, raw_space
+    from invphys.plugins.latents.vae import VAELatent
+
+    model, _ = surrogate
+    theta, y = smooth(96, d=9, seed=1)
+    vae = VAELatent(latent_dim=2, max_epochs=5, warmup_epochs=1)
+    vae.fit(theta, y)
+
+    class Bundle:
+        surrogate, kappa, scales = model, 5.0, np.ones(5)
+
+        def search_space(self, label):
+            return raw_space(9) if label == "raw" else latent_space(vae, name=label)
+
+    env = gym.make("invphys/Inversion-v0", bundle=Bundle(), space="vae", horizon=2)
+    assert _checked(env) == []
+    assert env.action_space.shape == (2,) and env.unwrapped.task.high == pytest.approx(vae.latent_bound)
+
+
+def test_bad_arguments_are_one_clear_error(surrogate) -> None:
+    from invphys.core.errors import InvphysError
+
+    model, _ = surrogate
+    with pytest.raises(InvphysError, match="exactly one of surrogate"):
+        gym.make("invphys/Inversion-v0")
+    with pytest.raises(InvphysError, match="needs a bundle"):
+        gym.make("invphys/Inversion-v0", surrogate=model, space="vae")
+    with pytest.raises(InvphysError, match="no saved surrogate"):
+        gym.make("invphys/Inversion-v0", surrogate="/nonexistent/dir")
