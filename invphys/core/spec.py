@@ -98,6 +98,24 @@ class ReportSection(_Section):
     formats: list[ReportFormat] = Field(default_factory=lambda: list(REPORT_FORMATS))
 
 
+class TrackerSection(_Section):
+    """Where the run's training curves, final metrics and artifacts go (docs/tracking.md).
+
+    ``tracker: none`` is short for ``tracker: {type: none}``.
+    """
+
+    type: Literal["tensorboard", "mlflow", "none"] = Field(
+        "tensorboard", description="tensorboard: event files in OUT/tensorboard; mlflow: an MLflow run; none")
+    tracking_uri: str | None = Field(
+        None, description="mlflow: the tracking store (default $MLFLOW_TRACKING_URI, else sqlite:///OUT/mlflow.db)")
+    experiment: str | None = Field(None, description="mlflow: the experiment's name (default: the spec's name)")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _shorthand(cls, value: Any) -> Any:
+        return {"type": value} if isinstance(value, str) else value
+
+
 class ExperimentSpec(_Section):
     """The whole experiment: which plugin fills each slot, with which config, and which stages run."""
 
@@ -117,6 +135,7 @@ class ExperimentSpec(_Section):
     targets: TargetsSection = Field(default_factory=lambda: TargetsSection())
     validator: PluginBlock | None = None
     report: ReportSection = Field(default_factory=lambda: ReportSection())
+    tracker: TrackerSection = Field(default_factory=lambda: TrackerSection())
 
     @field_validator("name")
     @classmethod
