@@ -33,6 +33,8 @@ class OrangePeelSimulator(Simulator):
 
     name: ClassVar[str] = "orange_peel"
     version: ClassVar[str] = SIMULATOR_VERSION
+    #: settings that change where or how fast runs go, not their results: left out of a run's stored identity
+    identity_ignores: ClassVar[tuple[str, ...]] = ("arch", "allow_cpu_fallback", "batch_size", "deterministic")
 
     class Config(PluginConfig):
         """Settings of the orange-peel simulator."""
