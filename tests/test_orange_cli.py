@@ -42,7 +42,8 @@ def test_simulate_then_render(tmp_path) -> None:
     res = runner.invoke(app, ["render", str(run0), "--out", str(tmp_path / "r2"), "--json"])
     assert res.exit_code == 0, res.output
     info = json.loads(res.stdout)
-    assert info["frames"] == 4 and info["ply"] == 4 and info["animation"].endswith(".gif")
+    assert info["simulator"] == "orange_peel"  # recorded in the trajectory file
+    assert info["images"] == 4 and info["files"] == 4 and info["animation"].endswith(".gif")
     ply = (tmp_path / "r2" / "frame_0015.ply").read_bytes()
     header, _, body = ply.partition(b"end_header\n")
     assert b"element vertex 2112" in header and len(body) == 2112 * 17
@@ -54,13 +55,13 @@ def test_simulate_then_render(tmp_path) -> None:
 
 
 def test_simulate_bad_input_exits_2(tmp_path) -> None:
-    res = runner.invoke(app, ["simulate", "--preset", "tiny", "--arch", "cpu", "--params", '{"sigma_i": 2}',
+    res = runner.invoke(app, ["simulate", "--simulator", "orange_peel", "--preset", "tiny", "--arch", "cpu", "--params", '{"sigma_i": 2}',
                               "--out", str(tmp_path)])
     assert res.exit_code == 2
     assert "sigma_i = 2 is outside its range [0.1, 0.9]" in res.output
-    res = runner.invoke(app, ["simulate", "--preset", "tinyy", "--out", str(tmp_path)])
+    res = runner.invoke(app, ["simulate", "--simulator", "orange_peel", "--preset", "tinyy", "--out", str(tmp_path)])
     assert res.exit_code == 2 and "Did you mean 'tiny'" in res.output
-    res = runner.invoke(app, ["simulate", "--preset", "tiny", "--params", '{"sigma": 0.2}', "--out", str(tmp_path)])
+    res = runner.invoke(app, ["simulate", "--simulator", "orange_peel", "--preset", "tiny", "--params", '{"sigma": 0.2}', "--out", str(tmp_path)])
     assert res.exit_code == 2 and "Did you mean" in res.output
     res = runner.invoke(app, ["render", str(tmp_path / "nothing"), "--out", str(tmp_path / "x")])
     assert res.exit_code == 2 and "no trajectory" in res.output

@@ -53,7 +53,7 @@ def test_trajectory_roundtrip_keeps_arrays_and_extras(tmp_path) -> None:
     with pytest.raises(InvphysError, match="no trajectory"):
         load_trajectory(tmp_path / "missing")
     (tmp_path / "bad.npz").write_bytes(b"not a zip")
-    with pytest.raises(InvphysError, match="not an orange-peel trajectory"):
+    with pytest.raises(InvphysError, match="not a trajectory file"):
         load_trajectory(tmp_path / "bad.npz")
 
 

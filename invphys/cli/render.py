@@ -1,7 +1,8 @@
-"""``invphys render``: PNG frames, an animation and ParaView files of a simulated run."""
+"""``invphys render``: draw a simulated run with its simulator's renderer (``Simulator.render``)."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -9,22 +10,56 @@ import typer
 
 from invphys.cli.common import console, emit, handle_errors
 from invphys.core.errors import InvphysError
+from invphys.core.results import DEFAULT_MAX_FRAMES
 
 
-def render_run(source: Path, out: Path, *, azim: float = 60.0, elev: float = 30.0,
-               animation: str = "gif", ply: bool = True) -> dict[str, Any]:
+def parse_options(items: list[str] | None) -> dict[str, Any]:
+    """``["azim=30", "ply=false"]`` as ``{"azim": 30, "ply": False}`` (values parsed as JSON, else text)."""
+    options: dict[str, Any] = {}
+    for item in items or []:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise InvphysError(f"--option {item!r} is not KEY=VALUE")
+        try:
+            options[key.strip()] = json.loads(text)
+        except json.JSONDecodeError:
+            options[key.strip()] = text
+    return options
+
+
+def _simulator(name: str | None, header: dict[str, Any]) -> Any:
+    """The simulator that drew the run: ``name``, else the one the file records, else the only one installed;
+    built with the recorded config when it is the recorded simulator."""
+    from pydantic import ValidationError
+
+    from invphys import registry
+    from invphys.cli.simulate import default_simulator
+
+    recorded = header.get("simulator") or {}
+    name = name or recorded.get("simulator") or default_simulator(None)
+    block: dict[str, Any] = {"type": name}
+    if recorded.get("simulator") == name:
+        block.update(recorded.get("config") or {})
+    try:
+        return registry.create("simulator", block)
+    except ValidationError:  # the recorded config no longer fits this version: defaults still draw
+        return registry.create("simulator", {"type": name})
+
+
+def render_run(source: Path, out: Path, *, simulator: str | None = None, max_frames: int = DEFAULT_MAX_FRAMES,
+               animation: str = "gif", options: dict[str, Any] | None = None) -> dict[str, Any]:
     """Render a run directory (holding ``trajectory.npz``) or a trajectory ``.npz`` into ``out``."""
+    from invphys.core.trajectory_io import load_trajectory, read_header
+
     if animation not in ("gif", "mp4", "none"):
         raise InvphysError(f"--animation must be gif, mp4 or none, not {animation!r}")
-    try:
-        from invphys_orange_peel.render import render_trajectory
-        from invphys_orange_peel.trajio import load_trajectory
-    except ImportError as exc:
-        raise InvphysError(f"rendering needs the invphys-orange-peel distribution: {exc}") from None
+    if max_frames < 1:
+        raise InvphysError(f"--max-frames must be at least 1, not {max_frames}")
     traj = load_trajectory(source)
-    res = render_trajectory(traj, out, azim=azim, elev=elev, animation=animation, ply=ply)
-    return {"source": str(source), "out": str(out), "frames": len(res["frames"]), "ply": len(res["ply"]),
-            "animation": res.get("animation")}
+    sim = _simulator(simulator, read_header(source))
+    done = sim.render(traj, out, max_frames=max_frames, animation=animation, **(options or {}))
+    return {"source": str(source), "out": str(out), "simulator": sim.name, "images": len(done.images),
+            "files": len(done.files), "animation": None if done.animation is None else str(done.animation)}
 
 
 def register(app: typer.Typer) -> None:
@@ -35,13 +70,18 @@ def register(app: typer.Typer) -> None:
     def render(
         source: Path = typer.Argument(..., help="run directory (with trajectory.npz) or a trajectory .npz"),
         out: Path = typer.Option(..., "--out", help="output directory"),
-        azim: float = typer.Option(60.0, "--azim", help="camera azimuth (degrees)"),
-        elev: float = typer.Option(30.0, "--elev", help="camera elevation (degrees)"),
+        simulator: str | None = typer.Option(None, "--simulator", help="simulator whose renderer draws it "
+                                             "(default: the one recorded in the file, else the only one "
+                                             "installed)"),
+        max_frames: int = typer.Option(DEFAULT_MAX_FRAMES, "--max-frames", help="at most this many frame images"),
         animation: str = typer.Option("gif", "--animation", help="gif, mp4 (needs imageio-ffmpeg) or none"),
-        ply: bool = typer.Option(True, "--ply/--no-ply", help="write .ply files for ParaView"),
+        option: list[str] | None = typer.Option(None, "--option", "-o", help="KEY=VALUE setting of the "
+                                                "simulator's renderer (repeatable; e.g. azim=30)"),
         as_json: bool = typer.Option(False, "--json", help="print the result as JSON"),
     ) -> None:
-        """Render PNG frames, a GIF/MP4 and .ply files of a run (Fig. 3 colours)."""
-        result = render_run(source, out, azim=azim, elev=elev, animation=animation, ply=ply)
+        """Draw a simulated run with its simulator's renderer (frames, an animation, plots)."""
+        result = render_run(source, out, simulator=simulator, max_frames=max_frames, animation=animation,
+                            options=parse_options(option))
         emit(result, as_json, lambda r: console.print(
-            f"wrote {r['frames']} frame(s), {r['ply']} .ply file(s), animation: {r['animation']} -> {r['out']}"))
+            f"{r['simulator']}: wrote {r['images']} image(s), {r['files']} other file(s), "
+            f"animation: {r['animation']} -> {r['out']}"))

@@ -10,6 +10,7 @@ import typer
 
 from invphys.cli.common import console, emit, handle_errors
 from invphys.core.errors import InvphysError
+from invphys.core.results import DEFAULT_MAX_FRAMES
 
 
 def parse_params(text: str | None, space: Any) -> list[dict[str, float]]:
@@ -48,18 +49,41 @@ def _config_error(exc: Exception, what: str) -> InvphysError:
     return InvphysError(str(exc))
 
 
-def run_simulation(simulator: str, params: str | None, out: Path, *, backend: str | None = None,
+def default_simulator(name: str | None) -> str:
+    """``name``, or the only installed simulator when ``name`` is None (else a clear error)."""
+    if name:
+        return name
+    from invphys import registry
+
+    installed = registry.names("simulator")
+    if len(installed) == 1:
+        return installed[0]
+    if not installed:
+        raise InvphysError("no simulator plugin is installed (see docs/writing-a-simulator.md); "
+                           "`invphys plugins` lists what is")
+    raise InvphysError(f"several simulators are installed ({', '.join(installed)}): name one with --simulator")
+
+
+def run_simulation(simulator: str | None, params: str | None, out: Path, *, backend: str | None = None,
                    preset: str | None = None, arch: str | None = None, config: str | None = None,
-                   render: bool = False, extractor: str | None = None) -> dict[str, Any]:
+                   render: bool = False, extractor: str | None = None,
+                   max_frames: int = DEFAULT_MAX_FRAMES) -> dict[str, Any]:
     """Simulate, extract features, write ``out/run_XXX/`` folders and ``out/summary.json``.
 
-    The Python API behind ``invphys simulate``; returns the summary dict.
+    The Python API behind ``invphys simulate``; returns the summary dict. ``simulator`` None picks
+    the only installed simulator. Each run folder holds ``run.json`` and ``trajectory.npz`` (the
+    framework's trajectory file, :mod:`invphys.core.trajectory_io`); with ``render``, ``render/``
+    holds what the simulator's :meth:`~invphys.core.interfaces.Simulator.render` drew (at most
+    ``max_frames`` frames).
     """
     from pydantic import ValidationError
 
     from invphys import registry
+    from invphys.core.trajectory_io import TRAJECTORY_FILE, save_trajectory
 
-    block: dict[str, Any] = {"type": simulator}
+    if max_frames < 1:
+        raise InvphysError(f"--max-frames must be at least 1, not {max_frames}")
+    block: dict[str, Any] = {"type": default_simulator(simulator)}
     if config:
         try:
             extra = json.loads(config)
@@ -84,6 +108,7 @@ def run_simulation(simulator: str, params: str | None, out: Path, *, backend: st
     ex = registry.create("feature_extractor", ex_name) if ex_name else None
     out.mkdir(parents=True, exist_ok=True)
     results = sim.simulate(np.stack(rows))
+    described = sim.describe()
     runs = []
     for i, res in enumerate(results):
         run_dir = out / f"run_{i:03d}"
@@ -91,36 +116,19 @@ def run_simulation(simulator: str, params: str | None, out: Path, *, backend: st
         entry: dict[str, Any] = {"run": run_dir.name, "ok": res.ok, "failure": res.failure,
                                  "params": space.to_mapping(res.params), "stats": res.stats.to_dict()}
         if res.ok and res.trajectory is not None:
-            _save_trajectory(res.trajectory, run_dir)
+            save_trajectory(res.trajectory, run_dir / TRAJECTORY_FILE, simulator=described)
             if ex is not None:
                 entry["features"] = dict(zip(ex.feature_names, map(float, ex.extract(res.trajectory)),
                                              strict=True))
             if render:
-                entry["render"] = _render(res.trajectory, run_dir / "render")
+                done = sim.render(res.trajectory, run_dir / "render", max_frames=max_frames)
+                entry["render"] = {"animation": None if done.animation is None else str(done.animation),
+                                   "images": len(done.images), "dir": str(run_dir / "render")}
         (run_dir / "run.json").write_text(json.dumps(entry, indent=2, default=str))
         runs.append(entry)
-    summary = {"simulator": sim.describe(), "extractor": ex_name, "runs": runs}
+    summary = {"simulator": described, "extractor": ex_name, "runs": runs}
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     return summary
-
-
-def _save_trajectory(traj: Any, run_dir: Path) -> None:
-    try:
-        from invphys_orange_peel.trajio import save_trajectory
-    except ImportError:  # a simulator from another distribution: plain npz
-        import numpy as np
-
-        np.savez_compressed(run_dir / "trajectory.npz", positions=traj.positions, damage=traj.damage,
-                            labels=traj.labels, frame_indices=traj.frame_indices, fps=traj.fps)
-        return
-    save_trajectory(traj, run_dir / "trajectory.npz")
-
-
-def _render(traj: Any, out: Path) -> dict[str, Any]:
-    from invphys_orange_peel.render import render_trajectory
-
-    res = render_trajectory(traj, out)
-    return {"animation": res.get("animation"), "frames": len(res["frames"]), "dir": str(out)}
 
 
 def _print(summary: dict[str, Any]) -> None:
@@ -148,7 +156,8 @@ def register(app: typer.Typer) -> None:
     @app.command("simulate")
     @handle_errors
     def simulate(
-        simulator: str = typer.Option("orange_peel", "--simulator", help="simulator plugin name"),
+        simulator: str | None = typer.Option(None, "--simulator", help="simulator plugin name (default: the "
+                                             "only installed simulator)"),
         params: str | None = typer.Option(None, "--params", help="JSON object, JSON list of objects, or a "
                                           "JSON file; missing parameters take the centre of the space"),
         out: Path = typer.Option(..., "--out", help="output directory (run_XXX/ folders, summary.json)"),
@@ -156,12 +165,14 @@ def register(app: typer.Typer) -> None:
         preset: str | None = typer.Option(None, "--preset", help="simulator preset (e.g. tiny, quick, paper)"),
         arch: str | None = typer.Option(None, "--arch", help="cpu, cuda or auto"),
         config: str | None = typer.Option(None, "--config", help="extra simulator settings as a JSON object"),
-        render: bool = typer.Option(False, "--render", help="also write PNG frames, a GIF and .ply files"),
+        render: bool = typer.Option(False, "--render", help="also draw each run with the simulator's renderer"),
+        max_frames: int = typer.Option(DEFAULT_MAX_FRAMES, "--max-frames", help="at most this many frame "
+                                       "images per run with --render"),
         as_json: bool = typer.Option(False, "--json", help="print the summary as JSON"),
     ) -> None:
         """Simulate parameter vectors, save trajectories and print their features."""
         summary = run_simulation(simulator, params, out, backend=backend, preset=preset, arch=arch,
-                                 config=config, render=render)
+                                 config=config, render=render, max_frames=max_frames)
         emit(summary, as_json, _print)
         if not all(r["ok"] for r in summary["runs"]):
             raise typer.Exit(1)

@@ -27,7 +27,9 @@ from pydantic import BaseModel, ConfigDict
 
 from invphys.core.params import ParameterSpace
 from invphys.core.results import (
+    DEFAULT_MAX_FRAMES,
     OptimizationResult,
+    Rendering,
     SimulationResult,
     Trajectory,
     ValidationRecord,
@@ -74,7 +76,8 @@ class Simulator(Plugin):
     """
 
     kind: ClassVar[str] = "simulator"
-    #: Version string recorded with every run (change it when results change).
+    #: Version string recorded with every run and part of its stored identity: bump it whenever the
+    #: same parameters and config can give different results (physics, numerics, features' inputs).
     version: ClassVar[str] = "0"
 
     @abstractmethod
@@ -98,6 +101,29 @@ class Simulator(Plugin):
     def describe(self) -> dict[str, Any]:
         """Provenance recorded with datasets (name, version, config)."""
         return {"simulator": self.name, "version": self.version, "config": self.config.model_dump()}
+
+    def render(self, trajectory: Trajectory, path: str | Path, *, max_frames: int = DEFAULT_MAX_FRAMES,
+               animation: str = "gif", **options: Any) -> Rendering:
+        """Draw ``trajectory`` into the directory ``path``; optional, override it to draw your own.
+
+        Used by ``invphys simulate --render``, ``invphys render`` and the report (which asks for
+        ``max_frames=1``: the final state). Write at most ``max_frames`` frame images (evenly spread,
+        ending on the last frame: :func:`~invphys.core.results.frame_selection`), plus at most one
+        summary image; ``animation`` is ``"gif"``, ``"mp4"`` or ``"none"``. ``options`` are your own
+        keyword settings (``invphys render --option key=value``); reject ones you do not know with an
+        :class:`~invphys.core.errors.InvphysError`.
+
+        This default draws particle frames as x-y scatters coloured by damage and plots every time
+        series (:func:`invphys.core.trajectory_plot.render_trajectory`); it takes no ``options``.
+        """
+        if options:
+            from invphys.core.errors import InvphysError
+
+            raise InvphysError(f"simulator {self.name!r} renders with the generic renderer, which takes no "
+                               f"options (got {', '.join(sorted(options))})")
+        from invphys.core.trajectory_plot import render_trajectory
+
+        return render_trajectory(trajectory, path, max_frames=max_frames, animation=animation, title=self.name)
 
 
 class FeatureExtractor(Plugin):

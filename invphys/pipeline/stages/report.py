@@ -8,16 +8,17 @@ Writes under ``OUT/report/`` (formats from ``report.formats``):
 * ``report.csv`` / ``report.json``: every (optimiser, problem) row with its validation numbers;
 * ``recovery.png``: mean R_surr vs R_actual per optimiser (targets) and best-so-far R against
   evaluations (log scale);
-* ``renders/tNN.png``: the target's and the recovered peel's last frames side by side, drawn with the
-  simulator's renderer when it offers one (a ``render(trajectory, path)`` method, or ``render_frame`` and
-  ``particle_colours`` in its package's ``render`` module, as the orange peel has), else a generic
-  particle scatter coloured by damage.
+* ``renders/tNN.png``: the target's and the recovered run's final states side by side, each drawn by
+  the simulator's :meth:`~invphys.core.interfaces.Simulator.render` with ``max_frames=1`` (runs with
+  particle frames, or a simulator with its own renderer);
+* ``renders/tNN_series.png``: the target's and the recovered run's time series overlaid, one panel per
+  series they share.
 """
 
 from __future__ import annotations
 
-import importlib
 import math
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -87,7 +88,7 @@ def _md_table(header: list[str], rows: list[list[Any]]) -> list[str]:
 
 
 def markdown(ctx_name: str, merged: list[dict[str, Any]], targets: dict[str, Any], plot: str | None,
-             renders: list[tuple[int, str]]) -> str:
+             renders: list[tuple[int, str, str]]) -> str:
     lines = [f"# Inverse recovery report: {ctx_name}", ""]
     n_t = len(targets["rows"])
     lines += [f"{n_t} held-out targets ({targets['selection']} selection from the test partition), the first "
@@ -115,9 +116,9 @@ def markdown(ctx_name: str, merged: list[dict[str, Any]], targets: dict[str, Any
                            [[r["optimizer"], r["evaluations"], r["r_surrogate"], r["r_actual"], r["gap"],
                              r["wall_time_s"], r["failure"] or ("" if r["validated"] else "not validated")]
                             for r in sel])
-        for kk, path in renders:
+        for kk, path, caption in renders:
             if kk == k:
-                lines += ["", f"![target {k}: target vs recovered]({path})"]
+                lines += ["", f"![target {k}: {caption}]({path})"]
         lines.append("")
     objs = sorted({r["problem_id"] for r in merged if r["problem"] == "objective"})
     if objs:
@@ -170,43 +171,27 @@ def plot_recovery(merged: list[dict[str, Any]], path: Path) -> Path | None:
     return path
 
 
-class _Frame:
-    """A saved last frame (validate stage) that looks like a one-frame Trajectory."""
+def render_final_state(simulator: Any, traj: Any, path: Path, title: str) -> Path | None:
+    """Draw a trajectory's final state to the PNG ``path`` with ``simulator.render(..., max_frames=1)``
+    (the generic renderer when ``simulator`` is None); None when there is nothing to draw (a run without
+    particles whose simulator has no renderer of its own: its series are plotted instead)."""
+    from invphys.core.interfaces import Simulator
+    from invphys.core.trajectory_plot import render_trajectory
 
-    def __init__(self, npz: Path) -> None:
-        from invphys.core.results import Trajectory
-
-        with np.load(npz) as f:
-            self.traj = Trajectory(positions=f["positions"][None], damage=f["damage"][None], labels=f["labels"],
-                                   frame_indices=np.array([int(f["frame"])]), fps=float(f["fps"]))
-
-
-def render_frame(simulator: Any, traj: Any, path: Path, title: str) -> Path:
-    """Draw a trajectory's last frame with the simulator's renderer, else a generic scatter."""
-    fn = getattr(simulator, "render", None)
-    if callable(fn):
-        fn(traj, path)
-        return path
-    if simulator is not None:
-        package = type(simulator).__module__.rsplit(".", 1)[0]
-        try:
-            mod = importlib.import_module(f"{package}.render")
-            colours = mod.particle_colours(traj.labels, traj.damage[-1])
-            return Path(mod.render_frame(traj.positions[-1], colours, path, title=title, size=(480, 400)))
-        except (ImportError, AttributeError):
-            pass
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    pos = np.asarray(traj.positions[-1], dtype=np.float64)
-    fig, ax = plt.subplots(figsize=(4.8, 4))
-    ax.scatter(pos[:, 0], pos[:, 1], c=np.asarray(traj.damage[-1]), cmap="plasma", vmin=0, vmax=1, s=4)
-    ax.set_title(title)
-    ax.set_aspect("equal", adjustable="datalim")
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    own = simulator is not None and type(simulator).render is not Simulator.render
+    if not (own or traj.has_particles):
+        return None
+    tmp = path.parent / f".{path.stem}.tmp"
+    try:
+        if own:
+            done = simulator.render(traj, tmp, max_frames=1, animation="none")
+        else:
+            done = render_trajectory(traj, tmp, max_frames=1, animation="none", title=title)
+        if not done.images:
+            return None
+        shutil.copyfile(done.images[0], path)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
     return path
 
 
@@ -228,7 +213,10 @@ def side_by_side(left: Path, right: Path, path: Path, titles: tuple[str, str]) -
     return path
 
 
-def _renders(ctx: Any, out_dir: Path) -> list[tuple[int, str]]:
+def _renders(ctx: Any, out_dir: Path) -> list[tuple[int, str, str]]:
+    from invphys.core.trajectory_io import load_trajectory
+    from invphys.core.trajectory_plot import plot_series
+
     src = ctx.stage_dir_of("validate") / "renders"
     if not ctx.spec.report.render or not src.is_dir():
         return []
@@ -236,7 +224,7 @@ def _renders(ctx: Any, out_dir: Path) -> list[tuple[int, str]]:
         simulator = ctx.simulator()
     except Exception:  # a simulator that cannot be built here still gets the generic renderer
         simulator = None
-    done = []
+    done: list[tuple[int, str, str]] = []
     for tgt in sorted(src.glob("t*_target.npz")):
         k = int(tgt.name[1:3])
         rec = src / f"t{k:02d}_recovered.npz"
@@ -244,11 +232,16 @@ def _renders(ctx: Any, out_dir: Path) -> list[tuple[int, str]]:
             continue
         d = out_dir / "renders"
         d.mkdir(parents=True, exist_ok=True)
-        a = render_frame(simulator, _Frame(tgt).traj, d / f"t{k:02d}_target_frame.png", f"target {k}")
-        b = render_frame(simulator, _Frame(rec).traj, d / f"t{k:02d}_recovered_frame.png", f"recovered {k}")
-        side_by_side(a, b, d / f"t{k:02d}.png", (f"target {k} (ground-truth parameters)",
-                                                 "recovered (best validated optimiser)"))
-        done.append((k, f"renders/t{k:02d}.png"))
+        target, recovered = load_trajectory(tgt), load_trajectory(rec)
+        a = render_final_state(simulator, target, d / f"t{k:02d}_target_frame.png", f"target {k}")
+        b = render_final_state(simulator, recovered, d / f"t{k:02d}_recovered_frame.png", f"recovered {k}")
+        if a is not None and b is not None:
+            side_by_side(a, b, d / f"t{k:02d}.png", (f"target {k} (ground-truth parameters)",
+                                                     "recovered (best validated optimiser)"))
+            done.append((k, f"renders/t{k:02d}.png", "target vs recovered"))
+        if plot_series({"target": target, "recovered": recovered}, d / f"t{k:02d}_series.png",
+                       title=f"target {k}: time series") is not None:
+            done.append((k, f"renders/t{k:02d}_series.png", "time series, target vs recovered"))
     return done
 
 
@@ -282,5 +275,5 @@ def run(ctx: Any) -> dict[str, Any]:
                                          "rows": flat, "targets": targets})
         files.append("report.json")
     ctx.log(f"wrote {', '.join(files)} to {out}")
-    return {"files": files, "plot": plot.name if plot else None, "renders": [p for _, p in renders],
+    return {"files": files, "plot": plot.name if plot else None, "renders": [p for _, p, _ in renders],
             "summary": summ}

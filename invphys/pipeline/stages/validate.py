@@ -7,9 +7,11 @@ Delta = R_surr - R_actual, the actual features, the failure reason of a failed r
 wall time. For objective rows R is the named objective's score instead of R_gt. Identical theta* are
 simulated once.
 
-With ``report.render`` on, the last frame of the best-recovered run of the first ``RENDER_TARGETS``
-targets is kept, and each such target's ground-truth parameters are simulated too, so that the report
-can show target and recovered peels side by side (``renders/tNN_target.npz``, ``tNN_recovered.npz``).
+With ``report.render`` on, the best-recovered run of the first ``RENDER_TARGETS`` targets is kept
+(every time series whole, particle frames reduced to the last one), and each such target's ground-truth
+parameters are simulated too, so that the report can draw target and recovered runs side by side and
+plot their time series (``renders/tNN_target.npz``, ``tNN_recovered.npz``: framework trajectory files,
+:mod:`invphys.core.trajectory_io`).
 Writes ``validation.json`` and ``validation.csv``.
 """
 
@@ -132,8 +134,10 @@ def _predicted(chosen: list[dict[str, Any]], idx: list[int]) -> np.ndarray:
 
 
 def _save_frame(path: Any, traj: Any) -> None:
-    np.savez_compressed(path, positions=np.asarray(traj.positions[-1]), damage=np.asarray(traj.damage[-1]),
-                        labels=np.asarray(traj.labels), frame=int(traj.frame_indices[-1]), fps=float(traj.fps))
+    """Keep a run's time series whole and its last particle frame (if any) in a trajectory file."""
+    from invphys.core.trajectory_io import save_trajectory
+
+    save_trajectory(traj.last_frame(), path)
 
 
 def _renders(ctx: Any, chosen: list[dict[str, Any]], out: list[dict[str, Any]], inverse: np.ndarray, sim: Any,
