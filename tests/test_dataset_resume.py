@@ -69,9 +69,9 @@ def test_sigkill_mid_run_then_resume_stores_every_row_exactly_once(tmp_path) -> 
     assert summary["complete"] and summary["total_rows"] == N
 
     df = pd.read_parquet(out)
-    space = ToyOscillator().parameter_space()
-    expected = row_keys(round_theta(sample_unit(N, space.dim, "sobol", 3)),
-                        RunIdentity("toy_oscillator", "tiny", "numpy", "1"))
+    sim = ToyOscillator(substeps=1, raise_c_above=0.7, sleep_s=0.06)
+    space = sim.parameter_space()
+    expected = row_keys(round_theta(sample_unit(N, space.dim, "sobol", 3)), RunIdentity.of(sim))
     assert len(df) == N and sorted(df["key"]) == sorted(expected)  # every row exactly once
     failed = df[df["status"] == "failed"]
     assert failed["failure"].str.startswith("RuntimeError: toy oscillator exploded").any()
@@ -83,7 +83,7 @@ def test_sigkill_mid_run_then_resume_stores_every_row_exactly_once(tmp_path) -> 
 
     # an uninterrupted run stores the same rows with the same features (resuming changes nothing)
     ref = tmp_path / "ref"
-    generate_dataset(ref, {"type": SIM, "substeps": 1, "raise_c_above": 0.7}, n=N, batch_size=4,
+    generate_dataset(ref, {"type": SIM, "substeps": 1, "raise_c_above": 0.7, "sleep_s": 0.06}, n=N, batch_size=4,
                      sampler="sobol", seed=3, progress=False)
     a, b = DatasetStore(out).arrays(ok_only=False), DatasetStore(ref).arrays(ok_only=False)
     assert a.fingerprint == b.fingerprint

@@ -1,18 +1,26 @@
-"""The dataset store: append-only, crash-safe Parquet parts plus a JSON metadata file.
+"""The dataset store: append-only, crash-safe Parquet parts, a manifest, and a JSON metadata file.
 
 A store is a directory::
 
     DIR/_metadata.json                 provenance, parameter space, feature names, sessions, totals
+    DIR/_manifest.json                 every committed part: name, rows, bytes, sha256
     DIR/part-000000-1a2b3c4d.parquet   one part per flushed batch of rows (never rewritten)
     DIR/part-000001-....parquet
-    DIR/.lock                          held (flock) by the one process appending
+    DIR/_quarantine/                   parts set aside by ``invphys dataset verify --repair``
+    DIR/.lock                          held by the one process appending
 
-``pandas.read_parquet(DIR)`` reads every row (files starting with ``.`` or ``_`` are skipped by
-pyarrow, which is why the metadata file is ``_metadata.json``). Each part is written under a temporary
-name, fsynced and renamed atomically, so a reader never sees half a part and a killed writer loses
-only the rows it had not flushed. Every row carries a key: a stable hash of its normalised parameters
-(rounded to :data:`KEY_DECIMALS` decimals), the simulator's name, preset, backend and version. A re-run
-skips the keys already present, so it resumes instead of duplicating.
+``pandas.read_parquet(DIR)``, ``pyarrow.dataset.dataset(DIR)``, polars and duckdb read every row (files and
+folders starting with ``.`` or ``_`` are skipped). Each part is written under a temporary name, fsynced and
+renamed atomically, then recorded in the manifest (also atomically), so a reader never sees half a part
+and a killed writer loses only the rows it had not flushed. Each part's Parquet schema metadata carries
+the store's provenance (key ``invphys``).
+
+Every row carries a key: a stable hash of its normalised parameters (rounded to :data:`KEY_DECIMALS`
+decimals) and the :class:`RunIdentity` (simulator name, preset, backend, version and a hash of its full
+config). A re-run skips the keys already present, so it resumes instead of duplicating; a key is never
+stored twice. Readers through this API check the store against its manifest on every open and refuse
+(naming them) missing, corrupt, foreign or duplicated parts; :meth:`DatasetStore.verify` lists them and
+:meth:`DatasetStore.repair` quarantines them and rebuilds the manifest.
 """
 
 from __future__ import annotations
@@ -21,9 +29,11 @@ import contextlib
 import hashlib
 import json
 import os
+import re
+import shutil
 import uuid
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -35,8 +45,15 @@ from invphys.core.errors import InvphysError
 from invphys.core.results import SimulationResult
 
 FORMAT = "invphys-dataset/1"
+MANIFEST_FORMAT = "invphys-manifest/1"
 METADATA_FILE = "_metadata.json"
+MANIFEST_FILE = "_manifest.json"
+QUARANTINE_DIR = "_quarantine"
 LOCK_FILE = ".lock"
+#: largest ``_metadata.json`` / ``_manifest.json`` read (bytes)
+MAX_JSON_BYTES = 64 << 20
+#: Parquet schema-metadata key holding the store's provenance in each part
+SCHEMA_KEY = b"invphys"
 KEY_DECIMALS = 10
 #: row columns besides theta_*, p_* and f_* (in order)
 META_COLUMNS: tuple[str, ...] = ("status", "failure", "wall_time_s", "substeps", "simulator",
@@ -50,24 +67,41 @@ class DatasetError(InvphysError):
 
 @dataclass(frozen=True)
 class RunIdentity:
-    """What, besides the parameters, makes two simulation runs the same run (part of each row key)."""
+    """What, besides the parameters, makes two simulation runs the same run (part of each row key).
+
+    ``config`` is a hash of the simulator's whole ``Config`` (:func:`config_hash`), so rows made with
+    other settings are never reused; fields a simulator lists in its ``identity_ignores`` class
+    attribute (e.g. the device) do not count. An empty ``config`` gives the keys of stores made before
+    the config was part of the identity.
+    """
 
     simulator: str
     preset: str = ""
     backend: str = ""
     version: str = ""
+    config: str = ""
 
     @classmethod
     def of(cls, simulator: Any) -> RunIdentity:
-        """The identity of a :class:`~invphys.core.interfaces.Simulator` instance (its configured
-        ``preset`` and ``backend`` fields when its Config has them)."""
+        """The identity of a :class:`~invphys.core.interfaces.Simulator` instance."""
         cfg = getattr(simulator, "config", None)
         return cls(simulator=str(simulator.name), preset=str(getattr(cfg, "preset", "") or ""),
-                   backend=str(getattr(cfg, "backend", "") or ""), version=str(simulator.version))
+                   backend=str(getattr(cfg, "backend", "") or ""), version=str(simulator.version),
+                   config=config_hash(cfg, getattr(simulator, "identity_ignores", ())))
 
     def to_dict(self) -> dict[str, str]:
         return {"simulator": self.simulator, "preset": self.preset, "backend": self.backend,
-                "version": self.version}
+                "version": self.version, "config": self.config}
+
+
+def config_hash(config: Any, ignore: Sequence[str] = ()) -> str:
+    """A stable 16-hex-digit hash of a pydantic config's JSON dump (minus ``ignore``); ``""`` for None."""
+    if config is None:
+        return ""
+    dump = config.model_dump(mode="json") if hasattr(config, "model_dump") else dict(config)
+    dump = {k: v for k, v in dump.items() if k not in set(ignore)}
+    blob = json.dumps(dump, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
 def round_theta(theta: np.ndarray) -> np.ndarray:
@@ -82,6 +116,8 @@ def row_key(theta_row: Sequence[float] | np.ndarray, identity: RunIdentity) -> s
     """
     values = ",".join(f"{v:.{KEY_DECIMALS}f}" for v in round_theta(np.asarray(theta_row)).ravel())
     text = f"{identity.simulator}|{identity.preset}|{identity.backend}|{identity.version}|{values}"
+    if identity.config:
+        text += f"|config={identity.config}"
     return hashlib.sha256(text.encode()).hexdigest()[:24]
 
 
@@ -154,12 +190,62 @@ def _utcnow() -> str:
     return datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
+@dataclass
+class PartProblem:
+    """One thing wrong with a store's parts (see :meth:`DatasetStore.verify`).
+
+    ``kind`` is ``missing`` (listed, absent), ``corrupt`` (unreadable, or bytes differ from the
+    manifest), ``foreign`` (another store's or another program's rows), ``duplicate`` (rows already
+    stored by another part) or ``unlisted`` (a good part the manifest does not name: a writer killed
+    between writing it and recording it).
+    """
+
+    part: str
+    kind: str
+    detail: str
+    rows: int | None = None
+
+    def text(self) -> str:
+        rows = f", {self.rows} rows" if self.rows is not None else ""
+        return f"{self.part}: {self.kind} ({self.detail}{rows})"
+
+
+@dataclass
+class VerifyReport:
+    """What :meth:`DatasetStore.verify` found (JSON-ready through :meth:`to_dict`)."""
+
+    path: str
+    parts: int
+    rows: int
+    problems: list[PartProblem]
+    has_manifest: bool = True
+    actions: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems and self.has_manifest
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"path": self.path, "ok": self.ok, "parts": self.parts, "rows": self.rows,
+                "has_manifest": self.has_manifest, "problems": [asdict(p) for p in self.problems],
+                "actions": self.actions}
+
+
+@dataclass
+class _Part:
+    name: str
+    table: Any = None
+    sha256: str = ""
+    nbytes: int = 0
+
+
 class DatasetStore:
     """An append-only store of simulation rows in ``path`` (see the module docstring)."""
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
-        self._lock_fd: int | None = None
+        self._lock: Any = None
+        self._keys: set[str] | None = None
 
     def __repr__(self) -> str:
         return f"DatasetStore({str(self.path)!r})"
@@ -170,19 +256,26 @@ class DatasetStore:
         return self.path / METADATA_FILE
 
     @property
+    def manifest_path(self) -> Path:
+        return self.path / MANIFEST_FILE
+
+    @property
     def exists(self) -> bool:
         return self.metadata_path.is_file()
 
     @property
     def metadata(self) -> dict[str, Any]:
-        """The parsed ``_metadata.json`` (raises :class:`DatasetError` when there is no store)."""
+        """The parsed, shape-checked ``_metadata.json`` (:class:`DatasetError` when absent or malformed)."""
+        if self.path.exists() and not self.path.is_dir():
+            raise DatasetError(f"{str(self.path)!r} is a file, not a dataset directory")
         if not self.exists:
             hint = " (it has Parquet files but no _metadata.json)" if self.parts() else ""
             raise DatasetError(f"no invphys dataset at {str(self.path)!r}{hint}")
-        try:
-            return json.loads(self.metadata_path.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise DatasetError(f"cannot read {self.metadata_path}: {exc}") from exc
+        meta = _read_json(self.metadata_path)
+        problem = _metadata_problem(meta)
+        if problem:
+            raise DatasetError(f"{self.metadata_path} is malformed: {problem}")
+        return meta
 
     def write_metadata(self, metadata: dict[str, Any]) -> None:
         """Replace ``_metadata.json`` atomically (temp file, fsync, rename)."""
@@ -198,101 +291,260 @@ class DatasetStore:
     def feature_names(self) -> tuple[str, ...]:
         return tuple(self.metadata["feature_names"])
 
+    @property
+    def manifest(self) -> dict[str, Any] | None:
+        """The parsed ``_manifest.json``, or None for a store written before manifests existed."""
+        if not self.manifest_path.exists():
+            return None
+        data = _read_json(self.manifest_path)
+        parts = data.get("parts") if isinstance(data, dict) else None
+        if not isinstance(parts, list) or not all(
+                isinstance(p, dict) and isinstance(p.get("name"), str) and _PART_RE.match(p["name"])
+                and isinstance(p.get("sha256"), str) and isinstance(p.get("rows"), int) for p in parts):
+            raise DatasetError(f"{self.manifest_path} is malformed; `invphys dataset verify {self.path} --repair` "
+                               "rebuilds it from the parts")
+        return data
+
+    def _write_manifest(self, parts: list[dict[str, Any]]) -> None:
+        write_json(self.manifest_path, {"format": MANIFEST_FORMAT, "parts": parts,
+                                        "rows": int(sum(p["rows"] for p in parts)), "updated_at": _utcnow()})
+
     # -- writing -------------------------------------------------------------------------------
     def create_or_check(self, metadata: dict[str, Any]) -> dict[str, Any]:
         """Create the store with ``metadata``, or check that an existing store is compatible.
 
         ``metadata`` must hold ``identity``, ``param_names`` and ``feature_names``; an existing store
-        whose values differ raises :class:`DatasetError` (one store holds one kind of run).
+        whose values differ raises :class:`DatasetError` (one store holds one kind of run). An existing
+        store is also checked against its manifest (a part a killed writer did not record is adopted).
         Returns the store's metadata.
         """
         if not self.exists:
+            if self.path.exists() and not self.path.is_dir():
+                raise DatasetError(f"{str(self.path)!r} is a file; choose a new or empty directory")
             if self.path.exists() and any(p for p in self.path.iterdir() if not p.name.startswith(".")):
                 raise DatasetError(f"{str(self.path)!r} exists and is not an invphys dataset; "
                                    "choose an empty or new directory")
             meta = {"format": FORMAT, "created_at": _utcnow(), "key_decimals": KEY_DECIMALS,
                     "sessions": [], **metadata}
+            self._write_manifest([])
             self.write_metadata(meta)
+            self._keys = set()
             return meta
         meta = self.metadata
         for field_name in ("identity", "param_names", "feature_names"):
             have, want = meta.get(field_name), metadata.get(field_name)
             if have != want:
+                if field_name == "identity" and isinstance(have, dict) and not have.get("config") \
+                        and isinstance(want, dict) and want.get("config"):
+                    raise DatasetError(
+                        f"the dataset at {str(self.path)!r} was made before run identities included the "
+                        "simulator's config, so its rows cannot be matched to these settings; generate into "
+                        "a new directory (the old store stays readable as dataset.path)")
                 raise DatasetError(
                     f"the dataset at {str(self.path)!r} holds runs with {field_name} = {have}, "
                     f"but this generation has {field_name} = {want}; write to another directory"
                 )
+        self._recover()
         return meta
 
     @contextlib.contextmanager
     def writer(self) -> Iterator[DatasetStore]:
         """Hold the store's write lock (one appending process at a time) and clear stale temp files."""
-        import fcntl
+        from filelock import FileLock, Timeout
 
+        if self.path.exists() and not self.path.is_dir():
+            raise DatasetError(f"{str(self.path)!r} is a file, not a dataset directory")
         self.path.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.path / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+        lock = FileLock(str(self.path / LOCK_FILE))
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            os.close(fd)
+            lock.acquire(timeout=0)
+        except Timeout:
             raise DatasetError(f"another process is writing to {str(self.path)!r}") from None
-        self._lock_fd = fd
+        self._lock = lock
         try:
-            for tmp in [*self.path.glob(".part-*.tmp"), *self.path.glob(f".{METADATA_FILE}.*.tmp")]:
+            for tmp in [*self.path.glob(".part-*.tmp"), *self.path.glob(".*.json.*.tmp")]:
                 tmp.unlink(missing_ok=True)  # left by a killed writer; never visible to readers
             yield self
         finally:
-            self._lock_fd = None
-            fcntl.flock(fd, fcntl.LOCK_UN)
-            os.close(fd)
+            self._lock, self._keys = None, None
+            lock.release()
+
+    def _recover(self) -> None:
+        """Under the lock: adopt good unlisted parts (a killed writer's), build a missing manifest,
+        refuse any other problem; load the stored keys."""
+        scan = self._scan()
+        bad = [p for p in scan.problems if p.kind != "unlisted"]
+        if bad:
+            raise DatasetError(_problems_message(self.path, bad))
+        if scan.problems or not scan.has_manifest:
+            self._write_manifest([_entry(p) for p in scan.parts])
+        self._keys = {k for p in scan.parts for k in p.table.column("key").to_pylist()}
 
     def append(self, rows: Sequence[Row]) -> Path | None:
-        """Write ``rows`` as one new Parquet part (atomically); returns its path (None if empty)."""
+        """Write ``rows`` as one new Parquet part (atomically) and record it in the manifest.
+
+        Needs :meth:`writer`. Returns the part's path (None if ``rows`` is empty). A key already stored
+        (or repeated in ``rows``) raises :class:`DatasetError`: the store never holds a key twice.
+        """
         if not rows:
             return None
+        if self._lock is None:
+            raise DatasetError("DatasetStore.append needs the write lock: use `with store.writer():`")
         import pyarrow as pa
         import pyarrow.parquet as pq
 
+        if self._keys is None:
+            self._recover()
+        assert self._keys is not None
+        keys = [r.key for r in rows]
+        if len(set(keys)) != len(keys) or self._keys.intersection(keys):
+            raise DatasetError(f"refusing to store a row key twice in {str(self.path)!r}")
         meta = self.metadata
         table = rows_to_table(rows, tuple(meta["param_names"]), tuple(meta["feature_names"]))
-        seq = len(self.parts())
+        manifest = self.manifest or {"parts": []}
+        seq = 1 + max((int(p["name"].split("-")[1]) for p in manifest["parts"]), default=-1)
         name = f"part-{seq:06d}-{uuid.uuid4().hex[:8]}.parquet"
+        table = table.replace_schema_metadata({SCHEMA_KEY: json.dumps(provenance(meta, name)).encode()})
         sink = pa.BufferOutputStream()
         pq.write_table(table, sink, compression="zstd")
-        atomic_write_bytes(self.path / name, sink.getvalue().to_pybytes(), tmp_name=f".{name}.tmp")
+        data = sink.getvalue().to_pybytes()
+        atomic_write_bytes(self.path / name, data, tmp_name=f".{name}.tmp")
+        entry = {"name": name, "rows": len(rows), "bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+        self._write_manifest([*manifest["parts"], entry])
+        self._keys.update(keys)
         return self.path / name
+
+    # -- integrity -----------------------------------------------------------------------------
+    def verify(self) -> VerifyReport:
+        """Check every part against the manifest and the store's schema; nothing is changed."""
+        scan = self._scan()
+        return VerifyReport(path=str(self.path), parts=len(scan.parts),
+                            rows=sum(p.table.num_rows for p in scan.parts), problems=scan.problems,
+                            has_manifest=scan.has_manifest)
+
+    def repair(self) -> VerifyReport:
+        """Move missing/corrupt/foreign/duplicate parts' files to ``_quarantine/``, adopt good unlisted
+        parts, and rewrite the manifest from what remains. Returns the report, with ``actions``."""
+        with self.writer():
+            scan = self._scan()
+            actions: list[str] = []
+            qdir = self.path / QUARANTINE_DIR
+            for problem in scan.problems:
+                if problem.kind == "missing":
+                    actions.append(f"dropped {problem.part} from the manifest (file missing)")
+                elif problem.kind == "unlisted":
+                    actions.append(f"adopted {problem.part} into the manifest")
+                else:
+                    qdir.mkdir(exist_ok=True)
+                    target = qdir / problem.part
+                    if target.exists():
+                        target = qdir / f"{problem.part}.{uuid.uuid4().hex[:6]}"
+                    shutil.move(str(self.path / problem.part), str(target))
+                    actions.append(f"moved {problem.part} ({problem.kind}) to {QUARANTINE_DIR}/")
+            if scan.problems or not scan.has_manifest:
+                self._write_manifest([_entry(p) for p in scan.parts])
+                if not scan.has_manifest:
+                    actions.append("wrote a manifest")
+            report = self.verify()
+            report.actions = actions
+            return report
+
+    def _scan(self) -> _Scan:
+        """Read and classify every part (see :class:`PartProblem`)."""
+        meta = self.metadata
+        manifest = self.manifest
+        schema = table_schema(tuple(meta["param_names"]), tuple(meta["feature_names"]))
+        listed = {p["name"]: p for p in manifest["parts"]} if manifest is not None else {}
+        files = {p.name: p for p in self.path.glob("part-*.parquet")}
+        good: list[_Part] = []
+        problems: list[PartProblem] = []
+        seen_keys: dict[str, str] = {}
+        sha_of: dict[str, str] = {}
+
+        def load(name: str, expect: dict[str, Any] | None) -> _Part | None:
+            path = files[name]
+            if not path.is_file():
+                problems.append(PartProblem(name, "corrupt", "not a regular file"))
+                return None
+            data = path.read_bytes()
+            digest = hashlib.sha256(data).hexdigest()
+            if expect is not None and (digest != expect["sha256"] or len(data) != expect.get("bytes", len(data))):
+                problems.append(PartProblem(name, "corrupt", f"{len(data)} bytes that differ from the "
+                                            "manifest's checksum (truncated or changed)", expect["rows"]))
+                return None
+            if expect is None and digest in sha_of:
+                problems.append(PartProblem(name, "duplicate", f"a byte-for-byte copy of {sha_of[digest]}"))
+                return None
+            try:
+                table = _read_parquet_bytes(data)
+            except Exception as exc:
+                problems.append(PartProblem(name, "corrupt", f"not readable as Parquet: {_short(exc)}"))
+                return None
+            why = _foreign(table, meta, schema)
+            if why:
+                problems.append(PartProblem(name, "foreign", why, table.num_rows))
+                return None
+            table = table.select(schema.names).cast(schema)
+            keys = table.column("key").to_pylist()
+            clash = [k for k in keys if k in seen_keys]
+            if clash or len(set(keys)) != len(keys):
+                other = seen_keys[clash[0]] if clash else name
+                problems.append(PartProblem(name, "duplicate", f"{len(clash) or len(keys) - len(set(keys))} "
+                                            f"row keys already stored by {other}", table.num_rows))
+                return None
+            sha_of[digest] = name
+            return _Part(name, table, digest, len(data))
+
+        def accept(part: _Part) -> None:
+            good.append(part)
+            seen_keys.update((k, part.name) for k in part.table.column("key").to_pylist())
+
+        for name, entry in listed.items():
+            if name not in files:
+                problems.append(PartProblem(name, "missing", "listed in the manifest, file absent", entry["rows"]))
+                continue
+            part = load(name, entry)
+            if part is not None:
+                accept(part)
+        for name in sorted(set(files) - set(listed)):
+            part = load(name, None)
+            if part is None:
+                continue
+            accept(part)
+            if manifest is not None:
+                problems.append(PartProblem(name, "unlisted", "a good part the manifest does not name",
+                                            part.table.num_rows))
+        return _Scan(parts=good, problems=problems, has_manifest=manifest is not None, schema=schema)
 
     # -- reading -------------------------------------------------------------------------------
     def parts(self) -> list[Path]:
-        """The committed Parquet parts, in write order."""
+        """The Parquet part files present, in write order (listed or not)."""
         if not self.path.is_dir():
             return []
         return sorted(p for p in self.path.glob("part-*.parquet") if p.is_file())
 
+    def _table(self) -> Any:
+        """Every stored row as one Arrow table, after checking the store (refuses any problem but an
+        unlisted good part, whose rows are not read)."""
+        scan = self._scan()
+        bad = [p for p in scan.problems if p.kind != "unlisted"]
+        if bad:
+            raise DatasetError(_problems_message(self.path, bad))
+        parts = [p.table for p in scan.parts if p.name not in {q.part for q in scan.problems}]
+        import pyarrow as pa
+
+        return pa.concat_tables(parts) if parts else scan.schema.empty_table()
+
     def keys(self) -> set[str]:
         """Keys of every stored row (ok and failed)."""
-        import pyarrow.parquet as pq
-
-        out: set[str] = set()
-        for part in self.parts():
-            out.update(pq.read_table(part, columns=["key"]).column("key").to_pylist())
-        return out
+        return set(self._table().column("key").to_pylist())
 
     def frame(self, ok_only: bool = False) -> Any:
-        """All rows as a pandas DataFrame sorted by key (a key stored twice appears once)."""
+        """All rows as a pandas DataFrame sorted by key (the store is checked first)."""
         import pandas as pd
-        import pyarrow as pa
-        import pyarrow.parquet as pq
 
-        meta = self.metadata
-        schema = table_schema(tuple(meta["param_names"]), tuple(meta["feature_names"]))
-        parts = self.parts()
-        if parts:
-            table = pa.concat_tables([pq.read_table(p).select(schema.names).cast(schema) for p in parts])
-        else:
-            table = schema.empty_table()
-        df: pd.DataFrame = table.to_pandas()
-        df = df.drop_duplicates("key", keep="first").sort_values("key", kind="stable").reset_index(drop=True)
+        df: pd.DataFrame = self._table().to_pandas()
+        df = df.sort_values("key", kind="stable").reset_index(drop=True)
         if ok_only:
             df = df[df["status"] == "ok"].reset_index(drop=True)
         return df
@@ -317,6 +569,7 @@ class DatasetStore:
         """A JSON-ready summary: counts, failures by reason, provenance, feature percentiles."""
         meta = self.metadata
         df = self.frame()
+        manifest = self.manifest
         ok = df[df["status"] == "ok"]
         failed = df[df["status"] != "ok"]
         reasons = failed["failure"].fillna("(no reason)").value_counts()
@@ -333,7 +586,8 @@ class DatasetStore:
         return {
             "path": str(self.path),
             "rows": len(df), "ok": len(ok), "failed": len(failed),
-            "parts": len(self.parts()),
+            "parts": len(manifest["parts"]) if manifest is not None else len(self.parts()),
+            "manifest": manifest is not None,
             "failures_by_reason": {str(k): int(v) for k, v in reasons.items()},
             "identity": meta.get("identity"),
             "simulator": meta.get("simulator"),
@@ -349,6 +603,98 @@ class DatasetStore:
             "features": features,
             "created_at": meta.get("created_at"), "updated_at": meta.get("updated_at"),
         }
+
+
+@dataclass
+class _Scan:
+    parts: list[_Part]
+    problems: list[PartProblem]
+    has_manifest: bool
+    schema: Any
+
+
+_PART_RE = re.compile(r"^part-[0-9]{6}-[0-9a-f]{8}\.parquet$")
+
+
+def _entry(part: _Part) -> dict[str, Any]:
+    return {"name": part.name, "rows": int(part.table.num_rows), "bytes": part.nbytes, "sha256": part.sha256}
+
+
+def _read_json(path: Path) -> Any:
+    from invphys.core.safe_yaml import read_text
+
+    text = read_text(path, what="dataset file", error=DatasetError, limit=MAX_JSON_BYTES)
+    try:
+        return json.loads(text)
+    except (ValueError, RecursionError) as exc:
+        raise DatasetError(f"{path} is not valid JSON: {_short(exc)}") from None
+
+
+def _metadata_problem(meta: Any) -> str | None:
+    """Why a parsed ``_metadata.json`` cannot describe a store (None when it can)."""
+    if not isinstance(meta, dict):
+        return "not a JSON object"
+    for key in ("param_names", "feature_names"):
+        names = meta.get(key)
+        if not isinstance(names, list) or not names or not all(isinstance(n, str) and n for n in names):
+            return f"{key!r} is not a non-empty list of names"
+        if len(set(names)) != len(names):
+            return f"{key!r} repeats a name"
+    if not isinstance(meta.get("identity"), dict):
+        return "'identity' is not an object"
+    if "sessions" in meta and not isinstance(meta["sessions"], list):
+        return "'sessions' is not a list"
+    return None
+
+
+def provenance(meta: dict[str, Any], part: str) -> dict[str, Any]:
+    """What each part's Parquet schema metadata records (key :data:`SCHEMA_KEY`)."""
+    return {"format": FORMAT, "part": part, "identity": meta.get("identity"),
+            "param_names": meta.get("param_names"), "feature_names": meta.get("feature_names"),
+            "simulator_block": meta.get("simulator_block"), "extractor_block": meta.get("extractor_block"),
+            "written_at": _utcnow()}
+
+
+def _read_parquet_bytes(data: bytes) -> Any:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    return pq.read_table(pa.BufferReader(data))
+
+
+def _foreign(table: Any, meta: dict[str, Any], schema: Any) -> str | None:
+    """Why ``table`` does not belong to the store described by ``meta`` (None when it does)."""
+    raw = (table.schema.metadata or {}).get(SCHEMA_KEY)
+    if raw is not None:
+        try:
+            prov = json.loads(raw)
+        except ValueError:
+            return "unreadable invphys provenance"
+        if not isinstance(prov, dict):
+            return "unreadable invphys provenance"
+        for key in ("identity", "param_names", "feature_names"):
+            if prov.get(key) != meta.get(key):
+                return f"its {key} differs from the store's"
+    missing = [n for n in schema.names if n not in table.schema.names]
+    if missing:
+        return f"lacks column(s) {', '.join(missing[:3])}{'...' if len(missing) > 3 else ''}"
+    try:
+        table.select(schema.names).cast(schema)
+    except Exception as exc:
+        return f"column types differ: {_short(exc)}"
+    return None
+
+
+def _problems_message(path: Path, problems: list[PartProblem]) -> str:
+    shown = "; ".join(p.text() for p in problems[:3])
+    more = f" and {len(problems) - 3} more" if len(problems) > 3 else ""
+    return (f"dataset {str(path)!r} has {len(problems)} bad part(s): {shown}{more}. "
+            f"`invphys dataset verify {path}` lists them; `--repair` quarantines them")
+
+
+def _short(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= 160 else text[:157] + "..."
 
 
 # ----------------------------------------------------------------------------------------------

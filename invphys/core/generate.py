@@ -70,20 +70,53 @@ class _Terminated(BaseException):  # like KeyboardInterrupt: never caught as a s
     """SIGTERM arrived: stop cleanly, keeping what is stored."""
 
 
-@contextlib.contextmanager
-def _sigterm_stops() -> Iterator[None]:
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
+class _Stopper:
+    """SIGTERM and Ctrl-C stop a generation, but never in the middle of storing rows.
 
-    def handler(signum: int, frame: Any) -> None:
-        raise _Terminated()
+    Outside :meth:`critical` a signal raises at once (interrupting a simulation); inside, it is held
+    and raised when the critical section ends, so a row is either stored and counted or neither.
+    After :meth:`stopping` further signals are ignored while the last rows are flushed.
+    """
 
-    previous = signal.signal(signal.SIGTERM, handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+    def __init__(self) -> None:
+        self.depth = 0
+        self.pending: BaseException | None = None
+        self.done = False
+
+    def handler(self, signum: int, frame: Any) -> None:
+        if self.done:
+            return
+        exc: BaseException = KeyboardInterrupt() if signum == signal.SIGINT else _Terminated()
+        if self.depth:
+            self.pending = self.pending or exc
+            return
+        raise exc
+
+    @contextlib.contextmanager
+    def critical(self) -> Iterator[None]:
+        self.depth += 1
+        try:
+            yield
+        finally:
+            self.depth -= 1
+        if not self.depth and self.pending is not None and not self.done:
+            exc, self.pending = self.pending, None
+            raise exc
+
+    def stopping(self) -> None:
+        self.done, self.pending = True, None
+
+    @contextlib.contextmanager
+    def installed(self) -> Iterator[None]:
+        if threading.current_thread() is not threading.main_thread():
+            yield
+            return
+        previous = {sig: signal.signal(sig, self.handler) for sig in (signal.SIGTERM, signal.SIGINT)}
+        try:
+            yield
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
 
 
 def _utcnow() -> str:
@@ -186,8 +219,13 @@ def generate_dataset(
         t0 = time.monotonic()
         devices: set[str] = set()
         backends: set[str] = set()
+        stopper = _Stopper()
 
         def flush(buffer: list[Row]) -> None:
+            with stopper.critical():
+                _flush(buffer)
+
+        def _flush(buffer: list[Row]) -> None:
             store.append(buffer)
             buffer.clear()
             summary.wall_s = time.monotonic() - t0
@@ -218,35 +256,37 @@ def generate_dataset(
             bar = _Progress(progress, console, len(todo), summary.already_present)
             runs = execu.run(sim_block, ext_block, params[todo], batch_size)
             try:
-                with _sigterm_stops(), bar:
+                with stopper.installed(), bar:
                     for local_i, result in runs:
-                        i = int(todo[local_i])
-                        check_features(result, n_features)
-                        buffer.append(Row(key=keys[i], sample_index=i, theta=theta[i], params=params[i],
-                                          result=result))
-                        summary.ran += 1
-                        summary.ok += bool(result.ok)
-                        summary.failed = summary.ran - summary.ok
-                        devices.update([result.stats.device] if result.stats.device else [])
-                        backends.update([result.stats.backend] if result.stats.backend else [])
-                        bar.advance(summary)
-                        b = local_i // batch_size
-                        received[b] = received.get(b, 0) + 1
-                        batch_finished = received[b] == sizes[b]
-                        if batch_finished:
-                            del received[b]
-                            batches_done += 1
-                        now = time.monotonic()
-                        if len(buffer) >= batch_size or now - last_flush >= flush_every_s:
-                            flush(buffer)
-                            last_flush = now
-                        if deadline is not None and summary.ran < len(todo):
-                            per_batch = (now - t0) / max(batches_done, 1)
-                            idle = not received  # no batch half-delivered
-                            if (idle and now + per_batch > deadline) or now > deadline + per_batch:
-                                summary.stop_reason = "time_limit"
-                                break
+                        with stopper.critical():
+                            i = int(todo[local_i])
+                            check_features(result, n_features)
+                            buffer.append(Row(key=keys[i], sample_index=i, theta=theta[i], params=params[i],
+                                              result=result))
+                            summary.ran += 1
+                            summary.ok += bool(result.ok)
+                            summary.failed = summary.ran - summary.ok
+                            devices.update([result.stats.device] if result.stats.device else [])
+                            backends.update([result.stats.backend] if result.stats.backend else [])
+                            bar.advance(summary)
+                            b = local_i // batch_size
+                            received[b] = received.get(b, 0) + 1
+                            batch_finished = received[b] == sizes[b]
+                            if batch_finished:
+                                del received[b]
+                                batches_done += 1
+                            now = time.monotonic()
+                            if len(buffer) >= batch_size or now - last_flush >= flush_every_s:
+                                flush(buffer)
+                                last_flush = now
+                            if deadline is not None and summary.ran < len(todo):
+                                per_batch = (now - t0) / max(batches_done, 1)
+                                idle = not received  # no batch half-delivered
+                                if (idle and now + per_batch > deadline) or now > deadline + per_batch:
+                                    summary.stop_reason = "time_limit"
+                                    break
             except (KeyboardInterrupt, _Terminated) as exc:
+                stopper.stopping()
                 summary.stop_reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else "terminated"
             except Exception:
                 summary.stop_reason = "error"

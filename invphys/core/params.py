@@ -35,7 +35,7 @@ class Parameter:
 
     def range_text(self) -> str:
         unit = f" {self.unit}" if self.unit else ""
-        return f"[{self.low:g}, {self.high:g}]{unit}"
+        return f"[{format_value(self.low)}, {format_value(self.high)}]{unit}"
 
 
 @dataclass(frozen=True)
@@ -81,26 +81,34 @@ class ParameterSpace:
 
     # -- checks --------------------------------------------------------------------------------
     def check(self, physical: np.ndarray | Sequence[float], rtol: float = 1e-9) -> np.ndarray:
-        """Return ``physical`` as a float array of shape (..., dim), or raise naming the offender.
+        """Return ``physical`` as a float array of shape (..., dim), or raise naming every offender.
 
-        Raises :class:`ParameterRangeError` naming the first parameter outside its range, e.g.
-        ``E = 9000 is outside its range [50, 8000] Pa``.
+        Raises :class:`ParameterRangeError` naming each parameter outside its range (or not finite),
+        with the first offending value as given, e.g.
+        ``E = 9000 is outside its range [50, 8000] Pa; sigma_s = 0.0499 is outside its range [0.05, 0.5]``.
         """
-        x = np.asarray(physical, dtype=np.float64)
+        try:
+            x = np.asarray(physical, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ParameterRangeError(f"parameters must be numbers, got {_shown(physical)}") from None
         if x.shape[-1:] != (self.dim,):
             raise ParameterRangeError(
                 f"expected {self.dim} parameters ({', '.join(self.names)}), got shape {x.shape}"
             )
         flat = x.reshape(-1, self.dim)
+        problems = []
         for j, p in enumerate(self.parameters):
             col = flat[:, j]
             span = (p.high - p.low) * rtol
             bad = ~np.isfinite(col) | (col < p.low - span) | (col > p.high + span)
             if bad.any():
                 value = col[np.argmax(bad)]
-                raise ParameterRangeError(
-                    f"{p.name} = {value:g} is outside its range {p.range_text()}"
-                )
+                what = "is not a finite number" if not np.isfinite(value) else f"is outside its range {p.range_text()}"
+                rows = int(bad.sum())
+                more = f" ({rows} rows)" if flat.shape[0] > 1 and rows > 1 else ""
+                problems.append(f"{p.name} = {format_value(value)} {what}{more}")
+        if problems:
+            raise ParameterRangeError("; ".join(problems))
         return np.clip(x, [p.low for p in self.parameters], [p.high for p in self.parameters])
 
     def check_unit(self, unit: np.ndarray | Sequence[float]) -> np.ndarray:
@@ -113,7 +121,7 @@ class ParameterSpace:
         if bad.any():
             row, col = np.argwhere(bad)[0]
             raise ParameterRangeError(
-                f"normalised {self.names[col]} = {flat[row, col]:g} is outside [0, 1]"
+                f"normalised {self.names[col]} = {format_value(flat[row, col])} is outside [0, 1]"
             )
         return np.clip(u, 0.0, 1.0)
 
@@ -148,6 +156,10 @@ class ParameterSpace:
         missing = [n for n in self.names if n not in merged]
         if missing:
             raise ParameterRangeError(f"missing parameter(s): {', '.join(missing)}")
+        not_numbers = [f"{n} = {_shown(merged[n])} is not a number" for n in self.names
+                       if not _is_number(merged[n])]
+        if not_numbers:
+            raise ParameterRangeError("; ".join(not_numbers))
         return self.check([float(merged[n]) for n in self.names])
 
     def to_mapping(self, physical: np.ndarray | Sequence[float]) -> dict[str, float]:
@@ -166,3 +178,25 @@ class ParameterSpace:
              "description": p.description}
             for p in self.parameters
         ]
+
+
+def format_value(value: float) -> str:
+    """A number as given: integers without a point, other floats in their shortest exact form
+    (``0.049999`` stays ``0.049999``; never rounded onto a bound as ``%g`` would)."""
+    v = float(value)
+    if not np.isfinite(v):
+        return str(v)
+    if v.is_integer() and abs(v) < 1e16:
+        return str(int(v))
+    return repr(v)
+
+
+def _is_number(value: object) -> bool:
+    import numbers
+
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _shown(value: object) -> str:
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
