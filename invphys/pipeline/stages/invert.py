@@ -11,6 +11,8 @@
    optimiser's ``problems`` attribute says, and writes ``results.json`` and ``results.csv``: one row per
    (optimiser, problem) with R_surr (the score on the optimiser's evaluator), evaluations, wall time,
    theta*, physical parameters and the predicted features.
+4. Rewrites the run's inverter bundle ``OUT/inverter/`` with the trained policies and each entry's
+   held-out scores (``invphys invert OUT/inverter ...`` then answers any target).
 """
 
 from __future__ import annotations
@@ -211,8 +213,11 @@ def run(ctx: StageContext) -> dict[str, Any]:
                     f"{np.mean([r['r_surrogate'] for r in mine]):.3f} in {time.perf_counter() - t_entry:.1f} s")
     write_json(ctx.stage_dir / RESULTS_FILE, rows)
     _write_csv(ctx.stage_dir / "results.csv", rows)
+    from invphys.pipeline.stages.train import write_inverter
+
     return {"targets": len(targets["rows"]), "objectives": sorted(named), "rows": len(rows),
-            "prepare": entries.prepare_metrics, "optimizers": summarise(rows)}
+            "prepare": entries.prepare_metrics, "optimizers": summarise(rows),
+            "inverter": write_inverter(ctx, with_policies=True)}
 
 
 def _physical(ctx: StageContext, theta: np.ndarray) -> list[float]:

@@ -4,7 +4,10 @@ Writes, under ``OUT/train/``:
 
 * ``surrogate/`` and ``latent/<label>/``: the saved models (config, data fingerprint, metrics, weights);
 * ``metrics.json`` and ``metrics.md``: held-out metrics of every model (the test split, 20 % by default);
-* ``curves_surrogate.png``, ``curves_latent_<label>.png``: training curves; ``parity_surrogate.png``.
+* ``curves_surrogate.png``, ``curves_latent_<label>.png``: training curves; ``parity_surrogate.png``;
+
+and the run's inverter bundle ``OUT/inverter/`` (surrogate, latent models, configured optimisers; the
+invert stage adds the trained policies), see :mod:`invphys.inverter.writer`.
 
 The held-out test split is the validation set of every model (early stopping and metrics), as in the
 paper's 80/20 protocol. :func:`train_models` is the same work without a runner context.
@@ -37,13 +40,24 @@ def run(ctx: StageContext) -> dict[str, Any]:
         raise InvphysError("the train stage needs a 'surrogate' block in the spec (e.g. {type: mlp})")
     data = ctx.dataset()
     train_idx, test_idx = ctx.split()
-    return train_models(
+    summary = train_models(
         theta=data.theta, y=data.y, train_idx=train_idx, test_idx=test_idx,
         surrogate=dict(spec.surrogate), latent_models={k: dict(v) for k, v in spec.latent_models.items()},
         out=ctx.stage_dir, registry=ctx.registry, seed=ctx.seed, progress=ctx.progress,
         feature_names=list(data.feature_names), param_names=list(data.param_names),
         dataset_fingerprint=data.fingerprint, log=ctx.log, tracker=ctx.tracker.scoped("train"),
     )
+    summary["inverter"] = write_inverter(ctx, with_policies=False)
+    return summary
+
+
+def write_inverter(ctx: StageContext, with_policies: bool) -> str:
+    """Write the run's inverter bundle to ``OUT/inverter/`` (the invert stage adds its policies)."""
+    from invphys.inverter.writer import BUNDLE_DIR, parts_from_context, write_bundle
+
+    path = write_bundle(parts_from_context(ctx, with_policies=with_policies), ctx.out / BUNDLE_DIR)
+    ctx.log(f"inverter bundle written to {path}")
+    return str(path)
 
 
 def train_models(theta: np.ndarray, y: np.ndarray, train_idx: np.ndarray, test_idx: np.ndarray,

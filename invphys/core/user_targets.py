@@ -1,0 +1,203 @@
+"""A user's own targets: feature mappings or files (JSON, YAML, CSV) checked against a feature list.
+
+Used by the spec's ``targets: {values: [...]}`` / ``targets: {file: ...}`` and by ``invphys invert
+--target FILE``. A target is a mapping ``{feature_name: value}``; every check fails with one line:
+unknown names (with a did-you-mean), missing features (unless ``partial``), non-numeric or non-finite
+values, unreadable files.
+
+File shapes accepted (JSON and YAML alike)::
+
+    {final_separation: 0.01, ...}                       # one target
+    [{final_separation: 0.01, ...}, {...}]              # several
+    {targets: [{id: firm, final_separation: 0.01, ...}]}  # several, with labels
+
+A CSV file has a header of feature names (and optionally an ``id`` column) and one target per row;
+an empty cell is a missing feature.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from invphys.core.errors import InvphysError, did_you_mean
+
+#: keys of a target mapping that label it instead of naming a feature
+LABEL_KEYS: tuple[str, ...] = ("id", "name", "label")
+FILE_TYPES: tuple[str, ...] = (".json", ".yaml", ".yml", ".csv")
+
+
+class TargetError(InvphysError, ValueError):
+    """A target is malformed: unknown or missing features, bad values, an unreadable file."""
+
+
+@dataclass
+class UserTargets:
+    """Targets as arrays in a feature order.
+
+    ``values`` (N, M) holds NaN where a feature is missing; ``mask`` (N, M) is True where given;
+    ``labels`` names each target (its ``id``, or ``t0``, ``t1``, ...).
+    """
+
+    values: np.ndarray
+    mask: np.ndarray
+    labels: list[str]
+    feature_names: tuple[str, ...]
+
+    def __len__(self) -> int:
+        return int(self.values.shape[0])
+
+    @property
+    def complete(self) -> bool:
+        return bool(self.mask.all())
+
+
+def _number(value: Any, feature: str, where: str) -> float:
+    if isinstance(value, bool) or value is None:
+        raise TargetError(f"{where}: {feature} = {value!r} is not a number")
+    if isinstance(value, str):
+        try:
+            value = float(value.strip())
+        except ValueError:
+            raise TargetError(f"{where}: {feature} = {value!r} is not a number") from None
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise TargetError(f"{where}: {feature} = {value!r} is not a number") from None
+    if not math.isfinite(x):
+        raise TargetError(f"{where}: {feature} = {x} is not finite")
+    return x
+
+
+def from_mappings(rows: Sequence[Mapping[str, Any]], feature_names: Sequence[str], partial: bool = False,
+                  source: str = "target") -> UserTargets:
+    """Check ``rows`` (one mapping per target) against ``feature_names``; see :class:`UserTargets`."""
+    names = tuple(feature_names)
+    index = {n: j for j, n in enumerate(names)}
+    if not rows:
+        raise TargetError(f"{source}: no targets given")
+    values = np.full((len(rows), len(names)), np.nan)
+    labels: list[str] = []
+    for i, row in enumerate(rows):
+        where = source if len(rows) == 1 else f"{source} #{i + 1}"
+        if not isinstance(row, Mapping):
+            raise TargetError(f"{where}: a target is a mapping of feature name to value, got "
+                              f"{type(row).__name__}")
+        label = next((str(row[k]) for k in LABEL_KEYS if k in row and k not in index), f"t{i}")
+        labels.append(label)
+        unknown = [str(k) for k in row if k not in index and k not in LABEL_KEYS]
+        if unknown:
+            hints = "; ".join(f"{u!r}{did_you_mean(u, names)}" for u in unknown)
+            raise TargetError(f"{where}: unknown feature(s) {hints} (features: {', '.join(names)})")
+        for key, value in row.items():
+            if key in index and not (value is None or (isinstance(value, str) and not value.strip())):
+                values[i, index[key]] = _number(value, str(key), where)
+        missing = [n for n, j in index.items() if np.isnan(values[i, j])]
+        if missing and not partial:
+            raise TargetError(f"{where}: missing feature(s) {', '.join(missing)} (give all {len(names)}, "
+                              f"or allow partial targets: they are left out of R)")
+        if len(missing) == len(names):
+            raise TargetError(f"{where}: no feature values given")
+    return UserTargets(values=values, mask=np.isfinite(values), labels=labels, feature_names=names)
+
+
+def from_array(values: Any, feature_names: Sequence[str], source: str = "target") -> UserTargets:
+    """Targets given as an array (M,) or (N, M) in the order of ``feature_names``."""
+    names = tuple(feature_names)
+    try:
+        arr = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise TargetError(f"{source}: not a numeric array") from None
+    if arr.ndim == 1:
+        arr = arr[None, :]
+    if arr.ndim != 2 or arr.shape[1] != len(names):
+        raise TargetError(f"{source}: expected {len(names)} feature values ({', '.join(names)}), got shape "
+                          f"{np.shape(values)}")
+    bad = np.argwhere(~np.isfinite(arr))
+    if len(bad):
+        i, j = bad[0]
+        raise TargetError(f"{source}: {names[j]} = {arr[i, j]} is not finite")
+    return UserTargets(values=arr.copy(), mask=np.ones(arr.shape, dtype=bool),
+                       labels=[f"t{i}" for i in range(len(arr))], feature_names=names)
+
+
+def _rows_of(data: Any, source: str) -> list[Any]:
+    if isinstance(data, Mapping) and "targets" in data:
+        data = data["targets"]
+    if isinstance(data, Mapping):
+        return [data]
+    if isinstance(data, list):
+        return data
+    raise TargetError(f"{source}: expected a mapping of feature values, a list of them, or "
+                      f"{{targets: [...]}}; got {type(data).__name__}")
+
+
+def read_target_file(path: str | Path, feature_names: Sequence[str], partial: bool = False) -> UserTargets:
+    """Targets from a JSON, YAML or CSV file (see the module docstring for the shapes)."""
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffix not in FILE_TYPES:
+        raise TargetError(f"target file {str(p)!r}: unsupported type {suffix or '(none)'!r}; use "
+                          f"{', '.join(FILE_TYPES)}")
+    try:
+        text = p.read_text()
+    except OSError as exc:
+        raise TargetError(f"cannot read target file {str(p)!r}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError:
+        raise TargetError(f"target file {str(p)!r} is not text") from None
+    source = p.name
+    if suffix == ".csv":
+        return from_mappings(_csv_rows(text, source), feature_names, partial, source)
+    if suffix == ".json":
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise TargetError(f"{source}: not valid JSON (line {exc.lineno}: {exc.msg})") from None
+    else:
+        import yaml
+
+        try:
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            mark = getattr(exc, "problem_mark", None)
+            where = f" (line {mark.line + 1})" if mark is not None else ""
+            raise TargetError(f"{source}: not valid YAML{where}") from None
+    return from_mappings(_rows_of(data, source), feature_names, partial, source)
+
+
+def _csv_rows(text: str, source: str) -> list[dict[str, str]]:
+    reader = csv.DictReader(text.splitlines())
+    if not reader.fieldnames:
+        raise TargetError(f"{source}: empty CSV (expected a header of feature names)")
+    rows = []
+    for n, row in enumerate(reader, start=2):
+        if None in row:
+            raise TargetError(f"{source} line {n}: more values than header columns")
+        if any(v is None for v in row.values()):
+            raise TargetError(f"{source} line {n}: fewer values than header columns")
+        rows.append({k.strip(): v for k, v in row.items()})
+    return rows
+
+
+def parse_assignments(items: Sequence[str], feature_names: Sequence[str], partial: bool = False,
+                      source: str = "--feature") -> UserTargets:
+    """One target from ``name=value`` strings (the CLI's repeatable ``--feature``)."""
+    row: dict[str, str] = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        name = name.strip()
+        if not sep or not name:
+            raise TargetError(f"{source} {item!r}: expected name=value")
+        if name in row:
+            raise TargetError(f"{source}: {name} is given twice")
+        if not value.strip():
+            raise TargetError(f"{source} {item!r}: no value after '='")
+        row[name] = value
+    return from_mappings([row], feature_names, partial, source)

@@ -1,0 +1,390 @@
+"""The :class:`Inverter`: a loaded bundle that answers targets with material parameters.
+
+::
+
+    inv = invphys.load_inverter("inverters/orange_peel_paper")
+    res = inv.invert({"final_separation": 0.012, ...})          # default: the best amortised policy
+    res.parameters                                               # {"E": 812.4, "rho": ..., ...}
+    res = inv.invert(target, method="cma_es", top_k=3, refine=200)
+    inv.validate(res)                                            # re-run the simulator: R_actual, gap
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+import warnings
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from invphys.core.errors import InvphysError, did_you_mean
+from invphys.core.user_targets import UserTargets, from_array, from_mappings
+from invphys.inverter.bundle import Bundle
+from invphys.inverter.objective import MaskedRecovery, masked_recovery
+from invphys.inverter.result import Candidate, InversionResult
+
+#: candidates closer than this (RMS distance in normalised parameter space) count as one
+MIN_DISTANCE = 0.05
+REFINE_SIGMA0 = 0.1
+#: candidate thetas (P, d), their sources, evaluations spent
+Pool = tuple[np.ndarray, list[str], int]
+
+
+@contextlib.contextmanager
+def _quiet_cma() -> Iterator[None]:
+    """Silence cma's warning about an injected start point (a warm start injects one on purpose)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="orphanated injected solution")
+        yield
+
+
+def load_inverter(path: str | Path, strict: bool = True, registry: Any = None) -> Inverter:
+    """Load the bundle at ``path`` (checks format, file hashes, simulator version and features).
+
+    ``strict=False`` turns a simulator-version or feature mismatch into a warning
+    (:attr:`Inverter.notes`) instead of an error.
+    """
+    bundle = Bundle(path, registry=registry)
+    notes = bundle.check_installation(strict=strict)
+    return Inverter(bundle, notes)
+
+
+class Inverter:
+    """Answers targets (features by name) with parameters, through the methods a bundle holds."""
+
+    def __init__(self, bundle: Bundle, notes: Sequence[str] = ()) -> None:
+        self.bundle = bundle
+        self.notes = list(notes)
+        self._runners: dict[str, Any] = {}
+        self._plugins: dict[str, Any] = {}
+
+    # -- description --------------------------------------------------------------------------------
+    @property
+    def feature_names(self) -> tuple[str, ...]:
+        return self.bundle.feature_names
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]:
+        return self.bundle.space.names
+
+    @property
+    def parameter_space(self) -> Any:
+        return self.bundle.space
+
+    @property
+    def methods(self) -> list[str]:
+        """The bundle's methods (trained policies and configured optimisers) by label."""
+        return list(self.bundle.methods)
+
+    @property
+    def default_method(self) -> str:
+        m = self.bundle.default_method
+        if not m:
+            raise InvphysError(f"bundle {self.bundle.root} has no methods; name an optimiser with method=")
+        return m
+
+    def __repr__(self) -> str:
+        return (f"Inverter({str(self.bundle.root)!r}: {len(self.parameter_names)} parameters, "
+                f"{len(self.feature_names)} features, methods {', '.join(self.methods)})")
+
+    # -- targets ------------------------------------------------------------------------------------
+    def targets(self, target: Any, partial: bool = False) -> UserTargets:
+        """Normalise a target: a mapping, a list of mappings, an array (M,) or (N, M), or UserTargets."""
+        if isinstance(target, UserTargets):
+            if tuple(target.feature_names) != self.feature_names:
+                raise InvphysError("targets were parsed against other features than this bundle's")
+            return target
+        if isinstance(target, Mapping):
+            return from_mappings([target], self.feature_names, partial)
+        if isinstance(target, (list, tuple)) and target and all(isinstance(t, Mapping) for t in target):
+            return from_mappings(list(target), self.feature_names, partial)
+        return from_array(target, self.feature_names)
+
+    def _warnings(self, values: np.ndarray, mask: np.ndarray) -> list[str]:
+        b = self.bundle
+        out = [(n, v, lo, hi) for n, v, lo, hi, given in zip(self.feature_names, values, b.train_min, b.train_max, mask,
+                                                             strict=True) if given and not lo <= v <= hi]
+        if not out:
+            return []
+        text = ", ".join(f"{n} = {v:.4g} (training data {lo:.4g} .. {hi:.4g})" for n, v, lo, hi in out)
+        return [f"outside the training data's range, the answer extrapolates: {text}"]
+
+    # -- methods ------------------------------------------------------------------------------------
+    def _entry(self, method: str | None) -> tuple[str, dict[str, Any]]:
+        label = method or self.default_method
+        if label in self.bundle.methods:
+            return label, self.bundle.methods[label]
+        reg = self.bundle.registry
+        names = reg.names("optimizer")
+        if label in names:
+            cls = reg.get("optimizer", label)
+            kind = "policy" if getattr(cls, "goal_conditioned", False) else "optimizer"
+            return label, {"type": label, "kind": kind, "space": "raw", "evaluator": "shared", "config": {}}
+        raise InvphysError(f"unknown method {label!r}.{did_you_mean(label, [*self.methods, *names])} "
+                           f"Bundle methods: {', '.join(self.methods) or 'none'}; installed optimisers: "
+                           f"{', '.join(names)}")
+
+    def _runner(self, label: str) -> Any:
+        from invphys.inverter.policy import PolicyRunner
+
+        if label not in self._runners:
+            self._runners[label] = PolicyRunner(self.bundle, label)
+        return self._runners[label]
+
+    def _policy_labels(self) -> list[str]:
+        return [k for k, m in self.bundle.methods.items() if "rollout" in m]
+
+    def _plugin(self, label: str, entry: dict[str, Any]) -> Any:
+        """The optimiser plugin of a method, attached (warm start) or prepared (goal-conditioned)."""
+        if label in self._plugins:
+            return self._plugins[label]
+        from invphys.inverter.policy import PolicyAdapter
+
+        plugin = self.bundle.registry.create("optimizer", {"type": entry["type"], **entry.get("config", {})})
+        if hasattr(plugin, "attach") and getattr(plugin, "policy", "x") is None:
+            policy = entry.get("config", {}).get("policy")
+            pols = self._policy_labels()
+            if policy not in pols:
+                policy = self.bundle.default_method if self.bundle.default_method in pols else (pols[0] if pols else None)
+            if policy is None:
+                raise InvphysError(f"method {label!r} needs a trained policy and the bundle has none")
+            plugin.attach(PolicyAdapter(self._runner(policy)))
+            entry = {**entry, "space": self.bundle.methods[policy]["space"],
+                     "evaluator": self.bundle.methods[policy].get("evaluator", "shared")}
+        elif getattr(plugin, "goal_conditioned", False) and not getattr(plugin, "prepared", True):
+            theta, y = self.bundle.data("train")
+            space = self.bundle.search_space(entry["space"])
+            predict = self.bundle.predictor(entry["space"], entry.get("evaluator", "shared"))
+            prep = plugin.prepare
+            import inspect
+
+            extra = {"train_theta": theta} if "train_theta" in inspect.signature(prep).parameters else {}
+            prep(space, predict, y, self.bundle.scales, **extra)
+        self._plugins[label] = (plugin, entry)
+        return self._plugins[label]
+
+    # -- inversion ----------------------------------------------------------------------------------
+    def invert(self, target: Any, method: str | None = None, top_k: int = 1, refine: int = 0,
+               partial: bool = False, seed: int = 0) -> InversionResult:
+        """Answer one target (a feature mapping or an array in the bundle's feature order).
+
+        ``method``: a bundle method or an installed optimiser (default: the best amortised policy);
+        ``top_k``: diverse candidates; ``refine``: CMA-ES evaluations spent refining each candidate;
+        ``partial``: allow missing features (left out of R).
+        """
+        t = self.targets(target, partial)
+        if len(t) != 1:
+            raise InvphysError(f"invert() takes one target, got {len(t)}: use invert_many()")
+        return self.invert_many(t, method=method, top_k=top_k, refine=refine, seed=seed)[0]
+
+    def invert_many(self, targets: Any, method: str | None = None, top_k: int = 1, refine: int = 0,
+                    partial: bool = False, seed: int = 0) -> list[InversionResult]:
+        """Answer several targets (a policy answers them all in one batched rollout)."""
+        if top_k < 1:
+            raise InvphysError(f"top_k must be >= 1, got {top_k}")
+        if refine < 0:
+            raise InvphysError(f"refine must be >= 0 evaluations, got {refine}")
+        t = self.targets(targets, partial)
+        label, entry = self._entry(method)
+        t0 = time.perf_counter()
+        if "rollout" in entry:
+            pools = self._policy_pools(label, t, top_k, seed)
+        else:
+            pools = self._optimizer_pools(label, entry, t, top_k, seed)
+        elapsed = (time.perf_counter() - t0) / len(t)
+        results = []
+        for i in range(len(t)):
+            t1 = time.perf_counter()
+            thetas, sources, spent = pools[i]
+            cands = self._select(thetas, sources, t.values[i], t.mask[i], top_k)
+            if refine:
+                cands, extra = self._refine(cands, t.values[i], t.mask[i], refine, seed + i)
+                spent += extra
+            results.append(InversionResult(
+                label=t.labels[i], method=label, target=t.values[i], mask=t.mask[i], candidates=cands,
+                parameter_names=self.parameter_names, parameter_units=tuple(p.unit for p in self.bundle.space.parameters),
+                feature_names=self.feature_names, feature_units=self.bundle.feature_units, evaluations=spent,
+                wall_time_s=elapsed + time.perf_counter() - t1, warnings=self._warnings(t.values[i], t.mask[i]),
+                bundle_id=str(self.bundle.manifest.get("bundle_id", ""))))
+        return results
+
+    def invert_array(self, values: np.ndarray, method: str | None = None) -> np.ndarray:
+        """The fast path: normalised parameters (N, d) for complete targets (N, M) by a bundle policy."""
+        label, entry = self._entry(method)
+        if "rollout" not in entry:
+            raise InvphysError(f"invert_array needs a trained policy; {label!r} is a {entry['type']} optimiser")
+        t = from_array(values, self.feature_names)
+        runner = self._runner(label)
+        points, _, _ = runner.rollout(t.values).best()
+        return np.clip(runner.space.to_theta(points), 0.0, 1.0)
+
+    def _policy_pools(self, label: str, t: UserTargets, top_k: int, seed: int) -> list[Pool]:
+        """Per target: the visited states of the policy's rollouts (and, for top_k > 1, of the bundle's
+        other policies) as candidate thetas, their sources and the evaluations spent."""
+        runner = self._runner(label)
+        goals = np.where(t.mask, t.values, np.asarray(runner.mean)[None, :])
+        if top_k == 1:
+            points, _, _ = runner.rollout(goals, t.mask, seed=seed).best()
+            theta = runner.space.to_theta(points)
+            return [(theta[i:i + 1], [label], runner.horizon) for i in range(len(t))]
+        rollouts = max(8, 4 * top_k)
+        ro = runner.rollout(goals, t.mask, rollouts=rollouts, seed=seed)
+        n = len(t)
+        theta = runner.space.to_theta(ro.points.reshape(-1, runner.dim)).reshape(n, -1, self.bundle.space.dim)
+        srcs = [f"{label} (rollout {r + 1})" for r in range(rollouts) for _ in range(runner.horizon)]
+        pools = [(theta[i], list(srcs), rollouts * runner.horizon) for i in range(n)]
+        for other in self._policy_labels():
+            if other == label:
+                continue
+            r2 = self._runner(other)
+            pts = r2.rollout(np.where(t.mask, t.values, r2.mean[None, :]), t.mask, seed=seed).points
+            th = r2.space.to_theta(pts.reshape(-1, r2.dim)).reshape(n, -1, self.bundle.space.dim)
+            for i in range(n):
+                pools[i] = (np.concatenate([pools[i][0], th[i]]), pools[i][1] + [other] * th.shape[1],
+                            pools[i][2] + r2.horizon)
+        return pools
+
+    def _optimizer_pools(self, label: str, entry: dict[str, Any], t: UserTargets, top_k: int, seed: int
+                         ) -> list[Pool]:
+        """Per target: the answers of ``top_k`` runs of an optimiser (different seeds)."""
+        from invphys.core.spaces import build_problem
+
+        plugin, entry = self._plugin(label, entry)
+        space = self.bundle.search_space(entry["space"])
+        predict = self.bundle.predictor(entry["space"], entry.get("evaluator", "shared"))
+        latent = None if entry["space"] == "raw" else self.bundle.latent(entry["space"])
+        budget = int(getattr(plugin, "evaluation_budget", 0) or getattr(plugin.config, "budget", 0) or 5000)
+        m = self.bundle.manifest["features"]
+        mean, std = np.asarray(m["mean"]), np.asarray(m["std"])
+        pools: list[Pool] = []
+        for i in range(len(t)):
+            goal = np.where(t.mask[i], t.values[i], mean)
+            objective = MaskedRecovery(goal, self.bundle.scales, t.mask[i], self.bundle.kappa)
+            thetas, srcs, spent = [], [], 0
+            for r in range(top_k):
+                problem = build_problem(space, objective, budget, surrogate=self.bundle.surrogate, latent=latent,
+                                        predict=predict, target=goal, seed=seed + 1000 * r + i,
+                                        feature_mean=mean, feature_std=std)
+                with _quiet_cma():
+                    res = plugin.optimize(problem)
+                thetas.append(np.clip(np.asarray(res.theta, dtype=np.float64), 0.0, 1.0))
+                srcs.append(label if top_k == 1 else f"{label} (seed {seed + 1000 * r + i})")
+                spent += int(res.evaluations)
+            pools.append((np.array(thetas), srcs, spent))
+        return pools
+
+    # -- candidates ---------------------------------------------------------------------------------
+    def _candidates(self, thetas: np.ndarray, sources: list[str], target: np.ndarray, mask: np.ndarray
+                    ) -> list[Candidate]:
+        thetas = np.clip(np.atleast_2d(thetas), 0.0, 1.0)
+        mean, std = self.bundle.surrogate.predict_with_uncertainty(thetas)
+        r = masked_recovery(mean, target, self.bundle.scales, mask, self.bundle.kappa)
+        params = self.bundle.space.denormalize(thetas)
+        return [Candidate(theta=thetas[j], params=params[j], predicted=mean[j], std=std[j], r_surrogate=float(r[j]),
+                          source=sources[j]) for j in range(len(thetas))]
+
+    def _select(self, thetas: np.ndarray, sources: list[str], target: np.ndarray, mask: np.ndarray,
+                k: int) -> list[Candidate]:
+        """The best ``k`` candidates that are at least :data:`MIN_DISTANCE` apart."""
+        cands = sorted(self._candidates(thetas, sources, target, mask), key=lambda c: -c.r_surrogate)
+        if k == 1:
+            return cands[:1]
+        chosen: list[Candidate] = []
+        d = len(cands[0].theta)
+        for c in cands:
+            if all(np.linalg.norm(c.theta - o.theta) / np.sqrt(d) >= MIN_DISTANCE for o in chosen):
+                chosen.append(c)
+                if len(chosen) == k:
+                    break
+        return chosen
+
+    def _refine(self, cands: list[Candidate], target: np.ndarray, mask: np.ndarray, budget: int, seed: int
+                ) -> tuple[list[Candidate], int]:
+        """Warm-started CMA-ES (sigma0 0.1 in [0, 1]^d) from each candidate; keeps the better point."""
+        from invphys.core.spaces import build_problem, raw_space
+        from invphys.plugins.optimizers.cma_es import CMAES
+
+        objective = MaskedRecovery(np.where(mask, target, 0.0), self.bundle.scales, mask, self.bundle.kappa)
+        out, spent = [], 0
+        for j, c in enumerate(cands):
+            problem = build_problem(raw_space(len(c.theta)), objective, budget, predict=self.bundle.surrogate.predict,
+                                    initial=c.theta, seed=seed * 100 + j)
+            with _quiet_cma():
+                res = CMAES(sigma0=REFINE_SIGMA0, popsize=min(20, max(2, budget // 2)), budget=budget).optimize(problem)
+            spent += int(res.evaluations)
+            new = self._candidates(np.asarray(res.theta)[None, :], [f"{c.source} + refine({budget})"], target, mask)[0]
+            out.append(new if new.r_surrogate > c.r_surrogate else c)
+        out.sort(key=lambda c: -c.r_surrogate)
+        return out, spent
+
+    def evaluate(self, parameters: Any, target: Any, partial: bool = False, label: str = "given") -> InversionResult:
+        """An :class:`InversionResult` for given parameters (a ``{name: value}`` mapping or a physical
+        vector) against a target, e.g. to validate known parameters."""
+        t = self.targets(target, partial)
+        space = self.bundle.space
+        phys = space.from_mapping(parameters) if isinstance(parameters, Mapping) else space.check(parameters)
+        theta = space.normalize(phys)[None, :]
+        cands = self._candidates(theta, [label], t.values[0], t.mask[0])
+        return InversionResult(label=t.labels[0], method=label, target=t.values[0], mask=t.mask[0], candidates=cands,
+                               parameter_names=self.parameter_names,
+                               parameter_units=tuple(p.unit for p in space.parameters),
+                               feature_names=self.feature_names, feature_units=self.bundle.feature_units,
+                               warnings=self._warnings(t.values[0], t.mask[0]),
+                               bundle_id=str(self.bundle.manifest.get("bundle_id", "")))
+
+    # -- validation ---------------------------------------------------------------------------------
+    def simulator(self, overrides: Mapping[str, Any] | None = None) -> Any:
+        """The bundle's simulator (its recorded config, with ``overrides``), from the installed plugin."""
+        block = {**self.bundle.manifest["simulator"]["config"], **dict(overrides or {})}
+        try:
+            return self.bundle.registry.create("simulator", block)
+        except InvphysError:
+            raise
+        except Exception as exc:  # pydantic validation of overrides
+            raise InvphysError(f"simulator options do not fit {block.get('type')!r}: "
+                               f"{str(exc).splitlines()[0]}") from None
+
+    def extractor(self, simulator: Any = None) -> Any:
+        block = self.bundle.manifest["features"].get("extractor") or {}
+        if not block.get("type"):
+            name = simulator.default_feature_extractor() if simulator is not None else None
+            if not name:
+                raise InvphysError("the bundle names no feature extractor")
+            block = {"type": name}
+        return self.bundle.registry.create("feature_extractor", block)
+
+    def validate(self, results: InversionResult | Sequence[InversionResult], overrides: Mapping[str, Any] | None = None,
+                 batch_size: int = 16, on_run: Callable[[int], None] | None = None
+                 ) -> InversionResult | list[InversionResult]:
+        """Re-run every candidate through the simulator: fills ``actual``, ``r_actual`` and ``gap``.
+
+        ``overrides`` change the recorded simulator config (e.g. ``{"arch": "cpu"}``); ``on_run(i)`` is
+        called as each run finishes. Returns ``results`` (updated in place).
+        """
+        single = isinstance(results, InversionResult)
+        items = [results] if single else list(results)
+        sim = self.simulator(overrides)
+        ext = self.extractor(sim)
+        validator = self.bundle.registry.create("validator", {"type": "simulator", "batch_size": batch_size})
+        cands = [(r, c) for r in items for c in r.candidates]
+        theta = np.array([c.theta for _, c in cands])
+        if hasattr(validator, "simulate_features"):
+            sim_out = validator.simulate_features(theta, sim, ext, on_run=on_run)
+            actual, failures = sim_out.features, sim_out.failures
+        else:
+            recs = validator.validate(theta, np.array([np.where(r.mask, r.target, 0.0) for r, _ in cands]),
+                                      np.array([c.predicted for _, c in cands]), sim, ext, self.bundle.scales)
+            actual = np.array([np.full(len(self.feature_names), np.nan) if x.actual is None else x.actual for x in recs])
+            failures = [x.failure for x in recs]
+        for j, (r, c) in enumerate(cands):
+            c.failure = failures[j]
+            if failures[j] is None:
+                c.actual = np.asarray(actual[j], dtype=np.float64)
+                c.r_actual = float(masked_recovery(c.actual, r.target, self.bundle.scales, r.mask, self.bundle.kappa))
+            else:
+                c.actual, c.r_actual = None, float("nan")
+            c.gap = c.r_surrogate - c.r_actual
+        return items[0] if single else items

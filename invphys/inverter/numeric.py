@@ -1,0 +1,99 @@
+"""NumPy inference forms of the bundle's networks, so that answering a target needs no torch.
+
+A :class:`Program` is a list of operations over named float32 arrays, stored as one ``.npz`` (the
+operation list is a JSON string inside it; nothing is pickled). Operations:
+
+* ``linear`` (``x @ w + b``), ``relu``, ``tanh``, ``sigmoid``, ``clip``, ``affine`` (``x * scale + shift``);
+* ``skip_mlp``: K stacked surrogate networks (batch norm folded) -> (K, B, M);
+* ``coupling_inverse``: the inverse of RealNVP affine couplings (the flow's decoder).
+
+:mod:`invphys.inverter.export` builds programs from trained torch models and keeps one only when it
+reproduces the model's own outputs; the bundle falls back to the torch model otherwise.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+PROGRAM_KEY = "__program__"
+
+
+class Program:
+    """A sequence of array operations (see the module docstring); call it on a (B, n) array."""
+
+    def __init__(self, ops: list[dict[str, Any]], arrays: dict[str, np.ndarray]) -> None:
+        self.ops = ops
+        self.arrays = {k: np.ascontiguousarray(v, dtype=np.float32) if v.dtype.kind == "f" else v
+                       for k, v in arrays.items()}
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        return run_ops(self.ops, self.arrays, np.asarray(x, dtype=np.float32))
+
+    def save(self, path: str | Path) -> Path:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "wb") as fh:  # np.savez on a handle keeps the name (no ".npz" appended)
+            np.savez(fh, **{PROGRAM_KEY: np.array(json.dumps(self.ops))}, **self.arrays)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> Program:
+        with np.load(path, allow_pickle=False) as data:
+            ops = json.loads(str(data[PROGRAM_KEY]))
+            arrays = {k: data[k] for k in data.files if k != PROGRAM_KEY}
+        return cls(ops, arrays)
+
+
+def _sigmoid(x: np.ndarray) -> np.ndarray:
+    return 0.5 * (np.tanh(0.5 * x) + 1.0)
+
+
+def run_ops(ops: list[dict[str, Any]], arrays: dict[str, np.ndarray], x: np.ndarray) -> np.ndarray:
+    """Apply ``ops`` to ``x`` (float32)."""
+    for op in ops:
+        kind = op["op"]
+        if kind == "linear":
+            x = x @ arrays[op["w"]] + arrays[op["b"]]
+        elif kind == "relu":
+            x = np.maximum(x, 0.0)
+        elif kind == "tanh":
+            x = np.tanh(x)
+        elif kind == "sigmoid":
+            x = _sigmoid(x)
+        elif kind == "clip":
+            x = np.clip(x, op["low"], op["high"])
+        elif kind == "affine":
+            x = x * arrays[op["scale"]] + arrays[op["shift"]]
+        elif kind == "skip_mlp":
+            x = _skip_mlp(arrays, op["prefix"], x)
+        elif kind == "coupling_inverse":
+            x = _coupling_inverse(arrays, op, x)
+        else:
+            raise ValueError(f"unknown inference operation {kind!r}")
+    return x
+
+
+def _skip_mlp(arrays: dict[str, np.ndarray], p: str, x: np.ndarray) -> np.ndarray:
+    """K folded SkipMLPs: a = relu(x W1 + b1), c = relu(a W2 + b2), h = relu([a, c] W3 + b3), h Wo + bo."""
+    a = np.maximum(np.matmul(x, arrays[f"{p}w1"]) + arrays[f"{p}b1"], 0.0)
+    c = np.maximum(np.matmul(a, arrays[f"{p}w2"]) + arrays[f"{p}b2"], 0.0)
+    h1 = a.shape[-1]
+    w3 = arrays[f"{p}w3"]
+    h = np.maximum(np.matmul(a, w3[:, :h1]) + np.matmul(c, w3[:, h1:]) + arrays[f"{p}b3"], 0.0)
+    return np.matmul(h, arrays[f"{p}wo"]) + arrays[f"{p}bo"]
+
+
+def _coupling_inverse(arrays: dict[str, np.ndarray], op: dict[str, Any], z: np.ndarray) -> np.ndarray:
+    bound = float(op["bound"])
+    for c in reversed(op["couplings"]):
+        ia, ib, back = (arrays[c[k]] for k in ("ia", "ib", "back"))
+        xa = z[:, ia]
+        phi = run_ops(c["hyper"], arrays, xa).reshape(len(z), -1, 2)
+        shift, log_scale = phi[..., 0], bound * np.tanh(phi[..., 1])
+        yb = (z[:, ib] - shift) * np.exp(-log_scale)
+        z = np.concatenate([xa, yb], axis=1)[:, back]
+    return z
