@@ -1,4 +1,4 @@
-"""``invphys dataset generate SPEC`` and ``invphys dataset info PATH``."""
+"""``invphys dataset generate SPEC``, ``invphys dataset info PATH`` and ``invphys dataset verify PATH [--repair]``."""
 
 from __future__ import annotations
 
@@ -103,3 +103,36 @@ def _render_info(d: dict[str, Any]) -> None:
     for name, p in d["features"].items():
         table.add_row(name, *("-" if p[k] is None else f"{p[k]:.4g}" for k in ("p5", "p50", "p95")))
     out_console.print(table)
+
+
+@dataset_app.command("verify")
+@handle_errors
+def verify(
+    path: Path = typer.Argument(..., help="dataset directory"),
+    repair: bool = typer.Option(False, "--repair", help="quarantine bad parts into _quarantine/, adopt good "
+                                "unlisted ones and rewrite the manifest"),
+    as_json: bool = typer.Option(False, "--json", help="machine-readable output"),
+) -> None:
+    """Check every part against the manifest (missing, corrupt, foreign, duplicated); exit 1 on problems."""
+    from invphys.core.dataset import DatasetStore
+
+    store = DatasetStore(path)
+    report = store.repair() if repair else store.verify()
+    data = report.to_dict()
+    emit(data, as_json, _render_verify)
+    if not report.ok:
+        raise typer.Exit(1)
+
+
+def _render_verify(d: dict[str, Any]) -> None:
+    for action in d["actions"]:
+        out_console.print(f"repaired: {escape(action)}")
+    for p in d["problems"]:
+        rows = f", {p['rows']} rows" if p["rows"] is not None else ""
+        out_console.print(f"[red]{escape(p['kind'])}[/]: {escape(p['part'])} ({escape(p['detail'])}{rows})")
+    if not d["has_manifest"]:
+        out_console.print("[yellow]no manifest[/] (a store written before manifests existed): "
+                          "`invphys dataset verify PATH --repair` writes one")
+    state = "[green]ok[/]" if d["ok"] else "[red]problems found[/]"
+    hint = "" if d["ok"] or d["actions"] else "; `--repair` quarantines bad parts and rebuilds the manifest"
+    out_console.print(f"{escape(d['path'])}: {state}: {d['parts']} good parts, {d['rows']} rows{hint}")

@@ -426,8 +426,14 @@ class DatasetStore:
         """Move missing/corrupt/foreign/duplicate parts' files to ``_quarantine/``, adopt good unlisted
         parts, and rewrite the manifest from what remains. Returns the report, with ``actions``."""
         with self.writer():
-            scan = self._scan()
             actions: list[str] = []
+            try:
+                scan = self._scan()
+            except DatasetError:
+                if not self.manifest_path.exists() or _metadata_problem(self.metadata):
+                    raise
+                scan = self._scan(use_manifest=False)  # a malformed manifest: rebuilt from the parts
+                actions.append("replaced the malformed manifest")
             qdir = self.path / QUARANTINE_DIR
             for problem in scan.problems:
                 if problem.kind == "missing":
@@ -443,16 +449,16 @@ class DatasetStore:
                     actions.append(f"moved {problem.part} ({problem.kind}) to {QUARANTINE_DIR}/")
             if scan.problems or not scan.has_manifest:
                 self._write_manifest([_entry(p) for p in scan.parts])
-                if not scan.has_manifest:
+                if not scan.has_manifest and not actions:
                     actions.append("wrote a manifest")
             report = self.verify()
             report.actions = actions
             return report
 
-    def _scan(self) -> _Scan:
+    def _scan(self, use_manifest: bool = True) -> _Scan:
         """Read and classify every part (see :class:`PartProblem`)."""
         meta = self.metadata
-        manifest = self.manifest
+        manifest = self.manifest if use_manifest else None
         schema = table_schema(tuple(meta["param_names"]), tuple(meta["feature_names"]))
         listed = {p["name"]: p for p in manifest["parts"]} if manifest is not None else {}
         files = {p.name: p for p in self.path.glob("part-*.parquet")}
