@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+import time
 from pathlib import Path
 from typing import Any
 
@@ -18,11 +19,19 @@ from invphys.tracking.base import Tracker
 
 log = logging.getLogger(__name__)
 
+#: most metrics one ``log_batch`` call takes (MLflow's limit)
+BATCH = 1000
+
 _MISSING = 'tracker: mlflow needs the mlflow client: pip install "invphys[mlflow]"'
 
 
 class MLflowTracker(Tracker):
-    """Logs scalars as MLflow metrics (``/`` kept in keys), text and artifacts as run artifacts."""
+    """Logs scalars as MLflow metrics (``/`` kept in keys), text and artifacts as run artifacts.
+
+    Scalars are buffered and sent with ``log_batch`` on :meth:`flush` (every model's fit, every PPO
+    rollout and every stage flush) or every :data:`BATCH` values: one store transaction per batch,
+    not per value.
+    """
 
     name = "mlflow"
 
@@ -45,10 +54,20 @@ class MLflowTracker(Tracker):
             experiment_id = self.client.create_experiment(experiment, artifact_location=location)
         self.run_id: str = self.client.create_run(experiment_id, run_name=run_name).info.run_id
         self._closed = False
+        self._pending: list[Any] = []
         log.info("MLflow run %s in %s", self.run_id, self.tracking_uri)
 
     def log_scalar(self, tag: str, value: float, step: int) -> None:
-        self.client.log_metric(self.run_id, _key(tag), float(value), step=int(step))
+        from mlflow.entities import Metric
+
+        self._pending.append(Metric(_key(tag), float(value), int(time.time() * 1000), int(step)))
+        if len(self._pending) >= BATCH:
+            self.flush()
+
+    def flush(self) -> None:
+        while self._pending:
+            batch, self._pending = self._pending[:BATCH], self._pending[BATCH:]
+            self.client.log_batch(self.run_id, metrics=batch)
 
     def log_text(self, tag: str, text: str) -> None:
         self.client.log_text(self.run_id, text, f"text/{_key(tag)}.md")
@@ -63,6 +82,7 @@ class MLflowTracker(Tracker):
 
     def close(self) -> None:
         if not self._closed:
+            self.flush()
             self.client.set_terminated(self.run_id)
             self._closed = True
 
