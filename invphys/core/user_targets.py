@@ -94,8 +94,8 @@ def from_mappings(rows: Sequence[Mapping[str, Any]], feature_names: Sequence[str
         labels.append(label)
         unknown = [str(k) for k in row if k not in index and k not in LABEL_KEYS]
         if unknown:
-            hints = "; ".join(f"{u!r}{did_you_mean(u, names)}" for u in unknown)
-            raise TargetError(f"{where}: unknown feature(s) {hints} (features: {', '.join(names)})")
+            hints = "; ".join(f"{u!r}.{did_you_mean(u, names)}" for u in unknown)
+            raise TargetError(f"{where}: unknown feature {hints} Features: {', '.join(names)}")
         for key, value in row.items():
             if key in index and not (value is None or (isinstance(value, str) and not value.strip())):
                 values[i, index[key]] = _number(value, str(key), where)
