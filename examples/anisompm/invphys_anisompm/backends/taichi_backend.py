@@ -1,0 +1,498 @@
+"""Taichi kernels of the engine: batched explicit MLS-MPM with anisotropic phase-field damage.
+
+The step (``docs/anisompm.md``): P2G with the degraded fixed-corotated + fibre stress and the crack
+driving force; a grid update with gravity, grips, colliders (grid hooks), held nodes and walls; G2P with
+the damage Laplacian and the damage update. Every array carries a leading run index ``b``: one launch
+advances a whole batch; a run whose substep index ``k`` is past its own ``nsub[b]`` idles.
+"""
+
+
+import contextlib
+import sys
+import threading
+
+import numpy as np
+import taichi as ti
+
+from invphys.core.errors import DeviceUnavailableError, InvphysError
+from invphys_anisompm.failure import BODY0, n_stats
+from invphys_anisompm.materials import M_ALPHA, M_DMG, M_ETA, M_KF, M_LAM, M_MU, M_RES, M_RHO, M_SC, N_MAT
+
+_init_lock = threading.Lock()
+_initialised_arch: str | None = None
+#: below this volume ratio a particle is treated as inverted: no tensile driving force
+J_MIN = 1e-6
+
+
+def _cuda_device_present() -> bool:
+    import ctypes
+
+    try:
+        lib = ctypes.CDLL("libcuda.so.1")
+    except OSError:
+        return False
+    if lib.cuInit(0) != 0:
+        return False
+    count = ctypes.c_int(0)
+    return lib.cuDeviceGetCount(ctypes.byref(count)) == 0 and count.value > 0
+
+
+def cuda_available() -> bool:
+    """Whether this Taichi build can run on CUDA here (probe without initialising Taichi)."""
+    try:
+        from taichi._lib import core as _ti_core
+
+        return bool(_ti_core.with_cuda()) and _cuda_device_present()
+    except Exception:
+        return False
+
+
+def ensure_taichi(arch: str, allow_cpu_fallback: bool = False) -> str:
+    """Initialise Taichi once per process on ``arch`` ("cpu", "cuda" or "auto"); return the arch used."""
+    global _initialised_arch
+    with _init_lock:
+        want = arch
+        if arch in ("cuda", "auto"):
+            if cuda_available():
+                want = "cuda"
+            elif arch == "cuda" and not allow_cpu_fallback:
+                raise DeviceUnavailableError(
+                    "arch='cuda' was requested but no CUDA GPU is available to Taichi here; "
+                    "use arch='cpu' or 'auto', or set allow_cpu_fallback=true")
+            else:
+                want = "cpu"
+        if _initialised_arch is None:
+            with contextlib.suppress(Exception):
+                from taichi.lang import impl
+
+                if impl.get_runtime().prog is not None:  # initialised by someone else in this process
+                    cur = impl.current_cfg().arch
+                    _initialised_arch = "cuda" if cur == ti.cuda else "cpu"
+        if _initialised_arch is not None:
+            if want != _initialised_arch:
+                raise InvphysError(f"Taichi is already initialised on {_initialised_arch!r} in this process "
+                                   f"and cannot switch to {want!r}; use one arch per process")
+            return want
+        with contextlib.redirect_stdout(sys.stderr):  # Taichi's banner must not pollute stdout
+            ti.init(arch=ti.cuda if want == "cuda" else ti.cpu, default_fp=ti.f32, random_seed=0,
+                    offline_cache=True, log_level=ti.WARN)
+        _initialised_arch = want
+        return want
+
+
+def device_name(arch: str) -> str:
+    if arch == "cuda":
+        try:
+            import ctypes
+
+            lib = ctypes.CDLL("libcuda.so.1")
+            buf = ctypes.create_string_buffer(256)
+            dev = ctypes.c_int(0)
+            lib.cuDeviceGet(ctypes.byref(dev), 0)
+            lib.cuDeviceGetName(buf, 256, dev)
+            return "cuda:" + buf.value.decode()
+        except Exception:
+            return "cuda"
+    import os
+    import platform
+
+    return f"cpu:{platform.processor() or platform.machine()}x{os.cpu_count()}"
+
+
+vec2 = ti.math.vec2
+vec3 = ti.math.vec3
+mat3 = ti.math.mat3
+ND = ti.types.ndarray
+
+
+@ti.func
+def _weights(fx):
+    return [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+
+
+@ti.func
+def _collider_normal(kind: ti.i32, a: vec3, bb: vec3, p: vec3):
+    """(inside, outward unit normal) of point ``p`` for a collider shape in its own frame."""
+    inside = 0
+    n = vec3(0.0, 1.0, 0.0)
+    if kind == 0:  # half-space: a = point, bb = unit normal; inside where (p - a) . n <= 0
+        if (p - a).dot(bb) <= 0.0:
+            inside = 1
+            n = bb
+    elif kind == 1:  # box: a = lo, bb = hi; normal along the axis of least penetration
+        c = 0.5 * (a + bb)
+        e = 0.5 * (bb - a)
+        r = p - c
+        q = ti.abs(r) - e
+        if q[0] <= 0.0 and q[1] <= 0.0 and q[2] <= 0.0:
+            inside = 1
+            if q[0] >= q[1] and q[0] >= q[2]:
+                n = vec3(1.0 if r[0] >= 0.0 else -1.0, 0.0, 0.0)
+            elif q[1] >= q[2]:
+                n = vec3(0.0, 1.0 if r[1] >= 0.0 else -1.0, 0.0)
+            else:
+                n = vec3(0.0, 0.0, 1.0 if r[2] >= 0.0 else -1.0)
+    else:  # cylinder: a = centre, bb = (radius, axis, half_length)
+        ax = ti.cast(bb[1] + 0.5, ti.i32)
+        e = vec3(1.0 if ax == 0 else 0.0, 1.0 if ax == 1 else 0.0, 1.0 if ax == 2 else 0.0)
+        r = p - a
+        along = r.dot(e)
+        rad = r - along * e
+        dist = rad.norm()
+        if dist <= bb[0] and ti.abs(along) <= bb[2]:
+            inside = 1
+            if dist > 1e-9:
+                n = rad / dist
+    return inside, n
+
+
+def _build_kernels(serial_p2g: bool):
+    """Compile-time configured kernels (``serial_p2g`` makes CPU scatter order deterministic)."""
+
+    @ti.kernel
+    def clear_grid(k: ti.i32, ngrip: ti.i32, nsub: ND(ti.i32, 1), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
+                   gd: ND(vec2, 4), gg: ND(ti.f32, 4)):
+        for b, i, j, q in gm:
+            if k < nsub[b]:
+                gv[b, i, j, q] = vec3(0.0)
+                gm[b, i, j, q] = 0.0
+                gd[b, i, j, q] = vec2(0.0)
+                for g in range(ngrip):
+                    gg[b * ngrip + g, i, j, q] = 0.0
+
+    @ti.kernel
+    def p2g(k: ti.i32, dx: ti.f32, apic: ti.f32, ngrip: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
+            mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
+            grip: ND(ti.i32, 1), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2),
+            d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
+            gg: ND(ti.f32, 4)):
+        inv_dx = 1.0 / dx
+        G = gm.shape[1]
+        if ti.static(serial_p2g):
+            ti.loop_config(serialize=True)
+        for b, p in ti.ndrange(x.shape[0], x.shape[1]):
+            if k < nsub[b]:
+                h = dt[b]
+                Xp = x[b, p] * inv_dx
+                base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
+                fx = Xp - ti.cast(base, ti.f32)
+                w = _weights(fx)
+                Fp = F[b, p]
+                U, sig, V = ti.svd(Fp)
+                J = sig[0, 0] * sig[1, 1] * sig[2, 2]
+                reg = body[p]
+                dp = d[b, p]
+                mu = mat[b, reg, M_MU]
+                lam = mat[b, reg, M_LAM]
+                res = mat[b, reg, M_RES]
+                g = (1.0 - dp) * (1.0 - dp) * (1.0 - res) + res
+                gvol = g if J >= 1.0 else 1.0
+                tau_d = vec3(0.0)
+                s_pos = vec3(0.0)
+                vol_t = lam * (J - 1.0) * J
+                for a in ti.static(range(3)):
+                    dev = 2.0 * mu * (sig[a, a] - 1.0) * sig[a, a]
+                    tau_d[a] = g * dev + gvol * vol_t
+                    if J > J_MIN:  # an inverted or collapsed particle has no tensile driving force
+                        s_pos[a] = ti.max((dev + vol_t) / J, 0.0)
+                tau = U @ ti.Matrix([[tau_d[0], 0.0, 0.0], [0.0, tau_d[1], 0.0], [0.0, 0.0, tau_d[2]]]) \
+                    @ U.transpose()
+                sigp = U @ ti.Matrix([[s_pos[0], 0.0, 0.0], [0.0, s_pos[1], 0.0], [0.0, 0.0, s_pos[2]]]) \
+                    @ U.transpose()
+                A = ti.Matrix.identity(ti.f32, 3)
+                a0 = fibre[p]
+                if a0.norm_sqr() > 0.0:
+                    kf = mat[b, reg, M_KF]
+                    if kf > 0.0:
+                        fa = Fp @ a0
+                        lf = fa.norm()
+                        if lf > 1e-6:
+                            tau += kf * (lf - 1.0) / lf * fa.outer_product(fa)
+                    ra = (U @ V.transpose()) @ a0
+                    A += mat[b, reg, M_ALPHA] * ra.outer_product(ra)
+                M = A @ sigp
+                sc = mat[b, reg, M_SC]
+                phi = (M * M.transpose()).sum() / (sc * sc)
+                dtil[b, p] = ti.max(phi - 1.0, 0.0)
+                vp_ = vol[p]
+                mass = mat[b, reg, M_RHO] * vp_
+                affine = (-h * vp_ * 4.0 * inv_dx * inv_dx) * tau + (mass * apic) * C[b, p]
+                vp = v[b, p]
+                gp = grip[p]
+                for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
+                    off = ti.Vector([i, j, q])
+                    dpos = (ti.cast(off, ti.f32) - fx) * dx
+                    weight = w[i][0] * w[j][1] * w[q][2]
+                    node = base + off
+                    gv[b, node[0], node[1], node[2]] += weight * (mass * vp + affine @ dpos)
+                    gm[b, node[0], node[1], node[2]] += weight * mass
+                    gd[b, node[0], node[1], node[2]] += weight * vec2(dp, 1.0)
+                    if gp >= 0:
+                        gg[b * ngrip + gp, node[0], node[1], node[2]] += weight * mass
+
+    @ti.kernel
+    def grid_update(k: ti.i32, dx: ti.f32, gravity: ti.f32, bc: ti.i32, ngrip: ti.i32, ncol: ti.i32,
+                    nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1), kin: ND(ti.f32, 4), ctype: ND(ti.i32, 1),
+                    ca: ND(vec3, 1), cb: ND(vec3, 1), csurf: ND(ti.i32, 1), fric: ND(ti.f32, 2),
+                    held: ND(ti.i32, 3), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gg: ND(ti.f32, 4),
+                    imp: ND(vec3, 2), work: ND(ti.f32, 2)):
+        G = gm.shape[1]
+        for b, i, j, q in gm:
+            m = gm[b, i, j, q]
+            if k < nsub[b] and m > 0.0:
+                vel = gv[b, i, j, q] / m
+                vel[1] += dt[b] * gravity
+                for g in range(ngrip):
+                    if gg[b * ngrip + g, i, j, q] > 0.5 * m:
+                        vk = vec3(kin[b, k, g, 3], kin[b, k, g, 4], kin[b, k, g, 5])
+                        imp[b, g] += m * (vel - vk)
+                        work[b, g] += m * (vk - vel).dot(vk)
+                        vel = vk
+                pos = vec3(ti.cast(i, ti.f32), ti.cast(j, ti.f32), ti.cast(q, ti.f32)) * dx
+                for c in range(ncol):
+                    kc = ngrip + c
+                    disp = vec3(kin[b, k, kc, 0], kin[b, k, kc, 1], kin[b, k, kc, 2])
+                    vc = vec3(kin[b, k, kc, 3], kin[b, k, kc, 4], kin[b, k, kc, 5])
+                    inside, n = _collider_normal(ctype[c], ca[c], cb[c], pos - disp)
+                    if inside != 0:
+                        old = vel
+                        rel = vel - vc
+                        if csurf[c] == 0:
+                            rel = vec3(0.0)
+                        else:
+                            vn = rel.dot(n)
+                            if csurf[c] == 1 or vn < 0.0:
+                                rel_t = rel - vn * n
+                                if vn < 0.0:
+                                    lt = rel_t.norm()
+                                    if lt > 1e-12:
+                                        rel_t *= ti.max(0.0, 1.0 + fric[b, c] * vn / lt)
+                                rel = rel_t
+                        vel = vc + rel
+                        imp[b, kc] += m * (old - vel)
+                        work[b, kc] += m * (vel - old).dot(vc)
+                if held[i, j, q] != 0:
+                    vel = vec3(0.0)
+                if i < bc and vel[0] < 0.0:
+                    vel[0] = 0.0
+                if i > G - bc and vel[0] > 0.0:
+                    vel[0] = 0.0
+                if j <= bc and vel[1] < 0.0:
+                    vel[1] = 0.0
+                if j > G - bc and vel[1] > 0.0:
+                    vel[1] = 0.0
+                if q < bc and vel[2] < 0.0:
+                    vel[2] = 0.0
+                if q > G - bc and vel[2] > 0.0:
+                    vel[2] = 0.0
+                gv[b, i, j, q] = vel
+
+    @ti.kernel
+    def g2p(k: ti.i32, dx: ti.f32, l0sq: ti.f32, damage_on: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
+            mat: ND(ti.f32, 3), body: ND(ti.i32, 1), grip: ND(ti.i32, 1), x0: ND(vec3, 1), kin: ND(ti.f32, 4),
+            x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2),
+            dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gd: ND(vec2, 4)):
+        inv_dx = 1.0 / dx
+        G = gv.shape[1]
+        for b, p in x:
+            if k < nsub[b]:
+                h = dt[b]
+                Xp = x[b, p] * inv_dx
+                base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
+                fx = Xp - ti.cast(base, ti.f32)
+                w = _weights(fx)
+                hs = [1.0, -2.0, 1.0]
+                dp = d[b, p]
+                new_v = vec3(0.0)
+                new_C = mat3(0.0)
+                lap = 0.0
+                for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
+                    off = ti.Vector([i, j, q])
+                    weight = w[i][0] * w[j][1] * w[q][2]
+                    node = base + off
+                    gvel = gv[b, node[0], node[1], node[2]]
+                    new_v += weight * gvel
+                    new_C += (4.0 * inv_dx * weight) * gvel.outer_product(ti.cast(off, ti.f32) - fx)
+                    g2 = gd[b, node[0], node[1], node[2]]
+                    if g2[1] > 0.0:
+                        hess = hs[i] * w[j][1] * w[q][2] + w[i][0] * hs[j] * w[q][2] + w[i][0] * w[j][1] * hs[q]
+                        lap += (g2[0] / g2[1] - dp) * hess
+                reg = body[p]
+                if damage_on != 0 and mat[b, reg, M_DMG] > 0.5:
+                    Dc = dp - l0sq * lap
+                    rate = (1.0 - dp) * dtil[b, p] - Dc
+                    d[b, p] = ti.min(1.0, dp + h / mat[b, reg, M_ETA] * ti.max(rate, 0.0))
+                F[b, p] = (ti.Matrix.identity(ti.f32, 3) + h * new_C) @ F[b, p]
+                C[b, p] = new_C
+                gp = grip[p]
+                if gp >= 0:
+                    x[b, p] = x0[p] + vec3(kin[b, k, gp, 0], kin[b, k, gp, 1], kin[b, k, gp, 2])
+                    v[b, p] = vec3(kin[b, k, gp, 3], kin[b, k, gp, 4], kin[b, k, gp, 5])
+                else:
+                    v[b, p] = new_v
+                    x[b, p] += h * new_v
+
+    @ti.kernel
+    def frame_stats(lo: ti.f32, hi: ti.f32, mat: ND(ti.f32, 3), body: ND(ti.i32, 1), vol: ND(ti.f32, 1),
+                    x: ND(vec3, 2), v: ND(vec3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2), out: ND(ti.f32, 2)):
+        for b, p in x:
+            xp = x[b, p]
+            vp = v[b, p]
+            dp = d[b, p]
+            s = vp.norm()
+            bad = 0
+            if not (s < 1e20) or not (ti.abs(xp).max() < 1e20) or not (ti.abs(F[b, p]).max() < 1e20) \
+                    or not (ti.abs(dp) < 1e20):
+                bad = 1
+            if bad != 0:
+                ti.atomic_add(out[b, 2], 1.0)
+            else:
+                reg = body[p]
+                ti.atomic_max(out[b, 0], s)
+                ti.atomic_add(out[b, 1], 0.5 * mat[b, reg, M_RHO] * vol[p] * s * s)
+                if xp.min() < lo or xp.max() > hi:
+                    ti.atomic_add(out[b, 3], 1.0)
+                col = BODY0 + 4 * reg
+                for a in ti.static(range(3)):
+                    ti.atomic_add(out[b, col + a], xp[a])
+                ti.atomic_add(out[b, col + 3], dp)
+
+    return clear_grid, p2g, grid_update, g2p, frame_stats
+
+
+_KERNELS: dict[bool, tuple] = {}
+
+
+class TaichiBackend:
+    """Batched engine state and kernels on one Taichi arch (see :mod:`invphys_anisompm.backends`)."""
+
+    name = "taichi"
+
+    def __init__(self, scene, batch: int, arch: str = "cpu", allow_cpu_fallback: bool = False, **_: object):
+        self.arch = ensure_taichi(arch, allow_cpu_fallback)
+        self.device = device_name(self.arch)
+        self.scene = scene
+        o = scene.options
+        self.options = o
+        self.batch = int(batch)
+        serial = bool(o.deterministic and self.arch == "cpu")
+        if serial not in _KERNELS:
+            _KERNELS[serial] = _build_kernels(serial)
+        (self._clear, self._p2g, self._grid, self._g2p, self._stats) = _KERNELS[serial]
+        B, N, G = self.batch, scene.n_particles, o.grid
+        self.ngrip = len(scene.grips)
+        self.ncol = len(scene.colliders)
+        NG1, NK1, NC1 = max(self.ngrip, 1), max(self.ngrip + self.ncol, 1), max(self.ncol, 1)
+        self.nk1 = NK1
+        self.nstats = n_stats(len(scene.bodies))
+        self.x = ti.ndarray(vec3, (B, N))
+        self.v = ti.ndarray(vec3, (B, N))
+        self.C = ti.ndarray(mat3, (B, N))
+        self.F = ti.ndarray(mat3, (B, N))
+        self.d = ti.ndarray(ti.f32, (B, N))
+        self.dtil = ti.ndarray(ti.f32, (B, N))
+        self.gv = ti.ndarray(vec3, (B, G, G, G))
+        self.gm = ti.ndarray(ti.f32, (B, G, G, G))
+        self.gd = ti.ndarray(vec2, (B, G, G, G))
+        self.gg = ti.ndarray(ti.f32, (B * NG1, G, G, G))
+        self.mat = ti.ndarray(ti.f32, (B, len(scene.bodies), N_MAT))
+        self.fric = ti.ndarray(ti.f32, (B, NC1))
+        self.nsub = ti.ndarray(ti.i32, (B,))
+        self.dt = ti.ndarray(ti.f32, (B,))
+        self.kin = ti.ndarray(ti.f32, (B, 1, NK1, 6))
+        self.stats_out = ti.ndarray(ti.f32, (B, self.nstats))
+        self.imp = ti.ndarray(vec3, (B, NK1))
+        self.work = ti.ndarray(ti.f32, (B, NK1))
+        self.body = self._const(ti.i32, scene.body.astype(np.int32))
+        self.fibre = self._const(vec3, scene.fibres.astype(np.float32))
+        self.vol = self._const(ti.f32, scene.volume.astype(np.float32))
+        self.grip = self._const(ti.i32, scene.grip.astype(np.int32))
+        self.x0 = self._const(vec3, scene.positions.astype(np.float32))
+        self.held = self._const(ti.i32, scene.held.astype(np.int32), (G, G, G))
+        enc = [c.encode() for c in scene.colliders] or [(0, np.zeros(3), np.array([0.0, 1.0, 0.0]))]
+        self.ctype = self._const(ti.i32, np.array([e[0] for e in enc], np.int32))
+        self.ca = self._const(vec3, np.array([e[1] for e in enc], np.float32))
+        self.cb = self._const(vec3, np.array([e[2] for e in enc], np.float32))
+        from invphys_anisompm.scene import SURFACES
+
+        self.csurf = self._const(ti.i32, np.array([SURFACES[c.surface] for c in scene.colliders] or [0], np.int32))
+        self._damage_on = 1
+
+    @staticmethod
+    def _const(dtype, values: np.ndarray, shape: tuple | None = None):
+        shape = shape or (values.shape[0],)
+        arr = ti.ndarray(dtype, shape)
+        arr.from_numpy(values)
+        return arr
+
+    def load(self, table: np.ndarray, friction: np.ndarray) -> None:
+        """Reset every run to the initial state with its own material table (B, n_bodies, N_MAT) and
+        collider frictions (B, n_colliders)."""
+        B, N = self.batch, self.scene.n_particles
+        self.mat.from_numpy(table.astype(np.float32))
+        fr = np.zeros((B, max(self.ncol, 1)), np.float32)
+        fr[:, :self.ncol] = friction
+        self.fric.from_numpy(fr)
+        self.imp.fill(0.0)
+        self.work.fill(0.0)
+        self.x.from_numpy(np.broadcast_to(self.scene.positions.astype(np.float32), (B, N, 3)).copy())
+        self.v.from_numpy(np.zeros((B, N, 3), np.float32))
+        self.C.from_numpy(np.zeros((B, N, 3, 3), np.float32))
+        self.F.from_numpy(np.broadcast_to(np.eye(3, dtype=np.float32), (B, N, 3, 3)).copy())
+        self.d.from_numpy(np.zeros((B, N), np.float32))
+        self.dtil.from_numpy(np.zeros((B, N), np.float32))
+
+    def set_frame(self, dt: np.ndarray, nsub: np.ndarray, kin: np.ndarray, damage_on: bool) -> None:
+        """Per-run dt (B,), substep counts (B,), kinematic table (B, K, n_kinematic, 6) of the next frame."""
+        self.dt.from_numpy(dt.astype(np.float32))
+        self.nsub.from_numpy(nsub.astype(np.int32))
+        B, K = kin.shape[:2]
+        table = np.zeros((B, K, self.nk1, 6), np.float32)
+        table[:, :, :kin.shape[2]] = kin
+        if self.kin.shape != table.shape:
+            self.kin = ti.ndarray(ti.f32, table.shape)
+        self.kin.from_numpy(table)
+        self._damage_on = int(damage_on)
+
+    def advance(self, n_steps: int) -> None:
+        """Run substeps 0..n_steps-1 of the current frame (runs past their own nsub idle)."""
+        o = self.options
+        dx = float(o.dx)
+        ng = max(self.ngrip, 1)
+        for k in range(n_steps):
+            self._clear(k, ng, self.nsub, self.gv, self.gm, self.gd, self.gg)
+            self._p2g(k, dx, float(o.apic_blend), ng, self.nsub, self.dt, self.mat, self.body, self.fibre, self.vol,
+                      self.grip, self.x, self.v, self.C, self.F, self.d, self.dtil, self.gv, self.gm, self.gd, self.gg)
+            self._grid(k, dx, float(o.gravity), int(o.boundary_cells), self.ngrip, self.ncol, self.nsub, self.dt,
+                       self.kin, self.ctype, self.ca, self.cb, self.csurf, self.fric, self.held, self.gv, self.gm,
+                       self.gg, self.imp, self.work)
+            self._g2p(k, dx, float(o.l0_cells) ** 2, self._damage_on * int(o.damage), self.nsub, self.dt, self.mat,
+                      self.body, self.grip, self.x0, self.kin, self.x, self.v, self.C, self.F, self.d, self.dtil,
+                      self.gv, self.gd)
+
+    def frame_stats(self, lo: float, hi: float) -> np.ndarray:
+        """(B, n_stats) statistics of the current state (columns: :mod:`invphys_anisompm.failure`)."""
+        self.stats_out.fill(0.0)
+        self._stats(lo, hi, self.mat, self.body, self.vol, self.x, self.v, self.F, self.d, self.stats_out)
+        return self.stats_out.to_numpy().astype(np.float64)
+
+    def kinematic_sums(self) -> tuple[np.ndarray, np.ndarray]:
+        """(impulse (B, n_kin, 3) the material gave each kinematic object, work (B, n_kin) the objects did
+        on the material) since the last call; the accumulators are reset."""
+        n = self.ngrip + self.ncol
+        imp = self.imp.to_numpy().astype(np.float64)[:, :n]
+        work = self.work.to_numpy().astype(np.float64)[:, :n]
+        self.imp.fill(0.0)
+        self.work.fill(0.0)
+        return imp, work
+
+    def read(self) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (B, N, 3) and damage (B, N), float32."""
+        return self.x.to_numpy(), self.d.to_numpy()
+
+    def grid_mass(self) -> np.ndarray:
+        """(B,) total grid mass deposited by the last P2G (equals the particle mass: a check)."""
+        return self.gm.to_numpy().astype(np.float64).reshape(self.batch, -1).sum(axis=1)
+
+    def sync(self) -> None:
+        ti.sync()

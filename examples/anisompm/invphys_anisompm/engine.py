@@ -1,0 +1,271 @@
+"""Time stepping, batching, recording and failure checks: the host side shared by every backend.
+
+:class:`Engine` advances the runs of a :class:`~invphys_anisompm.model.Model` together: each run keeps
+its own time step (:func:`run_dt_bound`) for the whole run unless its particles move too fast (the
+velocity guard raises a frame's substeps), runs of similar cost are batched together
+(:meth:`Engine.run_batched`), and every frame ends with device reductions (peak speed, kinetic energy,
+per-body centroid and mean damage, force and work on every collider and grip) and failure checks.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from invphys_anisompm.failure import BODY0, STAT_KE, STAT_VMAX, energy_bound, frame_failure, substep_failure
+from invphys_anisompm.model import Model
+from invphys_anisompm.scene import Scene
+
+
+@dataclass
+class RunRecord:
+    """One run's output. Per-frame ``series`` have ``frames + 1`` entries (frame 0 = the settled state).
+
+    Series: ``max_speed`` (m/s), ``kinetic_energy`` (J), ``centroid/<body>`` (3, m),
+    ``mean_damage/<body>``, ``force/<object>`` (3, N: the mean force the material exerts on a collider
+    or grip over the frame; frame 0 holds the last settling frame's), ``work/<object>`` (J done on the
+    material since frame 0), ``position/<object>`` (3, m: the object's displacement), and each host
+    reduction's name.
+    """
+
+    positions: list[np.ndarray] = field(default_factory=list)
+    damage: list[np.ndarray] = field(default_factory=list)
+    frames: list[int] = field(default_factory=list)
+    series: dict[str, list] = field(default_factory=dict)
+    substeps: int = 0
+    settle_substeps: int = 0
+    dt: float = 0.0
+    guard_frames: int = 0
+    failure: str | None = None
+    wall_time_s: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        return self.failure is None
+
+    def series_array(self, name: str) -> np.ndarray:
+        return np.asarray(self.series[name], dtype=np.float64)
+
+
+def run_dt_bound(model: Model, frames: int) -> np.ndarray:
+    """Each run's own dt bound (s): min(elastic CFL, frame_dt / min_substeps, eta_dt_factor * min eta,
+    kinematic CFL of the fastest collider or grip)."""
+    scene = model.scene
+    o = scene.options
+    dt = o.cfl * o.dx / model.wave_speed()
+    dt = np.minimum(dt, 1.0 / o.fps / o.min_substeps_per_frame)
+    if o.damage:
+        dt = np.minimum(dt, o.eta_dt_factor * model.min_eta())
+    vk = kinematic_speed(scene, frames)
+    if vk > 0:
+        dt = np.minimum(dt, o.kinematic_cfl * o.dx / vk)
+    return dt
+
+
+def kinematic_speed(scene: Scene, frames: int) -> float:
+    """The peak speed (m/s) of any collider or grip over the run."""
+    t_end = frames / scene.options.fps
+    return max([p.peak_speed(t_end) for p in scene.kinematic_paths] or [0.0])
+
+
+def frame_plan(fps: float, dt_bound: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(nsub, dt) per run for one frame: nsub = ceil(frame_dt / dt_bound), dt = frame_dt / nsub."""
+    frame_dt = 1.0 / fps
+    nsub = np.maximum(np.ceil(frame_dt / dt_bound - 1e-9).astype(np.int64), 1)
+    return nsub, frame_dt / nsub
+
+
+def velocity_guard(nsub_run: np.ndarray, vmax: np.ndarray, dx: float, fps: float, velocity_cfl: float) -> np.ndarray:
+    """Substeps per run for the next frame: the run's own count, raised where the last frame's peak
+    speed needs more."""
+    with np.errstate(divide="ignore"):
+        dt_v = np.where(vmax > 0, velocity_cfl * dx / np.maximum(vmax, 1e-30), np.inf)
+    need = np.ceil((1.0 / fps) / dt_v - 1e-9)
+    need = np.where(np.isfinite(need), need, 0).astype(np.int64)
+    return np.maximum(nsub_run, need)
+
+
+def kinematic_table(scene: Scene, frame: int, nsub: np.ndarray, dt: np.ndarray, active: np.ndarray) -> np.ndarray:
+    """(B, K, n_kinematic, 6): for substep k of run b, each object's displacement since t=0 at the end
+    of the substep and its velocity over the substep."""
+    paths = scene.kinematic_paths
+    B = nsub.shape[0]
+    K = int(max(1, nsub[active].max() if active.any() else 1))
+    table = np.zeros((B, K, max(len(paths), 1), 6))
+    if not paths:
+        return table
+    k = np.arange(1, K + 1)
+    t_end = frame / scene.options.fps + k[None, :] * dt[:, None]
+    t_start = t_end - dt[:, None]
+    for c, path in enumerate(paths):
+        pe, ps = path.displacement(t_end), path.displacement(t_start)
+        table[:, :, c, :3] = pe
+        table[:, :, c, 3:] = (pe - ps) / dt[:, None, None]
+    return table
+
+
+def estimated_substeps(model: Model, frames: int) -> np.ndarray:
+    """Substeps per run if no velocity guard binds (used to batch runs of similar cost)."""
+    o = model.scene.options
+    nsub, _ = frame_plan(o.fps, run_dt_bound(model, frames))
+    return (frames + round(o.settle_seconds * o.fps)) * nsub
+
+
+class Engine:
+    """Runs batches of a scene on one backend.
+
+    Args:
+        scene: the built :class:`~invphys_anisompm.scene.Scene`.
+        backend: ``"taichi"`` or ``"warp"``.
+        arch: ``"cpu"``, ``"cuda"`` or ``"auto"`` (CUDA if present).
+        allow_cpu_fallback: run on the CPU when CUDA is asked for but absent.
+        backend_options: passed to the backend (Warp: ``use_graphs``, ``gpu_deterministic``).
+    """
+
+    def __init__(self, scene: Scene, backend: str = "taichi", arch: str = "cpu", allow_cpu_fallback: bool = False,
+                 **backend_options: Any) -> None:
+        self.scene = scene
+        self.backend_name = backend
+        self.arch = arch
+        self.allow_cpu_fallback = allow_cpu_fallback
+        self.backend_options = backend_options
+        self._backends: dict[int, Any] = {}
+
+    def backend(self, batch: int) -> Any:
+        """The backend object for batches of ``batch`` runs (allocated once per size)."""
+        if batch not in self._backends:
+            from invphys_anisompm.backends import load_backend
+
+            cls = load_backend(self.backend_name)
+            self._backends[batch] = cls(self.scene, batch, arch=self.arch, allow_cpu_fallback=self.allow_cpu_fallback,
+                                        **self.backend_options)
+        return self._backends[batch]
+
+    @property
+    def device(self) -> str:
+        return next(iter(self._backends.values())).device if self._backends else ""
+
+    def run_batched(self, model: Model, frames: int, record_every: int, batch_size: int,
+                    on_result: Callable[[int, RunRecord], None] | None = None) -> list[RunRecord]:
+        """Every run of ``model``, ``batch_size`` at a time, cheapest first; records in model order.
+        ``on_result(i, record)`` is called as soon as run ``i``'s batch ends."""
+        order = np.argsort(estimated_substeps(model, frames), kind="stable")
+        out: list[RunRecord | None] = [None] * model.n_envs
+        for start in range(0, len(order), batch_size):
+            idx = order[start:start + batch_size]
+            records = self.run(model.take(idx), frames, record_every)
+            for i, rec in zip(idx, records, strict=True):
+                out[int(i)] = rec
+                if on_result is not None:
+                    on_result(int(i), rec)
+        return [r for r in out if r is not None]
+
+    def run(self, model: Model, frames: int, record_every: int) -> list[RunRecord]:
+        """Simulate every run of ``model`` as one batch: settling, then ``frames`` frames, recording
+        particles every ``record_every`` frames (and the last); returns one record per run."""
+        scene, o = self.scene, self.scene.options
+        B = model.n_envs
+        backend = self.backend(B)
+        start = time.perf_counter()
+        backend.load(model.table(), model.friction)
+        records = [RunRecord() for _ in range(B)]
+        dx, fps = o.dx, o.fps
+        lo, hi = 1.5 * dx, o.domain - 1.5 * dx
+        nsub_run, dt_run = frame_plan(fps, run_dt_bound(model, frames))
+        bounds = energy_bound(model.total_mass(), model.wave_speed(), kinematic_speed(scene, frames), o.energy_factor)
+        alive = np.ones(B, bool)
+        names = scene.kinematic_names
+        work = np.zeros((B, len(names)))
+        last_force = np.zeros((B, len(names), 3))
+        counts = np.array([max(b.count, 1) for b in scene.bodies], float)
+        for b in range(B):
+            records[b].dt = float(dt_run[b])
+
+        def step_frame(frame: int, settling: bool, stats: np.ndarray) -> np.ndarray:
+            nsub = velocity_guard(nsub_run, stats[:, STAT_VMAX], dx, fps, o.velocity_cfl)
+            dt = (1.0 / fps) / nsub
+            for b in np.flatnonzero(alive):
+                reason = substep_failure(int(nsub[b]), o.max_substeps_per_frame, frame, float(stats[b, STAT_VMAX]))
+                if reason:
+                    records[b].failure, alive[b] = reason, False
+                elif nsub[b] > nsub_run[b]:
+                    records[b].guard_frames += 1
+            nsub = np.where(alive, nsub, 0)
+            if not alive.any():
+                return stats
+            if settling:
+                kin = np.zeros((B, int(max(1, nsub.max())), max(len(names), 1), 6))
+            else:
+                kin = kinematic_table(scene, frame, nsub, dt, alive)
+            backend.set_frame(dt, nsub, kin, damage_on=not settling)
+            backend.advance(int(nsub.max()))
+            stats = backend.frame_stats(lo, hi)
+            imp, w = backend.kinematic_sums()
+            last_force[:] = imp * fps   # mean force over the frame: impulse / frame time
+            if not settling:
+                work[:] += w
+            for b in np.flatnonzero(alive):
+                if settling:
+                    records[b].settle_substeps += int(nsub[b])
+                else:
+                    records[b].substeps += int(nsub[b])
+                reason = frame_failure(stats[b], float(bounds[b]), frame + 1,
+                                       float(np.sum(imp[b])) + float(np.sum(w[b])))
+                if reason:
+                    records[b].failure, alive[b] = reason, False
+            return stats
+
+        def record(frame: int, stats: np.ndarray, recorded: bool) -> None:
+            x = d = None
+            host = [r for r in scene.reductions if frame % r.every == 0]
+            if recorded or host:
+                x, d = backend.read()
+            host_vals = {r.name: np.asarray(r.fn(x, d, scene), float).reshape(B, -1) for r in host}
+            t = frame / fps
+            for b in np.flatnonzero(alive):
+                s = records[b].series
+                s.setdefault("max_speed", []).append(float(stats[b, STAT_VMAX]))
+                s.setdefault("kinetic_energy", []).append(float(stats[b, STAT_KE]))
+                for i, body in enumerate(scene.bodies):
+                    col = BODY0 + 4 * i
+                    s.setdefault(f"centroid/{body.name}", []).append(stats[b, col:col + 3] / counts[i])
+                    s.setdefault(f"mean_damage/{body.name}", []).append(float(stats[b, col + 3] / counts[i]))
+                for c, (name, path) in enumerate(zip(names, scene.kinematic_paths, strict=True)):
+                    s.setdefault(f"force/{name}", []).append(last_force[b, c].copy())
+                    s.setdefault(f"work/{name}", []).append(float(work[b, c]))
+                    s.setdefault(f"position/{name}", []).append(path.displacement(t))
+                for name, vals in host_vals.items():
+                    v = vals[b]
+                    s.setdefault(name, []).append(float(v[0]) if v.size == 1 else v.copy())
+                if recorded:
+                    records[b].positions.append(x[b].copy())
+                    records[b].damage.append(d[b].copy())
+                    records[b].frames.append(frame)
+
+        stats = backend.frame_stats(lo, hi)
+        backend.kinematic_sums()
+        for s in range(round(o.settle_seconds * fps)):
+            stats = step_frame(-1 - s, True, stats)
+            if not alive.any():
+                break
+        record(0, stats, True)
+        for frame in range(frames):
+            if not alive.any():
+                break
+            stats = step_frame(frame, False, stats)
+            record(frame + 1, stats, (frame + 1) % record_every == 0 or frame + 1 == frames)
+        backend.sync()
+        wall = time.perf_counter() - start
+        for r in records:
+            r.wall_time_s = wall / B
+            if r.failure is not None:
+                r.positions, r.damage = [], []
+        return records
+
+
+__all__ = ["Engine", "RunRecord", "estimated_substeps", "frame_plan", "kinematic_table", "run_dt_bound",
+           "velocity_guard"]
