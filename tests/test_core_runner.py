@@ -57,3 +57,51 @@ def test_existing_dataset_path_is_used_not_generated(tmp_path):
     events_of(text, tmp_path / "second")
     summary = json.loads((tmp_path / "second" / "dataset" / "summary.json").read_text())
     assert summary["generated"] is False and summary["ok"] == 6
+
+
+def test_train_reruns_when_its_dataset_changes_and_says_why(tmp_path):
+    """Stale results (issue 12): rows added to a store that dataset.path names re-run every stage that
+    read it, even though the spec did not change."""
+    from rich.console import Console
+
+    from invphys.core.generate import generate_dataset
+
+    store = tmp_path / "store"
+    sim = {"type": "test_dataset_toy:ToyOscillator", "n_frames": 10}
+    generate_dataset(store, sim, n=10, batch_size=5, seed=1, progress=False)
+    text = SPEC.replace("dataset: {n: 6, batch_size: 3}", f"dataset: {{path: '{store}'}}").replace(
+        "stages: [dataset]", "surrogate: {type: mlp, max_epochs: 2, hidden: [4, 4, 4], batch_size: 4}\n"
+        "stages: [dataset, train]")
+    out = tmp_path / "run"
+    assert events_of(text, out) == [("dataset", "start"), ("dataset", "done"), ("train", "start"), ("train", "done")]
+    assert events_of(text, out) == [("dataset", "cached"), ("train", "cached")]
+    generate_dataset(store, sim, n=15, batch_size=5, seed=1, progress=False)  # 5 more rows
+    console = Console(record=True, width=200)
+    events = []
+    run_spec(parse_spec(text), out, progress=False, console=console,
+             on_stage=lambda stage, status, summary: events.append((stage, status)))
+    assert events == [("dataset", "start"), ("dataset", "done"), ("train", "start"), ("train", "done")]
+    assert "re-running: dataset content changed" in console.export_text()
+    assert json.loads((out / "dataset" / "summary.json").read_text())["ok"] == 15
+    # forcing train re-runs nothing before it, and a later stage would see train's new run id
+    done = json.loads((out / "train" / "DONE.json").read_text())
+    assert events_of(text, out, force=["train"]) == [("dataset", "cached"), ("train", "start"), ("train", "done")]
+    assert json.loads((out / "train" / "DONE.json").read_text())["run_id"] != done["run_id"]
+
+
+def test_run_refuses_bad_out_and_stage_names_and_survives_a_broken_marker(tmp_path):
+    import pytest
+
+    from invphys.core.errors import InvphysError
+
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    with pytest.raises(InvphysError, match="is a file"):
+        run_spec(parse_spec(SPEC), afile, progress=False)
+    assert afile.read_text() == "x"
+    with pytest.raises(InvphysError, match="Did you mean 'dataset'"):
+        run_spec(parse_spec(SPEC), tmp_path / "r", stages=["datset"], progress=False)
+    out = tmp_path / "run"
+    events_of(SPEC, out)
+    (out / "dataset" / "DONE.json").write_text("{not json")
+    assert events_of(SPEC, out) == [("dataset", "start"), ("dataset", "done")]

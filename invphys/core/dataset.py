@@ -414,6 +414,21 @@ class DatasetStore:
         self._keys.update(keys)
         return self.path / name
 
+    def content_fingerprint(self) -> str:
+        """A cheap hash of what the store holds now: its manifest's checksums (or, for a store without
+        a manifest, each part's name, size and modification time). Changes when rows are added or lost."""
+        if not self.exists:
+            return "absent"
+        try:
+            manifest = self.manifest
+        except DatasetError:
+            manifest = None
+        if manifest is not None:
+            items = sorted(f"{p['name']}:{p['sha256']}" for p in manifest["parts"])
+        else:
+            items = sorted(f"{p.name}:{p.stat().st_size}:{p.stat().st_mtime_ns}" for p in self.parts())
+        return hashlib.sha256("\n".join(items).encode()).hexdigest()[:16]
+
     # -- integrity -----------------------------------------------------------------------------
     def verify(self) -> VerifyReport:
         """Check every part against the manifest and the store's schema; nothing is changed."""

@@ -7,10 +7,12 @@ Layout of a run directory ``OUT``::
     OUT/<stage>/summary.json       what the stage returned
     OUT/<stage>/DONE.json          fingerprint of the inputs the stage used
 
-A stage is skipped when its ``DONE.json`` fingerprint equals the fingerprint of its inputs now: the spec
-sections it names in ``DEPENDS_ON`` plus the fingerprints of the stages before it. Change a section,
-and that stage and every later stage run again; kill a run, and a re-run resumes at the first stage
-without a matching marker (the dataset stage also resumes inside itself).
+A stage is skipped when its ``DONE.json`` fingerprint equals the key of what it consumes now
+(:mod:`invphys.pipeline.cache`): the spec sections it names in ``DEPENDS_ON``, the versions of the
+plugins they use, the dataset's content fingerprint, and the keys and run ids of the stages before it.
+Change a section, add or lose dataset rows, upgrade a plugin or re-run an earlier stage, and that stage
+and every later stage run again (the runner says why); kill a run, and a re-run resumes at the first
+stage without a matching marker (the dataset stage also resumes inside itself).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import hashlib
 import importlib
 import json
 import time
+import uuid
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -26,7 +29,7 @@ from typing import Any
 import yaml
 
 from invphys.core.atomic import write_json
-from invphys.core.errors import InvphysError
+from invphys.core.errors import InvphysError, did_you_mean
 from invphys.core.spec import STAGES, ExperimentSpec, load_spec
 from invphys.pipeline.context import StageContext
 
@@ -69,13 +72,18 @@ def run_spec(spec: str | Path | ExperimentSpec, out: str | Path, stages: Sequenc
     reg = registry or registry_module.default_registry()
     console = console or Console(stderr=True)
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "spec.yaml").write_text(yaml.safe_dump(spec.model_dump(mode="json", by_alias=True), sort_keys=False))
     spec_stages = spec.stages or []
     selected = list(stages) if stages else list(spec_stages)
-    for s in selected:
+    for s in [*selected, *force]:
         if s not in STAGES:
-            raise InvphysError(f"unknown stage {s!r}; stages: {', '.join(STAGES)}")
+            raise InvphysError(f"unknown stage {s!r}.{did_you_mean(s, STAGES)} Stages: {', '.join(STAGES)}")
+    if out.exists() and not out.is_dir():
+        raise InvphysError(f"--out {str(out)!r} is a file; name a new or existing directory")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InvphysError(f"cannot create the run directory {str(out)!r}: {exc.strerror or exc}") from None
+    (out / "spec.yaml").write_text(yaml.safe_dump(spec.model_dump(mode="json", by_alias=True), sort_keys=False))
     summaries: dict[str, Any] = {}
     own_tracker = tracker is None
     tracker = tracker or create_tracker(getattr(spec, "tracker", None), out, run_name=spec.name)
@@ -89,38 +97,52 @@ def run_spec(spec: str | Path | ExperimentSpec, out: str | Path, stages: Sequenc
 
 def _run_stages(spec: ExperimentSpec, out: Path, selected: list[str], force: Sequence[str], progress: bool,
                 console: Any, reg: Any, on_stage: Any, tracker: Any, summaries: dict[str, Any]) -> None:
+    from invphys.pipeline import cache
+
     spec_stages = spec.stages or []
-    upstream = ""
+    upstream: dict[str, Any] = {}
     for stage in STAGES:
         if stage not in spec_stages and stage not in selected:
             continue
         module = stage_module(stage)
-        inputs = spec.section_dump(getattr(module, "DEPENDS_ON", ()))
+        sections = tuple(getattr(module, "DEPENDS_ON", ()))
+        inputs = spec.section_dump(sections)
         inputs["seed"] = spec.seed
-        fp = fingerprint({"inputs": inputs, "upstream": upstream, "stage": stage})
-        upstream = fp
+        ctx = StageContext(spec=spec, out=out, stage=stage, registry=reg, console=console, progress=progress,
+                           tracker=tracker)
+        done_path = out / stage / DONE_FILE
+        done = cache.read_done(done_path)
+        components = {"spec": cache.digest(inputs), "plugins": cache.plugin_versions(spec, sections, reg),
+                      "data": cache.data_fingerprint(ctx.dataset_path()) if stage in cache.DATA_STAGES else "",
+                      "upstream": cache.digest(upstream)}
+        fp = cache.digest({"components": components, "stage": stage})
+        upstream = {**upstream, stage: [fp, (done or {}).get("run_id") if (done or {}).get("fingerprint") == fp
+                                        else None]}
         if stage not in selected:
             continue
-        done_path = out / stage / DONE_FILE
-        if stage not in force and done_path.exists():
-            done = json.loads(done_path.read_text())
-            if done.get("fingerprint") == fp:
-                summary = json.loads((out / stage / SUMMARY_FILE).read_text())
+        if stage not in force and done is not None and done.get("fingerprint") == fp:
+            summary = cache.read_done(out / stage / SUMMARY_FILE)
+            if summary is not None:
                 summaries[stage] = summary
                 if on_stage:
                     on_stage(stage, "cached", summary)
                 continue
-        if done_path.exists():
-            done_path.unlink()
-        ctx = StageContext(spec=spec, out=out, stage=stage, registry=reg, console=console, progress=progress,
-                           tracker=tracker)
+        if done is not None and stage not in force:
+            console.print(f"[dim]{stage}:[/] re-running: {cache.stale_reason(done, components)}")
+        done_path.unlink(missing_ok=True)
         if on_stage:
             on_stage(stage, "start", None)
         t0 = time.perf_counter()
         summary = module.run(ctx) or {}
         summary = {**summary, "wall_time_s": round(time.perf_counter() - t0, 3)}
         write_json(out / stage / SUMMARY_FILE, summary)
-        write_json(done_path, {"fingerprint": fp, "finished_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())})
+        if stage == "dataset":  # the key records the data as made (a re-run then finds it unchanged)
+            components["data"] = cache.data_fingerprint(ctx.dataset_path())
+            fp = cache.digest({"components": components, "stage": stage})
+        run_id = uuid.uuid4().hex[:12]
+        write_json(done_path, {"fingerprint": fp, "components": components, "run_id": run_id,
+                               "finished_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())})
+        upstream[stage] = [fp, run_id]
         summaries[stage] = summary
         _track_stage(tracker, stage, out / stage, summary)
         if on_stage:

@@ -1,0 +1,77 @@
+"""Stage cache keys: what a stage consumed, so that a changed input re-runs it (and says why).
+
+A stage's key has four parts, each recorded in its ``DONE.json``:
+
+* ``spec``: the spec sections the stage names in ``DEPENDS_ON`` (plus the seed);
+* ``plugins``: the name, distribution and version of every plugin those sections use;
+* ``data``: the dataset's content fingerprint (:meth:`DatasetStore.content_fingerprint`: its
+  manifest's checksums), for every stage that reads the dataset;
+* ``upstream``: the keys of the stages before it and the run id of each earlier stage's last run
+  (re-running ``train`` with ``--force`` re-runs ``invert``).
+
+When a key differs from the recorded one, :func:`stale_reason` names the parts that changed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+#: the stages that read the dataset (and so depend on its content)
+DATA_STAGES: tuple[str, ...] = ("dataset", "train", "invert", "validate", "report")
+
+
+def digest(obj: Any) -> str:
+    """A short stable hash of a JSON-able object."""
+    blob = json.dumps(obj, sort_keys=True, default=str, separators=(",", ":")).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def plugin_versions(spec: Any, sections: tuple[str, ...], registry: Any) -> dict[str, str]:
+    """``{path: "type@distribution==version"}`` for each plugin block in ``sections``."""
+    out: dict[str, str] = {}
+    for path, kind, block in spec.plugin_blocks():
+        if path.split(".")[0] not in sections or not isinstance(block, dict):
+            continue
+        name = str(block.get("type"))
+        try:
+            info = registry.info(kind, name)
+            version = f"{info.distribution}=={info.version}"
+            own = getattr(info.cls, "version", None)
+            if isinstance(own, str):
+                version += f"/{own}"
+        except Exception:  # reported by validation; a key must not fail
+            version = "?"
+        out[path] = f"{name}@{version}"
+    return out
+
+
+def data_fingerprint(path: Path) -> str:
+    """The dataset's content fingerprint at ``path`` ("absent" when there is no store yet)."""
+    from invphys.core.dataset import DatasetStore
+
+    return DatasetStore(path).content_fingerprint() if path.is_dir() else "absent"
+
+
+def read_done(done_path: Path) -> dict[str, Any] | None:
+    """A stage's ``DONE.json`` (None when absent or unreadable: the stage is then simply re-run)."""
+    try:
+        data = json.loads(done_path.read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def stale_reason(done: dict[str, Any] | None, components: dict[str, Any]) -> str:
+    """Why a stage with marker ``done`` must re-run given its current key ``components``."""
+    if done is None:
+        return "never finished"
+    before = done.get("components")
+    if not isinstance(before, dict):
+        return "its marker predates input tracking"
+    names = {"spec": "spec sections", "plugins": "plugin versions", "data": "dataset content",
+             "upstream": "an earlier stage"}
+    changed = [names.get(k, k) for k in components if before.get(k) != components[k]]
+    return f"{' and '.join(changed)} changed" if changed else "inputs changed"
