@@ -79,6 +79,9 @@ class Simulator(Plugin):
     #: Version string recorded with every run and part of its stored identity: bump it whenever the
     #: same parameters and config can give different results (physics, numerics, features' inputs).
     version: ClassVar[str] = "0"
+    #: Config fields that change where or how fast runs go but not their results (device, batch size):
+    #: left out of the config hash in a run's stored identity. Every other field counts.
+    identity_ignores: ClassVar[tuple[str, ...]] = ()
 
     @abstractmethod
     def parameter_space(self) -> ParameterSpace:
