@@ -114,3 +114,93 @@ def test_json_schema_covers_installed_plugins():
     block = next(s for s in schema["$defs"]["optimizer_block"]["oneOf"] if s["title"].endswith("test_random_search"))
     assert block["properties"]["sigma0"]["exclusiveMinimum"] == 0
     assert "simulator:test_line" in [s["title"] for s in schema["$defs"]["simulator_block"]["oneOf"]]
+
+
+# -- reliability (issue 12): safe loading, one name rule, one finite-number rule, cross-references ------
+ROOT = __import__("pathlib").Path(__file__).resolve().parent.parent
+COMMITTED_SPECS = sorted([*ROOT.glob("examples/orange_peel/invphys_orange_peel/specs/*.yaml"),
+                          *ROOT.glob("datasets/specs/*.yaml")])
+
+
+def test_schema_has_dialect_and_id_and_validates_the_committed_specs():
+    import jsonschema
+    import yaml
+
+    schema = json_schema()
+    assert schema["$schema"].endswith("2020-12/schema") and schema["$id"].startswith("urn:invphys:")
+    jsonschema.Draft202012Validator.check_schema(schema)
+    validator = jsonschema.Draft202012Validator(schema)
+    assert len(COMMITTED_SPECS) >= 4
+    for path in COMMITTED_SPECS:
+        errors = [f"{list(e.absolute_path)}: {e.message[:200]}" for e in validator.iter_errors(yaml.safe_load(path.read_text()))]
+        assert not errors, f"{path}: {errors}"
+    # a module:Class block that validate accepts is accepted by the schema too
+    data = yaml.safe_load(GOOD)
+    data["simulator"] = {"type": "core_plugins:LineSimulator", "frames": 4}
+    parse(yaml.safe_dump(data))
+    assert not list(validator.iter_errors(data))
+    data["simulator"] = {"type": "not a path"}
+    assert list(validator.iter_errors(data))
+
+
+@pytest.mark.parametrize("label", ["../evil", "a/b", ".hidden", "-opt", "x" * 65, "con", "a b", "é"])
+def test_labels_that_would_be_unsafe_paths_are_refused(label):
+    text = GOOD.replace("  rs:\n", f"  {label!r}:\n")
+    with pytest.raises(SpecError, match="not a safe name"):
+        parse(text)
+
+
+@pytest.mark.parametrize("value", [".inf", "-.inf", ".nan", ".NaN"])
+def test_non_finite_numbers_are_refused_with_their_path(value):
+    with pytest.raises(SpecError, match=r"optimizers\.rs\.sigma0 \(line 10\): must be a finite number"):
+        parse(GOOD.replace("sigma0: 0.2", f"sigma0: {value}"))
+
+
+def test_duplicate_keys_alias_bombs_deep_nesting_and_binary_are_refused(tmp_path):
+    with pytest.raises(SpecError, match=r"key 'seed' appears twice in one mapping \(lines 2 and 3\)"):
+        parse("name: x\nseed: 1\nseed: 2\nsimulator: {type: test_line}\n")
+    levels = ["a0: &a0 [x, x, x, x, x, x, x, x, x, x]"]
+    levels += [f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 10)}]" for i in range(1, 8)]
+    with pytest.raises(SpecError, match="expands to more than"):
+        parse("\n".join(levels) + "\n")
+    with pytest.raises(SpecError, match="refers to the node that contains it"):
+        parse("a: &a [1, *a]\n")
+    with pytest.raises(SpecError, match="nested too deeply"):
+        parse("a: " + "[" * 5000 + "]" * 5000 + "\n")
+    (tmp_path / "bin.yaml").write_bytes(b"name: x\n\xff\xfe\n")
+    with pytest.raises(SpecError, match=r"not UTF-8 text \(byte 0xff on line 2\)"):
+        load_spec(tmp_path / "bin.yaml")
+    with pytest.raises(SpecError, match="not a regular file"):
+        load_spec("/dev/zero")
+    with pytest.raises(SpecError, match="is a directory"):
+        load_spec(tmp_path)
+    big = tmp_path / "big.yaml"
+    big.write_text("name: x\n# " + "y" * (2 << 20) + "\n")
+    with pytest.raises(SpecError, match="over the"):
+        load_spec(big)
+
+
+def test_did_you_mean_for_top_level_and_section_keys():
+    with pytest.raises(SpecError, match=r"optimisers \(line 6\): unknown field\. Did you mean 'optimizers'\?"):
+        parse(GOOD.replace("optimizers:", "optimisers:"))
+    with pytest.raises(SpecError, match=r"dataset\.sampel \(line 4\): unknown field\. Did you mean 'sampler'\?"):
+        parse(GOOD.replace("sampler: sobol", "sampel: sobol"))
+
+
+def test_several_problems_are_reported_at_once():
+    text = GOOD.replace("n: 10", "n: 0, batch_size: -3, test_fraction: 1.5")
+    with pytest.raises(SpecError) as err:
+        parse(text)
+    lines = str(err.value).splitlines()
+    assert lines[0] == "spec.yaml: 3 problems" and len(lines) == 4
+    assert "dataset.test_fraction (line 4): must be < 1" in lines[3]
+
+
+def test_cross_references_known_without_training(tmp_path):
+    with pytest.raises(SpecError, match=r"targets\.n \(line \d+\): 50 targets, but the held-out split has at most 2"):
+        parse(GOOD + "targets: {n: 50}\n")
+    with pytest.raises(SpecError, match=r"dataset\.path.*no dataset at"):
+        parse(GOOD.replace("dataset: {n: 10, sampler: sobol}", f"dataset: {{path: '{tmp_path / 'nope'}'}}"))
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(SpecError, match="is a file, not a dataset directory"):
+        parse(GOOD.replace("dataset: {n: 10, sampler: sobol}", f"dataset: {{path: '{tmp_path / 'f'}'}}"))

@@ -474,12 +474,28 @@ def _line_index(node: yaml.Node | None) -> dict[tuple[str, ...], int]:
     return index
 
 
+#: the JSON Schema dialect and identifier of ``invphys schema``
+SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
+SCHEMA_ID = "urn:invphys:experiment-spec:1"
+#: a ``type: package.module:Class`` plugin name (unpackaged code), as the registry accepts it
+MODULE_CLASS_PATTERN = r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$"
+
+
+def _module_class_block(kind: str) -> dict[str, Any]:
+    """The schema branch of a plugin named by ``module:Class``: its settings are checked by ``validate``."""
+    return {"title": f"{kind}:module:Class", "type": "object", "required": ["type"],
+            "properties": {"type": {"type": "string", "pattern": MODULE_CLASS_PATTERN}},
+            "additionalProperties": True,
+            "description": "a plugin named by its import path; `invphys validate` checks its settings"}
+
+
 def json_schema(registry: Any = None) -> dict[str, Any]:
-    """JSON Schema of the spec, with each plugin block as a ``oneOf`` over the installed plugins' Configs."""
+    """JSON Schema (draft 2020-12) of the spec, with each plugin block as a ``oneOf`` over the installed
+    plugins' Configs and a ``module:Class`` branch for unpackaged plugins."""
     from invphys import registry as registry_module
 
     reg = registry or registry_module.default_registry()
-    schema = ExperimentSpec.model_json_schema(by_alias=True)
+    schema = {"$schema": SCHEMA_DIALECT, "$id": SCHEMA_ID, **ExperimentSpec.model_json_schema(by_alias=True)}
     defs = schema.setdefault("$defs", {})
     per_kind: dict[str, list[dict[str, Any]]] = {}
     for info in reg.infos():
@@ -496,7 +512,7 @@ def json_schema(registry: Any = None) -> dict[str, Any]:
         sub["description"] = (info.cls.__doc__ or "").strip().split("\n")[0]
         per_kind.setdefault(info.kind, []).append(sub)
     for kind, subs in per_kind.items():
-        defs[f"{kind}_block"] = {"oneOf": subs}
+        defs[f"{kind}_block"] = {"oneOf": [*subs, _module_class_block(kind)]}
     props = schema["properties"]
     single = {"simulator": "simulator", "features": "feature_extractor", "executor": "executor",
               "surrogate": "surrogate", "validator": "validator"}
