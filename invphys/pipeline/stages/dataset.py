@@ -9,9 +9,12 @@ and the next ``invphys run`` resumes it.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from invphys.core.errors import InvphysError
+
+if TYPE_CHECKING:
+    from invphys.pipeline.context import StageContext
 
 DEPENDS_ON: tuple[str, ...] = ("simulator", "features", "dataset")
 
@@ -20,7 +23,7 @@ class DatasetIncomplete(InvphysError):
     """The dataset stage stopped before every row was stored; re-running resumes it."""
 
 
-def run(ctx: Any) -> dict[str, Any]:
+def run(ctx: StageContext) -> dict[str, Any]:
     from invphys.core.dataset import DatasetStore
 
     spec = ctx.spec

@@ -20,9 +20,12 @@ from __future__ import annotations
 import math
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from invphys.pipeline.context import StageContext
 
 DEPENDS_ON: tuple[str, ...] = ("report", "targets")
 
@@ -213,7 +216,7 @@ def side_by_side(left: Path, right: Path, path: Path, titles: tuple[str, str]) -
     return path
 
 
-def _renders(ctx: Any, out_dir: Path) -> list[tuple[int, str, str]]:
+def _renders(ctx: StageContext, out_dir: Path) -> list[tuple[int, str, str]]:
     from invphys.core.trajectory_io import load_trajectory
     from invphys.core.trajectory_plot import plot_series
 
@@ -245,7 +248,7 @@ def _renders(ctx: Any, out_dir: Path) -> list[tuple[int, str, str]]:
     return done
 
 
-def run(ctx: Any) -> dict[str, Any]:
+def run(ctx: StageContext) -> dict[str, Any]:
     import pandas as pd
 
     from invphys.core.atomic import write_json

@@ -19,11 +19,14 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from invphys.core.errors import InvphysError
+
+if TYPE_CHECKING:
+    from invphys.pipeline.context import StageContext
 
 DEPENDS_ON: tuple[str, ...] = ("simulator", "features", "validator", "targets")
 
@@ -32,7 +35,7 @@ RENDER_TARGETS = 3
 
 
 @contextmanager
-def _run_bar(ctx: Any, total: int, label: str) -> Iterator[Any]:
+def _run_bar(ctx: StageContext, total: int, label: str) -> Iterator[Any]:
     """A progress bar over simulator runs; yields the ``on_run`` callback (None without progress)."""
     if not ctx.progress or total == 0:
         yield None
@@ -45,7 +48,7 @@ def _run_bar(ctx: Any, total: int, label: str) -> Iterator[Any]:
         yield lambda _row: bar.advance(task)
 
 
-def run(ctx: Any) -> dict[str, Any]:
+def run(ctx: StageContext) -> dict[str, Any]:
     from invphys.core.atomic import write_json
     from invphys.pipeline.stages.invert import load_results, objectives
 
@@ -140,7 +143,7 @@ def _save_frame(path: Any, traj: Any) -> None:
     save_trajectory(traj.last_frame(), path)
 
 
-def _renders(ctx: Any, chosen: list[dict[str, Any]], out: list[dict[str, Any]], inverse: np.ndarray, sim: Any,
+def _renders(ctx: StageContext, chosen: list[dict[str, Any]], out: list[dict[str, Any]], inverse: np.ndarray, sim: Any,
              validator: Any, simulator: Any, extractor: Any, targets: dict[str, Any]) -> list[dict[str, Any]]:
     """Keep the last frames of target and best recovered runs for the first RENDER_TARGETS targets."""
     if sim is None:
@@ -171,7 +174,7 @@ def _renders(ctx: Any, chosen: list[dict[str, Any]], out: list[dict[str, Any]], 
     return rendered
 
 
-def load_validation(ctx: Any) -> list[dict[str, Any]] | None:
+def load_validation(ctx: StageContext) -> list[dict[str, Any]] | None:
     """The validate stage's rows, or None when it has not run."""
     import json
 
