@@ -5,7 +5,8 @@ The public API is small:
 * :data:`hookimpl` - decorate ``invphys_register_*`` functions in a plugin module;
 * :mod:`invphys.registry` - look plugins up by kind and name (``registry.get("optimizer", "cma_es")``);
 * :class:`~invphys.core.params.ParameterSpace`, :func:`~invphys.core.objectives.recovery_reward`;
-* :func:`load_spec` and :func:`run` - validate and run a YAML experiment spec.
+* :func:`load_spec` and :func:`run` - validate and run a YAML experiment spec;
+* :func:`load_inverter` - load a trained inverter bundle and answer targets with parameters.
 """
 
 from __future__ import annotations
@@ -18,12 +19,14 @@ from invphys.core.params import Parameter, ParameterSpace
 
 __version__ = "0.1.0"
 
-__all__ = ["Parameter", "ParameterSpace", "__version__", "hookimpl", "load_spec", "recovery_reward", "run"]
+__all__ = ["Parameter", "ParameterSpace", "__version__", "hookimpl", "load_inverter", "load_spec", "recovery_reward",
+           "run"]
 
 if TYPE_CHECKING:
     from pathlib import Path
 
     from invphys.core.spec import ExperimentSpec
+    from invphys.inverter import Inverter
 
 
 def load_spec(path: str | Path) -> ExperimentSpec:
@@ -38,3 +41,15 @@ def run(spec: str | Path | ExperimentSpec, out: str | Path, **kwargs: Any) -> di
     from invphys.pipeline.runner import run_spec
 
     return run_spec(spec, out, **kwargs)
+
+
+def load_inverter(path: str | Path, strict: bool = True) -> Inverter:
+    """Load an inverter bundle (e.g. ``inverters/orange_peel_paper`` or a run's ``OUT/inverter``).
+
+    Checks its format, file hashes, and the installed simulator's version and features (``strict=False``
+    turns a mismatch into a warning). ``inv.invert(target)`` then answers a target (a mapping of feature
+    names to values) with an :class:`~invphys.inverter.InversionResult`.
+    """
+    from invphys.inverter import load_inverter as _load
+
+    return _load(path, strict=strict)

@@ -320,13 +320,19 @@ class Inverter:
         out.sort(key=lambda c: -c.r_surrogate)
         return out, spent
 
-    def evaluate(self, parameters: Any, target: Any, partial: bool = False, label: str = "given") -> InversionResult:
+    def evaluate(self, parameters: Any = None, target: Any = None, partial: bool = False, label: str = "given",
+                 theta: Any = None) -> InversionResult:
         """An :class:`InversionResult` for given parameters (a ``{name: value}`` mapping or a physical
-        vector) against a target, e.g. to validate known parameters."""
+        vector; or normalised ``theta``) against a target, e.g. to validate known parameters."""
+        if target is None or (parameters is None) == (theta is None):
+            raise InvphysError("evaluate() needs a target and either parameters or theta")
         t = self.targets(target, partial)
         space = self.bundle.space
-        phys = space.from_mapping(parameters) if isinstance(parameters, Mapping) else space.check(parameters)
-        theta = space.normalize(phys)[None, :]
+        if theta is not None:
+            theta = space.check_unit(np.asarray(theta, dtype=np.float64).reshape(1, -1))
+        else:
+            phys = space.from_mapping(parameters) if isinstance(parameters, Mapping) else space.check(parameters)
+            theta = space.normalize(phys).reshape(1, -1)
         cands = self._candidates(theta, [label], t.values[0], t.mask[0])
         return InversionResult(label=t.labels[0], method=label, target=t.values[0], mask=t.mask[0], candidates=cands,
                                parameter_names=self.parameter_names,

@@ -1,0 +1,102 @@
+"""The Python API: load_inverter(path).invert(target) -> InversionResult, top-k, refine, validate."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from test_inverter_support import toy_run
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    return toy_run(tmp_path_factory.getbasetemp())
+
+
+@pytest.fixture(scope="module")
+def inv(run):
+    import invphys
+
+    return invphys.load_inverter(run / "inverter")
+
+
+@pytest.fixture(scope="module")
+def target(inv):
+    _, y = inv.bundle.data("test")
+    return dict(zip(inv.feature_names, map(float, y[0]), strict=True))
+
+
+def test_result_by_name_with_units(inv, target) -> None:
+    from invphys.inverter.objective import masked_recovery
+
+    res = inv.invert(target)
+    assert res.method == inv.default_method and res.evaluations == 8
+    assert list(res.parameters) == ["k", "c", "m"]
+    for name, value in res.parameters.items():
+        p = inv.parameter_space[name]
+        assert p.low <= value <= p.high
+    assert np.all((res.theta >= 0) & (res.theta <= 1))
+    assert inv.parameter_space.denormalize(res.theta) == pytest.approx(list(res.parameters.values()))
+    assert list(res.predicted) == list(inv.feature_names) and max(res.uncertainty.values()) > 0
+    y = np.array(list(res.predicted.values()))
+    assert res.r_surrogate == pytest.approx(float(masked_recovery(y, list(target.values()), inv.bundle.scales)))
+    d = json.loads(json.dumps(res.to_dict()))
+    assert d["candidates"][0]["parameters"]["m"]["unit"] == "kg"
+    # the same target as an array in the bundle's feature order
+    assert inv.invert(np.array(list(target.values()))).theta == pytest.approx(res.theta)
+
+
+def test_top_k_candidates_are_diverse_and_ranked(inv, target) -> None:
+    from invphys.inverter.inverter import MIN_DISTANCE
+
+    res = inv.invert(target, top_k=3)
+    assert len(res.candidates) == 3
+    scores = [c.r_surrogate for c in res.candidates]
+    assert scores == sorted(scores, reverse=True) and scores[0] >= inv.invert(target).r_surrogate - 1e-12
+    t = np.array([c.theta for c in res.candidates])
+    dist = [np.linalg.norm(t[i] - t[j]) / np.sqrt(3) for i in range(3) for j in range(i)]
+    assert min(dist) >= MIN_DISTANCE
+    assert set(res.spread()) == {"k", "c", "m"} and "spread" in res.to_dict()
+
+
+def test_refine_spends_its_budget_and_never_loses(inv, target) -> None:
+    base = inv.invert(target)
+    refined = inv.invert(target, refine=60)
+    assert refined.evaluations == base.evaluations + 60
+    assert refined.r_surrogate >= base.r_surrogate
+
+
+def test_every_bundle_method_and_a_registry_optimiser(inv, target) -> None:
+    for method in [*inv.methods, "cma_es"]:
+        res = inv.invert(target, method=method, seed=1)
+        assert res.method == method and 0 < res.r_surrogate <= 1, method
+    assert inv.invert(target, method="cma").evaluations == 200
+
+
+def test_partial_targets_score_only_given_features(inv, target) -> None:
+    from invphys.inverter.objective import masked_recovery
+
+    given = {k: target[k] for k in ("peak_abs", "log_decay")}
+    with pytest.raises(Exception, match="missing feature"):
+        inv.invert(given)
+    res = inv.invert(given, partial=True)
+    mask = np.array([n in given for n in inv.feature_names])
+    y = np.array(list(res.predicted.values()))
+    full = np.array([target[n] for n in inv.feature_names])
+    assert res.r_surrogate == pytest.approx(float(masked_recovery(y[mask], full[mask], inv.bundle.scales[mask])))
+
+
+def test_validate_matches_the_validate_stage(run, inv) -> None:
+    rows = [r for r in json.loads((run / "validate" / "validation.json").read_text()) if r["problem"] == "target"]
+    feats = json.loads((run / "invert" / "targets.json").read_text())["features"]
+    assert rows
+    results = [inv.evaluate(theta=r["theta"], target=feats[r["target_index"]]) for r in rows]
+    runs: list[int] = []
+    inv.validate(results, on_run=runs.append)
+    assert len(runs) == len(rows)
+    for r, res in zip(rows, results, strict=True):
+        assert res.r_actual == pytest.approx(r["r_actual"], abs=1e-9)
+        assert res.best.gap == pytest.approx(res.r_surrogate - r["r_actual"], abs=1e-9)
+    with pytest.raises(Exception, match="simulator options do not fit"):
+        inv.validate(results[0], overrides={"n_frames": 0})
