@@ -98,6 +98,40 @@ class ReportSection(_Section):
     formats: list[ReportFormat] = Field(default_factory=lambda: list(REPORT_FORMATS))
 
 
+def _default_baselines() -> dict[str, PluginBlock]:
+    return {"nearest_neighbour": {"type": "nearest_neighbour"}, "npe": {"type": "npe"}}
+
+
+class EvaluationMethod(_Section):
+    """A refinement run per validated target by the validate stage (ask/tell CMA-ES from a start)."""
+
+    start: str = Field("nearest_neighbour", description="label (baseline or optimiser entry) whose answer starts it")
+    evaluator: Literal["simulator", "surrogate"] = Field(
+        "simulator", description="simulator: the real simulator in the loop (one batch per generation); "
+                                 "surrogate: the shared surrogate, optionally uncertainty-penalised")
+    budget: int = Field(64, ge=1, description="per target: simulator runs, or surrogate evaluations")
+    popsize: int = Field(8, ge=2, description="CMA-ES population (one simulator batch over all targets)")
+    sigma0: float = Field(0.1, gt=0, description="CMA-ES initial step in [0, 1]^d")
+    uncertainty_penalty: float = Field(
+        0.0, ge=0, description="lambda in score = R - lambda * normalised ensemble std (surrogate evaluator)")
+    targets: int | None = Field(None, ge=1, description="only the first N validated targets (default all)")
+
+
+class EvaluationSection(_Section):
+    """The evaluation protocol (docs/evaluation.md): baselines, refinements and statistics."""
+
+    baselines: dict[str, PluginBlock] = Field(
+        default_factory=_default_baselines, description="dataset baselines answered for every target")
+    methods: dict[str, EvaluationMethod] = Field(default_factory=dict)
+    reference: str = Field("nearest_neighbour", description="label the paired differences are taken against")
+    bootstrap: int = Field(2000, ge=100, description="bootstrap resamples for the intervals")
+    confidence: float = Field(0.95, gt=0.5, lt=1.0)
+    noise_floor: bool = Field(True, description="re-simulate each validated target's true parameters")
+    spread_threshold: float = Field(
+        0.5, gt=0, le=1, description="flag a parameter when its spread (posterior or top answers) exceeds this "
+                                     "fraction of the prior's std")
+
+
 class TrackerSection(_Section):
     """Where the run's training curves, final metrics and artifacts go (docs/tracking.md).
 
@@ -134,6 +168,7 @@ class ExperimentSpec(_Section):
     objectives: dict[Label, ObjectiveSection] = Field(default_factory=dict)
     targets: TargetsSection = Field(default_factory=lambda: TargetsSection())
     validator: PluginBlock | None = None
+    evaluation: EvaluationSection = Field(default_factory=lambda: EvaluationSection())
     report: ReportSection = Field(default_factory=lambda: ReportSection())
     tracker: TrackerSection = Field(default_factory=lambda: TrackerSection())
 
@@ -177,6 +212,15 @@ class ExperimentSpec(_Section):
                 )
             if block.get("evaluator", "shared") not in ("shared", "own_head"):
                 raise ValueError(f"optimizers.{label}.evaluator: must be 'shared' or 'own_head'")
+        groups = (set(self.optimizers), set(self.evaluation.baselines), set(self.evaluation.methods))
+        clash = sorted((groups[0] & groups[1]) | (groups[2] & (groups[0] | groups[1])))
+        if clash:
+            raise ValueError(f"evaluation: label(s) {', '.join(clash)} used twice (optimizers, baselines, methods)")
+        answers = [*self.optimizers, *self.evaluation.baselines]
+        for label, method in self.evaluation.methods.items():
+            if method.start not in answers:
+                raise ValueError(f"evaluation.methods.{label}.start: {method.start!r} is no optimiser or baseline"
+                                 f"{did_you_mean(method.start, answers)} (labels: {', '.join(answers) or 'none'})")
         return self
 
     # -- helpers used by the runner ------------------------------------------------------------
@@ -193,6 +237,10 @@ class ExperimentSpec(_Section):
         blocks += [(f"latent_models.{k}", "latent_model", b) for k, b in self.latent_models.items()]
         blocks += [(f"optimizers.{k}", "optimizer", optimizer_plugin_block(b)) for k, b in self.optimizers.items()]
         return blocks
+
+    def evaluation_blocks(self) -> list[tuple[str, str, PluginBlock]]:
+        """The evaluation section's baseline blocks as (path, kind, block); they are optimiser plugins."""
+        return [(f"evaluation.baselines.{k}", "optimizer", b) for k, b in self.evaluation.baselines.items()]
 
     def section_dump(self, names: Iterable[str]) -> dict[str, Any]:
         """A JSON-able dump of the named sections (for stage fingerprints)."""
@@ -274,7 +322,7 @@ def validate_plugin_blocks(spec: ExperimentSpec, registry: Any = None) -> list[t
 
     reg = registry or registry_module.default_registry()
     problems: list[tuple[tuple[str, ...], str]] = []
-    for dotted, kind, block in spec.plugin_blocks():
+    for dotted, kind, block in [*spec.plugin_blocks(), *spec.evaluation_blocks()]:
         path = tuple(dotted.split("."))
         if not isinstance(block, dict) or "type" not in block:
             problems.append((path, "needs a 'type' field naming the plugin"))
@@ -360,6 +408,9 @@ def _dataset_problems(spec: ExperimentSpec) -> list[tuple[tuple[str, ...], str]]
         if p.exists() and not p.is_dir():
             return [(("dataset", "path"), f"{ds.path!r} is a file, not a dataset directory")]
         if p.is_dir() and (p / "_metadata.json").is_file():
+            broken = _store_problem(p)
+            if broken:
+                return [(("dataset", "path"), broken)]
             rows = _stored_ok_rows(p)
         elif p.is_dir() and any(not c.name.startswith(".") for c in p.iterdir()):
             return [(("dataset", "path"), f"{ds.path!r} is not an invphys dataset (no _metadata.json)")]
@@ -378,6 +429,17 @@ def _dataset_problems(spec: ExperimentSpec) -> list[tuple[tuple[str, ...], str]]
     return problems
 
 
+def _store_problem(path: Path) -> str | None:
+    """Why the store at ``path`` cannot be read (None when it can): the check every reader makes."""
+    from invphys.core.dataset import DatasetStore
+
+    try:
+        DatasetStore(path).keys()
+    except InvphysError as exc:
+        return str(exc)
+    return None
+
+
 def _stored_ok_rows(path: Path) -> int | None:
     """The ok-row count a store's metadata records (None when it does not say)."""
     try:
@@ -393,10 +455,17 @@ def _stored_ok_rows(path: Path) -> int | None:
 def _pydantic_problems(exc: ValidationError, prefix: tuple[str, ...],
                        known: list[str] | None = None) -> list[tuple[tuple[str, ...], str]]:
     out = []
+    suggested: set[tuple[str, ...]] = set()  # a misspelt key: its "missing" twin is not a second problem
     for err in exc.errors():
         loc = tuple(str(x) for x in err["loc"] if not str(x).startswith("function-after") and str(x) != "[key]")
-        out.append(((*prefix, *loc), _message(err, known if known is not None else _section_fields(loc))))
-    return out
+        fields = known if known is not None else _section_fields(loc)
+        if err["type"] == "extra_forbidden" and fields:
+            match = did_you_mean(loc[-1], fields)
+            if match:
+                suggested.add((*loc[:-1], match.split("'")[1]))
+        out.append(((*prefix, *loc), _message(err, fields), err["type"]))
+    return [(path, msg) for path, msg, kind in out
+            if not (kind == "missing" and path[len(prefix):] in suggested)]
 
 
 def _section_fields(loc: tuple[str, ...]) -> list[str]:
@@ -446,7 +515,7 @@ def _format(source: str, problems: list[tuple[tuple[str, ...], str]],
             if path[:cut] in lines:
                 line = lines[path[:cut]]
                 break
-        where = ".".join(path) or "(top level)"
+        where = ".".join(c if c.isprintable() else repr(c) for c in path) or "(top level)"
         rows.append(f"  {where}{f' (line {line})' if line else ''}: {message}")
     if len(rows) == 1:
         return f"{source}: {rows[0].strip()}"

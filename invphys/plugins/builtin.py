@@ -32,9 +32,10 @@ def invphys_register_latent_models() -> list[type]:
 
 @hookimpl
 def invphys_register_optimizers() -> list[type]:
+    from invphys.plugins.baselines import BASELINES
     from invphys.plugins.optimizers import OPTIMIZERS
 
-    return list(OPTIMIZERS)
+    return [*OPTIMIZERS, *BASELINES]
 
 
 @hookimpl

@@ -86,3 +86,46 @@ class BuiltinOptimizer(Optimizer):
     def evaluation_budget(self) -> int:
         """Evaluations one :meth:`optimize` call spends with this configuration."""
         return int(getattr(self.config, "budget", 0))
+
+
+class AskTell:
+    """The ask/tell interface: the caller evaluates the points however it likes (a surrogate, or the
+    real simulator in one batch) and reports the scores back.
+
+    ``ask()`` returns the next points (B, dim) in the search space (empty when finished); ``tell(points,
+    scores)`` reports their scores (higher is better); ``best_point``/``best_score`` and ``told`` (points
+    told so far) track the search. A subclass implements :meth:`_ask` and :meth:`_tell`.
+    """
+
+    def __init__(self) -> None:
+        self.best_point: np.ndarray | None = None
+        self.best_score = -np.inf
+        self.told = 0
+        self.history: list[tuple[int, float]] = []
+
+    @property
+    def done(self) -> bool:
+        return False
+
+    def ask(self) -> np.ndarray:
+        return np.empty((0, 0)) if self.done else self._ask()
+
+    def tell(self, points: np.ndarray, scores: np.ndarray) -> None:
+        points = np.atleast_2d(np.asarray(points, dtype=np.float64))
+        scores = np.asarray(scores, dtype=np.float64).reshape(-1)
+        scores = np.where(np.isfinite(scores), scores, -np.inf)
+        if len(points) != len(scores):
+            raise InvphysError(f"tell: {len(points)} points and {len(scores)} scores")
+        self.told += len(points)
+        if len(scores):
+            i = int(np.argmax(scores))
+            if self.best_point is None or scores[i] > self.best_score:
+                self.best_score, self.best_point = float(scores[i]), points[i].copy()
+        self.history.append((self.told, float(self.best_score)))
+        self._tell(points, scores)
+
+    def _ask(self) -> np.ndarray:
+        raise NotImplementedError
+
+    def _tell(self, points: np.ndarray, scores: np.ndarray) -> None:
+        raise NotImplementedError

@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-from typing import ClassVar, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
 
 from invphys.core.errors import InvphysError
-from invphys.core.interfaces import PluginConfig, Problem
+from invphys.core.interfaces import PluginConfig, Problem, SearchSpace
 from invphys.core.results import OptimizationResult
-from invphys.plugins.optimizers._base import BudgetExhausted, BuiltinOptimizer, Tracker
+from invphys.plugins.optimizers._base import AskTell, BudgetExhausted, BuiltinOptimizer, Tracker
 
 
 class CMAES(BuiltinOptimizer):
@@ -37,17 +37,15 @@ class CMAES(BuiltinOptimizer):
         tolfun: float = Field(1e-11, ge=0, description="cma's tolfun stopping tolerance")
         restarts: bool = Field(True, description="restart from a random point when cma stops before the budget")
 
-    def optimize(self, problem: Problem) -> OptimizationResult:
-        import cma
-
+    def ask_tell(self, space: SearchSpace, seed: int = 0, initial: np.ndarray | None = None,
+                 budget: int | None = None) -> CMAAskTell:
+        """An ask/tell CMA-ES over ``space`` with this configuration (``budget``: evaluations it may
+        be told in all; default ``config.budget``). Start: ``initial``, else per ``x0``."""
         cfg = self.config
-        space = problem.space
-        tracker = Tracker(problem, cfg.budget)
         width = space.high - space.low
-        seed = int(problem.seed if cfg.seed is None else cfg.seed)
-        rng = np.random.default_rng(seed)
-        if problem.initial is not None:
-            x0 = (np.asarray(problem.initial, dtype=np.float64).reshape(-1) - space.low) / width
+        rng = np.random.default_rng(int(seed))
+        if initial is not None:
+            x0 = (np.asarray(initial, dtype=np.float64).reshape(-1) - space.low) / width
             if x0.shape != (space.dim,):
                 raise InvphysError(f"initial point has {x0.size} coordinates, the space {space.name!r} "
                                    f"has {space.dim}")
@@ -55,32 +53,82 @@ class CMAES(BuiltinOptimizer):
             x0 = rng.uniform(0.0, 1.0, space.dim)
         else:
             x0 = np.full(space.dim, 0.5)
-        x0 = np.clip(x0, 0.0, 1.0)
-        restarts = -1
-        stop: dict = {}
+        return CMAAskTell(space, np.clip(x0, 0.0, 1.0), cfg.sigma0, cfg.popsize, int(seed), rng,
+                          int(cfg.budget if budget is None else budget), cfg.tolfun, cfg.restarts)
+
+    def optimize(self, problem: Problem) -> OptimizationResult:
+        cfg = self.config
+        tracker = Tracker(problem, cfg.budget)
+        seed = int(problem.seed if cfg.seed is None else cfg.seed)
+        search = self.ask_tell(problem.space, seed, problem.initial, tracker.budget)
         try:
             while tracker.remaining > 0:
-                restarts += 1
-                start = x0 if restarts == 0 else rng.uniform(0.0, 1.0, space.dim)
-                opts = {"popsize": cfg.popsize, "bounds": [0.0, 1.0], "seed": (seed + restarts) % (2**31 - 2) + 1,
-                        "verbose": -9, "tolfun": cfg.tolfun, "maxfevals": tracker.remaining}
-                es = cma.CMAEvolutionStrategy(start.tolist(), cfg.sigma0, opts)
-                stop = {}
-                while tracker.remaining > 0:
-                    stop = dict(es.stop())
-                    if stop:
-                        break
-                    unit = np.clip(np.asarray(es.ask(), dtype=np.float64), 0.0, 1.0)
-                    n = min(len(unit), tracker.remaining)
-                    scores = tracker.evaluate(space.low + unit[:n] * width)
-                    if n < len(unit):
-                        break  # truncated last generation: cma needs full populations
-                    es.tell(list(unit), list(-scores))
-                if not cfg.restarts:
+                points = search.ask()
+                if len(points) == 0:
+                    break
+                n = min(len(points), tracker.remaining)
+                scores = tracker.evaluate(points[:n])
+                search.tell(points[:n], scores)
+                if n < len(points):
                     break
         except BudgetExhausted:
             pass
-        if not stop:
-            stop = {"budget": tracker.budget}
-        return tracker.result(stop={k: str(v) for k, v in stop.items()}, x0=(space.low + x0 * width).tolist(),
-                              sigma0=cfg.sigma0, restarts=restarts)
+        stop = search.stop or {"budget": tracker.budget}
+        return tracker.result(stop={k: str(v) for k, v in stop.items()}, x0=search.x0_point.tolist(),
+                              sigma0=cfg.sigma0, restarts=search.restarts)
+
+
+class CMAAskTell(AskTell):
+    """CMA-ES (the ``cma`` package) behind :class:`AskTell`, in the unit cube mapped onto the box.
+
+    A generation told only in part (a truncated last batch) is not passed to cma (it needs full
+    populations). When cma stops on its own criteria before ``budget`` points were told, it restarts
+    from a seeded random point (``restarts``), else :attr:`done` becomes True.
+    """
+
+    def __init__(self, space: SearchSpace, x0: np.ndarray, sigma0: float, popsize: int, seed: int,
+                 rng: np.random.Generator, budget: int, tolfun: float, restarts: bool) -> None:
+        super().__init__()
+        self.space, self.x0, self.sigma0, self.popsize = space, x0, sigma0, popsize
+        self.seed, self.rng, self.budget, self.tolfun, self.allow_restarts = seed, rng, budget, tolfun, restarts
+        self.width = space.high - space.low
+        self.restarts = -1
+        self.stop: dict = {}
+        self._finished = False
+        self._pending: np.ndarray | None = None
+        self._es = self._new_es()
+
+    @property
+    def x0_point(self) -> np.ndarray:
+        return self.space.low + self.x0 * self.width
+
+    def _new_es(self) -> Any:
+        import cma
+
+        self.restarts += 1
+        start = self.x0 if self.restarts == 0 else self.rng.uniform(0.0, 1.0, self.space.dim)
+        opts = {"popsize": self.popsize, "bounds": [0.0, 1.0],
+                "seed": (self.seed + self.restarts) % (2**31 - 2) + 1, "verbose": -9, "tolfun": self.tolfun,
+                "maxfevals": max(self.budget - self.told, 1)}
+        self.stop = {}
+        return cma.CMAEvolutionStrategy(start.tolist(), self.sigma0, opts)
+
+    @property
+    def done(self) -> bool:
+        return self._finished or self.told >= self.budget
+
+    def _ask(self) -> np.ndarray:
+        self.stop = dict(self._es.stop())
+        if self.stop:
+            if not self.allow_restarts:
+                self._finished = True
+                return np.empty((0, self.space.dim))
+            self._es = self._new_es()
+        unit = np.clip(np.asarray(self._es.ask(), dtype=np.float64), 0.0, 1.0)
+        self._pending = unit
+        return self.space.low + unit * self.width
+
+    def _tell(self, points: np.ndarray, scores: np.ndarray) -> None:
+        if self._pending is not None and len(points) == len(self._pending):
+            self._es.tell(list(self._pending), list(-scores))
+        self._pending = None

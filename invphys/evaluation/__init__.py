@@ -1,0 +1,11 @@
+"""The evaluation protocol (docs/evaluation.md, ../shared/design/evaluation-protocol.md).
+
+* :mod:`~invphys.evaluation.stats`: bootstrap intervals of means and of paired differences;
+* :mod:`~invphys.evaluation.protocol`: the per-method summary of ``report.json`` (R_actual with its
+  interval, the paired difference against the nearest-neighbour baseline, cost per target);
+* :mod:`~invphys.evaluation.parameters`: recovered parameters per target and method, their error in
+  normalised parameter space and the parameters the data cannot pin down;
+* :mod:`~invphys.evaluation.uncertainty`: does the surrogate ensemble's std rank its real errors;
+* :mod:`~invphys.evaluation.baselines`: fitting and answering the spec's baselines;
+* :mod:`~invphys.evaluation.plots`: R_actual per method with intervals.
+"""

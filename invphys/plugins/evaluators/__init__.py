@@ -1,0 +1,7 @@
+"""Evaluators that score search points beyond a plain surrogate call.
+
+* :mod:`~invphys.plugins.evaluators.uncertainty`: the shared surrogate with an uncertainty penalty
+  (score = R - lambda * normalised ensemble std), for any optimiser's problem or GC-PPO's reward;
+* :mod:`~invphys.plugins.evaluators.simulator_loop`: the real simulator in the loop, a population per
+  batch, with a budget in simulator runs, and the ask/tell driver that refines many targets at once.
+"""
