@@ -96,12 +96,12 @@ def test_the_guide_spec_runs_the_whole_pipeline(installed) -> None:
     validation = json.loads((out / "validate" / "validation.json").read_text())
     assert len(validation) == 4 and not any(v["failure"] for v in validation)
     # the recovered parameters, re-simulated, reproduce the targets' behaviour
-    assert np.mean([v["r_actual"] for v in validation]) > 0.6
+    assert np.mean([v["r_actual"] for v in validation]) > 0.7  # measured 0.84-0.89 over seeds 0-2
     # the validate stage kept the runs' time series whole, and the report plots them
     from invphys.core.trajectory_io import load_trajectory
 
     kept = load_trajectory(out / "validate" / "renders" / "t00_target.npz")
-    assert set(kept.series) == {"displacement", "force"} and len(kept.series["force"]) == 401
+    assert set(kept.series) == {"displacement", "force", "energy"} and len(kept.series["force"]) == 401
     md = (out / "report" / "report.md").read_text()
     assert "renders/t00_series.png" in md and "renders/t00.png" in md
     assert (out / "report" / "renders" / "t00_series.png").stat().st_size > 10_000

@@ -6,7 +6,7 @@ from invphys.core.interfaces import FeatureExtractor, PluginConfig
 
 
 class SpringFeatures(FeatureExtractor):
-    """Peak force on the wall, time of the first zero crossing, and how much motion is left at the end."""
+    """Peak force on the wall, time of the first zero crossing, and the share of energy damped away."""
 
     name = "toy_spring_features"
 
@@ -15,10 +15,10 @@ class SpringFeatures(FeatureExtractor):
 
     @property
     def feature_names(self):
-        return ("peak_force", "first_zero_s", "log_late_amplitude")
+        return ("peak_force", "first_zero_s", "energy_lost")
 
     def extract(self, trajectory):
-        x, force = trajectory.series["displacement"], trajectory.series["force"]
+        x, force, energy = (trajectory.series[n] for n in ("displacement", "force", "energy"))
         t, xv = x.times, x.values
         below = np.flatnonzero(xv <= 0.0)
         if len(below):  # interpolate the first crossing (a quarter period for light damping)
@@ -26,5 +26,5 @@ class SpringFeatures(FeatureExtractor):
             first_zero = t[j - 1] + (t[j] - t[j - 1]) * xv[j - 1] / (xv[j - 1] - xv[j])
         else:  # never crossed within the run: censored at its end
             first_zero = t[-1]
-        late = np.abs(xv[t >= 0.75 * t[-1]]).max()
-        return np.array([np.abs(force.values).max(), first_zero, np.log(late / abs(xv[0]) + 1e-9)])
+        lost = 1.0 - energy.values[-1] / energy.values[0]
+        return np.array([np.abs(force.values).max(), first_zero, lost])

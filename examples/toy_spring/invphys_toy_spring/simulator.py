@@ -19,8 +19,9 @@ class SpringSimulator(Simulator):
     """A mass m on a spring (stiffness k, damping c) released from x0 = 5 cm.
 
     Integrates m x'' = -k x - c x' with semi-implicit Euler, all runs of a batch at once, and records
-    the displacement x(t) and the force on the wall F(t) = k x + c x' at every step. A step too long
-    for the stiffness (omega dt > 2) blows up; such runs are returned as failed.
+    the displacement x(t), the force on the wall F(t) = k x + c x' and the energy E(t) = k x^2 / 2 +
+    m x'^2 / 2 at every step. A step too long for the stiffness (omega dt > 2) blows up; such runs are
+    returned as failed.
     """
 
     name = "toy_spring"
@@ -51,13 +52,13 @@ class SpringSimulator(Simulator):
         steps = int(duration * fps) * self.config.substeps
         dt = duration / steps
         x, v = np.full(len(p), 0.05), np.zeros(len(p))
-        xs, forces = np.empty((steps + 1, len(p))), np.empty((steps + 1, len(p)))
-        xs[0], forces[0] = x, k * x
+        xs, forces, energy = (np.empty((steps + 1, len(p))) for _ in range(3))
+        xs[0], forces[0], energy[0] = x, k * x, 0.5 * k * x * x
         with np.errstate(over="ignore", invalid="ignore"):
             for n in range(1, steps + 1):
                 v = v + dt * (-k * x - c * v) / m
                 x = x + dt * v
-                xs[n], forces[n] = x, k * x + c * v
+                xs[n], forces[n], energy[n] = x, k * x + c * v, 0.5 * (k * x * x + m * v * v)
         blown = ~np.isfinite(xs).all(axis=0) | (np.abs(xs) > 1.0).any(axis=0)
         times = np.arange(steps + 1) * dt
         wall = (time.perf_counter() - start) / len(p)
@@ -72,6 +73,7 @@ class SpringSimulator(Simulator):
                 traj = Trajectory()
                 traj.add_series("displacement", times, xs[:, i], unit="m", description="mass position")
                 traj.add_series("force", times, forces[:, i], unit="N", description="force on the wall")
+                traj.add_series("energy", times, energy[:, i], unit="J", description="mechanical energy")
                 res = SimulationResult(params=p[i], ok=True, stats=stats, trajectory=traj)
             if on_result is not None:
                 on_result(i, res)

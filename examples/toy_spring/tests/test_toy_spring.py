@@ -45,3 +45,5 @@ def test_features_follow_the_physics():
     assert y_stiff[0] == pytest.approx(800.0 * 0.05)  # peak force k x0
     quarter = np.pi / 2 / np.sqrt(50.0)  # a quarter period of the undamped spring
     assert y_soft[1] == pytest.approx(quarter, rel=0.02) and y_stiff[1] < y_soft[1]
+    damped = ex.extract(sim.simulate([[50.0, 0.4, 1.0]])[0].trajectory)
+    assert 0.0 < y_soft[2] < damped[2] < 1.0  # more damping, more energy lost
