@@ -29,6 +29,8 @@ from invphys.inverter.result import Candidate, InversionResult
 #: candidates closer than this (RMS distance in normalised parameter space) count as one
 MIN_DISTANCE = 0.05
 REFINE_SIGMA0 = 0.1
+#: batches of at least this many targets run with :func:`blas_threads` (a single target does not pay it)
+BLAS_LIMIT_ROWS = 32
 #: candidate thetas (P, d), their sources, evaluations spent
 Pool = tuple[np.ndarray, list[str], int]
 
@@ -41,23 +43,45 @@ def _quiet_cma() -> Iterator[None]:
         yield
 
 
-def load_inverter(path: str | Path, strict: bool = True, registry: Any = None) -> Inverter:
+_CONTROLLER: list[Any] = []
+
+
+@contextlib.contextmanager
+def blas_threads(n: int | None) -> Iterator[None]:
+    """Limit BLAS to ``n`` threads (None: leave it). The bundle's networks are small: one thread is
+    fastest, and on a busy CPU several threads wait on each other (measured 7x slower on 2 cores)."""
+    if n is None:
+        yield
+        return
+    try:
+        from threadpoolctl import ThreadpoolController
+    except ImportError:  # optional at run time: without it BLAS keeps its default
+        yield
+        return
+    if not _CONTROLLER:
+        _CONTROLLER.append(ThreadpoolController())
+    with _CONTROLLER[0].limit(limits=n, user_api="blas"):
+        yield
+
+
+def load_inverter(path: str | Path, strict: bool = True, registry: Any = None, threads: int | None = 1) -> Inverter:
     """Load the bundle at ``path`` (checks format, file hashes, simulator version and features).
 
     ``strict=False`` turns a simulator-version or feature mismatch into a warning
-    (:attr:`Inverter.notes`) instead of an error.
+    (:attr:`Inverter.notes`) instead of an error. ``threads``: BLAS threads while inverting (None: leave).
     """
     bundle = Bundle(path, registry=registry)
     notes = bundle.check_installation(strict=strict)
-    return Inverter(bundle, notes)
+    return Inverter(bundle, notes, threads=threads)
 
 
 class Inverter:
     """Answers targets (features by name) with parameters, through the methods a bundle holds."""
 
-    def __init__(self, bundle: Bundle, notes: Sequence[str] = ()) -> None:
+    def __init__(self, bundle: Bundle, notes: Sequence[str] = (), threads: int | None = 1) -> None:
         self.bundle = bundle
         self.notes = list(notes)
+        self.threads = threads
         self._runners: dict[str, Any] = {}
         self._plugins: dict[str, Any] = {}
 
@@ -189,6 +213,11 @@ class Inverter:
             raise InvphysError(f"refine must be >= 0 evaluations, got {refine}")
         t = self.targets(targets, partial)
         label, entry = self._entry(method)
+        with blas_threads(self.threads if len(t) >= BLAS_LIMIT_ROWS else None):
+            return self._invert(t, label, entry, top_k, refine, seed)
+
+    def _invert(self, t: UserTargets, label: str, entry: dict[str, Any], top_k: int, refine: int,
+                seed: int) -> list[InversionResult]:
         t0 = time.perf_counter()
         if "rollout" in entry:
             pools = self._policy_pools(label, t, top_k, seed)
@@ -218,8 +247,9 @@ class Inverter:
             raise InvphysError(f"invert_array needs a trained policy; {label!r} is a {entry['type']} optimiser")
         t = from_array(values, self.feature_names)
         runner = self._runner(label)
-        points, _, _ = runner.rollout(t.values).best()
-        return np.clip(runner.space.to_theta(points), 0.0, 1.0)
+        with blas_threads(self.threads if len(t) >= BLAS_LIMIT_ROWS else None):
+            points, _, _ = runner.rollout(t.values).best()
+            return np.clip(runner.space.to_theta(points), 0.0, 1.0)
 
     def _policy_pools(self, label: str, t: UserTargets, top_k: int, seed: int) -> list[Pool]:
         """Per target: the visited states of the policy's rollouts (and, for top_k > 1, of the bundle's

@@ -78,13 +78,20 @@ def run_ops(ops: list[dict[str, Any]], arrays: dict[str, np.ndarray], x: np.ndar
 
 
 def _skip_mlp(arrays: dict[str, np.ndarray], p: str, x: np.ndarray) -> np.ndarray:
-    """K folded SkipMLPs: a = relu(x W1 + b1), c = relu(a W2 + b2), h = relu([a, c] W3 + b3), h Wo + bo."""
-    a = np.maximum(np.matmul(x, arrays[f"{p}w1"]) + arrays[f"{p}b1"], 0.0)
-    c = np.maximum(np.matmul(a, arrays[f"{p}w2"]) + arrays[f"{p}b2"], 0.0)
-    h1 = a.shape[-1]
-    w3 = arrays[f"{p}w3"]
-    h = np.maximum(np.matmul(a, w3[:, :h1]) + np.matmul(c, w3[:, h1:]) + arrays[f"{p}b3"], 0.0)
-    return np.matmul(h, arrays[f"{p}wo"]) + arrays[f"{p}bo"]
+    """K folded SkipMLPs: a = relu(x W1 + b1), c = relu(a W2 + b2), h = relu([a, c] W3 + b3), h Wo + bo.
+
+    One 2-D (BLAS) product per layer and member; ``[a, c] W3`` is split as ``a W3[:h1] + c W3[h1:]``.
+    """
+    w1, b1, w2, b2, w3, b3, wo, bo = (arrays[f"{p}{k}"] for k in ("w1", "b1", "w2", "b2", "w3", "b3", "wo", "bo"))
+    x = np.ascontiguousarray(x.reshape(-1, w1.shape[1]))
+    h1 = w1.shape[2]
+    out = np.empty((w1.shape[0], x.shape[0], wo.shape[2]), dtype=np.float32)
+    for k in range(w1.shape[0]):
+        a = np.maximum(x @ w1[k] + b1[k], 0.0)
+        c = np.maximum(a @ w2[k] + b2[k], 0.0)
+        h = np.maximum(a @ w3[k, :h1] + c @ w3[k, h1:] + b3[k], 0.0)
+        out[k] = h @ wo[k] + bo[k]
+    return out
 
 
 def _coupling_inverse(arrays: dict[str, np.ndarray], op: dict[str, Any], z: np.ndarray) -> np.ndarray:

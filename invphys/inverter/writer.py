@@ -105,7 +105,8 @@ def parts_from_context(ctx: Any, with_policies: bool) -> BundleParts:
         methods[label] = entry
     return BundleParts(
         name=spec.name, description=spec.description, simulator_block=dict(spec.simulator),
-        simulator_version=str(getattr(sim_info.cls, "version", "")), simulator_distribution=sim_info.distribution,
+        simulator_version=_data_version(ctx) or str(getattr(sim_info.cls, "version", "")),
+        simulator_distribution=sim_info.distribution,
         parameter_space=ctx.simulator().parameter_space(), feature_names=names,
         feature_units=_units(extractor, names), extractor_block=extractor_block, scales=ctx.scales(),
         train=(data.theta[train_idx], data.y[train_idx]), test=(data.theta[test_idx], data.y[test_idx]),
@@ -114,6 +115,17 @@ def parts_from_context(ctx: Any, with_policies: bool) -> BundleParts:
                  "test_fraction": spec.dataset.test_fraction, "split_seed": spec.seed},
         surrogate=(sur_type, ctx.surrogate(), train_dir / "surrogate"), latents=latents, methods=methods,
         policies=policies, seed=spec.seed)
+
+
+def _data_version(ctx: Any) -> str | None:
+    """The simulator version the dataset was generated with (what the bundle was trained on)."""
+    from invphys.core.dataset import DatasetStore
+
+    try:
+        identity = DatasetStore(ctx.dataset_path()).metadata.get("identity") or {}
+    except Exception:  # a store without readable metadata: fall back to the installed version
+        return None
+    return str(identity["version"]) if identity.get("version") else None
 
 
 def _heldout(ctx: Any) -> dict[str, dict[str, Any]]:

@@ -1,0 +1,138 @@
+"""Inverter bundle: load time, per-target latency of the default method, and batched throughput.
+
+    python benchmarks/bench_invert.py --bundle inverters/orange_peel_paper \
+        [--repeat 5] [--single 200] [--batch 10000] [--out benchmarks/results/invert_orange_peel_paper.json]
+
+* load: ``import invphys; invphys.load_inverter(BUNDLE)`` in fresh processes (median of --repeat), and
+  the same plus the first answer (``--feature`` style mapping) - what ``invphys invert`` pays once;
+* single: ``inv.invert(target)`` one target at a time, after one warm-up call (median and p90);
+* amortised: ``inv.invert_many(targets)`` on --single targets at once, time per target (with result objects);
+* batched: ``inv.invert_array(Y)`` on --batch targets (theta only), targets per second.
+
+Targets are the bundle's held-out partition (``data/test.npz``), resampled with replacement to the
+sizes asked. Heavy modules imported by loading and answering are listed (the default path needs no torch).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HEAVY = ("torch", "stable_baselines3", "taichi", "warp", "zuko", "cma")
+
+
+def _cpu() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _git() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return ""
+
+
+def load_times(bundle: str, repeat: int) -> dict:
+    probe = ("import time, sys, json; t0 = time.perf_counter()\n"
+             "import invphys, numpy as np\n"
+             f"inv = invphys.load_inverter({bundle!r}); t1 = time.perf_counter()\n"
+             "_, y = inv.bundle.data('test')\n"
+             "inv.invert(dict(zip(inv.feature_names, map(float, y[0])))); t2 = time.perf_counter()\n"
+             f"print(json.dumps({{'load': t1 - t0, 'first': t2 - t0, 'heavy': [m for m in {HEAVY!r} "
+             "if m in sys.modules]}))")
+    runs = []
+    for _ in range(repeat):
+        out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True)
+        if out.returncode:
+            raise SystemExit(f"loading {bundle} failed:\n{out.stderr.strip()}")
+        runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
+    return {"load_s_median": round(statistics.median(r["load"] for r in runs), 3),
+            "load_s_runs": [round(r["load"], 3) for r in runs],
+            "load_and_first_answer_s_median": round(statistics.median(r["first"] for r in runs), 3),
+            "heavy_modules_imported": runs[-1]["heavy"]}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--bundle", default="inverters/orange_peel_paper")
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--single", type=int, default=200)
+    ap.add_argument("--batch", type=int, default=10000)
+    ap.add_argument("--method", default=None, help="default: the bundle's default method")
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+
+    import numpy as np
+
+    import invphys
+
+    load = load_times(args.bundle, args.repeat)
+    inv = invphys.load_inverter(args.bundle)
+    method = args.method or inv.default_method
+    _, y = inv.bundle.data("test")
+    rng = np.random.default_rng(0)
+    single = y[rng.integers(0, len(y), args.single)]
+    names = inv.feature_names
+    inv.invert(dict(zip(names, map(float, single[0]), strict=True)), method=method)  # warm-up
+    lat = []
+    r_surr = []
+    for row in single:
+        t0 = time.perf_counter()
+        res = inv.invert(dict(zip(names, map(float, row), strict=True)), method=method)
+        lat.append(time.perf_counter() - t0)
+        r_surr.append(res.r_surrogate)
+    t0 = time.perf_counter()
+    many = inv.invert_many(single, method=method)
+    amortised = (time.perf_counter() - t0) / len(single)
+    big = y[rng.integers(0, len(y), args.batch)]
+    inv.invert_array(big[:100], method=method)
+    t0 = time.perf_counter()
+    theta = inv.invert_array(big, method=method)
+    batch_s = time.perf_counter() - t0
+    assert theta.shape == (args.batch, inv.parameter_space.dim) and np.all((theta >= 0) & (theta <= 1))
+    # the three paths answer alike
+    np.testing.assert_allclose([r.theta for r in many], inv.invert_array(single, method=method), atol=1e-9)
+    lat_ms = np.array(lat) * 1e3
+    m = inv.bundle.manifest
+    result = {
+        "command": " ".join([Path(sys.executable).name, *sys.argv]),
+        "bundle": args.bundle, "bundle_id": m.get("bundle_id"), "method": method,
+        "simulator": f"{m['simulator']['name']} {m['simulator']['version']}",
+        "dataset_fingerprint": m["dataset"]["fingerprint"],
+        **load,
+        "single_ms_median": round(float(np.median(lat_ms)), 3),
+        "single_ms_p90": round(float(np.percentile(lat_ms, 90)), 3),
+        "single_targets": args.single,
+        "mean_r_surrogate_heldout": round(float(np.mean(r_surr)), 4),
+        "amortised_ms_per_target": round(amortised * 1e3, 4),
+        "batched_targets": args.batch,
+        "batched_s": round(batch_s, 3),
+        "batched_targets_per_s": round(args.batch / batch_s, 1),
+        "goals": {"load_s": 3.0, "amortised_ms_per_target": 5.0, "batched_targets_per_s": 10000},
+        "device": {"cpu": _cpu(), "cores": os.cpu_count(), "loadavg_at_end": list(os.getloadavg()),
+                   "python": platform.python_version(), "numpy": np.__version__},
+        "git": _git(),
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
+    out = args.out or Path(__file__).parent / "results" / f"invert_{Path(args.bundle).name}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    print(json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()
