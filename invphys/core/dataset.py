@@ -354,6 +354,9 @@ class DatasetStore:
 
         if self.path.exists() and not self.path.is_dir():
             raise DatasetError(f"{str(self.path)!r} is a file, not a dataset directory")
+        if not self.exists and self.path.is_dir() and any(not p.name.startswith(".") for p in self.path.iterdir()):
+            raise DatasetError(f"{str(self.path)!r} exists and is not an invphys dataset; "
+                               "choose an empty or new directory")
         self.path.mkdir(parents=True, exist_ok=True)
         lock = FileLock(str(self.path / LOCK_FILE))
         try:

@@ -86,8 +86,9 @@ def load(text: str, source: str = "<yaml>", error: type[InvphysError] = SpecErro
     """Parse one YAML document safely: returns ``(data, node)`` (``node`` for line numbers)."""
     if len(text) > max_bytes():
         raise error(f"{source}: {len(text):,} characters, over the {max_bytes():,}-byte limit")
-    loader = yaml.SafeLoader(text)
+    loader: yaml.SafeLoader | None = None
     try:
+        loader = yaml.SafeLoader(text)
         node = loader.get_single_node()
         if node is None:
             return None, None
@@ -96,12 +97,14 @@ def load(text: str, source: str = "<yaml>", error: type[InvphysError] = SpecErro
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" (line {mark.line + 1})" if mark is not None else ""
-        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        parts = [getattr(exc, "context", None), getattr(exc, "problem", None)]
+        problem = "; ".join(p for p in parts if p) or str(exc).splitlines()[0]
         raise error(f"{source}: not valid YAML{where}: {problem}") from None
     except RecursionError:
         raise error(f"{source}: nested too deeply (more than {MAX_DEPTH} levels)") from None
     finally:
-        loader.dispose()
+        if loader is not None:
+            loader.dispose()
 
 
 def check_node(root: yaml.Node, source: str, error: type[InvphysError] = SpecError) -> None:
