@@ -81,8 +81,18 @@ class TargetsSection(_Section):
     validate_n: int = Field(10, ge=0, le=MAX_TARGETS, alias="validate", description="how many to re-run through the simulator")
     selection: Literal["farthest_point", "random", "farthest_point+random"] = Field(
         "farthest_point", description="farthest_point+random: the evaluation protocol's two sets (half each)")
+    values: list[dict[str, float]] | None = Field(
+        None, min_length=1, description="your own targets, one feature mapping each (instead of held-out rows)")
+    file: str | None = Field(
+        None, min_length=1, description="your own targets from a JSON, YAML or CSV file (instead of held-out rows)")
 
     model_config = ConfigDict(extra="forbid", populate_by_name=True)
+
+    @model_validator(mode="after")
+    def _one_source(self) -> TargetsSection:
+        if self.values is not None and self.file is not None:
+            raise ValueError("give your own targets as values or as a file, not both")
+        return self
 
 
 class ObjectiveSection(_Section):
