@@ -51,7 +51,7 @@ class TimeSeries:
         """Values linearly interpolated at time(s) ``t`` (1-D series only)."""
         if self.values.ndim != 1:
             raise ValueError("TimeSeries.at interpolates 1-D series only")
-        return np.interp(t, self.times, self.values.astype(np.float64))
+        return np.asarray(np.interp(t, self.times, self.values.astype(np.float64)))
 
 
 @dataclass(kw_only=True)

@@ -112,7 +112,7 @@ def write_animation(images: list[Path], path: Path, fps: float = 6.0) -> Path:
     """A GIF (``.gif``) or MP4 (``.mp4``, needs imageio-ffmpeg) of PNG ``images``."""
     import imageio.v2 as imageio
 
-    frames = [imageio.imread(p) for p in images]
+    frames: list[Any] = [imageio.imread(p) for p in images]
     if path.suffix == ".mp4":
         imageio.mimsave(path, frames, fps=fps)
     else:
