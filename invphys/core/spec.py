@@ -104,7 +104,7 @@ class ObjectiveSection(_Section):
 class ReportSection(_Section):
     """Options of the report stage."""
 
-    render: bool = Field(True, description="render target and recovered peels side by side when possible")
+    render: bool = Field(True, description="draw target and recovered runs side by side (Simulator.render) and plot their time series")
     formats: list[ReportFormat] = Field(default_factory=lambda: list(REPORT_FORMATS))
 
 
