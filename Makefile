@@ -8,12 +8,12 @@ STAMP := $(VENV)/.installed
 
 setup: $(STAMP)
 
-$(STAMP): pyproject.toml examples/orange_peel/pyproject.toml examples/anisompm/pyproject.toml
+$(STAMP): pyproject.toml examples/orange_peel/pyproject.toml examples/anisompm/pyproject.toml examples/cheese_cut/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q -U pip setuptools wheel
 	# the CPU build of torch first, so that nothing pulls a CUDA build
 	$(BIN)/python -m pip install -q torch==2.13.0
-	$(BIN)/python -m pip install -q -e ".[all]" -e examples/orange_peel -e examples/anisompm
+	$(BIN)/python -m pip install -q -e ".[all]" -e examples/orange_peel -e examples/anisompm -e examples/cheese_cut
 	touch $(STAMP)
 
 demo: setup

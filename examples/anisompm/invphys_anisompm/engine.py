@@ -201,7 +201,7 @@ class Engine:
                 kin = np.zeros((B, int(max(1, nsub.max())), max(len(names), 1), 6))
             else:
                 kin = kinematic_table(scene, frame, nsub, dt, alive)
-            backend.set_frame(dt, nsub, kin, damage_on=not settling)
+            backend.set_frame(dt, nsub, kin, damage_on=not settling, damping=o.settle_damping if settling else 0.0)
             backend.advance(int(nsub.max()))
             stats = backend.frame_stats(lo, hi)
             imp, w = backend.kinematic_sums()

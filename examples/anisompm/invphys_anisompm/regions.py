@@ -166,12 +166,16 @@ class Difference(Region):
 
 
 def lattice(region: Region, spacing: float, origin: np.ndarray | None = None) -> np.ndarray:
-    """Points (N, 3) of the regular lattice of ``spacing`` (cell centres, offset half a spacing from
-    ``origin``, default the world origin) that lie inside ``region``; deterministic."""
+    """Points (N, 3) of the regular lattice of ``spacing`` that lie inside ``region``; deterministic.
+
+    The lattice points are cell centres ``origin + (i + 1/2) spacing``; ``origin`` defaults to the lower
+    corner of the region's bounding box, so that a box whose sides are multiples of ``spacing`` holds
+    exactly (side / spacing) points per side, each owning a cell of volume ``spacing^3``.
+    """
     lo, hi = region.bounds()
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
         raise ValueError("lattice: the region is unbounded; intersect it with a Box first")
-    o = np.zeros(3) if origin is None else _vec(origin)
+    o = lo if origin is None else _vec(origin)
     i0 = np.floor((lo - o) / spacing - 0.5).astype(np.int64)
     i1 = np.ceil((hi - o) / spacing - 0.5).astype(np.int64)
     axes = [o[a] + (np.arange(i0[a], i1[a] + 1) + 0.5) * spacing for a in range(3)]

@@ -42,6 +42,8 @@ class EngineOptions:
         fps: frames per second (features and recordings are per frame; a frame has several substeps).
         gravity: acceleration (m/s^2) along +y (negative pulls down).
         settle_seconds: gravity-only settling before frame 0 (kinematic objects at rest, damage frozen).
+        settle_damping: grid velocity damping rate (1/s) while settling (v <- v / (1 + c dt)): the
+            bodies come to rest under their weight instead of bouncing (0: none).
         cfl: elastic-wave CFL number: dt <= cfl * dx / c.
         velocity_cfl: particle-velocity CFL number (a per-frame guard).
         min_substeps_per_frame: dt <= frame time / this.
@@ -62,6 +64,7 @@ class EngineOptions:
     fps: float = 24.0
     gravity: float = -9.81
     settle_seconds: float = 0.0
+    settle_damping: float = 0.0
     cfl: float = 0.4
     velocity_cfl: float = 0.3
     min_substeps_per_frame: int = 4

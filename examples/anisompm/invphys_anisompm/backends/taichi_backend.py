@@ -231,7 +231,7 @@ def _build_kernels(serial_p2g: bool):
                         gg[b * ngrip + gp, node[0], node[1], node[2]] += weight * mass
 
     @ti.kernel
-    def grid_update(k: ti.i32, dx: ti.f32, gravity: ti.f32, bc: ti.i32, ngrip: ti.i32, ncol: ti.i32,
+    def grid_update(k: ti.i32, dx: ti.f32, gravity: ti.f32, damping: ti.f32, bc: ti.i32, ngrip: ti.i32, ncol: ti.i32,
                     nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1), kin: ND(ti.f32, 4), ctype: ND(ti.i32, 1),
                     ca: ND(vec3, 1), cb: ND(vec3, 1), csurf: ND(ti.i32, 1), fric: ND(ti.f32, 2),
                     held: ND(ti.i32, 3), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gg: ND(ti.f32, 4),
@@ -242,6 +242,7 @@ def _build_kernels(serial_p2g: bool):
             if k < nsub[b] and m > 0.0:
                 vel = gv[b, i, j, q] / m
                 vel[1] += dt[b] * gravity
+                vel /= 1.0 + damping * dt[b]
                 for g in range(ngrip):
                     if gg[b * ngrip + g, i, j, q] > 0.5 * m:
                         vk = vec3(kin[b, k, g, 3], kin[b, k, g, 4], kin[b, k, g, 5])
@@ -417,6 +418,7 @@ class TaichiBackend:
 
         self.csurf = self._const(ti.i32, np.array([SURFACES[c.surface] for c in scene.colliders] or [0], np.int32))
         self._damage_on = 1
+        self._damping = 0.0
 
     @staticmethod
     def _const(dtype, values: np.ndarray, shape: tuple | None = None):
@@ -442,8 +444,11 @@ class TaichiBackend:
         self.d.from_numpy(np.zeros((B, N), np.float32))
         self.dtil.from_numpy(np.zeros((B, N), np.float32))
 
-    def set_frame(self, dt: np.ndarray, nsub: np.ndarray, kin: np.ndarray, damage_on: bool) -> None:
-        """Per-run dt (B,), substep counts (B,), kinematic table (B, K, n_kinematic, 6) of the next frame."""
+    def set_frame(self, dt: np.ndarray, nsub: np.ndarray, kin: np.ndarray, damage_on: bool,
+                  damping: float = 0.0) -> None:
+        """Per-run dt (B,), substep counts (B,), kinematic table (B, K, n_kinematic, 6) of the next frame,
+        whether damage evolves, and the grid velocity damping rate (1/s; settling only)."""
+        self._damping = float(damping)
         self.dt.from_numpy(dt.astype(np.float32))
         self.nsub.from_numpy(nsub.astype(np.int32))
         B, K = kin.shape[:2]
@@ -463,7 +468,7 @@ class TaichiBackend:
             self._clear(k, ng, self.nsub, self.gv, self.gm, self.gd, self.gg)
             self._p2g(k, dx, float(o.apic_blend), ng, self.nsub, self.dt, self.mat, self.body, self.fibre, self.vol,
                       self.grip, self.x, self.v, self.C, self.F, self.d, self.dtil, self.gv, self.gm, self.gd, self.gg)
-            self._grid(k, dx, float(o.gravity), int(o.boundary_cells), self.ngrip, self.ncol, self.nsub, self.dt,
+            self._grid(k, dx, float(o.gravity), self._damping, int(o.boundary_cells), self.ngrip, self.ncol, self.nsub, self.dt,
                        self.kin, self.ctype, self.ca, self.cb, self.csurf, self.fric, self.held, self.gv, self.gm,
                        self.gg, self.imp, self.work)
             self._g2p(k, dx, float(o.l0_cells) ** 2, self._damage_on * int(o.damage), self.nsub, self.dt, self.mat,

@@ -220,7 +220,7 @@ def clear_kernel(kstep: wp.array(dtype=wp.int32), ngrip: int, nsub: wp.array(dty
 
 
 @wp.kernel
-def grid_update_kernel(kstep: wp.array(dtype=wp.int32), dx: float, gravity: float, bc: int, ngrip: int, ncol: int,
+def grid_update_kernel(kstep: wp.array(dtype=wp.int32), dx: float, gravity: float, damping: float, bc: int, ngrip: int, ncol: int,
                        nsub: wp.array(dtype=wp.int32), dt: wp.array(dtype=wp.float32),
                        kin: wp.array4d(dtype=wp.float32), ctype: wp.array(dtype=wp.int32),
                        ca: wp.array(dtype=wp.vec3), cb: wp.array(dtype=wp.vec3), csurf: wp.array(dtype=wp.int32),
@@ -236,6 +236,7 @@ def grid_update_kernel(kstep: wp.array(dtype=wp.int32), dx: float, gravity: floa
     G = gm.shape[1]
     vel = gv[b, i, j, q] / m
     vel = vel + wp.vec3(0.0, dt[b] * gravity, 0.0)
+    vel = vel / (1.0 + damping * dt[b])
     ngrip_ = ngrip
     for g in range(ngrip_):
         if gg[b * ngrip + g, i, j, q] > 0.5 * m:
@@ -435,6 +436,7 @@ class WarpBackend:
         self._reserve_kin(max(GRAPH_CHUNK, 4 * o.min_substeps_per_frame))
         self._graphs: dict[int, object] = {}
         self._damage_on = 1
+        self._damping = 0.0
         self._x_init = np.ascontiguousarray(np.broadcast_to(scene.positions.astype(np.float32), (B, N, 3)))
         self._F_init = np.ascontiguousarray(np.broadcast_to(np.eye(3, dtype=np.float32), (B, N, 3, 3)))
 
@@ -462,8 +464,10 @@ class WarpBackend:
         self.d.zero_()
         self.dtil.zero_()
 
-    def set_frame(self, dt: np.ndarray, nsub: np.ndarray, kin: np.ndarray, damage_on: bool) -> None:
-        """Per-run dt (B,), substep counts (B,), kinematic table (B, K, n_kinematic, 6) of the next frame."""
+    def set_frame(self, dt: np.ndarray, nsub: np.ndarray, kin: np.ndarray, damage_on: bool,
+                  damping: float = 0.0) -> None:
+        """Per-run dt (B,), substep counts (B,), kinematic table (B, K, n_kinematic, 6) of the next frame,
+        whether damage evolves, and the grid velocity damping rate (1/s; settling only)."""
         self.dt.assign(np.ascontiguousarray(dt, dtype=np.float32))
         self.nsub.assign(np.ascontiguousarray(nsub, dtype=np.int32))
         K = kin.shape[1]
@@ -471,10 +475,10 @@ class WarpBackend:
         table = np.zeros((self.batch, self._kin_capacity, self.nk1, 6), np.float32)
         table[:, :K, :kin.shape[2]] = kin
         self.kin.assign(table)
-        damage_on = int(damage_on)
-        if damage_on != self._damage_on:
-            self._graphs = {}  # the flag is a launch argument baked into captured graphs
-        self._damage_on = damage_on
+        damage_on, damping = int(damage_on), float(damping)
+        if (damage_on, damping) != (self._damage_on, self._damping):
+            self._graphs = {}  # launch arguments are baked into captured graphs
+        self._damage_on, self._damping = damage_on, damping
 
     def _substep(self) -> None:
         o, B, N, G = self.options, self.batch, self.scene.n_particles, self.options.grid
@@ -486,7 +490,7 @@ class WarpBackend:
             self.kstep, float(o.dx), float(o.apic_blend), ng, self.nsub, self.dt, self.mat, self.body, self.fibre,
             self.vol, self.grip, self.x, self.v, self.C, self.F, self.d, self.dtil, self.gv, self.gm, self.gd, self.gg])
         wp.launch(grid_update_kernel, dim=(B, G, G, G), device=dev, inputs=[
-            self.kstep, float(o.dx), float(o.gravity), int(o.boundary_cells), self.ngrip, self.ncol, self.nsub,
+            self.kstep, float(o.dx), float(o.gravity), self._damping, int(o.boundary_cells), self.ngrip, self.ncol, self.nsub,
             self.dt, self.kin, self.ctype, self.ca, self.cb, self.csurf, self.fric, self.held, self.gv, self.gm,
             self.gg, self.imp, self.work])
         wp.launch(g2p_kernel, dim=(B, N), device=dev, inputs=[
