@@ -111,6 +111,7 @@ CLI_CASES = [
     (["dataset", "generate", "good.yaml", "--out", "afile", "--no-progress"], "is a file"),
     (["dataset", "generate", "good.yaml", "--out", "adir", "--no-progress"], "not an invphys dataset"),
     (["dataset", "generate", "good.yaml", "--no-progress"], "no output directory"),
+    (["dataset", "generate", "good.yaml", "--out", "ds", "--n", "10000000000", "--no-progress"], "must be <= 1000000"),
     (["simulate", "--simulator", SIM, "--params", '{"k": "abc"}', "--out", "sim"], "k = 'abc' is not a number"),
     (["simulate", "--simulator", SIM, "--params", '{"k": 1e9, "m": 0.1}', "--out", "sim"],
      "k = 1000000000 is outside its range [1, 10000] N/m; m = 0.1 is outside its range [0.5, 2] kg"),

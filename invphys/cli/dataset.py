@@ -40,8 +40,12 @@ def generate(
         updates["n"] = n
     if batch_size is not None:
         updates["batch_size"] = batch_size
-    if updates:
-        s = s.model_copy(update={"dataset": s.dataset.model_copy(update=updates)})
+    if updates:  # validated like the spec's own values (bounds included)
+        from invphys.core.spec import validate_spec
+
+        data = s.model_dump(mode="json", by_alias=True)
+        data["dataset"] = {**data["dataset"], **updates}
+        s = validate_spec(data, source="--n/--batch-size", references=False)
     if executor is not None:
         s = s.model_copy(update={"executor": {"type": executor}})
     summary = generate_from_spec(s, out, progress=not no_progress, console=console,

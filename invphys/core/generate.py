@@ -157,8 +157,10 @@ def generate_dataset(
     from invphys import registry as registry_module
 
     reg = registry or registry_module.default_registry()
-    if n <= 0:
-        raise InvphysError(f"dataset.n must be > 0, got {n}")
+    from invphys.core.spec import MAX_DATASET_N
+
+    if not 0 < n <= MAX_DATASET_N:
+        raise InvphysError(f"dataset.n must be in [1, {MAX_DATASET_N:,}], got {n}")
     if batch_size <= 0:
         raise InvphysError(f"dataset.batch_size must be > 0, got {batch_size}")
     sim_block = dict(simulator)
