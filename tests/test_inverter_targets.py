@@ -163,3 +163,55 @@ def test_real_process_exit_codes(bundle) -> None:
     bad = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=120)
     assert bad.returncode == 2 and bad.stdout == ""
     assert len(bad.stderr.strip().splitlines()) == 1 and "Did you mean 'peak_abs'" in bad.stderr
+
+
+# -- the spec's own targets ---------------------------------------------------------------------------
+USER_SPEC = """
+name: user-targets
+seed: 1
+simulator: {type: "test_dataset_toy:ToyOscillator"}
+dataset: {n: 80, batch_size: 40}
+surrogate: {type: mlp, hidden: [16, 16, 8], max_epochs: 10, dropout: 0.0}
+optimizers:
+  cma: {type: cma_es, budget: 40}
+stages: [dataset, train, invert]
+"""
+
+
+def _run_user_spec(tmp_path, targets: dict):
+    import io
+
+    import yaml
+    from rich.console import Console
+
+    from invphys.core.spec import ExperimentSpec, validate_spec
+    from invphys.pipeline.runner import run_spec
+
+    data = yaml.safe_load(USER_SPEC)
+    data["targets"] = targets
+    if "evaluation" in ExperimentSpec.model_fields:
+        data["evaluation"] = {"baselines": {}}
+    out = tmp_path / "run"
+    run_spec(validate_spec(data), out, progress=False, console=Console(file=io.StringIO()))
+    return json.loads((out / "invert" / "targets.json").read_text()), json.loads(
+        (out / "invert" / "results.json").read_text())
+
+
+def test_spec_values_and_file_targets(tmp_path) -> None:
+    from invphys.core.errors import SpecError
+    from invphys.core.spec import validate_spec
+
+    targets, rows = _run_user_spec(tmp_path / "a", {"values": [{"id": "lively", **GOOD}], "validate": 0})
+    assert targets["labels"] == ["lively"] and targets["features"] == [list(GOOD.values())]
+    assert targets["ground_truth"] is False and [r["dataset_row"] for r in rows] == [None]
+    csv = tmp_path / "mine.csv"
+    csv.write_text(",".join(NAMES) + "\n0.9,0.2,-0.5,1,0.1\n0.5,0.1,-0.2,2,0.3\n")
+    targets, rows = _run_user_spec(tmp_path / "b", {"file": str(csv), "validate": 0})
+    assert len(targets["features"]) == 2 and len(rows) == 2
+    with pytest.raises(Exception, match="unknown feature 'peak_ab'"):
+        _run_user_spec(tmp_path / "c", {"values": [{**GOOD, "peak_ab": 1.0}], "validate": 0})
+    import yaml
+
+    bad = {**yaml.safe_load(USER_SPEC), "targets": {"values": [GOOD], "file": "x.csv"}}
+    with pytest.raises(SpecError, match="not both"):
+        validate_spec(bad)

@@ -81,12 +81,24 @@ class TargetsSection(_Section):
     validate_n: int = Field(10, ge=0, le=MAX_TARGETS, alias="validate", description="how many to re-run through the simulator")
     selection: Literal["farthest_point", "random", "farthest_point+random"] = Field(
         "farthest_point", description="farthest_point+random: the evaluation protocol's two sets (half each)")
-    values: list[dict[str, float]] | None = Field(
-        None, min_length=1, description="your own targets, one feature mapping each (instead of held-out rows)")
+    values: list[dict[str, float | str]] | None = Field(
+        None, min_length=1, description="your own targets, one feature mapping each (instead of held-out rows); "
+                                        "an `id` names a target")
     file: str | None = Field(
         None, min_length=1, description="your own targets from a JSON, YAML or CSV file (instead of held-out rows)")
 
     model_config = ConfigDict(extra="forbid", populate_by_name=True)
+
+    @field_validator("values")
+    @classmethod
+    def _numbers(cls, value: list[dict[str, float | str]] | None) -> list[dict[str, float | str]] | None:
+        from invphys.core.user_targets import LABEL_KEYS
+
+        for i, row in enumerate(value or []):
+            for key, v in row.items():
+                if isinstance(v, str) and key not in LABEL_KEYS:
+                    raise ValueError(f"target {i + 1}: {key} = {v!r} is not a number")
+        return value
 
     @model_validator(mode="after")
     def _one_source(self) -> TargetsSection:

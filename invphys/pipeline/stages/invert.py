@@ -36,10 +36,26 @@ TARGETS_FILE = "targets.json"
 
 
 def select(ctx: StageContext) -> dict[str, Any]:
-    """The held-out targets: dataset rows, features, true theta and physical parameters."""
+    """The held-out targets: dataset rows, features, true theta and physical parameters.
+
+    With ``targets.values`` or ``targets.file`` these are the user's own targets instead: no dataset
+    rows and no ground truth (``rows`` are None, ``theta`` and ``params`` are None).
+    """
     from invphys.core.targets import select_targets
 
     data = ctx.dataset()
+    spec_t = ctx.spec.targets
+    if spec_t.values is not None or spec_t.file is not None:
+        from invphys.core.user_targets import from_mappings, read_target_file
+
+        if spec_t.file is not None:
+            user = read_target_file(spec_t.file, data.feature_names)
+        else:
+            user = from_mappings(spec_t.values, data.feature_names, source="targets.values")
+        return {"rows": [None] * len(user), "features": user.values.tolist(), "theta": None, "params": None,
+                "ground_truth": False, "labels": user.labels, "feature_names": list(data.feature_names),
+                "param_names": list(data.param_names), "scales": ctx.scales().tolist(),
+                "selection": "file" if spec_t.file is not None else "values", "validate": spec_t.validate_n}
     _, test_idx = ctx.split()
     rows = select_targets(data.y, test_idx, ctx.spec.targets.n, ctx.spec.targets.selection, ctx.seed)
     return {"rows": rows.tolist(), "features": data.y[rows].tolist(), "theta": data.theta[rows].tolist(),
