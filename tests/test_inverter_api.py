@@ -67,8 +67,8 @@ def test_refine_spends_its_budget_and_never_loses(inv, target) -> None:
     assert refined.r_surrogate >= base.r_surrogate
 
 
-def test_every_bundle_method_and_a_registry_optimiser(inv, target) -> None:
-    for method in [*inv.methods, "cma_es"]:
+def test_every_bundle_method_a_registry_optimiser_and_a_baseline(inv, target) -> None:
+    for method in [*inv.methods, "cma_es", "nearest_neighbour"]:  # a dataset baseline fits on the bundle's rows
         res = inv.invert(target, method=method, seed=1)
         assert res.method == method and 0 < res.r_surrogate <= 1, method
     assert inv.invert(target, method="cma").evaluations == 200

@@ -179,14 +179,16 @@ class Inverter:
             entry = {**entry, "space": self.bundle.methods[policy]["space"],
                      "evaluator": self.bundle.methods[policy].get("evaluator", "shared")}
         elif getattr(plugin, "goal_conditioned", False) and not getattr(plugin, "prepared", True):
-            theta, y = self.bundle.data("train")
-            space = self.bundle.search_space(entry["space"])
-            predict = self.bundle.predictor(entry["space"], entry.get("evaluator", "shared"))
-            prep = plugin.prepare
             import inspect
 
-            extra = {"train_theta": theta} if "train_theta" in inspect.signature(prep).parameters else {}
-            prep(space, predict, y, self.bundle.scales, **extra)
+            theta, y = self.bundle.data("train")
+            fit = getattr(plugin, "fit", None)
+            if fit is not None and {"theta", "y", "scales"} <= set(inspect.signature(fit).parameters):
+                fit(theta, y, self.bundle.scales)  # a dataset baseline learns from the training rows
+            else:
+                space = self.bundle.search_space(entry["space"])
+                predict = self.bundle.predictor(entry["space"], entry.get("evaluator", "shared"))
+                plugin.prepare(space, predict, y, self.bundle.scales)
         self._plugins[label] = (plugin, entry)
         return self._plugins[label]
 
