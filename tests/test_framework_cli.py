@@ -87,6 +87,12 @@ def test_simulate_uses_the_only_installed_simulator_and_records_it(tmp_path, onl
         assert json.loads(res.stdout)["simulator"] == "test_ramp"
         res = runner.invoke(app, ["render", str(run), "--out", str(tmp_path / "r2"), "--option", "azim=30"])
         assert res.exit_code == 2 and "takes no options (got azim)" in res.output
+    # a file from a simulator that is not installed here still draws, generically
+    with only(LineSimulator):
+        res = runner.invoke(app, ["render", str(run), "--out", str(tmp_path / "r3"), "--json"])
+        assert res.exit_code == 0, res.output
+        assert json.loads(res.stdout)["simulator"] == "generic renderer (test_ramp is not installed)"
+        assert (tmp_path / "r3" / "series.png").is_file()
 
 
 def test_simulate_without_a_simulator_name_is_clear_when_ambiguous_or_empty(tmp_path, only) -> None:

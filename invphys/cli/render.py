@@ -29,13 +29,16 @@ def parse_options(items: list[str] | None) -> dict[str, Any]:
 
 def _simulator(name: str | None, header: dict[str, Any]) -> Any:
     """The simulator that drew the run: ``name``, else the one the file records, else the only one installed;
-    built with the recorded config when it is the recorded simulator."""
+    built with the recorded config when it is the recorded simulator. None when the recorded simulator is
+    not installed (and no ``name`` was given): the generic renderer draws it then."""
     from pydantic import ValidationError
 
     from invphys import registry
     from invphys.cli.simulate import default_simulator
 
     recorded = header.get("simulator") or {}
+    if not name and recorded.get("simulator") and recorded["simulator"] not in registry.names("simulator"):
+        return None
     name = name or recorded.get("simulator") or default_simulator(None)
     block: dict[str, Any] = {"type": name}
     if recorded.get("simulator") == name:
@@ -56,9 +59,20 @@ def render_run(source: Path, out: Path, *, simulator: str | None = None, max_fra
     if max_frames < 1:
         raise InvphysError(f"--max-frames must be at least 1, not {max_frames}")
     traj = load_trajectory(source)
-    sim = _simulator(simulator, read_header(source))
-    done = sim.render(traj, out, max_frames=max_frames, animation=animation, **(options or {}))
-    return {"source": str(source), "out": str(out), "simulator": sim.name, "images": len(done.images),
+    header = read_header(source)
+    sim = _simulator(simulator, header)
+    if sim is None:
+        from invphys.core.trajectory_plot import render_trajectory
+
+        missing = header["simulator"]["simulator"]
+        if options:
+            raise InvphysError(f"simulator {missing!r} is not installed; the generic renderer takes no options")
+        who = f"generic renderer ({missing} is not installed)"
+        done = render_trajectory(traj, out, max_frames=max_frames, animation=animation, title=missing)
+    else:
+        who = sim.name
+        done = sim.render(traj, out, max_frames=max_frames, animation=animation, **(options or {}))
+    return {"source": str(source), "out": str(out), "simulator": who, "images": len(done.images),
             "files": len(done.files), "animation": None if done.animation is None else str(done.animation)}
 
 
