@@ -83,3 +83,34 @@ def test_final_metrics_and_artifacts_of_each_stage(events) -> None:
     text = tensor_util.make_ndarray(acc.Tensors("artifacts")[-1].tensor_proto).item().decode()
     for name in ("train/metrics.json", "invert/results.csv", "dataset/summary.json"):
         assert f"`{name}`" in text and str(out / name) in text
+
+
+def test_the_quick_start_spec_itself_writes_events(tmp_path) -> None:
+    """The shipped quick-start spec, shrunk to a few epochs and steps, on its committed dataset."""
+    from pathlib import Path
+
+    import yaml
+    from rich.console import Console
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from invphys.core.spec import validate_spec
+    from invphys.pipeline.runner import run_spec
+
+    root = Path(__file__).resolve().parent.parent
+    spec_file = root / "examples" / "orange_peel" / "invphys_orange_peel" / "specs" / "quickstart.yaml"
+    data = yaml.safe_load(spec_file.read_text())
+    if not (root / data["dataset"]["path"]).is_dir():
+        pytest.skip("the committed quick-start dataset is absent")
+    data["dataset"]["path"] = str(root / data["dataset"]["path"])
+    data["stages"] = ["dataset", "train", "invert"]
+    data["surrogate"]["max_epochs"] = 3
+    data["latent_models"]["flow"]["max_epochs"] = 2
+    data["optimizers"] = {"gc_ppo_flow": {**data["optimizers"]["gc_ppo_flow"], "total_timesteps": 64,
+                                          "n_steps": 8, "net_arch": [8]}}
+    data["targets"] = {"n": 1, "validate": 0}
+    run_spec(validate_spec(data), tmp_path, progress=False, console=Console(file=io.StringIO()))
+    acc = EventAccumulator(str(tmp_path / "tensorboard"), size_guidance={"scalars": 0})
+    acc.Reload()
+    assert [e.step for e in acc.Scalars("train/surrogate/val_loss")] == [0, 1, 2]
+    assert [e.step for e in acc.Scalars("train/latent_models/flow/val_loss")] == [0, 1]
+    assert [e.step for e in acc.Scalars("invert/policy/gc_ppo_flow/rollout/ep_rew_mean")] == [64]
