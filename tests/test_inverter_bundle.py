@@ -148,3 +148,20 @@ def test_export_copies_a_loadable_bundle(run, tmp_path) -> None:
     assert res.exit_code == 2 and (other / "notes.txt").read_text() == "mine"
     res = runner.invoke(app, ["export", str(tmp_path / "no-run"), "--out", str(tmp_path / "x")])
     assert res.exit_code == 2 and "no such directory" in res.output
+
+
+def test_answering_imports_no_torch(run) -> None:
+    import os
+    import subprocess
+    import sys
+
+    probe = ("import sys, invphys\n"
+             f"inv = invphys.load_inverter({str(run / 'inverter')!r})\n"
+             "_, y = inv.bundle.data('test')\n"
+             "inv.invert(y[0]); inv.invert_many(y[:40])\n"
+             "print(sorted(m for m in ('torch', 'stable_baselines3', 'zuko') if m in sys.modules))")
+    tests = os.path.dirname(os.path.abspath(__file__))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")])}
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip().splitlines()[-1] == "[]"
