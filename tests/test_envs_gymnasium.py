@@ -72,25 +72,31 @@ def test_goals_are_reachable_predictions_and_seeded(surrogate) -> None:
     assert np.min(np.abs(pool - goal).max(axis=1)) < 1e-4 * (1 + np.abs(goal).max())
 
 
-def test_a_latent_space_of_a_bundle(surrogate) -> None:
-    """``bundle=`` searches a bundle's latent box with its scales and kappa (duck-typed bundle of real models)."""
-    from invphys.core.spaces import latent_space, raw_space
-    from invphys.plugins.latents.vae import VAELatent
+def test_from_an_inverter_bundle_in_its_latent_space(tmp_path_factory) -> None:
+    """``bundle=``: a real bundle (the inverter tests' toy run) searched in its flow's latent box."""
+    from test_inverter_support import toy_run
 
-    model, _ = surrogate
-    theta, y = smooth(96, d=9, seed=1)
-    vae = VAELatent(latent_dim=2, max_epochs=5, warmup_epochs=1)
-    vae.fit(theta, y)
+    from invphys.inverter import load_inverter
 
-    class Bundle:
-        surrogate, kappa, scales = model, 5.0, np.ones(5)
+    root = toy_run(tmp_path_factory.getbasetemp()) / "inverter"
+    inverter = load_inverter(root)
+    bundle = inverter.bundle
+    env = gym.make("invphys/Inversion-v0", bundle=str(root), space="flow", horizon=3)
+    assert _checked(env) == []  # the checker re-makes the env from its (deep-copied) arguments
+    for source in (inverter, bundle):  # a loaded inverter or its bundle work as well
+        env = gym.make("invphys/Inversion-v0", bundle=source, space="flow", horizon=3)
+        task = env.unwrapped.task
+        assert env.action_space.shape == (bundle.latent("flow").latent_dim,)
+        assert task.high == pytest.approx(bundle.latent("flow").latent_bound)
+    # the reward is the bundle's R_gt: its scales and kappa
+    goal = bundle.surrogate.predict(bundle.search_space("flow").to_theta(np.zeros((1, task.dim))))[0]
+    env = gym.make("invphys/Inversion-v0", bundle=bundle, space="flow", target=goal, horizon=1)
+    env.reset(seed=0)
+    _, reward, terminated, _, _ = env.step(np.zeros(task.dim, dtype=np.float32))
+    from invphys.core.objectives import recovery_reward
 
-        def search_space(self, label):
-            return raw_space(9) if label == "raw" else latent_space(vae, name=label)
-
-    env = gym.make("invphys/Inversion-v0", bundle=Bundle(), space="vae", horizon=2)
-    assert _checked(env) == []
-    assert env.action_space.shape == (2,) and env.unwrapped.task.high == pytest.approx(vae.latent_bound)
+    start = bundle.surrogate.predict(bundle.search_space("flow").to_theta(np.zeros((1, task.dim))))[0]
+    assert terminated and reward == pytest.approx(float(recovery_reward(start, goal, bundle.scales, bundle.kappa)))
 
 
 def test_bad_arguments_are_one_clear_error(surrogate) -> None:

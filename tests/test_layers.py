@@ -4,7 +4,8 @@
 
     cli/                       commands
     pipeline/                  runner, stages, stage context
-    models/ plugins/ envs/     networks and training loops, built-in plugins, Gymnasium environments
+    models/ plugins/ envs/     networks and training loops, built-in plugins, Gymnasium environments,
+    inverter/                  trained bundles (these four may use one another, never pipeline or cli)
     tracking/                  where training curves and final metrics go
     core/                      interfaces, parameter spaces, objectives, specs, the dataset store
 
@@ -24,8 +25,9 @@ EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
 #: package -> the invphys packages it must never import
 FORBIDDEN: dict[str, tuple[str, ...]] = {
-    "core": ("models", "plugins", "envs", "tracking", "pipeline", "cli"),
-    "tracking": ("models", "plugins", "envs", "pipeline", "cli"),
+    "core": ("models", "plugins", "envs", "tracking", "inverter", "pipeline", "cli"),
+    "tracking": ("models", "plugins", "envs", "inverter", "pipeline", "cli"),
+    "inverter": ("pipeline", "cli"),
     "models": ("pipeline", "cli"),
     "plugins": ("pipeline", "cli"),
     "envs": ("pipeline", "cli"),
@@ -89,7 +91,7 @@ def test_layers_only_look_down() -> None:
 def test_core_imports_nothing_above_it() -> None:
     core = list((PACKAGE / "core").rglob("*.py"))
     assert len(core) > 5
-    above = {"models", "plugins", "envs", "tracking", "pipeline", "cli"}
+    above = {"models", "plugins", "envs", "tracking", "inverter", "pipeline", "cli"}
     for path in core:
         assert not [n for _, n in imported_modules(path) if _layer(n) in above], path
 

@@ -40,8 +40,9 @@ def make_inversion_env(surrogate: Any = None, *, bundle: Any = None, space: str 
     Args:
         surrogate: a fitted surrogate (anything with ``predict(theta) -> features``) or the directory of
             a saved one (``OUT/train/surrogate``).
-        bundle: instead of ``surrogate``, a loaded inverter bundle (or an inverter holding one as
-            ``.bundle``): its surrogate, feature scales, ``kappa`` and search spaces.
+        bundle: instead of ``surrogate``, an inverter bundle: its directory (the form that survives
+            Gymnasium's copies of ``make`` arguments), a loaded :class:`~invphys.inverter.Inverter` or its
+            ``.bundle``; the environment uses its surrogate, feature scales, ``kappa`` and search spaces.
         space: ``"raw"`` ([0, 1]^d) or, with a bundle, a latent model's label (search in its latent box).
         target: fixed goal features (M,) for every episode; default: a goal drawn per episode.
         horizon, step_scale: episode length T and step size.
@@ -54,6 +55,10 @@ def make_inversion_env(surrogate: Any = None, *, bundle: Any = None, space: str 
     if (surrogate is None) == (bundle is None):
         raise InvphysError(f"{ENV_ID}: pass exactly one of surrogate= (a model or its directory) or bundle=")
     if bundle is not None:
+        if isinstance(bundle, str | Path):
+            from invphys.inverter import load_inverter
+
+            bundle = load_inverter(bundle)
         search, predict, kappa_, scales_ = _from_bundle(getattr(bundle, "bundle", bundle), space)
     else:
         if space != "raw":
