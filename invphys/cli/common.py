@@ -8,7 +8,7 @@ import logging
 import os
 import sys
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import Any, ClassVar, TypeVar
 
 import typer
 from rich.console import Console
@@ -45,25 +45,35 @@ def debug_enabled() -> bool:
 
 
 def configure_logging(verbose: int = 0, quiet: int = 0) -> int:
-    """Send the ``invphys`` loggers to stderr (rich); returns the level set.
+    """Send the ``invphys`` loggers to stderr; returns the level set.
 
     Default INFO (what each stage did); ``-v`` DEBUG; ``-q`` WARNING; ``-qq`` ERROR. Library use
     (no CLI) keeps Python's defaults: only warnings and errors surface unless the caller configures.
     """
-    from rich.logging import RichHandler
-
     level = {-2: logging.ERROR, -1: logging.WARNING, 0: logging.INFO}.get(max(verbose - quiet, -2), logging.DEBUG)
     logger = logging.getLogger("invphys")
-    for handler in [h for h in logger.handlers if getattr(h, "_invphys_cli", False)]:
+    for handler in [h for h in logger.handlers if isinstance(h, _ConsoleHandler)]:
         logger.removeHandler(handler)
-    handler = RichHandler(console=console, show_time=False, show_path=False, show_level=level < logging.INFO,
-                          markup=True, rich_tracebacks=False)
-    handler.setFormatter(logging.Formatter("%(message)s"))
-    handler._invphys_cli = True  # type: ignore[attr-defined]
+    handler = _ConsoleHandler()
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s" if level < logging.INFO
+                                           else "%(message)s"))
     logger.addHandler(handler)
     logger.setLevel(level)
     logger.propagate = False
     return level
+
+
+class _ConsoleHandler(logging.Handler):
+    """Log records as plain lines on the stderr console (warnings in yellow, errors in red)."""
+
+    STYLES: ClassVar[dict[int, str]] = {logging.WARNING: "yellow", logging.ERROR: "bold red"}
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            style = self.STYLES.get(min(record.levelno, logging.ERROR) if record.levelno >= logging.WARNING else 0)
+            console.print(self.format(record), style=style, markup=False, highlight=False, soft_wrap=True)
+        except Exception:
+            self.handleError(record)
 
 
 #: exit status of a user error (bad spec, unknown plugin, out-of-range value, corrupt input)
