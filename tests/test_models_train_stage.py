@@ -12,7 +12,7 @@ from invphys.core.errors import SpecError
 
 SPEC = """\
 name: train-stage-test
-seed: 4
+seed: 2
 stages: [dataset, train]
 simulator: {type: "test_dataset_toy:ToyOscillator", substeps: 1}
 dataset: {n: 96, batch_size: 32, sampler: sobol}

@@ -396,7 +396,7 @@ def validate_references(spec: ExperimentSpec, registry: Any = None) -> list[tupl
         policy, policy_path = block.get("policy"), block.get("policy_path")
         if policy is not None and policy not in goal_conditioned:
             problems.append((("optimizers", label, "policy"),
-                             f"{policy!r} is not a goal-conditioned optimizer entry"
+                             f"{policy!r} is not a goal-conditioned entry"
                              f"{did_you_mean(str(policy), goal_conditioned)} (goal-conditioned entries: "
                              f"{', '.join(goal_conditioned) or 'none'})"))
         elif policy is None and policy_path is None:
