@@ -496,7 +496,9 @@ def _section_fields(loc: tuple[str, ...]) -> list[str]:
     if len(loc) == 1:
         model = ExperimentSpec
     elif len(loc) == 2:
-        model = {"dataset": DatasetSection, "targets": TargetsSection, "report": ReportSection}.get(loc[0])
+        sections: dict[str, type[BaseModel]] = {"dataset": DatasetSection, "targets": TargetsSection,
+                                                 "report": ReportSection, "tracker": TrackerSection}
+        model = sections.get(loc[0])
     elif len(loc) == 3 and loc[0] == "objectives":
         model = ObjectiveSection
     if model is None:
