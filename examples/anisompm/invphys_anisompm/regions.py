@@ -165,6 +165,23 @@ class Difference(Region):
         return self.a.bounds()
 
 
+class PointSet(Region):
+    """Exactly the given points (N, 3), matched to ``tol`` metres: select particles one by one (a grip
+    on particles chosen by another program, say)."""
+
+    def __init__(self, points: np.ndarray, tol: float = 1e-9) -> None:
+        self.points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        self.tol = float(tol)
+        self._keys = {tuple(k) for k in np.round(self.points / self.tol).astype(np.int64)}
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        keys = np.round(np.asarray(points, dtype=np.float64) / self.tol).astype(np.int64)
+        return np.array([tuple(k) in self._keys for k in keys], dtype=bool)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.points.min(axis=0), self.points.max(axis=0)
+
+
 def lattice(region: Region, spacing: float, origin: np.ndarray | None = None) -> np.ndarray:
     """Points (N, 3) of the regular lattice of ``spacing`` that lie inside ``region``; deterministic.
 
@@ -184,5 +201,5 @@ def lattice(region: Region, spacing: float, origin: np.ndarray | None = None) ->
     return pts[region.contains(pts)]
 
 
-__all__ = ["Box", "Cylinder", "Difference", "Ellipsoid", "HalfSpace", "Intersection", "Region", "Shell", "Sphere",
+__all__ = ["Box", "Cylinder", "Difference", "Ellipsoid", "HalfSpace", "Intersection", "PointSet", "Region", "Shell", "Sphere",
            "Union", "lattice"]

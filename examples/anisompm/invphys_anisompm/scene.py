@@ -155,6 +155,7 @@ class SceneBuilder:
         self._grips: list[tuple[str, Region, Path, tuple[str, ...] | None]] = []
         self._colliders: list[Collider] = []
         self._held: list[Region] = []
+        self._held_masks: list[np.ndarray] = []
         self._reductions: list[HostReduction] = []
         self._names: set[str] = set()
         self._explicit: dict[str, tuple[np.ndarray, np.ndarray | None, float | None]] = {}
@@ -206,6 +207,15 @@ class SceneBuilder:
     def hold(self, region: Region) -> SceneBuilder:
         """Hold the grid nodes inside ``region`` at rest (a clamp, a glued base)."""
         self._held.append(region)
+        return self
+
+    def hold_nodes(self, mask: np.ndarray) -> SceneBuilder:
+        """Hold the grid nodes where the (grid, grid, grid) boolean ``mask`` is true."""
+        g = self.options.grid
+        mask = np.asarray(mask, bool)
+        if mask.shape != (g, g, g):
+            raise SceneError(f"hold_nodes: mask must have shape {(g, g, g)}, got {mask.shape}")
+        self._held_masks.append(mask)
         return self
 
     def add_reduction(self, name: str, fn: Callable[..., np.ndarray], every: int = 1) -> SceneBuilder:
@@ -272,6 +282,8 @@ class SceneBuilder:
         held = np.zeros(len(nodes), bool)
         for region in self._held:
             held |= region.contains(nodes)
+        for mask in self._held_masks:
+            held |= mask.reshape(-1)
         return Scene(options=o, positions=x, body=body, fibres=fib,
                      volume=np.concatenate(vol_all), grip=grip, bodies=tuple(bodies),
                      grips=tuple(grips), colliders=tuple(self._colliders),
