@@ -86,8 +86,10 @@ def test_validate_re_simulates_recovered_parameters(run_dir) -> None:
     out, _, _ = run_dir
     val = json.loads((out / "validate" / "validation.json").read_text())
     targets = json.loads((out / "invert" / "targets.json").read_text())
-    # the first 2 targets of the 6 target-solving entries, and the 5 objective rows
-    assert sum(v["problem"] == "target" for v in val) == 12
+    # the first 2 targets of the 6 target-solving entries, and the 5 objective rows; the evaluation's
+    # default baselines (nearest_neighbour, npe) and the noise floor are validated beside them
+    assert sum(v["problem"] == "target" and v.get("role", "optimizer") == "optimizer" for v in val) == 12
+    assert sum(v["problem"] == "target" for v in val) == 12 + 3 * 2
     assert {v["target_index"] for v in val if v["problem"] == "target"} == {0, 1}
     assert sum(v["problem"] == "objective" for v in val) == 5
     sim, ext = ToyOscillator(), ToyFeatures()
@@ -124,7 +126,8 @@ def test_report_writes_tables_plot_and_renders_and_reruns_are_cached(run_dir) ->
     import pandas as pd
 
     csv = pd.read_csv(out / "report" / "report.csv")
-    assert len(csv) == len(rep["rows"]) == 29 and {"r_surrogate", "r_actual", "gap"} <= set(csv.columns)
+    # 29 optimiser rows, the 2 default baselines on 4 targets, the noise floor on the 2 validated ones
+    assert len(csv) == len(rep["rows"]) == 29 + 4 * 2 + 2 and {"r_surrogate", "r_actual", "gap"} <= set(csv.columns)
     events: list[tuple[str, str]] = []
     run_spec(spec, out, progress=False, console=Console(file=io.StringIO()),
              on_stage=lambda s, status, _: events.append((s, status)))

@@ -26,7 +26,11 @@ def _score(row: dict[str, Any]) -> float:
 def parameter_report(rows: list[dict[str, Any]], targets: dict[str, Any], units: list[str] | None = None,
                      threshold: float = 0.5, top_margin: float = 0.05,
                      set_labels: list[str] | None = None) -> dict[str, Any]:
-    """The ``parameters`` block of ``report.json`` (see the module docstring)."""
+    """The ``parameters`` block of ``report.json`` (see the module docstring).
+
+    Parameter values are lists in the order of ``names`` (physical units, ``units``); ``error`` lists
+    are |theta - theta_true| in normalised space, in the same order.
+    """
     names = list(targets["param_names"])
     d = len(names)
     units = list(units) if units else [""] * d
@@ -46,8 +50,9 @@ def parameter_report(rows: list[dict[str, Any]], targets: dict[str, Any], units:
             th = np.asarray(r["theta"], dtype=np.float64)
             err = np.abs(th - truth_theta[k])
             errors[r["optimizer"]].append(err)
+            values = r.get("params") or {}
             methods[r["optimizer"]] = {
-                "params": r.get("params") or {}, "error": err.tolist(), "rms_error": float(np.sqrt(np.mean(err ** 2))),
+                "params": [values.get(n) for n in names], "error": err.tolist(), "rms_error": float(np.sqrt(np.mean(err ** 2))),
                 "r_actual": None if not np.isfinite(actual_score(r)) else actual_score(r)}
         spread, source = None, None
         post = [r for r in mine if r.get("type") == "npe" and r.get("spread") is not None]
@@ -68,7 +73,7 @@ def parameter_report(rows: list[dict[str, Any]], targets: dict[str, Any], units:
         per_target.append({
             "target_index": k, "dataset_row": targets["rows"][k] if k < len(targets["rows"]) else None,
             "set": set_labels[k] if set_labels and k < len(set_labels) else targets.get("selection"),
-            "truth": dict(zip(names, truth_params[k].tolist(), strict=True)),
+            "truth": truth_params[k].tolist(),
             "methods": methods, "spread": None if spread is None else spread.tolist(), "spread_source": source,
             "not_pinned_down": flags})
     n_spread = len(spreads_all)
@@ -92,14 +97,24 @@ def parameter_report(rows: list[dict[str, Any]], targets: dict[str, Any], units:
         "targets": per_target}
 
 
+def _md_table(header: list[str], rows: list[list[Any]]) -> list[str]:
+    def cell(v: Any) -> str:
+        if v is None:
+            return "-"
+        if isinstance(v, float):
+            return f"{v:.3f}" if np.isfinite(v) else "n/a"
+        return str(v)
+
+    return ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|",
+            *["| " + " | ".join(cell(c) for c in row) + " |" for row in rows]]
+
+
 def _g(v: Any) -> str:
     return "-" if v is None else f"{float(v):.4g}"
 
 
 def parameter_markdown(block: dict[str, Any], max_targets: int | None = None) -> list[str]:
     """Markdown lines: error per method and parameter, identifiability, and per-target tables."""
-    from invphys.pipeline.stages.report import _md_table
-
     names, units = block["names"], block["units"]
     heads = [f"{n} [{u}]" if u else n for n, u in zip(names, units, strict=True)]
     lines = ["## Recovered parameters", "",
@@ -120,8 +135,8 @@ def parameter_markdown(block: dict[str, Any], max_targets: int | None = None) ->
     lines.append("")
     for t in block["targets"][:max_targets]:
         lines += [f"### Target {t['target_index']} ({t['set']}, dataset row {t['dataset_row']})", ""]
-        rows = [["truth", *[_g(t["truth"][n]) for n in names], "-", "-"]]
-        rows += [[lab, *[_g(m["params"].get(n)) for n in names], m["rms_error"], m["r_actual"]]
+        rows = [["truth", *[_g(v) for v in t["truth"]], "-", "-"]]
+        rows += [[lab, *[_g(v) for v in m["params"]], m["rms_error"], m["r_actual"]]
                  for lab, m in t["methods"].items()]
         lines += _md_table(["method", *heads, "RMS error", "R_actual"], rows)
         if t["not_pinned_down"]:

@@ -8,6 +8,12 @@ Writes under ``OUT/report/`` (formats from ``report.formats``):
 * ``report.csv`` / ``report.json``: every (optimiser, problem) row with its validation numbers;
 * ``recovery.png``: mean R_surr vs R_actual per optimiser (targets) and best-so-far R against
   evaluations (log scale);
+* ``protocol.png``: mean R_actual per method with bootstrap 95 % intervals, and the paired differences
+  against the nearest-neighbour baseline (the evaluation protocol, docs/evaluation.md);
+* ``report.json`` also holds ``optimizers`` (per label, baselines included: ``n_validated``,
+  ``r_actual_mean``, ``r_actual_ci95``, ``r_surrogate_mean``, ``gap_mean``, ``evaluations``,
+  ``simulator_runs``, ``wall_time_s``, ``device``, ``vs_nearest_neighbour``), ``parameters`` (recovered
+  parameters per target and method, errors, identifiability) and ``uncertainty`` (the ensemble check);
 * ``renders/tNN.png``: the target's and the recovered run's final states side by side, each drawn by
   the simulator's :meth:`~invphys.core.interfaces.Simulator.render` with ``max_frames=1`` (runs with
   particle frames, or a simulator with its own renderer);
@@ -27,7 +33,7 @@ import numpy as np
 if TYPE_CHECKING:
     from invphys.pipeline.context import StageContext
 
-DEPENDS_ON: tuple[str, ...] = ("report", "targets")
+DEPENDS_ON: tuple[str, ...] = ("report", "targets", "evaluation")
 
 
 def _fmt(v: Any, digits: int = 3) -> str:
@@ -55,7 +61,9 @@ def _merge(rows: list[dict[str, Any]], validation: list[dict[str, Any]] | None) 
             "r_surrogate": v["r_surrogate"] if v else r["r_surrogate"],
             "r_actual": v["r_actual"] if v else None, "gap": v["gap"] if v else None,
             "failure": v["failure"] if v else None, "sim_time_s": v.get("sim_time_s") if v else None,
-            "validated": v is not None, "params": r["params"], "history": r["history"]})
+            "validated": v is not None, "params": r["params"], "history": r["history"],
+            "role": r.get("role", "optimizer"), "simulator_runs": r.get("simulator_runs", 0),
+            "device": r.get("device"), "theta": r.get("theta"), "spread": r.get("spread")})
     return merged
 
 
@@ -91,7 +99,8 @@ def _md_table(header: list[str], rows: list[list[Any]]) -> list[str]:
 
 
 def markdown(ctx_name: str, merged: list[dict[str, Any]], targets: dict[str, Any], plot: str | None,
-             renders: list[tuple[int, str, str]]) -> str:
+             renders: list[tuple[int, str, str]], protocol: dict[str, Any] | None = None,
+             protocol_plot: str | None = None) -> str:
     lines = [f"# Inverse recovery report: {ctx_name}", ""]
     n_t = len(targets["rows"])
     lines += [f"{n_t} held-out targets ({targets['selection']} selection from the test partition), the first "
@@ -109,6 +118,8 @@ def markdown(ctx_name: str, merged: list[dict[str, Any]], targets: dict[str, Any
         lines.append("")
     if plot:
         lines += [f"![recovery]({plot})", ""]
+    if protocol is not None:
+        lines += [*protocol_markdown(protocol, protocol_plot), ""]
     ks = sorted({r["target_index"] for r in merged if r["problem"] == "target"})
     if ks:
         lines += ["## Per target", ""]
@@ -252,31 +263,144 @@ def run(ctx: StageContext) -> dict[str, Any]:
     import pandas as pd
 
     from invphys.core.atomic import write_json
+    from invphys.evaluation.plots import plot_protocol
     from invphys.pipeline.stages.invert import load_results
     from invphys.pipeline.stages.validate import load_validation
 
     rows, targets = load_results(ctx)
     validation = load_validation(ctx)
+    rows = _with_device(ctx, rows) + _evaluation_rows(ctx, targets)
     merged = _merge(rows, validation)
     out = ctx.stage_dir
-    plot = plot_recovery(merged, out / "recovery.png")
+    plot = plot_recovery([r for r in merged if r["role"] != "reference"], out / "recovery.png")
+    protocol = protocol_block(ctx, merged, targets)
+    protocol_plot = plot_protocol(protocol["optimizers"], out / "protocol.png", ctx.spec.evaluation.reference,
+                                  title=ctx.spec.name)
     renders = _renders(ctx, out)
     formats = set(ctx.spec.report.formats)
-    flat = [{k: v for k, v in r.items() if k not in ("params", "history")}
+    flat = [{k: v for k, v in r.items() if k not in ("params", "history", "theta", "spread")}
             | {f"param_{k}": v for k, v in r["params"].items()} for r in merged]
     files = []
     if "md" in formats:
         (out / "report.md").write_text(markdown(ctx.spec.name, merged, targets,
-                                                plot.name if plot else None, renders))
+                                                plot.name if plot else None, renders,
+                                                protocol, protocol_plot.name if protocol_plot else None))
         files.append("report.md")
     if "csv" in formats:
         pd.DataFrame(flat).to_csv(out / "report.csv", index=False)
         files.append("report.csv")
     summ = summary_table(merged, "target")
     if "json" in formats:
-        write_json(out / "report.json", {"summary": summ, "objectives": summary_table(merged, "objective"),
+        write_json(out / "report.json", {"protocol": protocol["settings"], "optimizers": protocol["optimizers"],
+                                         "parameters": protocol["parameters"],
+                                         "uncertainty": protocol["uncertainty"], "summary": summ,
+                                         "objectives": summary_table(merged, "objective"),
                                          "rows": flat, "targets": targets})
         files.append("report.json")
     ctx.log(f"wrote {', '.join(files)} to {out}")
     return {"files": files, "plot": plot.name if plot else None, "renders": [p for _, p, _ in renders],
-            "summary": summ}
+            "protocol_plot": protocol_plot.name if protocol_plot else None, "summary": summ,
+            "optimizers": {k: {kk: v[kk] for kk in ("n_validated", "r_actual_mean", "r_actual_ci95",
+                                                     f"vs_{ctx.spec.evaluation.reference}")}
+                           for k, v in protocol["optimizers"].items()}}
+
+
+def _with_device(ctx: StageContext, rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Invert rows get the device their surrogate ran on (the cost's ``device``)."""
+    try:
+        device = str(getattr(ctx.surrogate(), "device", "cpu"))
+    except Exception:
+        device = None
+    return [{**r, "device": r.get("device", device)} for r in rows]
+
+
+def _evaluation_rows(ctx: StageContext, targets: dict[str, Any]) -> list[dict[str, Any]]:
+    """The validate stage's evaluation rows; without a validate stage, the baselines answered here."""
+    from invphys.pipeline.stages.validate import baselines, load_evaluation_rows
+
+    if (ctx.stage_dir_of("validate") / "DONE.json").is_file():
+        return load_evaluation_rows(ctx)
+    if not ctx.spec.evaluation.baselines or ctx.spec.surrogate is None:
+        return []
+    return baselines(ctx, targets)[0]
+
+
+def protocol_block(ctx: StageContext, merged: list[dict[str, Any]], targets: dict[str, Any]) -> dict[str, Any]:
+    """The evaluation protocol's statistics, recovered parameters and uncertainty check."""
+    from invphys.core.targets import target_set_labels
+    from invphys.evaluation.parameters import parameter_report
+    from invphys.evaluation.protocol import protocol_summary
+    from invphys.evaluation.uncertainty import uncertainty_check
+
+    ev = ctx.spec.evaluation
+    sets = target_set_labels(len(targets["rows"]), targets.get("selection", "farthest_point"))
+    summary = protocol_summary(merged, sets, ev.reference, ev.bootstrap, ev.confidence, ctx.seed)
+    units = None
+    try:
+        space = ctx.simulator().parameter_space()
+        units = [space[n].unit for n in targets["param_names"]]
+    except Exception:  # a simulator that cannot be built here: no units
+        pass
+    params = parameter_report(merged, targets, units, ev.spread_threshold, set_labels=sets)
+    try:
+        data = ctx.dataset()
+        _, test_idx = ctx.split()
+        unc = uncertainty_check(ctx.surrogate(), data.theta[test_idx], data.y[test_idx],
+                                np.asarray(targets["scales"]), list(data.feature_names),
+                                [r for r in merged if r["validated"]])
+    except Exception as exc:  # no dataset or surrogate here: say so instead of failing the report
+        unc = {"available": False, "note": f"{type(exc).__name__}: {exc}"}
+    settings = {"targets": len(targets["rows"]), "validated": int(ctx.spec.targets.validate_n),
+                "selection": targets.get("selection"), "sets": {s: sets.count(s) for s in dict.fromkeys(sets)},
+                "reference": ev.reference, "bootstrap": ev.bootstrap, "confidence": ev.confidence,
+                "failed_run_scores": 0.0}
+    return {"settings": settings, "optimizers": summary, "parameters": params, "uncertainty": unc}
+
+
+def _ci(v: Any) -> str:
+    return "-" if not v else f"[{v[0]:.3f}, {v[1]:.3f}]"
+
+
+def protocol_markdown(protocol: dict[str, Any], plot: str | None) -> list[str]:
+    """The protocol section of report.md."""
+    from invphys.evaluation.parameters import parameter_markdown
+
+    st = protocol["settings"]
+    ref = st["reference"]
+    key = f"vs_{ref}"
+    lines = ["## Protocol: R_actual with intervals, against the baselines", "",
+             f"{st['targets']} held-out targets ({', '.join(f'{n} {s}' for s, n in st['sets'].items())}), the first "
+             f"{st['validated']} validated through the simulator. Intervals: {st['bootstrap']} bootstrap resamples "
+             f"over targets, {100 * st['confidence']:.0f} %. A failed validation run scores 0. A method beats "
+             f"`{ref}` only when the paired interval's lower end is above 0. Cost per target: surrogate "
+             f"evaluations, simulator runs and wall time.", ""]
+    table = []
+    for lab, s in sorted(protocol["optimizers"].items(), key=lambda x: -(x[1]["r_actual_mean"] or -1)):
+        d = s.get(key) or {}
+        table.append([lab, s["role"], s["n_validated"], s["r_actual_mean"], _ci(s["r_actual_ci95"]),
+                      s["r_surrogate_mean"], s["gap_mean"], d.get("mean_diff"), _ci(d.get("ci95")),
+                      "yes" if d.get("beats") else ("-" if not d else "no"), s["evaluations"], s["simulator_runs"],
+                      s["wall_time_s"], s["device"] or "-"])
+    lines += _md_table(["method", "role", "n", "R_actual", "95 % CI", "R_surr", "Delta", f"diff vs {ref}",
+                        "95 % CI", "beats", "evals/target", "sim runs/target", "time/target (s)", "device"], table)
+    by_set = {lab: s["by_set"] for lab, s in protocol["optimizers"].items() if s.get("by_set")}
+    for name in sorted({n for v in by_set.values() for n in v}):
+        lines += ["", f"**{name} targets**", ""]
+        lines += _md_table(["method", "n", "R_actual", "95 % CI", f"diff vs {ref}", "95 % CI"],
+                           [[lab, v[name]["n_validated"], v[name]["r_actual_mean"], _ci(v[name]["r_actual_ci95"]),
+                             (v[name].get(key) or {}).get("mean_diff"), _ci((v[name].get(key) or {}).get("ci95"))]
+                            for lab, v in by_set.items()])
+    if plot:
+        lines += ["", f"![protocol]({plot})"]
+    unc = protocol["uncertainty"]
+    lines += ["", "### Does the surrogate know where it is wrong?", ""]
+    if unc.get("available"):
+        lines.append(f"Spearman rank correlation between the ensemble's normalised std and the surrogate's real "
+                     f"normalised error on {unc['n_rows']} held-out rows: **{_fmt(unc['spearman_rows'])}**"
+                     + (f"; between the std at validated answers and their |gap| ({unc['n_answers']} answers): "
+                        f"**{_fmt(unc['spearman_answers'])}**" if "spearman_answers" in unc else "") + ".")
+    else:
+        lines.append(f"Not available: {unc.get('note')}.")
+    lines += ["", *parameter_markdown(protocol["parameters"], max_targets=20)]
+    return lines
+

@@ -12,6 +12,13 @@ With ``report.render`` on, the best-recovered run of the first ``RENDER_TARGETS`
 parameters are simulated too, so that the report can draw target and recovered runs side by side and
 plot their time series (``renders/tNN_target.npz``, ``tNN_recovered.npz``: framework trajectory files,
 :mod:`invphys.core.trajectory_io`).
+The evaluation protocol (``evaluation:`` in the spec, docs/evaluation.md) adds its own answers,
+validated with the rest: the ``baselines`` (nearest-neighbour lookup, sbi's NPE; fitted on the
+training partition, answering every target; cached in ``baselines.json``), the ``noise_floor`` (each
+validated target's true parameters) and the ``methods`` (ask/tell CMA-ES refinements started at another
+label's answer, scored on the simulator in the loop or on the uncertainty-penalised surrogate).
+Their rows are written to ``evaluation_rows.json`` for the report.
+
 Writes ``validation.json`` and ``validation.csv``.
 """
 
@@ -28,9 +35,11 @@ from invphys.core.errors import InvphysError
 if TYPE_CHECKING:
     from invphys.pipeline.context import StageContext
 
-DEPENDS_ON: tuple[str, ...] = ("simulator", "features", "validator", "targets")
+DEPENDS_ON: tuple[str, ...] = ("simulator", "features", "validator", "targets", "evaluation")
 
 VALIDATION_FILE = "validation.json"
+EVALUATION_ROWS_FILE = "evaluation_rows.json"
+BASELINES_FILE = "baselines.json"
 RENDER_TARGETS = 3
 
 
@@ -54,13 +63,16 @@ def run(ctx: StageContext) -> dict[str, Any]:
 
     rows, targets = load_results(ctx)
     n_val = int(ctx.spec.targets.validate_n)
-    chosen = [r for r in rows if (r["problem"] == "target" and r["target_index"] < n_val)
+    validator = ctx.registry.create("validator", ctx.spec.validator)
+    simulator, extractor = ctx.simulator(), ctx.extractor()
+    extra, eval_info = evaluation_rows(ctx, rows, targets, validator, simulator, extractor)
+    write_json(ctx.stage_dir / EVALUATION_ROWS_FILE, extra)
+    chosen = [r for r in rows + extra if (r["problem"] == "target" and r["target_index"] < n_val)
               or r["problem"] == "objective"]
     if not chosen:
         write_json(ctx.stage_dir / VALIDATION_FILE, [])
-        return {"validated": 0, "note": "nothing to validate (targets.validate is 0 and no objectives)"}
-    validator = ctx.registry.create("validator", ctx.spec.validator)
-    simulator, extractor = ctx.simulator(), ctx.extractor()
+        return {"validated": 0, "note": "nothing to validate (targets.validate is 0 and no objectives)",
+                "evaluation": eval_info}
     scales = np.asarray(targets["scales"])
     theta = np.array([r["theta"] for r in chosen])
     unique, inverse = np.unique(np.round(theta, 12), axis=0, return_inverse=True)
@@ -97,6 +109,7 @@ def run(ctx: StageContext) -> dict[str, Any]:
     for i, r in enumerate(chosen):
         base = {k: r[k] for k in ("optimizer", "type", "space", "evaluator", "problem", "problem_id",
                                   "target_index", "dataset_row", "evaluations", "wall_time_s", "theta")}
+        base.update({k: r[k] for k in ("role", "simulator_runs", "device") if k in r})
         if i in by_row:
             rec = by_row[i]
             base.update(r_surrogate=rec.r_surrogate, r_actual=rec.r_actual, gap=rec.gap, failure=rec.failure,
@@ -124,7 +137,95 @@ def run(ctx: StageContext) -> dict[str, Any]:
 
     ctx.log(f"validated {len(out)} rows ({failed} failed runs)")
     return {"validated": len(out), "simulated": len(unique), "failed": failed, "renders": renders,
-            "optimizers": summarise(out, "r_actual")}
+            "optimizers": summarise(out, "r_actual"), "evaluation": eval_info}
+
+
+def _to_params(ctx: StageContext) -> Any:
+    try:
+        space = ctx.simulator().parameter_space()
+    except Exception:  # a simulator that cannot be built here: physical values unknown
+        return lambda theta: [float("nan")] * len(theta)
+    return lambda theta: space.denormalize(np.asarray(theta)).tolist()
+
+
+def baselines(ctx: StageContext, targets: dict[str, Any]) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """The spec's baselines fitted on the training partition and answered for every target (cached)."""
+    import json
+
+    from invphys.core.atomic import write_json
+    from invphys.evaluation.answers import baseline_rows
+    from invphys.pipeline.runner import fingerprint
+
+    blocks = ctx.spec.evaluation.baselines
+    if not blocks:
+        return [], {}
+    done = ctx.stage_dir_of("train") / "DONE.json"
+    key = fingerprint({"baselines": blocks, "rows": targets["rows"], "dataset": ctx.spec.section_dump(["dataset"]),
+                       "seed": ctx.seed, "train": done.read_text() if done.is_file() else None})
+    cache = ctx.stage_dir / BASELINES_FILE
+    if cache.is_file():
+        blob = json.loads(cache.read_text())
+        if blob.get("key") == key:
+            ctx.log(f"baselines: {', '.join(blocks)} from {cache}")
+            return blob["rows"], blob["metrics"]
+    data = ctx.dataset()
+    train_idx, _ = ctx.split()
+    plugins = {label: ctx.registry.create("optimizer", block) for label, block in blocks.items()}
+    rows, metrics = baseline_rows(plugins, data.theta[train_idx], data.y[train_idx], ctx.scales(), targets,
+                                  ctx.surrogate().predict, _to_params(ctx), progress=False, log=ctx.log)
+    write_json(cache, {"key": key, "rows": rows, "metrics": metrics})
+    return rows, metrics
+
+
+def evaluation_rows(ctx: StageContext, rows: list[dict[str, Any]], targets: dict[str, Any], validator: Any,
+                    simulator: Any, extractor: Any) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Baseline rows (every target), noise-floor and method rows (validated targets), and their metrics."""
+    from invphys.evaluation.answers import noise_floor_rows, refine_rows
+    from invphys.plugins.evaluators.simulator_loop import SimulatorEvaluator
+
+    ev = ctx.spec.evaluation
+    n_val = min(int(ctx.spec.targets.validate_n), len(targets["rows"]))
+    extra, metrics = baselines(ctx, targets)
+    info: dict[str, Any] = {"baselines": metrics}
+    if n_val and ev.noise_floor:
+        extra += noise_floor_rows(list(range(n_val)), targets, np.asarray(targets["scales"]),
+                                  ctx.surrogate().predict, _to_params(ctx))
+    answers = rows + extra
+    for label, method in ev.methods.items():
+        n = min(n_val, method.targets or n_val)
+        starts = {r["target_index"]: np.asarray(r["theta"]) for r in answers
+                  if r["optimizer"] == method.start and r["problem"] == "target" and r["target_index"] < n}
+        if not starts:
+            ctx.log(f"[yellow]warning:[/] evaluation.methods.{label}: {method.start!r} answered no validated target")
+            continue
+        sim_eval = None
+        if method.evaluator == "simulator" and hasattr(validator, "simulate_features"):
+            sim_eval = SimulatorEvaluator.from_validator(validator, simulator, extractor)
+        elif method.evaluator == "simulator":
+            from invphys.core.errors import InvphysError
+
+            raise InvphysError(f"evaluation.methods.{label}: the simulator in the loop needs a validator with "
+                               f"simulate_features (the 'simulator' validator)")
+        ctx.log(f"{label}: ask/tell CMA-ES from {method.start} on {len(starts)} targets, {method.budget} "
+                f"{'simulator runs' if sim_eval else 'surrogate evaluations'} each")
+        got = refine_rows(label, method, starts, targets, np.asarray(targets["scales"]), ctx.surrogate().predict,
+                          _to_params(ctx), seed=ctx.seed, surrogate=ctx.surrogate(), sim_evaluator=sim_eval)
+        extra += got
+        info[label] = {"targets": len(got), "mean_in_loop_score": float(np.mean([r["in_loop_score"] for r in got]))}
+        if sim_eval is not None:
+            info[label].update(simulator_runs=sim_eval.runs, batches=sim_eval.batches, failed=sim_eval.failed,
+                               simulator_time_s=sim_eval.wall_time_s, device=sim_eval.device,
+                               simulator_time_per_target_s=sim_eval.wall_time_s / len(got))
+        ctx.log(f"{label}: mean in-loop score {info[label]['mean_in_loop_score']:.3f}")
+    return extra, info
+
+
+def load_evaluation_rows(ctx: StageContext) -> list[dict[str, Any]]:
+    """The evaluation's rows written by this stage ([] when it has not run)."""
+    import json
+
+    p = ctx.stage_dir_of("validate") / EVALUATION_ROWS_FILE
+    return json.loads(p.read_text()) if p.is_file() else []
 
 
 def _targets_of(chosen: list[dict[str, Any]], idx: list[int], targets: dict[str, Any]) -> np.ndarray:
@@ -158,7 +259,8 @@ def _renders(ctx: StageContext, chosen: list[dict[str, Any]], out: list[dict[str
         truth = validator.simulate_features(np.array([targets["theta"][k] for k in ks]), simulator, extractor,
                                             keep_trajectories=True, on_run=on_run)
     for n, k in enumerate(ks):
-        cands = [(i, r) for i, r in enumerate(chosen) if r["problem"] == "target" and r["target_index"] == k]
+        cands = [(i, r) for i, r in enumerate(chosen) if r["problem"] == "target" and r["target_index"] == k
+                 and r.get("role") != "reference"]
         vals = {i: next((o["r_actual"] for o in out if o["problem"] == "target" and o["target_index"] == k
                          and o["optimizer"] == r["optimizer"]), float("nan")) for i, r in cands}
         finite = {i: v for i, v in vals.items() if np.isfinite(v)}

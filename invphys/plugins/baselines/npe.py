@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
@@ -107,7 +108,8 @@ class NPEBaseline(DatasetBaseline):
         n = int(n or self.config.samples)
         x = torch.as_tensor(np.atleast_2d(targets), dtype=torch.float32)
         torch.manual_seed(self.config.seed)
-        with torch.no_grad():
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*outside the prior support.*")
             # no rejection (a poorly fitted flow can leak most of its mass outside the box, and rejection
             # then never ends) and no leakage normalisation (it only shifts each target's log-probs)
             s = self._posterior.sample_batched((n,), x=x, show_progress_bars=False,

@@ -1,0 +1,132 @@
+"""The evaluation protocol end to end on a fast real simulator (the toy oscillator): baselines in the
+report, bootstrap intervals, paired differences, the simulator in the loop, the uncertainty penalty,
+recovered parameters and report.json's machine-readable shape."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+
+SPEC = """
+name: eval-protocol
+seed: 3
+simulator: {type: "test_dataset_toy:ToyOscillator"}
+dataset: {n: 200, batch_size: 50}
+surrogate: {type: ensemble, members: 2, hidden: [32, 32, 16], max_epochs: 60, patience: 20, dropout: 0.0}
+optimizers:
+  cma: {type: cma_es, budget: 100}
+targets: {n: 8, validate: 8, selection: farthest_point+random}
+evaluation:
+  baselines:
+    nearest_neighbour: {type: nearest_neighbour}
+    nn5: {type: nearest_neighbour, k: 5, select: surrogate}
+    npe: {type: npe, max_num_epochs: 8, hidden_features: 16, num_transforms: 2, samples: 16}
+  methods:
+    sil: {start: nearest_neighbour, evaluator: simulator, budget: 9, popsize: 4}
+    cma_pen: {start: nearest_neighbour, evaluator: surrogate, budget: 60, popsize: 6, uncertainty_penalty: 0.5}
+  bootstrap: 200
+validator: {type: simulator, batch_size: 64}
+report: {render: false}
+"""
+
+FIELDS = ("n_validated", "r_actual_mean", "r_actual_ci95", "r_surrogate_mean", "gap_mean", "evaluations",
+          "simulator_runs", "vs_nearest_neighbour")
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    from rich.console import Console
+
+    from invphys.core.spec import parse_spec
+    from invphys.pipeline.runner import run_spec
+
+    out = tmp_path_factory.mktemp("protocol")
+    spec = parse_spec(SPEC)
+    summaries = run_spec(spec, out, progress=False, console=Console(file=io.StringIO()))
+    return out, summaries
+
+
+def test_report_json_has_the_protocol_shape_with_baselines(run_dir) -> None:
+    out, _ = run_dir
+    rep = json.loads((out / "report" / "report.json").read_text())
+    opt = rep["optimizers"]
+    assert set(opt) == {"cma", "nearest_neighbour", "nn5", "npe", "sil", "cma_pen", "noise_floor"}
+    for label, s in opt.items():
+        assert all(f in s for f in FIELDS), label
+        assert s["n_validated"] == 8
+        lo, hi = s["r_actual_ci95"]
+        assert lo <= s["r_actual_mean"] <= hi
+        assert set(s["by_set"]) == {"farthest_point", "random"}
+        assert s["by_set"]["farthest_point"]["n_validated"] == 4
+    assert opt["nearest_neighbour"]["vs_nearest_neighbour"] is None
+    d = opt["cma"]["vs_nearest_neighbour"]
+    assert d["n"] == 8 and d["ci95"][0] <= d["mean_diff"] <= d["ci95"][1]
+    assert d["beats"] == (d["ci95"][0] > 0)
+    # the toy simulator is deterministic: re-simulating the true parameters recovers the target exactly
+    assert opt["noise_floor"]["r_actual_mean"] > 0.999
+    assert opt["nearest_neighbour"]["evaluations"] == 0 and opt["nn5"]["evaluations"] == 5
+    assert opt["npe"]["role"] == "baseline" and opt["sil"]["role"] == "method"
+    assert rep["protocol"]["sets"] == {"farthest_point": 4, "random": 4}
+    assert (out / "report" / "protocol.png").stat().st_size > 10_000
+    md = (out / "report" / "report.md").read_text()
+    assert "## Protocol" in md and "## Recovered parameters" in md and "nearest_neighbour" in md
+
+
+def test_simulator_in_the_loop_never_loses_to_its_start_and_batches_generations(run_dir) -> None:
+    out, summaries = run_dir
+    info = summaries["validate"]["evaluation"]["sil"]
+    # 8 targets x 9 runs; the starts in one batch, then two generations of 4 per target, each one batch
+    assert info["simulator_runs"] == 72 and info["batches"] == 3
+    rows = json.loads((out / "validate" / "validation.json").read_text())
+    by = {(r["optimizer"], r["target_index"]): r for r in rows if r["problem"] == "target"}
+    for k in range(8):
+        sil, nn = by[("sil", k)], by[("nearest_neighbour", k)]
+        assert sil["simulator_runs"] == 9
+        assert sil["r_actual"] >= nn["r_actual"] - 1e-12  # its start was simulated too
+    ev = {(r["optimizer"], r["target_index"]): r for r in json.loads((out / "validate" / "evaluation_rows.json").read_text())}
+    # the loop's own score is the validated R_actual (no reality gap by construction)
+    assert all(abs(ev[("sil", k)]["in_loop_score"] - by[("sil", k)]["r_actual"]) < 1e-9 for k in range(8))
+
+
+def test_recovered_parameters_in_order_with_units_and_errors(run_dir) -> None:
+    out, _ = run_dir
+    rep = json.loads((out / "report" / "report.json").read_text())
+    p = rep["parameters"]
+    assert p["names"] == ["k", "c", "m"] and p["units"] == ["N/m", "N s/m", "kg"]
+    targets = rep["targets"]
+    t0 = p["targets"][0]
+    assert t0["truth"] == pytest.approx(targets["params"][0])  # physical units, parameter order
+    nn = t0["methods"]["nearest_neighbour"]
+    assert len(nn["params"]) == 3 and 1.0 <= nn["params"][0] <= 1e4  # k in N/m
+    theta_true = np.array(targets["theta"][0])
+    theta_nn = np.array(next(r for r in json.loads((out / "validate" / "evaluation_rows.json").read_text())
+                         if r["optimizer"] == "nearest_neighbour" and r["target_index"] == 0)["theta"])
+    assert nn["error"] == pytest.approx(np.abs(theta_nn - theta_true).tolist())
+    assert t0["spread_source"] == "npe" and len(t0["spread"]) == 3
+    assert "noise_floor" not in t0["methods"]
+    assert set(p["error"]) >= {"cma", "nearest_neighbour", "npe", "sil"}
+
+
+def test_uncertainty_check_is_reported_for_an_ensemble(run_dir) -> None:
+    out, _ = run_dir
+    unc = json.loads((out / "report" / "report.json").read_text())["uncertainty"]
+    assert unc["available"] and 30 <= unc["n_rows"] <= 40  # the test partition of the ok rows
+    assert -1.0 <= unc["spearman_rows"] <= 1.0
+    assert unc["n_answers"] >= 3
+
+
+def test_baselines_are_cached_between_runs(run_dir) -> None:
+    from rich.console import Console
+
+    from invphys.core.spec import parse_spec
+    from invphys.pipeline.runner import run_spec
+
+    out, _ = run_dir
+    cache = out / "validate" / "baselines.json"
+    before = cache.stat().st_mtime_ns
+    run_spec(parse_spec(SPEC), out, stages=["validate"], force=["validate"], progress=False,
+             console=Console(file=io.StringIO()))
+    assert cache.stat().st_mtime_ns == before  # not refitted, not rewritten
