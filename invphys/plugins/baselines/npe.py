@@ -19,7 +19,10 @@ class NPEBaseline(DatasetBaseline):
     """sbi's NPE: a conditional density estimator q(theta | y) trained on the training rows.
 
     The prior is uniform on [0, 1]^d (the normalised parameter box the data was sampled from) and sbi
-    z-scores the features. Each target gets ``samples`` posterior draws; the answer is their ``mean``,
+    z-scores the features. Samples outside the box (a flow's leakage: 43 % on the tiny orange-peel
+    fixture) are clipped to it, and the fraction is reported as ``leakage``. With ``transform: logit``
+    the estimator learns the density of logit(theta) instead, so every sample lies in the box (its
+    log-probs include the Jacobian); on the tiny fixture that fitted worse (mean |error| 0.20 vs 0.18). Each target gets ``samples`` posterior draws; the answer is their ``mean``,
     the draw of highest posterior log-prob (``best_log_prob``), or the draw the surrogate scores best
     (``best_surrogate``: ``samples`` surrogate evaluations). Each parameter's posterior std, in units of
     the prior's std, says how well the features pin it down (about 1: not at all).
@@ -34,12 +37,15 @@ class NPEBaseline(DatasetBaseline):
         estimator: Literal["maf", "nsf", "mdn"] = Field("maf", description="sbi density estimator")
         hidden_features: int = Field(50, ge=4)
         num_transforms: int = Field(5, ge=1, description="flow layers (maf/nsf)")
-        training_batch_size: int = Field(128, ge=8)
-        learning_rate: float = Field(5e-4, gt=0)
+        training_batch_size: int = Field(64, ge=8)
+        learning_rate: float = Field(1e-3, gt=0)
         max_num_epochs: int = Field(300, ge=1)
         stop_after_epochs: int = Field(20, ge=1, description="early-stopping patience on sbi's validation split")
         samples: int = Field(64, ge=1, description="posterior draws per target")
         answer: Literal["mean", "best_log_prob", "best_surrogate"] = Field("best_log_prob")
+        transform: Literal["none", "logit"] = Field(
+            "none", description="logit: learn logit(theta), so samples stay in the box (on the tiny fixture: "
+                                "no leakage but a larger error)")
         seed: int = 0
         torch_threads: int | None = Field(1, ge=1, description="torch CPU threads while training (None: torch's)")
 
@@ -79,13 +85,18 @@ class NPEBaseline(DatasetBaseline):
         try:
             torch.manual_seed(c.seed)
             d = theta.shape[1]
-            prior = sbi.utils.BoxUniform(torch.zeros(d), torch.ones(d))
+            if c.transform == "logit":  # the prior of logit(U(0, 1)) is the standard logistic
+                base = torch.distributions.Uniform(torch.zeros(d), torch.ones(d))
+                prior = torch.distributions.Independent(torch.distributions.TransformedDistribution(
+                    base, [torch.distributions.transforms.SigmoidTransform().inv]), 1)
+            else:
+                prior = sbi.utils.BoxUniform(torch.zeros(d), torch.ones(d))
             kwargs = {"hidden_features": c.hidden_features}
             if c.estimator != "mdn":
                 kwargs["num_transforms"] = c.num_transforms
             net = sbi.neural_nets.posterior_nn(model=c.estimator, **kwargs)
             inference = sbi.inference.NPE(prior=prior, density_estimator=net, show_progress_bars=progress)
-            inference.append_simulations(torch.as_tensor(np.clip(theta, 0.0, 1.0), dtype=torch.float32),
+            inference.append_simulations(torch.as_tensor(self._to_u(theta), dtype=torch.float32),
                                          torch.as_tensor(y, dtype=torch.float32))
             inference.train(training_batch_size=c.training_batch_size, learning_rate=c.learning_rate,
                             max_num_epochs=c.max_num_epochs, stop_after_epochs=c.stop_after_epochs,
@@ -97,6 +108,15 @@ class NPEBaseline(DatasetBaseline):
         summary = getattr(inference, "_summary", {})
         return {"epochs": int(summary.get("epochs_trained", [0])[-1]),
                 "best_validation_log_prob": float(summary.get("best_validation_loss", [np.nan])[-1])}
+
+    _EPS = 1e-6
+
+    def _to_u(self, theta: np.ndarray) -> np.ndarray:
+        t = np.clip(np.asarray(theta, dtype=np.float64), 0.0, 1.0)
+        if self.config.transform != "logit":
+            return t
+        t = np.clip(t, self._EPS, 1.0 - self._EPS)
+        return np.log(t) - np.log1p(-t)
 
     def posterior_samples(self, targets: np.ndarray, n: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(samples (B, S, d), log-probs (B, S)) of the posterior at each target (seeded).
@@ -117,6 +137,9 @@ class NPEBaseline(DatasetBaseline):
             lp = self._posterior.log_prob_batched(s, x=x, norm_posterior=False)  # (S, B)
         samples = np.transpose(s.numpy().astype(np.float64), (1, 0, 2))
         logp = np.transpose(lp.numpy().astype(np.float64), (1, 0))
+        if self.config.transform == "logit":  # back to theta, with the change of variables' Jacobian
+            samples = 1.0 / (1.0 + np.exp(-samples))
+            logp = logp - np.log(np.clip(samples * (1.0 - samples), 1e-300, None)).sum(axis=2)
         self.last_leakage = float(np.mean(np.any((samples < 0) | (samples > 1), axis=2)))
         return np.clip(samples, 0.0, 1.0), logp
 

@@ -1,0 +1,117 @@
+"""The dataset baselines: nearest-neighbour lookup and sbi's NPE, on real data and a synthetic problem
+with one parameter the features cannot see."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from models_data import orange_split
+
+from invphys.core.errors import InvphysError
+from invphys.core.objectives import RecoveryObjective, percentile_scales
+from invphys.core.spaces import build_problem, raw_space
+from invphys.plugins.baselines import NearestNeighbour, NPEBaseline
+
+
+def _linear(theta_train, y_train):
+    """A least-squares linear surrogate theta -> y (a real, cheap model for best-of-k choices)."""
+    a = np.c_[theta_train, np.ones(len(theta_train))]
+    w, *_ = np.linalg.lstsq(a, y_train, rcond=None)
+    return lambda th: np.c_[np.atleast_2d(th), np.ones(len(np.atleast_2d(th)))] @ w
+
+
+def test_nearest_neighbour_returns_the_closest_training_rows_parameters() -> None:
+    tt, yt, _te, ye = orange_split()
+    scales = percentile_scales(yt)
+    nn = NearestNeighbour()
+    nn.fit(tt, yt, scales)
+    # a training row is its own nearest neighbour
+    np.testing.assert_allclose(nn.answer(yt[:20]).theta, tt[:20])
+    ans = nn.answer(ye)
+    z = (ye[:, None, :] - yt[None, :, :]) / scales
+    brute = np.argmin(np.sqrt((z ** 2).sum(-1)), axis=1)
+    np.testing.assert_allclose(ans.theta, tt[brute])
+    assert ans.evaluations.sum() == 0 and np.isnan(ans.spread).all()  # one candidate: no spread
+
+
+def test_nearest_neighbour_k_metrics_and_selection() -> None:
+    tt, yt, _te, ye = orange_split()
+    scales = percentile_scales(yt)
+    std = NearestNeighbour(k=5, metric="standardised", select="mean")
+    std.fit(tt, yt, scales)
+    idx, dist = std.neighbours(ye[:7])
+    assert idx.shape == (7, 5) and np.all(np.diff(dist, axis=1) >= -1e-12)  # nearest first
+    np.testing.assert_allclose(std.answer(ye[:7]).theta, tt[idx].mean(axis=1))
+    predict = _linear(tt, yt)
+    by_surr = NearestNeighbour(k=8, select="surrogate")
+    by_surr.fit(tt, yt, scales)
+    ans = by_surr.answer(ye[:7], predict)
+    assert (ans.evaluations == 8).all() and ans.spread.shape == (7, 9) and np.all(ans.spread > 0)
+    obj = [RecoveryObjective(y, scales) for y in ye[:7]]
+    cands = ans.candidates
+    chosen = [float(obj[i](predict(ans.theta[i][None]))[0]) for i in range(7)]
+    best = [max(float(obj[i](predict(c[None]))[0]) for c in cands[i]) for i in range(7)]
+    assert chosen == pytest.approx(best)
+    with pytest.raises(InvphysError, match="surrogate"):
+        by_surr.answer(ye[:2])
+
+
+def test_a_baseline_is_an_optimiser_over_a_problem_and_says_when_it_was_not_fitted() -> None:
+    tt, yt, _te, ye = orange_split()
+    scales = percentile_scales(yt)
+    predict = _linear(tt, yt)
+    nn = NearestNeighbour(k=4, select="surrogate")
+    with pytest.raises(InvphysError, match=r"evaluation\.baselines"):
+        nn.prepare(raw_space(9), predict, yt, scales)
+    nn.fit(tt, yt, scales)
+    problem = build_problem(raw_space(9), RecoveryObjective(ye[0], scales), budget=10, predict=predict,
+                            target=ye[0], info={"theta_predict": predict})
+    res = nn.optimize(problem)
+    assert res.evaluations == 4 + 1 and problem.info["counter"].count == 1  # 4 choices, 1 score
+    assert res.score == pytest.approx(float(RecoveryObjective(ye[0], scales)(predict(res.theta[None]))[0]))
+    with pytest.raises(InvphysError, match="target"):
+        nn.optimize(build_problem(raw_space(9), RecoveryObjective(ye[0], scales), 5, predict=predict))
+
+
+def _hidden_parameter_problem(n: int = 600, seed: int = 0):
+    """theta in [0,1]^2; the features see theta_0 only (theta_1 cannot be pinned down)."""
+    rng = np.random.default_rng(seed)
+    theta = rng.uniform(0, 1, (n, 2))
+    y = np.c_[theta[:, 0], theta[:, 0] ** 2] + rng.normal(0, 0.01, (n, 2))
+    return theta, y
+
+
+@pytest.fixture(scope="module")
+def npe_fitted():
+    theta, y = _hidden_parameter_problem()
+    npe = NPEBaseline(estimator="mdn", hidden_features=24, max_num_epochs=60, stop_after_epochs=10,
+                      training_batch_size=32, learning_rate=2e-3, samples=64, seed=1)
+    npe.fit(theta, y, percentile_scales(y))
+    return npe
+
+
+def test_npe_pins_down_what_the_features_see_and_flags_what_they_do_not(npe_fitted) -> None:
+    theta, y = _hidden_parameter_problem(40, seed=5)
+    ans = npe_fitted.answer(y)
+    assert ans.candidates.shape == (40, 64, 2) and ans.theta.shape == (40, 2)
+    spread = ans.spread.mean(axis=0)
+    assert spread[0] < 0.5 < spread[1]  # theta_0 pinned down, theta_1 about as wide as the prior
+    assert np.abs(ans.theta[:, 0] - theta[:, 0]).mean() < 0.1
+    mean = NPEBaseline(npe_fitted.config.model_copy(update={"answer": "mean"})).adopt(npe_fitted)
+    assert mean.fitted and mean.metrics["shared_fit"] and mean.fit_key() == npe_fitted.fit_key()
+    np.testing.assert_allclose(mean.answer(y).theta, ans.candidates.mean(axis=1), atol=1e-6)
+
+
+def test_npe_best_of_k_by_surrogate_and_save_load(npe_fitted, tmp_path) -> None:
+    theta, y = _hidden_parameter_problem(10, seed=6)
+    surr = NPEBaseline(npe_fitted.config.model_copy(update={"answer": "best_surrogate"})).adopt(npe_fitted)
+    predict = lambda th: np.c_[th[:, 0], th[:, 0] ** 2]  # noqa: E731 (the true, noise-free map)
+    ans = surr.answer(y, predict)
+    assert (ans.evaluations == 64).all()
+    err_best = np.abs(ans.theta[:, 0] - theta[:, 0]).mean()
+    assert err_best <= np.abs(ans.candidates[:, :, 0] - theta[:, None, 0]).mean() + 1e-12
+    npe_fitted.save(tmp_path / "npe")
+    again = NPEBaseline.load(tmp_path / "npe")
+    np.testing.assert_allclose(again.answer(y).theta, npe_fitted.answer(y).theta)
+    with pytest.raises(InvphysError, match="no saved npe"):
+        NPEBaseline.load(tmp_path / "missing")
