@@ -135,7 +135,8 @@ class Bundle:
         installed = str(getattr(info.cls, "version", ""))
         if installed != str(sim.get("version")):
             problems.append(f"bundle {self.root} was trained on simulator {sim['name']} {sim.get('version')}, "
-                            f"the installed one is {installed}: retrain the bundle (or allow the mismatch)")
+                            f"the installed one is {installed}: retrain the bundle, or load it anyway with --allow-mismatch "
+                            f"(Python: strict=False)")
         block = self.manifest["features"].get("extractor") or {}
         if block.get("type") and not problems:
             try:
@@ -148,7 +149,7 @@ class Bundle:
                     gone = [n for n in self.feature_names if n not in names]
                     problems.append(f"bundle {self.root} predicts other features than the installed extractor "
                                     f"computes (new: {', '.join(added) or '-'}; gone: {', '.join(gone) or '-'}; "
-                                    f"or reordered): retrain the bundle")
+                                    f"or reordered): retrain the bundle, or load it anyway with --allow-mismatch")
         if problems and strict:
             raise BundleError(problems[0])
         return problems + notes

@@ -87,10 +87,18 @@ def _skip_mlp(arrays: dict[str, np.ndarray], p: str, x: np.ndarray) -> np.ndarra
     h1 = w1.shape[2]
     out = np.empty((w1.shape[0], x.shape[0], wo.shape[2]), dtype=np.float32)
     for k in range(w1.shape[0]):
-        a = np.maximum(x @ w1[k] + b1[k], 0.0)
-        c = np.maximum(a @ w2[k] + b2[k], 0.0)
-        h = np.maximum(a @ w3[k, :h1] + c @ w3[k, h1:] + b3[k], 0.0)
-        out[k] = h @ wo[k] + bo[k]
+        a = x @ w1[k]
+        a += b1[k]
+        np.maximum(a, 0.0, out=a)
+        c = a @ w2[k]
+        c += b2[k]
+        np.maximum(c, 0.0, out=c)
+        h = a @ w3[k, :h1]
+        h += c @ w3[k, h1:]
+        h += b3[k]
+        np.maximum(h, 0.0, out=h)
+        np.matmul(h, wo[k], out=out[k])
+        out[k] += bo[k]
     return out
 
 
