@@ -29,6 +29,7 @@ evaluation:
     cma_pen: {start: nearest_neighbour, evaluator: surrogate, budget: 60, popsize: 6, uncertainty_penalty: 0.5}
   bootstrap: 200
 validator: {type: simulator, batch_size: 64}
+active: {rounds: 2, targets: 4, budget: 60, popsize: 6, max_epochs: 30, uncertainty_penalty: 0.2}
 report: {render: false}
 """
 
@@ -53,14 +54,14 @@ def test_report_json_has_the_protocol_shape_with_baselines(run_dir) -> None:
     out, _ = run_dir
     rep = json.loads((out / "report" / "report.json").read_text())
     opt = rep["optimizers"]
-    assert set(opt) == {"cma", "nearest_neighbour", "nn5", "npe", "sil", "cma_pen", "noise_floor"}
+    assert set(opt) == {"cma", "nearest_neighbour", "nn5", "npe", "sil", "cma_pen", "noise_floor", "active_learning"}
     for label, s in opt.items():
         assert all(f in s for f in FIELDS), label
-        assert s["n_validated"] == 8
+        assert s["n_validated"] == (4 if label == "active_learning" else 8)
         lo, hi = s["r_actual_ci95"]
         assert lo <= s["r_actual_mean"] <= hi
         assert set(s["by_set"]) == {"farthest_point", "random"}
-        assert s["by_set"]["farthest_point"]["n_validated"] == 4
+        assert s["by_set"]["farthest_point"]["n_validated"] == 4  # active learning: the 4 farthest-point ones
     assert opt["nearest_neighbour"]["vs_nearest_neighbour"] is None
     d = opt["cma"]["vs_nearest_neighbour"]
     assert d["n"] == 8 and d["ci95"][0] <= d["mean_diff"] <= d["ci95"][1]
@@ -130,3 +131,19 @@ def test_baselines_are_cached_between_runs(run_dir) -> None:
     run_spec(parse_spec(SPEC), out, stages=["validate"], force=["validate"], progress=False,
              console=Console(file=io.StringIO()))
     assert cache.stat().st_mtime_ns == before  # not refitted, not rewritten
+
+
+def test_active_learning_rounds_add_simulated_rows_and_keep_the_best_answer(run_dir) -> None:
+    out, _ = run_dir
+    rounds = json.loads((out / "active" / "rounds.json").read_text())
+    assert [r["round"] for r in rounds] == [0, 1, 2]
+    added = np.load(out / "active" / "added.npz")
+    assert len(added["theta"]) == (4 - rounds[0]["failed"]) + (4 - rounds[1]["failed"])
+    assert rounds[1]["train_rows"] == rounds[0]["train_rows"] + 4 - rounds[0]["failed"]
+    assert all(r["simulator_runs"] == 4 for r in rounds)  # one proposal per target and round, one batch
+    best = [r["best_so_far_mean"] for r in rounds]
+    assert best == sorted(best) and best[0] == pytest.approx(rounds[0]["r_actual_mean"])
+    assert (out / "active" / "surrogate_round2").is_dir()
+    rep = json.loads((out / "report" / "report.json").read_text())
+    assert rep["optimizers"]["active_learning"]["r_actual_mean"] == pytest.approx(best[-1])
+    assert len(rep["active_learning"]) == 3 and "Active learning rounds" in (out / "report" / "report.md").read_text()

@@ -41,7 +41,7 @@ from invphys.core import safe_yaml
 from invphys.core.errors import InvphysError, SpecError, did_you_mean
 from invphys.core.names import check_name
 
-STAGES: tuple[str, ...] = ("dataset", "train", "invert", "validate", "report")
+STAGES: tuple[str, ...] = ("dataset", "train", "invert", "validate", "active", "report")
 #: keys of an optimizer entry that the runner consumes (the rest goes to the plugin's Config)
 OPTIMIZER_RUNNER_KEYS: tuple[str, ...] = ("space", "evaluator")
 
@@ -172,6 +172,19 @@ class TrackerSection(_Section):
         return {"type": value} if isinstance(value, str) else value
 
 
+class ActiveSection(_Section):
+    """Active learning (the ``active`` stage): propose, simulate, add to the training data, retrain."""
+
+    rounds: int = Field(3, ge=1, description="retraining rounds")
+    targets: int | None = Field(None, ge=1, description="the first N targets (default: the validated ones)")
+    start: str = Field("nearest_neighbour", description="label whose answers start round 0")
+    budget: int = Field(540, ge=1, description="surrogate evaluations per target and round (CMA-ES)")
+    popsize: int = Field(20, ge=2)
+    sigma0: float = Field(0.1, gt=0)
+    uncertainty_penalty: float = Field(0.0, ge=0, description="lambda of the ensemble-std penalty")
+    max_epochs: int | None = Field(None, ge=1, description="cap the surrogate's epochs when retraining")
+
+
 class ExperimentSpec(_Section):
     """The whole experiment: which plugin fills each slot, with which config, and which stages run."""
 
@@ -191,6 +204,7 @@ class ExperimentSpec(_Section):
     targets: TargetsSection = Field(default_factory=lambda: TargetsSection())
     validator: PluginBlock | None = None
     evaluation: EvaluationSection = Field(default_factory=lambda: EvaluationSection())
+    active: ActiveSection | None = None
     report: ReportSection = Field(default_factory=lambda: ReportSection())
     tracker: TrackerSection = Field(default_factory=lambda: TrackerSection())
 
@@ -217,9 +231,11 @@ class ExperimentSpec(_Section):
     def _stage_needs(self) -> ExperimentSpec:
         if self.stages is None:
             present = {"dataset": True, "train": self.surrogate is not None, "invert": bool(self.optimizers),
-                       "validate": self.validator is not None, "report": bool(self.optimizers)}
+                       "validate": self.validator is not None, "active": self.active is not None,
+                       "report": bool(self.optimizers)}
             self.stages = [s for s in STAGES if present[s]]
-        needs = {"train": ("surrogate",), "invert": ("surrogate", "optimizers"), "validate": ("validator",)}
+        needs = {"train": ("surrogate",), "invert": ("surrogate", "optimizers"), "validate": ("validator",),
+                 "active": ("active", "surrogate", "validator")}
         for stage, sections in needs.items():
             for section in sections:
                 if stage in self.stages and not getattr(self, section):

@@ -264,16 +264,20 @@ def run(ctx: StageContext) -> dict[str, Any]:
 
     from invphys.core.atomic import write_json
     from invphys.evaluation.plots import plot_protocol
+    from invphys.pipeline.stages.active import load_active
     from invphys.pipeline.stages.invert import load_results
     from invphys.pipeline.stages.validate import load_validation
 
     rows, targets = load_results(ctx)
     validation = load_validation(ctx)
-    rows = _with_device(ctx, rows) + _evaluation_rows(ctx, targets)
+    active_rows, active_val, rounds = load_active(ctx)
+    rows = _with_device(ctx, rows) + _evaluation_rows(ctx, targets) + active_rows
+    validation = (validation or []) + active_val if (validation or active_val) else None
     merged = _merge(rows, validation)
     out = ctx.stage_dir
     plot = plot_recovery([r for r in merged if r["role"] != "reference"], out / "recovery.png")
     protocol = protocol_block(ctx, merged, targets)
+    protocol["active"] = rounds
     protocol_plot = plot_protocol(protocol["optimizers"], out / "protocol.png", ctx.spec.evaluation.reference,
                                   title=ctx.spec.name)
     renders = _renders(ctx, out)
@@ -292,6 +296,7 @@ def run(ctx: StageContext) -> dict[str, Any]:
     summ = summary_table(merged, "target")
     if "json" in formats:
         write_json(out / "report.json", {"protocol": protocol["settings"], "optimizers": protocol["optimizers"],
+                                         "active_learning": rounds,
                                          "parameters": protocol["parameters"],
                                          "uncertainty": protocol["uncertainty"], "summary": summ,
                                          "objectives": summary_table(merged, "objective"),
@@ -401,6 +406,15 @@ def protocol_markdown(protocol: dict[str, Any], plot: str | None) -> list[str]:
                         f"**{_fmt(unc['spearman_answers'])}**" if "spearman_answers" in unc else "") + ".")
     else:
         lines.append(f"Not available: {unc.get('note')}.")
+    if protocol.get("active"):
+        lines += ["", "### Active learning rounds", "",
+                  "Each round proposes one answer per target on the current surrogate, simulates them in one "
+                  "batch, adds them to the training rows and retrains the surrogate.", ""]
+        lines += _md_table(["round", "training rows", "surrogate R^2 (test)", "R_actual of proposals", "95 % CI",
+                            "best so far", "95 % CI", "simulator runs", "simulator (s)", "device"],
+                           [[a["round"], a["train_rows"], a["surrogate_r2_test"], a["r_actual_mean"],
+                             _ci(a["r_actual_ci95"]), a["best_so_far_mean"], _ci(a["best_so_far_ci95"]),
+                             a["simulator_runs"], a["simulator_s"], a["device"] or "-"] for a in protocol["active"]])
     lines += ["", *parameter_markdown(protocol["parameters"], max_targets=20)]
     return lines
 
