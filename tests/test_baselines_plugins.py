@@ -34,6 +34,17 @@ def test_nearest_neighbour_returns_the_closest_training_rows_parameters() -> Non
     assert ans.evaluations.sum() == 0 and np.isnan(ans.spread).all()  # one candidate: no spread
 
 
+def test_nearest_neighbour_saves_and_loads(tmp_path) -> None:
+    tt, yt, _te, ye = orange_split()
+    nn = NearestNeighbour(k=3, metric="standardised", select="mean")
+    nn.fit(tt, yt, percentile_scales(yt))
+    again = NearestNeighbour.load(nn.save(tmp_path / "nn"))
+    assert again.config == nn.config and again.fitted
+    np.testing.assert_allclose(again.answer(ye).theta, nn.answer(ye).theta)
+    with pytest.raises(InvphysError, match="no saved nearest_neighbour"):
+        NearestNeighbour.load(tmp_path / "missing")
+
+
 def test_nearest_neighbour_k_metrics_and_selection() -> None:
     tt, yt, _te, ye = orange_split()
     scales = percentile_scales(yt)

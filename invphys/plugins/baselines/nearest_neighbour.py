@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
 
+from invphys.core.errors import InvphysError
 from invphys.core.interfaces import PluginConfig
 from invphys.plugins.baselines._base import PRIOR_STD, BaselineAnswers, DatasetBaseline, best_by_surrogate
 
@@ -78,3 +81,26 @@ class NearestNeighbour(DatasetBaseline):
         spread = cands.std(axis=1) / PRIOR_STD if cands.shape[1] > 1 else np.full(theta.shape, np.nan)
         return BaselineAnswers(theta=theta, candidates=cands, spread=spread, evaluations=evals, wall_time_s=0.0,
                                info={"rows": idx.tolist(), "distance": dist[:, 0].tolist()})
+
+    def save(self, directory: str | Path) -> Path:
+        """Write the lookup table (training parameters and scaled features) and the config."""
+        d = Path(directory)
+        d.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(d / "nearest_neighbour.npz", theta=self._theta, z=self._z, shift=self._shift,
+                            div=self._div, scales=self._scales)
+        (d / "nearest_neighbour.json").write_text(json.dumps({"config": self.config.model_dump(),
+                                                               "metrics": self.metrics}, indent=1))
+        return d
+
+    @classmethod
+    def load(cls, directory: str | Path) -> NearestNeighbour:
+        d = Path(directory)
+        if not (d / "nearest_neighbour.npz").is_file():
+            raise InvphysError(f"no saved nearest_neighbour baseline in {d}")
+        meta = json.loads((d / "nearest_neighbour.json").read_text())
+        plugin = cls(meta["config"])
+        with np.load(d / "nearest_neighbour.npz") as f:
+            plugin._theta, plugin._z, plugin._shift, plugin._div, plugin._scales = (
+                f["theta"], f["z"], f["shift"], f["div"], f["scales"])
+        plugin.metrics, plugin.fitted = meta["metrics"], True
+        return plugin
