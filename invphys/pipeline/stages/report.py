@@ -362,6 +362,13 @@ def protocol_block(ctx: StageContext, merged: list[dict[str, Any]], targets: dic
     return {"settings": settings, "optimizers": summary, "parameters": params, "uncertainty": unc}
 
 
+def _count(v: Any) -> str:
+    """A per-target count (a mean): an integer when it is one."""
+    if v is None:
+        return "-"
+    return str(round(v)) if abs(v - round(v)) < 1e-9 else f"{v:.1f}"
+
+
 def _ci(v: Any) -> str:
     return "-" if not v else f"[{v[0]:.3f}, {v[1]:.3f}]"
 
@@ -384,11 +391,13 @@ def protocol_markdown(protocol: dict[str, Any], plot: str | None) -> list[str]:
         d = s.get(key) or {}
         table.append([lab, s["role"], s["n_validated"], s["r_actual_mean"], _ci(s["r_actual_ci95"]),
                       s["r_surrogate_mean"], s["gap_mean"], d.get("mean_diff"), _ci(d.get("ci95")),
-                      "yes" if d.get("beats") else ("-" if not d else "no"), s["evaluations"], s["simulator_runs"],
+                      "yes" if d.get("beats") else ("-" if d.get("mean_diff") is None else "no"),
+                      _count(s["evaluations"]), _count(s["simulator_runs"]),
                       s["wall_time_s"], s["device"] or "-"])
     lines += _md_table(["method", "role", "n", "R_actual", "95 % CI", "R_surr", "Delta", f"diff vs {ref}",
                         "95 % CI", "beats", "evals/target", "sim runs/target", "time/target (s)", "device"], table)
-    by_set = {lab: s["by_set"] for lab, s in protocol["optimizers"].items() if s.get("by_set")}
+    by_set = {lab: s["by_set"] for lab, s in protocol["optimizers"].items()
+              if s.get("by_set") and s["n_validated"]}
     for name in sorted({n for v in by_set.values() for n in v}):
         lines += ["", f"**{name} targets**", ""]
         lines += _md_table(["method", "n", "R_actual", "95 % CI", f"diff vs {ref}", "95 % CI"],
