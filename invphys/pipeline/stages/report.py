@@ -103,8 +103,9 @@ def markdown(ctx_name: str, merged: list[dict[str, Any]], targets: dict[str, Any
              protocol_plot: str | None = None) -> str:
     lines = [f"# Inverse recovery report: {ctx_name}", ""]
     n_t = len(targets["rows"])
-    lines += [f"{n_t} held-out targets ({targets['selection']} selection from the test partition), the first "
-              f"{targets['validate']} re-run through the simulator. R = R_gt (paper eq. 1); R_surr on the "
+    n_v = len({r["target_index"] for r in merged if r["problem"] == "target" and r["validated"]})
+    lines += [f"{n_t} held-out targets ({targets['selection']} selection from the test partition), "
+              f"{n_v} of them re-run through the simulator. R = R_gt (paper eq. 1); R_surr on the "
               f"optimiser's evaluator, R_actual from the simulator, Delta = R_surr - R_actual "
               f"(over validated targets).", ""]
     summ = summary_table(merged, "target")
@@ -381,8 +382,8 @@ def protocol_markdown(protocol: dict[str, Any], plot: str | None) -> list[str]:
     ref = st["reference"]
     key = f"vs_{ref}"
     lines = ["## Protocol: R_actual with intervals, against the baselines", "",
-             f"{st['targets']} held-out targets ({', '.join(f'{n} {s}' for s, n in st['sets'].items())}), the first "
-             f"{st['validated']} validated through the simulator. Intervals: {st['bootstrap']} bootstrap resamples "
+             f"{st['targets']} held-out targets ({', '.join(f'{n} {s}' for s, n in st['sets'].items())}); "
+             f"`targets.validate` = {st['validated']} (the n column counts the targets actually validated). Intervals: {st['bootstrap']} bootstrap resamples "
              f"over targets, {100 * st['confidence']:.0f} %. A failed validation run scores 0. A method beats "
              f"`{ref}` only when the paired interval's lower end is above 0. Cost per target: surrogate "
              f"evaluations, simulator runs and wall time.", ""]
