@@ -50,8 +50,9 @@ def main(argv: list[str] | None = None) -> dict:
                               batch_size=args.batch)
     from invphys.core.dataset import RunIdentity
 
-    if sim.version != ident["version"] or RunIdentity.of(sim).config != ident.get("config", RunIdentity.of(sim).config):
-        raise SystemExit(f"dataset made by simulator {ident}, this is {RunIdentity.of(sim).to_dict()}")
+    mine = RunIdentity.of(sim).to_dict()
+    if any(mine.get(k) != v for k, v in ident.items()):
+        raise SystemExit(f"dataset made by simulator {ident}, this is {mine}")
     t0 = time.perf_counter()
     results = sim.simulate(data.params[pick])
     wall = time.perf_counter() - t0

@@ -51,7 +51,7 @@ class OrangePeelSimulator(Simulator):
         velocity_cfl: float = Field(0.3, gt=0, le=10, description="particle-velocity CFL number")
         min_substeps_per_frame: int = Field(4, ge=1, description="dt cap: at least this many substeps/frame")
         max_substeps_per_frame: int = Field(2000, ge=1, description="more than this fails the run")
-        eta_dt_factor: float = Field(0.1, gt=0, le=10, description="dt <= this * min(eta_s, eta_i): damage "
+        eta_dt_factor: float = Field(0.1, gt=0, le=1e6, description="dt <= this * min(eta_s, eta_i): damage "
                                                                     "resolved in time")
         gravity: float = Field(GRAVITY, le=0, description="vertical gravity in m/s^2 (<= 0)")
         settle_seconds: float = Field(0.5, ge=0, le=10, description="gravity-only settling before frame 0 "
