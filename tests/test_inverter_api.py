@@ -72,6 +72,8 @@ def test_every_bundle_method_a_registry_optimiser_and_a_baseline(inv, target) ->
         res = inv.invert(target, method=method, seed=1)
         assert res.method == method and 0 < res.r_surrogate <= 1, method
     assert inv.invert(target, method="cma").evaluations == 200
+    with pytest.raises(Exception, match=r"needs training first .* trained policies: gc, gc_flow"):
+        inv.invert(target, method="gc_ppo")  # untrained: the registry's class, not the bundle's policy
 
 
 def test_partial_targets_score_only_given_features(inv, target) -> None:

@@ -186,9 +186,9 @@ class Inverter:
             if fit is not None and {"theta", "y", "scales"} <= set(inspect.signature(fit).parameters):
                 fit(theta, y, self.bundle.scales)  # a dataset baseline learns from the training rows
             else:
-                space = self.bundle.search_space(entry["space"])
-                predict = self.bundle.predictor(entry["space"], entry.get("evaluator", "shared"))
-                plugin.prepare(space, predict, y, self.bundle.scales)
+                pols = ", ".join(self._policy_labels()) or "none"
+                raise InvphysError(f"method {label!r} is a goal-conditioned policy that needs training first "
+                                   f"(invphys run trains and bundles it); this bundle's trained policies: {pols}")
         self._plugins[label] = (plugin, entry)
         return self._plugins[label]
 
