@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 
 from invphys import registry
-from invphys.core.dataset import DatasetStore
+from invphys.core.dataset import DatasetStore, RunIdentity
 from invphys.core.generate import generate_dataset
 from invphys.registry import AUTOLOAD_ENV
 
@@ -34,8 +34,12 @@ def test_orange_peel_tiny_dataset_with_process_workers(tmp_path, monkeypatch) ->
     assert set(df["preset"]) == {"tiny"} and set(df["backend"]) == {"taichi"}
     assert (df["substeps"] > 0).all() and (df["wall_time_s"] > 0).all()
     meta = DatasetStore(path).metadata
+    config = RunIdentity.of(reg.create("simulator", sim)).config  # a hash of the whole config
     assert meta["identity"] == {"simulator": "orange_peel", "preset": "tiny", "backend": "taichi",
-                                "version": meta["simulator"]["version"]}
+                                "version": meta["simulator"]["version"], "config": config}
+    # the device and launch batching are not part of the identity (identity_ignores): same rows
+    assert RunIdentity.of(reg.create("simulator", {**sim, "arch": "auto", "batch_size": 8})).config == config
+    assert RunIdentity.of(reg.create("simulator", {**sim, "frames": 47})).config != config
     assert meta["extractor_block"] == {"type": "orange_peel_features"}
     arr = DatasetStore(path).arrays()
     assert arr.theta.shape == (first.ok, 9) and arr.y.shape[1] == len(meta["feature_names"]) >= 12
