@@ -89,3 +89,12 @@ def test_piped_tables_keep_full_names() -> None:
     assert "…" not in result.stdout
     (row,) = [line for line in result.stdout.splitlines() if " cma_es " in line]
     assert "invphys.plugins.optimizers.cma_es:CMAES" in row
+
+
+def test_out_naming_a_file_is_a_user_error(tmp_path) -> None:
+    taken = tmp_path / "taken"
+    taken.write_text("precious")
+    result = invphys_cli("simulate", "--simulator", "orange_peel", "--preset", "tiny", "--out", str(taken))
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip() == f"error: --out '{taken}' is a file; name a new or existing directory"
+    assert taken.read_text() == "precious"

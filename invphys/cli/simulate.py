@@ -9,6 +9,7 @@ from typing import Any
 import typer
 
 from invphys.cli.common import console, emit, handle_errors
+from invphys.core.atomic import output_directory
 from invphys.core.errors import InvphysError
 from invphys.core.results import DEFAULT_MAX_FRAMES
 
@@ -106,7 +107,7 @@ def run_simulation(simulator: str | None, params: str | None, out: Path, *, back
 
     ex_name = extractor or sim.default_feature_extractor()
     ex = registry.create("feature_extractor", ex_name) if ex_name else None
-    out.mkdir(parents=True, exist_ok=True)
+    output_directory(out)
     results = sim.simulate(np.stack(rows))
     described = sim.describe()
     runs = []

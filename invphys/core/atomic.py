@@ -49,3 +49,18 @@ def _fsync_dir(directory: Path) -> None:
         pass
     finally:
         os.close(fd)
+
+
+def output_directory(path: str | os.PathLike[str], option: str = "--out") -> Path:
+    """Create (or reuse) the output directory a user named; a file there or an unwritable place is
+    a clean :class:`~invphys.core.errors.InvphysError` naming ``option``, not a traceback."""
+    from invphys.core.errors import InvphysError
+
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise InvphysError(f"{option} {str(out)!r} is a file; name a new or existing directory")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InvphysError(f"cannot create {option} {str(out)!r}: {exc.strerror or exc}") from None
+    return out

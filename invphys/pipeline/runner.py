@@ -28,7 +28,7 @@ from typing import Any
 
 import yaml
 
-from invphys.core.atomic import write_json
+from invphys.core.atomic import output_directory, write_json
 from invphys.core.errors import InvphysError, did_you_mean
 from invphys.core.spec import STAGES, ExperimentSpec, load_spec
 from invphys.pipeline.context import StageContext
@@ -77,12 +77,7 @@ def run_spec(spec: str | Path | ExperimentSpec, out: str | Path, stages: Sequenc
     for s in [*selected, *force]:
         if s not in STAGES:
             raise InvphysError(f"unknown stage {s!r}.{did_you_mean(s, STAGES)} Stages: {', '.join(STAGES)}")
-    if out.exists() and not out.is_dir():
-        raise InvphysError(f"--out {str(out)!r} is a file; name a new or existing directory")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InvphysError(f"cannot create the run directory {str(out)!r}: {exc.strerror or exc}") from None
+    output_directory(out)
     (out / "spec.yaml").write_text(yaml.safe_dump(spec.model_dump(mode="json", by_alias=True), sort_keys=False))
     summaries: dict[str, Any] = {}
     own_tracker = tracker is None
