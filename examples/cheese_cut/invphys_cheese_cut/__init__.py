@@ -9,4 +9,4 @@ Typical use::
 
 __version__ = "0.1.0"
 #: recorded with every run; bump when the physics or the scene changes results
-SIMULATOR_VERSION = "0.1.0"
+SIMULATOR_VERSION = "0.2.0"

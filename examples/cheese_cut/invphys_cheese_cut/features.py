@@ -1,4 +1,4 @@
-"""The 12 behavioural features of a cheese-cutting run (exact definitions: docs/cheese-cut/index.md).
+"""The 13 behavioural features of a cheese-cutting run (exact definitions: docs/cheese-cut/index.md).
 
 Most features read the per-frame time series of the run (the wire's force, depth and work, the board's
 load, the damage and column-drop series); ``damage_band_width`` reads the last particle frame. End-of-run values are
@@ -32,9 +32,10 @@ FEATURE_UNITS: dict[str, str] = {
     "settle_drop": "m",
     "force_ratio": "",
     "damage_band_width": "m",
+    "slice_drag_ratio": "",
 }
 FEATURE_NAMES: tuple[str, ...] = tuple(FEATURE_UNITS)
-NEEDED_SERIES = ("wire_force", "wire_depth", "wire_work", "board_force", "mean_damage", "damaged_fraction",
+NEEDED_SERIES = ("wire_force", "wire_drag", "wire_depth", "wire_work", "board_force", "mean_damage", "damaged_fraction",
                  "column_drop", "sag")
 
 
@@ -61,9 +62,9 @@ def first_crossing(x: np.ndarray, y: np.ndarray, level: float) -> float | None:
 
 
 class CheeseCutFeatures(FeatureExtractor):
-    """Twelve features of a wire cut: forces (peak, mean, contact stiffness, work, resting load, late/peak
+    """Thirteen features of a wire cut: forces (peak, mean, contact stiffness, work, resting load, late/peak
     ratio), fracture (onset depth, mean damage, broken fraction, damage band width), and shape (settling
-    drop, how far the cheese under the wire is pushed down)."""
+    drop, how far the cheese under the wire is pushed down), and friction (drag along the wire / push)."""
 
     name: ClassVar[str] = "cheese_cut_features"
 
@@ -126,6 +127,7 @@ class CheeseCutFeatures(FeatureExtractor):
             "settle_drop": float(-s["sag"][0]),
             "force_ratio": ratio,
             "damage_band_width": self._band_width(trajectory),
+            "slice_drag_ratio": float(s["wire_drag"][inside].mean() / max(mean_cut, 1e-9)) if inside.any() else 0.0,
         }
         y = np.array([out[n] for n in FEATURE_NAMES], dtype=np.float64)
         if not np.all(np.isfinite(y)):

@@ -2,8 +2,9 @@
 
 Geometry (metres, y up): a block of ``BLOCK = (0.06, 0.04, 0.02)`` (length x, height y, depth z) rests on
 a sticky board (the plane ``y = 3 dx``), centred in the domain. A wire (a cylinder along z, longer than
-the block is deep) starts ``GAP`` above the block, centred over it, and moves straight down at the
-preset's speed until its bottom is ``STOP_FRACTION * height`` above the board, then rests. Gravity is
+the block is deep plus its slide) starts ``GAP`` above the block, centred over it, and moves down at the
+preset's speed, sliding along its own axis at ``slice_ratio`` times that speed (press and slice), until
+its bottom is ``STOP_FRACTION * height`` above the board, then rests. Gravity is
 -9.81 m/s^2; the block settles under its own weight before frame 0 (damage frozen, wire at rest, grid
 velocities damped so that it comes to rest).
 """
@@ -28,6 +29,7 @@ from invphys_cheese_cut.presets import Preset
 
 BLOCK = (0.06, 0.04, 0.02)
 GAP = 0.002
+WIRE_HALF_LENGTH = 0.06  # m: longer than the block is deep plus the wire's slide along its axis
 STOP_FRACTION = 0.15
 EASE = 0.01          # s: the wire's speed ramps over this long at start and stop
 GRAVITY = -9.81
@@ -74,10 +76,12 @@ def build_scene(preset: Preset, **options: object) -> Scene:
     b = SceneBuilder(opts)
     b.add_body("cheese", box, MaterialSpec())
     b.add_collider("board", HalfSpace((0.0, lo[1], 0.0), (0.0, 1.0, 0.0)), surface="sticky")
+    r = preset.slice_ratio
+    stretch = float(np.sqrt(1.0 + r * r))  # the path is longer than its drop; the drop keeps wire_speed
     b.add_collider("wire", Cylinder((cx, start_y, 0.5 * (lo[2] + hi[2])), preset.wire_radius, axis=2,
-                                    half_length=BLOCK[2]),
-                   surface="separate", path=linear_cut((0.0, -1.0, 0.0), wire_travel(preset), preset.wire_speed,
-                                                       ease=EASE))
+                                    half_length=WIRE_HALF_LENGTH),
+                   surface="separate", path=linear_cut((0.0, -1.0, r), wire_travel(preset) * stretch,
+                                                       preset.wire_speed * stretch, ease=EASE))
     b.add_reduction("column_drop", column_drop)
     b.add_reduction("damaged_fraction", damaged_fraction)
     scene = b.build()

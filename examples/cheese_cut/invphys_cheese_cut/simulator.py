@@ -20,6 +20,7 @@ from invphys_cheese_cut.scene import GAP, build_scene, model_for
 #: the time series every ok run carries: name -> (unit, description)
 SERIES: dict[str, tuple[str, str]] = {
     "wire_force": ("N", "vertical force of the cheese on the wire (up is positive), mean over each frame"),
+    "wire_drag": ("N", "force of the cheese on the wire along its axis, against its slide (friction drag)"),
     "wire_depth": ("m", "depth of the wire's bottom below the block's initial top surface"),
     "wire_work": ("J", "work done by the wire on the cheese since frame 0"),
     "board_force": ("N", "load of the cheese on the board (down is positive)"),
@@ -31,7 +32,7 @@ SERIES: dict[str, tuple[str, str]] = {
 
 
 class CheeseCutSimulator(Simulator):
-    """A block of cheese on a board cut by a wire moving down at constant speed (the wire-cutting test).
+    """A block of cheese on a board cut by a wire pressed down and slid along its axis (a wire-cutting test).
 
     Each row of ``params`` is one run (7 parameters, physical units: E, nu, rho, fracture_stretch, eta,
     residual, friction). Runs are sorted by cost and advanced ``batch_size`` at a time by the
@@ -132,6 +133,7 @@ class CheeseCutSimulator(Simulator):
         centroid_y = rec.series_array("centroid/cheese")[:, 1]
         values = {
             "wire_force": rec.series_array("force/wire")[:, 1],
+            "wire_drag": -rec.series_array("force/wire")[:, 2],
             "wire_depth": -rec.series_array("position/wire")[:, 1] - GAP,
             "wire_work": rec.series_array("work/wire"),
             "board_force": -rec.series_array("force/board")[:, 1],
