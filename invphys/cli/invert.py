@@ -92,7 +92,7 @@ def _render(result: Any) -> None:
         out_console.print(head)
         params = Table("parameter", "value", "unit")
         for name, p in c["parameters"].items():
-            params.add_row(name, f"{p['value']:.5g}", p["unit"])
+            params.add_row(name, f"{p['value']:.5g}", p["unit"] or "-")
         out_console.print(params)
         feats = Table("feature", "target", "predicted", "± std", "unit", *(["actual"] if "r_actual" in c else []))
         for name, f in c["features"].items():
