@@ -43,13 +43,14 @@ def run(spec: str | Path | ExperimentSpec, out: str | Path, **kwargs: Any) -> di
     return run_spec(spec, out, **kwargs)
 
 
-def load_inverter(path: str | Path, strict: bool = True) -> Inverter:
+def load_inverter(path: str | Path, strict: bool = True, threads: int | None = 1) -> Inverter:
     """Load an inverter bundle (e.g. ``inverters/orange_peel_paper`` or a run's ``OUT/inverter``).
 
     Checks its format, file hashes, and the installed simulator's version and features (``strict=False``
-    turns a mismatch into a warning). ``inv.invert(target)`` then answers a target (a mapping of feature
-    names to values) with an :class:`~invphys.inverter.InversionResult`.
+    turns a mismatch into a warning); ``threads``: BLAS threads while inverting batches (None: leave).
+    ``inv.invert(target)`` then answers a target (a mapping of feature names to values) with an
+    :class:`~invphys.inverter.InversionResult`.
     """
     from invphys.inverter import load_inverter as _load
 
-    return _load(path, strict=strict)
+    return _load(path, strict=strict, threads=threads)

@@ -48,30 +48,35 @@ class Program:
         return cls(ops, arrays)
 
 
-def _sigmoid(x: np.ndarray) -> np.ndarray:
-    return 0.5 * (np.tanh(0.5 * x) + 1.0)
-
-
 def run_ops(ops: list[dict[str, Any]], arrays: dict[str, np.ndarray], x: np.ndarray) -> np.ndarray:
-    """Apply ``ops`` to ``x`` (float32)."""
+    """Apply ``ops`` to ``x`` (float32); works in place on arrays it made itself, never on ``x``."""
+    owned = False
     for op in ops:
         kind = op["op"]
         if kind == "linear":
-            x = x @ arrays[op["w"]] + arrays[op["b"]]
-        elif kind == "relu":
-            x = np.maximum(x, 0.0)
+            x = x @ arrays[op["w"]]
+            x += arrays[op["b"]]
+            owned = True
+            continue
+        if kind in ("relu", "tanh", "sigmoid", "clip") and not owned:
+            x, owned = x.copy(), True
+        if kind == "relu":
+            np.maximum(x, 0.0, out=x)
         elif kind == "tanh":
-            x = np.tanh(x)
+            np.tanh(x, out=x)
         elif kind == "sigmoid":
-            x = _sigmoid(x)
+            x *= 0.5
+            np.tanh(x, out=x)
+            x += 1.0
+            x *= 0.5
         elif kind == "clip":
-            x = np.clip(x, op["low"], op["high"])
+            np.clip(x, op["low"], op["high"], out=x)
         elif kind == "affine":
-            x = x * arrays[op["scale"]] + arrays[op["shift"]]
+            x, owned = x * arrays[op["scale"]] + arrays[op["shift"]], True
         elif kind == "skip_mlp":
-            x = _skip_mlp(arrays, op["prefix"], x)
+            x, owned = _skip_mlp(arrays, op["prefix"], x), True
         elif kind == "coupling_inverse":
-            x = _coupling_inverse(arrays, op, x)
+            x, owned = _coupling_inverse(arrays, op, x), True
         else:
             raise ValueError(f"unknown inference operation {kind!r}")
     return x
