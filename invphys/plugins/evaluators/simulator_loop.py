@@ -1,0 +1,138 @@
+"""The real simulator in the loop: ask/tell CMA-ES per target, every target's population in one batch.
+
+:class:`SimulatorEvaluator` turns normalised parameters into features by running the simulator (a
+whole batch per call) and counts simulator runs against a budget. :func:`refine_targets` refines
+many targets at once: each target has its own ask/tell search (CMA-ES in [0, 1]^d, started at a
+given answer), and each generation of *all* targets is simulated as one batch, so on a GPU a
+generation costs about one batched run. Each target's answer is the best simulated point (its start
+included), so it has no reality gap by construction.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from invphys.core.errors import InvphysError
+from invphys.core.objectives import recovery_reward
+
+
+class SimulatorEvaluator:
+    """Features (B, M) of normalised parameters (B, d) from the real simulator; failed runs are NaN rows.
+
+    ``simulate_features(theta) -> (features, failures, stats)`` does the work (e.g. the simulator
+    validator's ``simulate_features`` bound to a simulator and extractor). ``budget`` caps the runs
+    in all (None: unlimited); a call that would exceed it raises :class:`InvphysError`.
+    """
+
+    def __init__(self, simulate_features: Callable[[np.ndarray], Any], budget: int | None = None) -> None:
+        self._simulate = simulate_features
+        self.budget = budget
+        self.runs = 0
+        self.batches = 0
+        self.failed = 0
+        self.wall_time_s = 0.0
+        self.device = ""
+
+    @classmethod
+    def from_validator(cls, validator: Any, simulator: Any, extractor: Any, budget: int | None = None
+                       ) -> SimulatorEvaluator:
+        """Run through a validator with ``simulate_features`` (the ``simulator`` validator)."""
+        return cls(lambda theta: validator.simulate_features(theta, simulator, extractor), budget)
+
+    @property
+    def remaining(self) -> int | None:
+        return None if self.budget is None else self.budget - self.runs
+
+    def __call__(self, theta: np.ndarray) -> np.ndarray:
+        theta = np.atleast_2d(np.asarray(theta, dtype=np.float64))
+        if self.budget is not None and self.runs + len(theta) > self.budget:
+            raise InvphysError(f"simulator budget exhausted: {self.runs} of {self.budget} runs spent, "
+                               f"{len(theta)} more asked")
+        t0 = time.perf_counter()
+        sim = self._simulate(np.clip(theta, 0.0, 1.0))
+        self.wall_time_s += time.perf_counter() - t0
+        self.runs += len(theta)
+        self.batches += 1
+        self.failed += sum(1 for f in sim.failures if f)
+        devices = {s.device for s in sim.stats if s is not None and s.device}
+        if devices:
+            self.device = ",".join(sorted(devices))
+        return np.asarray(sim.features, dtype=np.float64)
+
+
+@dataclass
+class Refined:
+    """One target's refinement: best ``theta``, its ``score`` and ``features``, points ``evaluated``."""
+
+    theta: np.ndarray
+    score: float
+    features: np.ndarray | None
+    evaluated: int
+    history: list[tuple[int, float]] = field(default_factory=list)
+
+
+def refine_targets(targets: np.ndarray, starts: np.ndarray, scales: np.ndarray,
+                   evaluate: Callable[[np.ndarray], np.ndarray], budget: int, popsize: int = 8,
+                   sigma0: float = 0.1, seed: int = 0, kappa: float = 3.0,
+                   score: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> list[Refined]:
+    """Refine each target's start with ask/tell CMA-ES; one ``evaluate`` call per generation for all.
+
+    Args:
+        targets: (T, M) target features; starts: (T, d) normalised start points.
+        evaluate: features (B, M) of normalised parameters (B, d); NaN rows for failures (score -inf).
+        budget: evaluations per target, the start's included.
+        score: ``score(features (B, M), targets (B, M)) -> (B,)``; default R_gt with ``kappa``.
+    """
+    from invphys.core.spaces import raw_space
+    from invphys.plugins.optimizers.cma_es import CMAES
+
+    targets = np.atleast_2d(np.asarray(targets, dtype=np.float64))
+    starts = np.clip(np.atleast_2d(np.asarray(starts, dtype=np.float64)), 0.0, 1.0)
+    if len(targets) != len(starts):
+        raise InvphysError(f"refine: {len(targets)} targets and {len(starts)} starts")
+    if budget < 1:
+        raise InvphysError(f"refine: the budget per target must be >= 1, got {budget}")
+    score = score or (lambda y, t: recovery_reward(y, t, scales, kappa))
+
+    def scored(y: np.ndarray, t: np.ndarray) -> np.ndarray:
+        s = np.asarray(score(y, t), dtype=np.float64)
+        return np.where(np.all(np.isfinite(y), axis=1) & np.isfinite(s), s, -np.inf)
+
+    n_t, d = starts.shape
+    space = raw_space(d)
+    cma = CMAES(popsize=popsize, sigma0=sigma0, budget=max(budget - 1, 1), restarts=True)
+    searches = [cma.ask_tell(space, seed + t, starts[t], max(budget - 1, 1)) for t in range(n_t)]
+    y0 = evaluate(starts)
+    s0 = scored(y0, targets)
+    out = [Refined(starts[t].copy(), float(s0[t]), y0[t].copy(), 1, [(1, float(s0[t]))]) for t in range(n_t)]
+    while True:
+        asks = []
+        for t, search in enumerate(searches):
+            left = budget - out[t].evaluated
+            pts = search.ask() if left > 0 and not search.done else np.empty((0, d))
+            asks.append(pts[:left])
+        sizes = [len(a) for a in asks]
+        if sum(sizes) == 0:
+            break
+        theta = np.concatenate([a for a in asks if len(a)])
+        y = evaluate(theta)
+        owners = np.repeat(np.arange(n_t), sizes)
+        s = scored(y, targets[owners])
+        start = 0
+        for t, n in enumerate(sizes):
+            if n == 0:
+                continue
+            sl = slice(start, start + n)
+            start += n
+            searches[t].tell(asks[t], s[sl])
+            out[t].evaluated += n
+            i = int(np.argmax(s[sl]))
+            if s[sl][i] > out[t].score:
+                out[t].theta, out[t].score, out[t].features = asks[t][i].copy(), float(s[sl][i]), y[sl][i].copy()
+            out[t].history.append((out[t].evaluated, out[t].score))
+    return out
