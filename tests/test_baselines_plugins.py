@@ -126,3 +126,10 @@ def test_npe_best_of_k_by_surrogate_and_save_load(npe_fitted, tmp_path) -> None:
     np.testing.assert_allclose(again.answer(y).theta, npe_fitted.answer(y).theta)
     with pytest.raises(InvphysError, match="no saved npe"):
         NPEBaseline.load(tmp_path / "missing")
+
+
+def test_npe_writes_nothing_into_the_working_directory(tmp_path, monkeypatch) -> None:
+    theta, y = _hidden_parameter_problem(100)
+    monkeypatch.chdir(tmp_path)
+    NPEBaseline(estimator="mdn", hidden_features=8, max_num_epochs=2).fit(theta, y, percentile_scales(y))
+    assert list(tmp_path.iterdir()) == []  # sbi's default tracker would write ./sbi-logs

@@ -95,7 +95,8 @@ class NPEBaseline(DatasetBaseline):
             if c.estimator != "mdn":
                 kwargs["num_transforms"] = c.num_transforms
             net = sbi.neural_nets.posterior_nn(model=c.estimator, **kwargs)
-            inference = sbi.inference.NPE(prior=prior, density_estimator=net, show_progress_bars=progress)
+            inference = sbi.inference.NPE(prior=prior, density_estimator=net, show_progress_bars=progress,
+                                          tracker=_NoTracker())  # sbi's default writes ./sbi-logs
             inference.append_simulations(torch.as_tensor(self._to_u(theta), dtype=torch.float32),
                                          torch.as_tensor(y, dtype=torch.float32))
             inference.train(training_batch_size=c.training_batch_size, learning_rate=c.learning_rate,
@@ -183,3 +184,24 @@ class NPEBaseline(DatasetBaseline):
         plugin._posterior, plugin._scales, plugin.metrics = blob["posterior"], blob["scales"], blob["metrics"]
         plugin.fitted = True
         return plugin
+
+
+class _NoTracker:
+    """An sbi tracker that records nothing (the default one writes TensorBoard logs into ./sbi-logs)."""
+
+    log_dir = None
+
+    def log_metric(self, name: str, value: float, step: int | None = None) -> None:
+        pass
+
+    def log_metrics(self, metrics: dict[str, float], step: int | None = None) -> None:
+        pass
+
+    def log_params(self, params: dict[str, Any]) -> None:
+        pass
+
+    def add_figure(self, name: str, figure: Any, step: int | None = None) -> None:
+        pass
+
+    def flush(self) -> None:
+        pass
