@@ -141,7 +141,7 @@ def test_backend_warp_from_spec_block_and_cli(tmp_path) -> None:
     with pytest.raises(SpecError, match=r"simulator\.backend .*'taichi' or 'warp'"):
         invphys.load_spec(tmp_path / "bad.yaml")
     out = tmp_path / "sim"
-    proc = subprocess.run([sys.executable, "-m", "invphys.cli", "simulate", "--backend", "warp", "--preset", "tiny",
+    proc = subprocess.run([sys.executable, "-m", "invphys.cli", "simulate", "--simulator", "orange_peel", "--backend", "warp", "--preset", "tiny",
                            "--arch", "cpu", "--config", '{"frames": 3}', "--out", str(out), "--json"],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -161,3 +161,23 @@ def test_warp_grid_mass_and_kernel_times() -> None:
     np.testing.assert_allclose(np.sort(backend.grid_mass()), np.sort(particle_mass), rtol=1e-4)
     times = backend.kernel_times(2)
     assert set(times) == {"clear", "p2g", "grid", "g2p"} and all(t > 0 for t in times.values())
+
+
+def test_library_banners_are_quiet_unless_debug() -> None:
+    """A normal run prints no Taichi banner/log lines and no Warp CUDA-driver warning; INVPHYS_DEBUG=1 does."""
+    import os
+
+    code = ("from invphys_orange_peel.simulator import OrangePeelSimulator as S\n"
+            "for b in ('taichi', 'warp'):\n"
+            "    s = S(preset='tiny', arch='auto', allow_cpu_fallback=True, frames=1, backend=b)\n"
+            "    assert s.simulate(s.parameter_space().center()[None])[0].ok\n"
+            "print('done')\n")
+    env = {k: v for k, v in os.environ.items() if k != "INVPHYS_DEBUG"}
+    quiet = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180, env=env)
+    assert quiet.returncode == 0, quiet.stderr[-2000:]
+    text = quiet.stdout + quiet.stderr
+    assert quiet.stdout.strip() == "done"
+    assert "[Taichi]" not in text and "[I " not in text and "Warp CUDA warning" not in text, text
+    loud = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180,
+                          env={**env, "INVPHYS_DEBUG": "1"})
+    assert loud.returncode == 0 and "[Taichi]" in loud.stdout + loud.stderr

@@ -8,14 +8,13 @@ for the current frame is idle.
 """
 
 
-import contextlib
-import sys
 import threading
 
 import numpy as np
 import taichi as ti
 
 from invphys.core.errors import DeviceUnavailableError, InvphysError
+from invphys_orange_peel.backends import quiet_library
 from invphys_orange_peel.failure import N_STATS, STAT_WORK
 
 _init_lock = threading.Lock()
@@ -70,7 +69,7 @@ def ensure_taichi(arch: str, allow_cpu_fallback: bool = False) -> str:
                     f"Taichi is already initialised on {_initialised_arch!r} in this process and cannot "
                     f"switch to {want!r}; use one arch per process")
             return want
-        with contextlib.redirect_stdout(sys.stderr):  # Taichi's start-up banner must not pollute stdout
+        with quiet_library():  # Taichi's start-up lines: hidden unless INVPHYS_DEBUG=1
             ti.init(arch=ti.cuda if want == "cuda" else ti.cpu, default_fp=ti.f32, random_seed=0,
                     offline_cache=True, log_level=ti.WARN)
         _initialised_arch = want

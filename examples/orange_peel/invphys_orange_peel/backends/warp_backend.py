@@ -21,6 +21,7 @@ import numpy as np
 import warp as wp
 
 from invphys.core.errors import DeviceUnavailableError
+from invphys_orange_peel.backends import quiet_library
 from invphys_orange_peel.failure import N_STATS, STAT_WORK
 
 wp.config.log_level = wp.LOG_WARNING  # no greeting, no per-module load lines
@@ -40,7 +41,7 @@ J_MIN = wp.constant(1.0e-6)
 
 def cuda_available() -> bool:
     """Whether Warp sees a CUDA device here (initialises Warp)."""
-    with _init_lock:
+    with _init_lock, quiet_library():
         wp.init()
     return wp.is_cuda_available()
 
@@ -51,7 +52,7 @@ def resolve_device(arch: str, allow_cpu_fallback: bool = False) -> str:
     CUDA without a GPU raises :class:`DeviceUnavailableError` unless ``allow_cpu_fallback``.
     """
     if arch == "cpu":
-        with _init_lock:
+        with _init_lock, quiet_library():
             wp.init()
         return "cpu"
     if cuda_available():
