@@ -10,7 +10,8 @@ from invphys.core.errors import SpecError
 from invphys.core.spec import load_spec, parse_spec
 
 ROOT = Path(__file__).resolve().parent.parent
-SPECS = sorted((ROOT / "examples" / "orange_peel" / "specs").glob("protocol*.yaml"))
+SPECS = sorted((ROOT / "examples" / "orange_peel" / "invphys_orange_peel" / "specs").glob("protocol*.yaml"))
+assert len(SPECS) == 3, "the protocol specs moved: update SPECS"
 
 
 @pytest.mark.parametrize("path", SPECS, ids=lambda p: p.name)
