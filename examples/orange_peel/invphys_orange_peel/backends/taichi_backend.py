@@ -195,6 +195,8 @@ def _build_kernels(serial_p2g: bool):
                     grip: ND(ti.f32, 3), held: ND(ti.i32, 3), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
                     gg: ND(ti.f32, 4), work: ND(ti.f32, 1)):
         G = gm.shape[1]
+        if ti.static(serial_p2g):
+            ti.loop_config(serialize=True)  # the work sum, like the scatter, in a fixed order
         for b, i, j, q in gm:
             m = gm[b, i, j, q]
             if k < nsub[b] and m > 0.0:
@@ -269,6 +271,8 @@ def _build_kernels(serial_p2g: bool):
     @ti.kernel
     def frame_stats(lo: ti.f32, hi: ti.f32, ref: vec3, mat: ND(ti.f32, 2), label: ND(ti.i32, 1),
                     x: ND(vec3, 2), v: ND(vec3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2), out: ND(ti.f32, 2)):
+        if ti.static(serial_p2g):
+            ti.loop_config(serialize=True)  # float sums in a fixed order: features repeat bit for bit
         for b, p in x:
             xp = x[b, p]
             vp = v[b, p]
