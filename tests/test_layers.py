@@ -5,7 +5,7 @@
     cli/                       commands
     pipeline/                  runner, stages, stage context
     models/ plugins/ envs/     networks and training loops, built-in plugins, Gymnasium environments,
-    inverter/                  trained bundles (these four may use one another, never pipeline or cli)
+    inverter/ evaluation/      trained bundles, recovery statistics (these may use one another, never pipeline or cli)
     tracking/                  where training curves and final metrics go
     core/                      interfaces, parameter spaces, objectives, specs, the dataset store
 
@@ -28,6 +28,7 @@ FORBIDDEN: dict[str, tuple[str, ...]] = {
     "core": ("models", "plugins", "envs", "tracking", "inverter", "pipeline", "cli"),
     "tracking": ("models", "plugins", "envs", "inverter", "pipeline", "cli"),
     "inverter": ("pipeline", "cli"),
+    "evaluation": ("pipeline", "cli"),
     "models": ("pipeline", "cli"),
     "plugins": ("pipeline", "cli"),
     "envs": ("pipeline", "cli"),
