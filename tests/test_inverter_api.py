@@ -102,3 +102,23 @@ def test_validate_matches_the_validate_stage(run, inv) -> None:
         assert res.best.gap == pytest.approx(res.r_surrogate - r["r_actual"], abs=1e-9)
     with pytest.raises(Exception, match="simulator options do not fit"):
         inv.validate(results[0], overrides={"n_frames": 0})
+
+
+def test_chunked_rollouts_answer_like_one_batch(inv, monkeypatch) -> None:
+    """Large batches roll in chunks of rows (for the CPU cache); the answers must not change."""
+    from invphys.inverter import policy
+
+    _, y = inv.bundle.data("test")
+    ys = np.resize(y, (23, y.shape[1]))
+    whole = inv.invert_array(ys)
+    monkeypatch.setattr(policy, "CHUNK_ROWS", 5)
+    calls = []
+    inner = policy.PolicyRunner._rollout
+    monkeypatch.setattr(policy.PolicyRunner, "_rollout", lambda self, g, *a: calls.append(len(g)) or inner(self, g, *a))
+    chunked = inv.invert_array(ys)
+    assert calls == [5, 5, 5, 5, 3]
+    assert chunked.shape == whole.shape == (23, 3)
+    np.testing.assert_allclose(chunked, whole, atol=1e-5)
+    # stochastic rollouts (top-k) are chunked too and still give ranked, diverse candidates
+    res = inv.invert_many(ys[:4], top_k=2)
+    assert all(len(r.candidates) == 2 for r in res)
