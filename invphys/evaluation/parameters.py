@@ -34,8 +34,9 @@ def parameter_report(rows: list[dict[str, Any]], targets: dict[str, Any], units:
     names = list(targets["param_names"])
     d = len(names)
     units = list(units) if units else [""] * d
-    truth_theta = np.asarray(targets["theta"], dtype=np.float64)
-    truth_params = np.asarray(targets["params"], dtype=np.float64)
+    has_truth = targets.get("theta") is not None  # user targets (targets.values / file) have none
+    truth_theta = np.asarray(targets["theta"], dtype=np.float64) if has_truth else None
+    truth_params = np.asarray(targets["params"], dtype=np.float64) if has_truth else None
     trows = [r for r in rows if r["problem"] == "target" and r.get("target_index") is not None
              and r.get("role") != "reference"]
     labels = list(dict.fromkeys(r["optimizer"] for r in trows))
@@ -48,11 +49,13 @@ def parameter_report(rows: list[dict[str, Any]], targets: dict[str, Any], units:
         methods: dict[str, Any] = {}
         for r in mine:
             th = np.asarray(r["theta"], dtype=np.float64)
-            err = np.abs(th - truth_theta[k])
-            errors[r["optimizer"]].append(err)
+            err = None if truth_theta is None else np.abs(th - truth_theta[k])
+            if err is not None:
+                errors[r["optimizer"]].append(err)
             values = r.get("params") or {}
             methods[r["optimizer"]] = {
-                "params": [values.get(n) for n in names], "error": err.tolist(), "rms_error": float(np.sqrt(np.mean(err ** 2))),
+                "params": [values.get(n) for n in names], "error": None if err is None else err.tolist(),
+                "rms_error": None if err is None else float(np.sqrt(np.mean(err ** 2))),
                 "r_actual": None if not np.isfinite(actual_score(r)) else actual_score(r)}
         spread, source = None, None
         post = [r for r in mine if r.get("type") == "npe" and r.get("spread") is not None]
@@ -73,7 +76,7 @@ def parameter_report(rows: list[dict[str, Any]], targets: dict[str, Any], units:
         per_target.append({
             "target_index": k, "dataset_row": targets["rows"][k] if k < len(targets["rows"]) else None,
             "set": set_labels[k] if set_labels and k < len(set_labels) else targets.get("selection"),
-            "truth": truth_params[k].tolist(),
+            "truth": None if truth_params is None else truth_params[k].tolist(),
             "methods": methods, "spread": None if spread is None else spread.tolist(), "spread_source": source,
             "not_pinned_down": flags})
     n_spread = len(spreads_all)
@@ -135,7 +138,7 @@ def parameter_markdown(block: dict[str, Any], max_targets: int | None = None) ->
     lines.append("")
     for t in block["targets"][:max_targets]:
         lines += [f"### Target {t['target_index']} ({t['set']}, dataset row {t['dataset_row']})", ""]
-        rows = [["truth", *[_g(v) for v in t["truth"]], "-", "-"]]
+        rows = [] if t["truth"] is None else [["truth", *[_g(v) for v in t["truth"]], "-", "-"]]
         rows += [[lab, *[_g(v) for v in m["params"]], m["rms_error"], m["r_actual"]]
                  for lab, m in t["methods"].items()]
         lines += _md_table(["method", *heads, "RMS error", "R_actual"], rows)

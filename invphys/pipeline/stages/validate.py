@@ -40,6 +40,7 @@ DEPENDS_ON: tuple[str, ...] = ("simulator", "features", "validator", "targets", 
 VALIDATION_FILE = "validation.json"
 EVALUATION_ROWS_FILE = "evaluation_rows.json"
 BASELINES_FILE = "baselines.json"
+SIMULATED_FILE = "simulated.jsonl"
 RENDER_TARGETS = 3
 
 
@@ -65,7 +66,8 @@ def run(ctx: StageContext) -> dict[str, Any]:
     n_val = int(ctx.spec.targets.validate_n)
     validator = ctx.registry.create("validator", ctx.spec.validator)
     simulator, extractor = ctx.simulator(), ctx.extractor()
-    extra, eval_info = evaluation_rows(ctx, rows, targets, validator, simulator, extractor)
+    ckpt = _checkpoint(ctx, validator, simulator, extractor)
+    extra, eval_info = evaluation_rows(ctx, rows, targets, validator, simulator, extractor, ckpt)
     write_json(ctx.stage_dir / EVALUATION_ROWS_FILE, extra)
     chosen = [r for r in rows + extra if (r["problem"] == "target" and r["target_index"] < n_val)
               or r["problem"] == "objective"]
@@ -85,9 +87,12 @@ def run(ctx: StageContext) -> dict[str, Any]:
     if hasattr(validator, "simulate_features"):
         # keep trajectories only of runs that may be rendered (the first RENDER_TARGETS targets)
         keep = {int(inverse[i]) for i in target_rows if chosen[i]["target_index"] < RENDER_TARGETS} if render else False
+        assert ckpt is not None
         with _run_bar(ctx, len(unique), "validating") as on_run:
-            sim = validator.simulate_features(unique, simulator, extractor, keep_trajectories=keep,
-                                              on_run=on_run)
+            sim = ckpt.simulate(unique, _bound(validator, simulator, extractor), validator.config.batch_size,
+                                len(extractor.feature_names), keep_trajectories=keep, on_run=on_run)
+        if ckpt.reused:
+            ctx.log(f"{ckpt.reused} parameter vectors reused from {ckpt.path.name} (a resumed validation)")
         feats = sim.features[inverse]
         failures = [sim.failures[j] for j in inverse]
         stats = [sim.stats[j] for j in inverse]
@@ -140,6 +145,22 @@ def run(ctx: StageContext) -> dict[str, Any]:
             "optimizers": summarise(out, "r_actual"), "evaluation": eval_info}
 
 
+def _bound(validator: Any, simulator: Any, extractor: Any) -> Any:
+    return lambda theta, **kw: validator.simulate_features(theta, simulator, extractor, **kw)
+
+
+def _checkpoint(ctx: StageContext, validator: Any, simulator: Any, extractor: Any) -> Any:
+    """The stage's crash-safe memo of simulated vectors (None for a validator without simulate_features)."""
+    if not hasattr(validator, "simulate_features"):
+        return None
+    from invphys.pipeline.runner import fingerprint
+    from invphys.pipeline.sim_checkpoint import SimCheckpoint
+
+    identity = fingerprint({**ctx.spec.section_dump(["simulator", "features", "validator"]),
+                            "version": str(getattr(simulator, "version", ""))})
+    return SimCheckpoint(ctx.stage_dir / SIMULATED_FILE, identity)
+
+
 def _to_params(ctx: StageContext) -> Any:
     try:
         space = ctx.simulator().parameter_space()
@@ -160,7 +181,7 @@ def baselines(ctx: StageContext, targets: dict[str, Any]) -> tuple[list[dict[str
     if not blocks:
         return [], {}
     done = ctx.stage_dir_of("train") / "DONE.json"
-    key = fingerprint({"baselines": blocks, "rows": targets["rows"], "dataset": ctx.spec.section_dump(["dataset"]),
+    key = fingerprint({"baselines": blocks, "rows": targets["rows"], "features": targets["features"], "dataset": ctx.spec.section_dump(["dataset"]),
                        "seed": ctx.seed, "train": done.read_text() if done.is_file() else None})
     cache = ctx.stage_dir / BASELINES_FILE
     if cache.is_file():
@@ -178,7 +199,7 @@ def baselines(ctx: StageContext, targets: dict[str, Any]) -> tuple[list[dict[str
 
 
 def evaluation_rows(ctx: StageContext, rows: list[dict[str, Any]], targets: dict[str, Any], validator: Any,
-                    simulator: Any, extractor: Any) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+                    simulator: Any, extractor: Any, ckpt: Any = None) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Baseline rows (every target), noise-floor and method rows (validated targets), and their metrics."""
     from invphys.evaluation.answers import noise_floor_rows, refine_rows
     from invphys.plugins.evaluators.simulator_loop import SimulatorEvaluator
@@ -187,7 +208,9 @@ def evaluation_rows(ctx: StageContext, rows: list[dict[str, Any]], targets: dict
     n_val = min(int(ctx.spec.targets.validate_n), len(targets["rows"]))
     extra, metrics = baselines(ctx, targets)
     info: dict[str, Any] = {"baselines": metrics}
-    if n_val and ev.noise_floor:
+    if n_val and ev.noise_floor and targets.get("theta") is None:
+        ctx.log("noise floor skipped: the targets have no ground truth (targets.values / targets.file)")
+    elif n_val and ev.noise_floor:
         extra += noise_floor_rows(list(range(n_val)), targets, np.asarray(targets["scales"]),
                                   ctx.surrogate().predict, _to_params(ctx))
     answers = rows + extra
@@ -199,8 +222,9 @@ def evaluation_rows(ctx: StageContext, rows: list[dict[str, Any]], targets: dict
             ctx.log(f"[yellow]warning:[/] evaluation.methods.{label}: {method.start!r} answered no validated target")
             continue
         sim_eval = None
-        if method.evaluator == "simulator" and hasattr(validator, "simulate_features"):
-            sim_eval = SimulatorEvaluator.from_validator(validator, simulator, extractor)
+        if method.evaluator == "simulator" and ckpt is not None:  # generations memoised: a resumed run replays them
+            sim_eval = SimulatorEvaluator(lambda th: ckpt.simulate(th, _bound(validator, simulator, extractor), len(th),
+                                                                   len(extractor.feature_names)))
         elif method.evaluator == "simulator":
             from invphys.core.errors import InvphysError
 
@@ -247,7 +271,7 @@ def _save_frame(path: Any, traj: Any) -> None:
 def _renders(ctx: StageContext, chosen: list[dict[str, Any]], out: list[dict[str, Any]], inverse: np.ndarray, sim: Any,
              validator: Any, simulator: Any, extractor: Any, targets: dict[str, Any]) -> list[dict[str, Any]]:
     """Keep the last frames of target and best recovered runs for the first RENDER_TARGETS targets."""
-    if sim is None:
+    if sim is None or targets.get("theta") is None:  # no ground truth: nothing to draw the answers against
         return []
     d = ctx.stage_dir / "renders"
     d.mkdir(exist_ok=True)
@@ -268,6 +292,9 @@ def _renders(ctx: StageContext, chosen: list[dict[str, Any]], out: list[dict[str
             continue
         best = max(finite, key=lambda i: finite[i])
         traj = sim.trajectories[int(inverse[best])]
+        if traj is None:  # simulated by an earlier (resumed) run: simulate it again for its frames
+            traj = validator.simulate_features(np.asarray(chosen[best]["theta"])[None, :], simulator, extractor,
+                                               keep_trajectories=True).trajectories[0]
         if traj is None or truth.trajectories[n] is None:
             continue
         _save_frame(d / f"t{k:02d}_recovered.npz", traj)

@@ -55,7 +55,9 @@ class SimulatorEvaluator:
                                f"{len(theta)} more asked")
         t0 = time.perf_counter()
         sim = self._simulate(np.clip(theta, 0.0, 1.0))
-        self.wall_time_s += time.perf_counter() - t0
+        # the runs' own times when every run has stats: memoised runs (a resumed validation) keep their cost
+        own = [s.wall_time_s for s in sim.stats if s is not None]
+        self.wall_time_s += float(sum(own)) if own and len(own) == len(sim.stats) else time.perf_counter() - t0
         self.runs += len(theta)
         self.batches += 1
         self.failed += sum(1 for f in sim.failures if f)
