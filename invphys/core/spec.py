@@ -43,7 +43,7 @@ from invphys.core.names import check_name
 
 STAGES: tuple[str, ...] = ("dataset", "train", "invert", "validate", "active", "report")
 #: keys of an optimizer entry that the runner consumes (the rest goes to the plugin's Config)
-OPTIMIZER_RUNNER_KEYS: tuple[str, ...] = ("space", "evaluator")
+OPTIMIZER_RUNNER_KEYS: tuple[str, ...] = ("space", "evaluator", "uncertainty_penalty")
 
 PluginBlock = dict[str, Any]
 #: a label that becomes a file or directory name (:mod:`invphys.core.names`)
@@ -145,6 +145,10 @@ class EvaluationSection(_Section):
     baselines: dict[str, PluginBlock] = Field(
         default_factory=_default_baselines, description="dataset baselines answered for every target")
     methods: dict[str, EvaluationMethod] = Field(default_factory=dict)
+    best_of: dict[str, list[str]] = Field(
+        default_factory=dict, description="label -> answers (optimisers, baselines, methods) whose validated runs "
+                                          "are compared per target; the one with the highest R_actual is kept "
+                                          "(a simulator-selected answer: one run per distinct candidate)")
     reference: str = Field("nearest_neighbour", description="label the paired differences are taken against")
     bootstrap: int = Field(2000, ge=100, description="bootstrap resamples for the intervals")
     confidence: float = Field(0.95, gt=0.5, lt=1.0)
@@ -250,11 +254,24 @@ class ExperimentSpec(_Section):
                 )
             if block.get("evaluator", "shared") not in ("shared", "own_head"):
                 raise ValueError(f"optimizers.{label}.evaluator: must be 'shared' or 'own_head'")
+            lam = block.get("uncertainty_penalty", 0.0)
+            if isinstance(lam, bool) or not isinstance(lam, int | float) or lam < 0:
+                raise ValueError(f"optimizers.{label}.uncertainty_penalty: must be a number >= 0")
+            if lam and block.get("evaluator", "shared") != "shared":
+                raise ValueError(f"optimizers.{label}.uncertainty_penalty: needs evaluator: shared (the ensemble's std)")
         groups = (set(self.optimizers), set(self.evaluation.baselines), set(self.evaluation.methods))
         clash = sorted((groups[0] & groups[1]) | (groups[2] & (groups[0] | groups[1])))
         if clash:
             raise ValueError(f"evaluation: label(s) {', '.join(clash)} used twice (optimizers, baselines, methods)")
         answers = [*self.optimizers, *self.evaluation.baselines]
+        known = {*answers, *self.evaluation.methods}
+        for label, cands in self.evaluation.best_of.items():
+            if label in known or label == "noise_floor":
+                raise ValueError(f"evaluation.best_of.{label}: label already used")
+            bad = [c for c in cands if c not in known]
+            if bad or not cands:
+                raise ValueError(f"evaluation.best_of.{label}: {', '.join(bad) or 'no candidates'} "
+                                 f"(candidates: optimisers, baselines or methods; not noise_floor)")
         for label, method in self.evaluation.methods.items():
             if method.start not in answers:
                 raise ValueError(f"evaluation.methods.{label}.start: {method.start!r} is no optimiser or baseline"
@@ -612,7 +629,8 @@ def json_schema(registry: Any = None) -> dict[str, Any]:
         for k, v in sub.pop("$defs", {}).items():
             defs.setdefault(k, v)
         props = dict(sub.get("properties", {}))
-        extra_keys = {"space": {"type": "string"}, "evaluator": {"enum": ["shared", "own_head"]}} \
+        extra_keys = {"space": {"type": "string"}, "evaluator": {"enum": ["shared", "own_head"]},
+                      "uncertainty_penalty": {"type": "number", "minimum": 0}} \
             if info.kind == "optimizer" else {}
         sub["properties"] = {"type": {"const": info.name}, **props, **extra_keys}
         sub["required"] = ["type", *sub.get("required", [])]
