@@ -107,6 +107,18 @@ def test_observed_trajectory(bundle, tmp_path) -> None:
         assert res.exit_code == 0, res.output
         feats = json.loads(res.stdout)["results"][0]["candidates"][0]["features"]
         assert [feats[n]["target"] for n in NAMES] == pytest.approx(expected)
+    # the framework's trajectory file, as `invphys simulate` writes it (header, optional time series)
+    from invphys.core.results import TimeSeries
+    from invphys.core.trajectory_io import read_header, save_trajectory
+
+    traj.series["x"] = TimeSeries(times=np.arange(3.0), values=np.zeros(3), unit="m")
+    v1 = save_trajectory(traj, tmp_path / "v1.npz", simulator={"simulator": "toy"})
+    assert read_header(v1)["format"] == "invphys.trajectory"
+    res = invoke("invert", str(bundle), "--observed", str(v1), "--json")
+    assert res.exit_code == 0, res.output
+    out = json.loads(res.stdout)["results"][0]
+    assert out["target"] == "v1"
+    assert [out["candidates"][0]["features"][n]["target"] for n in NAMES] == pytest.approx(expected)
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
     _one_line_error(invoke("invert", str(bundle), "--observed", str(tmp_path / "junk.npz")), "cannot read trajectory")
 

@@ -1,19 +1,19 @@
 """Targets for ``invphys invert``: a file, ``--feature name=value`` items, or an observed trajectory.
 
-An observed trajectory is a ``.npz`` as ``invphys simulate`` writes it (``positions``, ``damage``,
-``labels``, ``frame_indices``, ``fps``, optional ``extra_*`` arrays), or a run directory holding
-``trajectory.npz``; the bundle's feature extractor turns it into the target.
+An observed trajectory is the framework's trajectory file (:mod:`invphys.core.trajectory_io`, as
+``invphys simulate`` writes it; older files load too) or a run directory holding ``trajectory.npz``;
+the bundle's feature extractor turns it into the target.
 """
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from invphys.core.errors import InvphysError
 from invphys.core.user_targets import (
     TargetError,
     UserTargets,
@@ -22,33 +22,16 @@ from invphys.core.user_targets import (
     read_target_file,
 )
 
-TRAJECTORY_FILE = "trajectory.npz"
-TRAJECTORY_KEYS = ("positions", "damage", "labels", "frame_indices", "fps")
-
 
 def load_trajectory(path: str | Path) -> Any:
-    """A :class:`~invphys.core.results.Trajectory` from a ``.npz`` file or a run directory."""
-    from invphys.core.results import Trajectory
+    """A :class:`~invphys.core.results.Trajectory` from a trajectory file or a run directory (any format
+    :func:`invphys.core.trajectory_io.load_trajectory` reads, the one ``invphys simulate`` writes included)."""
+    from invphys.core.trajectory_io import load_trajectory as read
 
-    p = Path(path)
-    if p.is_dir():
-        p = p / TRAJECTORY_FILE
-    if not p.is_file():
-        raise TargetError(f"no trajectory at {str(path)!r} (expected a .npz file or a run directory with "
-                          f"{TRAJECTORY_FILE})")
     try:
-        with np.load(p, allow_pickle=False) as data:
-            missing = [k for k in TRAJECTORY_KEYS if k not in data.files]
-            if missing:
-                raise TargetError(f"{p} is not a saved trajectory: it lacks {', '.join(missing)}")
-            extra: dict[str, Any] = json.loads(str(data["extra_json"])) if "extra_json" in data.files else {}
-            extra.update({k[6:]: data[k] for k in data.files if k.startswith("extra_") and k != "extra_json"})
-            return Trajectory(positions=data["positions"], damage=data["damage"], labels=data["labels"],
-                              frame_indices=data["frame_indices"], fps=float(data["fps"]), extra=extra)
-    except TargetError:
-        raise
-    except (OSError, ValueError, KeyError) as exc:
-        raise TargetError(f"cannot read trajectory {str(p)!r}: {exc}") from None
+        return read(path)
+    except InvphysError as exc:
+        raise TargetError(f"cannot read trajectory {str(path)!r}: {str(exc).splitlines()[0]}") from None
 
 
 def observed_targets(inverter: Any, paths: Sequence[str | Path]) -> UserTargets:
