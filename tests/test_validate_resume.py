@@ -35,6 +35,8 @@ evaluation:
     nearest_neighbour: {{type: nearest_neighbour}}
   methods:
     sil: {{start: nearest_neighbour, evaluator: simulator, budget: 6, popsize: 3}}
+  best_of:
+    best: [cma, nearest_neighbour]
 validator: {{type: simulator, batch_size: 2, overrides: {{sleep_s: SLEEP}}}}
 report: {{render: false}}
 """
@@ -127,8 +129,13 @@ def test_user_targets_without_ground_truth_validate_and_report(tmp_path) -> None
     summaries = _run(text, out, ["dataset", "train", "invert", "validate", "report"])
     rows = json.loads((out / "validate" / "validation.json").read_text())
     labels = {r["optimizer"] for r in rows}
-    assert labels == {"cma", "nearest_neighbour", "sil"}  # no noise floor without a ground truth
-    assert len(rows) == 6 and all(np.isfinite(r["r_actual"]) for r in rows)
+    assert labels == {"cma", "nearest_neighbour", "sil", "best"}  # no noise floor without a ground truth
+    assert len(rows) == 8 and all(np.isfinite(r["r_actual"]) for r in rows)
+    by = {(r["optimizer"], r["target_index"]): r for r in rows}
+    for k in (0, 1):  # the simulator-selected answer is the better validated candidate, at both their costs
+        best = by[("best", k)]
+        assert best["r_actual"] == max(by[("cma", k)]["r_actual"], by[("nearest_neighbour", k)]["r_actual"])
+        assert best["evaluations"] == by[("cma", k)]["evaluations"] and best["simulator_runs"] in (1, 2)
     assert summaries["validate"]["renders"] == []
     rep = json.loads((out / "report" / "report.json").read_text())
     assert rep["optimizers"]["sil"]["n_validated"] == 2

@@ -135,3 +135,34 @@ def refine_rows(label: str, method: Any, starts: dict[int, np.ndarray], targets:
             row["simulator_time_s"] = sim_wall
         rows.append(row)
     return rows
+
+
+def best_of_rows(best_of: dict[str, list[str]], answers: list[dict[str, Any]], validated: list[dict[str, Any]]
+                 ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Simulator-selected answers (spec ``evaluation.best_of``): per target, the candidate with the highest R_actual.
+
+    Only targets on which every candidate was validated get one. Its cost is the candidates' together:
+    their evaluations and wall time summed, one simulator run per distinct candidate vector (plus any
+    runs the candidates spent themselves). Returns (answer rows, validated rows), labelled ``label``.
+    """
+    ans = {(r["optimizer"], r["target_index"]): r for r in answers if r["problem"] == "target"}
+    val = {(r["optimizer"], r["target_index"]): r for r in validated if r["problem"] == "target"}
+    out_a, out_v = [], []
+    for label, cands in best_of.items():
+        ks = sorted({k for (lab, k) in val if lab in cands})
+        for k in ks:
+            if not all((c, k) in val and (c, k) in ans for c in cands):
+                continue
+            scores = [val[(c, k)]["r_actual"] for c in cands]
+            finite = [(s, c) for s, c in zip(scores, cands, strict=True) if s is not None and np.isfinite(s)]
+            if not finite:
+                continue
+            best = max(finite, key=lambda t: t[0])[1]
+            distinct = {tuple(np.round(ans[(c, k)]["theta"], 12)) for c in cands}
+            cost = {"optimizer": label, "type": "best_of", "role": "method", "source": best, "candidates": list(cands),
+                    "evaluations": int(sum(ans[(c, k)]["evaluations"] for c in cands)),
+                    "wall_time_s": float(sum(ans[(c, k)]["wall_time_s"] for c in cands)),
+                    "simulator_runs": len(distinct) + int(sum(ans[(c, k)].get("simulator_runs", 0) for c in cands))}
+            out_a.append({**ans[(best, k)], **cost, "counted_evaluations": cost["evaluations"]})
+            out_v.append({**val[(best, k)], **cost})
+    return out_a, out_v

@@ -140,22 +140,40 @@ class _Entries:
         cache = self.ctx.stage_dir / "policies" / label
         if getattr(plugin.config, "seed", 0) is None:
             plugin.config.seed = self.ctx.seed
+        lam = penalty_of(self.blocks[label])
+        extra: dict[str, Any] = {}
+        if lam:
+            from invphys.plugins.evaluators.uncertainty import UncertaintyPenalty
+
+            if "penalty" not in inspect.signature(plugin.prepare).parameters:
+                raise InvphysError(f"optimizers.{label}.uncertainty_penalty: {plugin.name} cannot train with a penalty")
+            pen = UncertaintyPenalty(self.ctx.surrogate(), self.scales, lam)
+            predict = pen.predict_points(lambda p: space.to_theta(space.clip(p)))
+            extra["penalty"] = pen.penalty
         if hasattr(plugin, "load") and (cache / "gc_ppo.json").is_file() and hasattr(plugin, "save"):
             loaded = type(plugin).load(cache)
-            if loaded.config == plugin.config and loaded.meta.get("space", {}).get("name") == space.name:
+            if loaded.config == plugin.config and loaded.meta.get("space", {}).get("name") == space.name \
+                    and float(loaded.meta.get("uncertainty_penalty", 0.0)) == lam:
                 self.plugins[label] = loaded
                 self.prepare_metrics[label] = {**loaded.metrics, "cached": True}
                 self.ctx.log(f"{label}: loaded the cached policy from {cache}")
                 return
-        self.ctx.log(f"{label}: training {plugin.name} on {len(self.train_targets)} training targets")
-        extra: dict[str, Any] = {}
+        self.ctx.log(f"{label}: training {plugin.name} on {len(self.train_targets)} training targets"
+                     + (f" (uncertainty penalty {lam:g})" if lam else ""))
         if "tracker" in inspect.signature(plugin.prepare).parameters:
             extra["tracker"] = self.ctx.tracker.scoped(f"invert/policy/{label}")
         metrics = plugin.prepare(space, predict, self.train_targets, self.scales, progress=self.ctx.progress,
                                  **extra)
+        if lam and isinstance(getattr(plugin, "meta", None), dict):
+            plugin.meta["uncertainty_penalty"] = lam
         if hasattr(plugin, "save"):
             plugin.save(cache)
         self.prepare_metrics[label] = metrics
+
+
+def penalty_of(block: dict[str, Any]) -> float:
+    """An optimiser entry's ``uncertainty_penalty`` lambda (0: none)."""
+    return float(block.get("uncertainty_penalty", 0.0) or 0.0)
 
 
 def _problems_of(plugin: Any, has_objectives: bool) -> tuple[bool, bool]:
@@ -205,6 +223,11 @@ def run(ctx: StageContext) -> dict[str, Any]:
             problem = build_problem(space, objective, budget, surrogate=surrogate, latent=latent,
                                     evaluator=evaluator, predict=predict, target=y_star,
                                     seed=ctx.seed * 1000 + n, feature_mean=mean, feature_std=std)
+            lam = penalty_of(entries.blocks[label])
+            if lam:  # score = R - lambda * normalised ensemble std (the row keeps the plain R_surr)
+                from invphys.plugins.evaluators.uncertainty import penalised_problem
+
+                problem = penalised_problem(problem, surrogate, scales, lam)
             problem.info["tracker"] = ctx.tracker.scoped(f"invert/{label}/{problem_id}")
             res = plugin.optimize(problem)
             counted = problem.info["counter"].count
@@ -216,7 +239,10 @@ def run(ctx: StageContext) -> dict[str, Any]:
                 "optimizer": label, "type": plugin.name, "space": space.name, "evaluator": evaluator,
                 "problem": kind, "problem_id": problem_id, "target_index": k,
                 "dataset_row": None if k is None else targets["rows"][k],
-                "r_surrogate": float(res.score), "evaluations": int(res.evaluations),
+                "r_surrogate": float(res.score) if not lam else float(np.asarray(
+                    objective(np.asarray(predicted, dtype=np.float64)[None, :])).reshape(-1)[0]),
+                **({"uncertainty_penalty": lam, "in_loop_score": float(res.score)} if lam else {}),
+                "evaluations": int(res.evaluations),
                 "counted_evaluations": int(counted), "wall_time_s": float(res.wall_time_s),
                 "theta": theta.tolist(), "point": np.asarray(res.point).tolist(),
                 "params": dict(zip(param_names, _physical(ctx, theta), strict=True)),

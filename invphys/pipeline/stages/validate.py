@@ -131,6 +131,13 @@ def run(ctx: StageContext) -> dict[str, Any]:
         else:
             continue
         out.append(base)
+    if ctx.spec.evaluation.best_of:
+        from invphys.evaluation.answers import best_of_rows
+
+        sel_a, sel_v = best_of_rows(ctx.spec.evaluation.best_of, rows + extra, out)
+        extra += sel_a
+        out += sel_v
+        write_json(ctx.stage_dir / EVALUATION_ROWS_FILE, extra)
     renders = _renders(ctx, chosen, out, inverse, sim, validator, simulator, extractor, targets) if render else []
     write_json(ctx.stage_dir / VALIDATION_FILE, out)
     import pandas as pd

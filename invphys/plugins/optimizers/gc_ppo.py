@@ -60,8 +60,11 @@ class GoalConditionedPPO(BuiltinOptimizer):
     # -- training ------------------------------------------------------------------------------
     def prepare(self, space: SearchSpace, predict: Callable[[np.ndarray], np.ndarray],
                 train_targets: np.ndarray, scales: np.ndarray, progress: bool = False,
-                tracker: Any = None) -> dict[str, Any]:
+                tracker: Any = None, penalty: Callable[[np.ndarray], np.ndarray] | None = None) -> dict[str, Any]:
         """Train the policy on ``train_targets`` (N, M) in ``space`` with the feature predictor ``predict``.
+
+        ``penalty(features) -> (B,)`` is subtracted from R_gt in the reward and the observation (the
+        uncertainty penalty: ``UncertaintyPenalty.penalty`` with ``predict`` from the same penalty).
 
         ``tracker`` receives stable-baselines3's logs once per rollout (``rollout/ep_rew_mean``,
         ``train/value_loss``, ...) at ``step = timesteps``, and the final ``train_recovery``.
@@ -84,7 +87,8 @@ class GoalConditionedPPO(BuiltinOptimizer):
             return (z + rng.normal(0.0, noise, size=z.shape)) * std + mean
 
         def score(y: np.ndarray, goals: np.ndarray | None) -> np.ndarray:
-            return recovery_reward(y, goals, scales, kappa)
+            r = recovery_reward(y, goals, scales, kappa)
+            return r if penalty is None else np.asarray(r, dtype=np.float64) - penalty(y)
 
         task = InverseTask(low=space.low, high=space.high, dim=space.dim, predict=predict, score=score,
                            feature_mean=mean, feature_std=std, horizon=cfg.horizon, step_scale=cfg.step_scale,
@@ -143,8 +147,14 @@ class GoalConditionedPPO(BuiltinOptimizer):
         def record(s: np.ndarray, y: np.ndarray, r: np.ndarray) -> None:
             tracker.record(s, y, np.asarray(problem.objective(y), dtype=np.float64).reshape(-1))
 
+        pen = problem.info.get("uncertainty")  # a penalised problem (penalised_problem): same score as in training
+
+        def score(y: np.ndarray, g: np.ndarray | None) -> np.ndarray:
+            r = recovery_reward(y, g, scales, kappa)
+            return r if pen is None else np.asarray(r, dtype=np.float64) - pen.penalty(y)
+
         task = InverseTask(low=space.low, high=space.high, dim=space.dim, predict=problem.predict,
-                           score=lambda y, g: recovery_reward(y, g, scales, kappa),
+                           score=score,
                            feature_mean=np.asarray(meta["feature_mean"]), feature_std=np.asarray(meta["feature_std"]),
                            horizon=cfg.horizon, step_scale=cfg.step_scale, start=np.asarray(meta["start"]),
                            start_features=np.asarray(meta["start_features"]),
