@@ -82,7 +82,8 @@ def surrogate_program(surrogate: Any, d: int, seed: int = 0) -> Program | None:
                   "s.b3": _np(b3), "s.wo": _np(folded.w_out), "s.bo": _np(folded.b_out)}
     except (AttributeError, ValueError, TypeError):
         return None
-    prog = Program([{"op": "skip_mlp", "prefix": "s."}], arrays)
+    act = getattr(folded, "act", "relu")
+    prog = Program([{"op": "skip_mlp", "prefix": "s.", **({"act": act} if act != "relu" else {})}], arrays)
     x = np.random.default_rng(seed).uniform(0, 1, (64, d))
     mean, std = surrogate.predict_with_uncertainty(x)
     out = prog(x).astype(np.float64)

@@ -4,7 +4,8 @@ A :class:`Program` is a list of operations over named float32 arrays, stored as 
 operation list is a JSON string inside it; nothing is pickled). Operations:
 
 * ``linear`` (``x @ w + b``), ``relu``, ``tanh``, ``sigmoid``, ``clip``, ``affine`` (``x * scale + shift``);
-* ``skip_mlp``: K stacked surrogate networks (batch norm folded) -> (K, B, M);
+* ``skip_mlp``: K stacked surrogate networks (batch norm folded) -> (K, B, M); hidden activation ``act``
+  "relu" (the default, and all a program written before ``act`` existed holds) or "silu";
 * ``coupling_inverse``: the inverse of RealNVP affine couplings (the flow's decoder).
 
 :mod:`invphys.inverter.export` builds programs from trained torch models and keeps one only when it
@@ -74,7 +75,7 @@ def run_ops(ops: list[dict[str, Any]], arrays: dict[str, np.ndarray], x: np.ndar
         elif kind == "affine":
             x, owned = x * arrays[op["scale"]] + arrays[op["shift"]], True
         elif kind == "skip_mlp":
-            x, owned = _skip_mlp(arrays, op["prefix"], x), True
+            x, owned = _skip_mlp(arrays, op["prefix"], x, op.get("act", "relu")), True
         elif kind == "coupling_inverse":
             x, owned = _coupling_inverse(arrays, op, x), True
         else:
@@ -82,11 +83,27 @@ def run_ops(ops: list[dict[str, Any]], arrays: dict[str, np.ndarray], x: np.ndar
     return x
 
 
-def _skip_mlp(arrays: dict[str, np.ndarray], p: str, x: np.ndarray) -> np.ndarray:
-    """K folded SkipMLPs: a = relu(x W1 + b1), c = relu(a W2 + b2), h = relu([a, c] W3 + b3), h Wo + bo.
+def _silu(x: np.ndarray) -> None:
+    """In place: x * sigmoid(x), with sigmoid(x) = (1 + tanh(x / 2)) / 2 (no overflow)."""
+    s = np.tanh(x * 0.5)
+    s += 1.0
+    s *= 0.5
+    x *= s
 
-    One 2-D (BLAS) product per layer and member; ``[a, c] W3`` is split as ``a W3[:h1] + c W3[h1:]``.
+
+def _relu(x: np.ndarray) -> None:
+    np.maximum(x, 0.0, out=x)
+
+
+def _skip_mlp(arrays: dict[str, np.ndarray], p: str, x: np.ndarray, act: str = "relu") -> np.ndarray:
+    """K folded SkipMLPs: a = f(x W1 + b1), c = f(a W2 + b2), h = f([a, c] W3 + b3), h Wo + bo.
+
+    ``f`` is ReLU or SiLU (``act``). One 2-D (BLAS) product per layer and member; ``[a, c] W3`` is
+    split as ``a W3[:h1] + c W3[h1:]``.
     """
+    if act not in ("relu", "silu"):
+        raise ValueError(f"unknown skip_mlp activation {act!r}")
+    f = _relu if act == "relu" else _silu
     w1, b1, w2, b2, w3, b3, wo, bo = (arrays[f"{p}{k}"] for k in ("w1", "b1", "w2", "b2", "w3", "b3", "wo", "bo"))
     x = np.ascontiguousarray(x.reshape(-1, w1.shape[1]))
     h1 = w1.shape[2]
@@ -94,14 +111,14 @@ def _skip_mlp(arrays: dict[str, np.ndarray], p: str, x: np.ndarray) -> np.ndarra
     for k in range(w1.shape[0]):
         a = x @ w1[k]
         a += b1[k]
-        np.maximum(a, 0.0, out=a)
+        f(a)
         c = a @ w2[k]
         c += b2[k]
-        np.maximum(c, 0.0, out=c)
+        f(c)
         h = a @ w3[k, :h1]
         h += c @ w3[k, h1:]
         h += b3[k]
-        np.maximum(h, 0.0, out=h)
+        f(h)
         np.matmul(h, wo[k], out=out[k])
         out[k] += bo[k]
     return out

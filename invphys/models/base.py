@@ -150,7 +150,7 @@ class TorchModel:
         if meta.get("plugin") != cls.name or meta.get("kind") != cls.kind:
             raise ModelLoadError(
                 f"{directory} holds a {meta.get('kind')} {meta.get('plugin')!r}, not a {cls.kind} {cls.name!r}")
-        config = dict(meta["config"])
+        config = {**getattr(cls, "LEGACY", {}), **meta["config"]}
         if device is not None:
             config["device"] = device
         try:

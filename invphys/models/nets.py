@@ -51,19 +51,27 @@ class _Standardised(nn.Module):
         return (y - self.y_mean) / self.y_std
 
 
+#: hidden-layer activations a :class:`SkipMLP` can use (the NumPy inference form knows the same ones)
+ACTIVATIONS = {"relu": nn.ReLU, "silu": nn.SiLU}
+
+
 class SkipMLP(_Standardised):
-    """The paper's surrogate: d -> h1 -> h2, concat(h1, h2) -> h3 -> M; batch norm, ReLU, dropout."""
+    """The paper's surrogate: d -> h1 -> h2, concat(h1, h2) -> h3 -> M; batch norm, ReLU, dropout.
+
+    ``activation`` "silu" swaps ReLU for SiLU (the parameter names and state dict are unchanged).
+    """
 
     def __init__(self, d: int, m: int, hidden: Sequence[int] = (256, 256, 128), dropout: float = 0.1,
-                 batch_norm: bool = True) -> None:
+                 batch_norm: bool = True, activation: str = "relu") -> None:
         super().__init__(m)
         h1, h2, h3 = hidden
+        act = ACTIVATIONS[activation]
 
         def block(i: int, o: int) -> nn.Sequential:
             parts: list[nn.Module] = [nn.Linear(i, o)]
             if batch_norm:
                 parts.append(nn.BatchNorm1d(o))
-            parts.append(nn.ReLU())
+            parts.append(act())
             if dropout > 0:
                 parts.append(nn.Dropout(dropout))
             return nn.Sequential(*parts)
@@ -227,6 +235,9 @@ class FoldedMLPs:
 
     def __init__(self, members: Sequence[SkipMLP]) -> None:
         layers = []
+        #: the hidden activation's name ("relu" or "silu"), from the members' first block
+        self.act = next((n for n, cls in ACTIVATIONS.items() for mod in members[0].b1 if type(mod) is cls), "relu")
+        self._act = torch.relu if self.act == "relu" else torch.nn.functional.silu
         with torch.no_grad():
             for name in ("b1", "b2", "b3"):
                 ws, bs = [], []
@@ -256,7 +267,8 @@ class FoldedMLPs:
         """(K, B, M) physical-unit predictions of (B, d) normalised parameters."""
         x = theta.unsqueeze(0).expand(self.k, -1, -1)
         (w1, b1), (w2, b2), (w3, b3) = self.layers
-        a = torch.relu(torch.baddbmm(b1, x, w1))
-        c = torch.relu(torch.baddbmm(b2, a, w2))
-        h = torch.relu(torch.baddbmm(b3, torch.cat([a, c], dim=-1), w3))
+        act = self._act
+        a = act(torch.baddbmm(b1, x, w1))
+        c = act(torch.baddbmm(b2, a, w2))
+        h = act(torch.baddbmm(b3, torch.cat([a, c], dim=-1), w3))
         return torch.baddbmm(self.b_out, h, self.w_out)

@@ -86,8 +86,12 @@ LossFn = Callable[[tuple[torch.Tensor, ...], int | None], tuple[torch.Tensor, di
 def fit_loop(module: nn.Module, loss_fn: LossFn, train: tuple[torch.Tensor, ...],
              val: tuple[torch.Tensor, ...], *, lr: float, weight_decay: float, batch_size: int,
              max_epochs: int, patience: int, min_epochs: int = 0, seed: int = 0,
-             progress: bool = False, description: str = "training", tracker: Any = None) -> History:
+             progress: bool = False, description: str = "training", tracker: Any = None,
+             optimizer: str = "adam", schedule: str = "constant") -> History:
     """Adam with mini-batches and early stopping on the validation loss; restores the best weights.
+
+    ``optimizer`` "adamw" uses decoupled weight decay; ``schedule`` "one_cycle" runs a one-cycle
+    cosine learning-rate schedule over ``max_epochs`` (peak ``lr`` after 5 %, from lr/10 down to lr/1e4).
 
     ``tracker`` (a :class:`~invphys.tracking.Tracker`, already scoped to the model) receives
     ``train_loss``, ``val_loss`` and ``val_<part>`` for each loss part, every epoch.
@@ -96,8 +100,14 @@ def fit_loop(module: nn.Module, loss_fn: LossFn, train: tuple[torch.Tensor, ...]
     whose weights still change is not compared with its final form.
     """
     start = time.perf_counter()
-    opt = torch.optim.Adam(module.parameters(), lr=lr, weight_decay=weight_decay)
+    opt_cls = torch.optim.AdamW if optimizer == "adamw" else torch.optim.Adam
+    opt = opt_cls(module.parameters(), lr=lr, weight_decay=weight_decay)
     n = train[0].shape[0]
+    sched = None
+    if schedule == "one_cycle":
+        steps = max_epochs * max(1, -(-n // batch_size))
+        sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=steps, pct_start=0.05,
+                                                    anneal_strategy="cos", div_factor=10, final_div_factor=1e3)
     gen = torch.Generator().manual_seed(seed)
     hist = History()
     best_state = copy.deepcopy(module.state_dict())
@@ -117,6 +127,8 @@ def fit_loop(module: nn.Module, loss_fn: LossFn, train: tuple[torch.Tensor, ...]
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
+                if sched is not None:
+                    sched.step()
                 total += float(loss.detach()) * idx.numel()
                 count += idx.numel()
             module.eval()

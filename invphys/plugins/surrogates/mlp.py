@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import Field, PositiveInt
@@ -28,6 +28,14 @@ class MLPSurrogate(TorchModel, Surrogate):
             (256, 256, 128), description="widths of the three hidden layers")
         dropout: float = Field(0.1, ge=0, lt=1, description="dropout after every hidden layer")
         batch_norm: bool = Field(True, description="batch normalisation after every hidden linear layer")
+        activation: Literal["relu", "silu"] = Field("relu", description="hidden-layer activation")
+        optimizer: Literal["adam", "adamw"] = Field(
+            "adam", description="adam (L2 weight decay, the paper's) or adamw (decoupled weight decay)")
+        schedule: Literal["constant", "one_cycle"] = Field(
+            "constant", description="learning rate: constant, or a one-cycle cosine schedule over max_epochs")
+
+    #: settings a model saved before they existed was trained with (filled in on load)
+    LEGACY: ClassVar[dict[str, Any]] = {"activation": "relu", "optimizer": "adam", "schedule": "constant"}
 
     def __init__(self, config: Any = None, **settings: Any) -> None:
         super().__init__(config, **settings)
@@ -41,7 +49,7 @@ class MLPSurrogate(TorchModel, Surrogate):
         from invphys.models.nets import SkipMLP
 
         c = self.config
-        return SkipMLP(d, m, hidden=c.hidden, dropout=c.dropout, batch_norm=c.batch_norm)
+        return SkipMLP(d, m, hidden=c.hidden, dropout=c.dropout, batch_norm=c.batch_norm, activation=c.activation)
 
     def fit(self, theta: np.ndarray, y: np.ndarray, progress: bool = False,
             validation: tuple[np.ndarray, np.ndarray] | None = None, tracker: Any = None) -> dict[str, Any]:
@@ -114,5 +122,6 @@ def train_mlp(model: Any, tt: np.ndarray, yt: np.ndarray, tv: np.ndarray, yv: np
 
         hist = fit_loop(net, loss_fn, train, val, lr=c.lr, weight_decay=c.weight_decay,
                         batch_size=c.batch_size, max_epochs=c.max_epochs, patience=c.patience, seed=seed,
-                        progress=progress, description=description, tracker=tracker)
+                        progress=progress, description=description, tracker=tracker,
+                        optimizer=c.optimizer, schedule=c.schedule)
     return net, hist
