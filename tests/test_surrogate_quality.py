@@ -83,3 +83,19 @@ def test_unknown_program_activation_is_refused() -> None:
     arrays["s.w3"] = np.zeros((1, 4, 2), np.float32)
     with pytest.raises(ValueError, match="activation"):
         Program([{"op": "skip_mlp", "prefix": "s.", "act": "tanh"}], arrays)(np.zeros((1, 2)))
+
+
+def test_members_early_stop_on_their_own_carves_and_report_out_of_fold() -> None:
+    t, y = smooth(200, seed=3)
+    ens = EnsembleSurrogate(members=3, hidden=(32, 32, 16), max_epochs=30, seed=4)
+    m = ens.fit(t, y)
+    assert m["validation"] == "out_of_fold"
+    # three 10 % carves (seeds 4, 5, 6): the out-of-fold rows are their union, more than one carve's 20
+    assert 20 < m["n_val"] <= 60 and m["n_train"] == 180
+    assert len(m["member_r2"]) == 3 and m["r2"] > 0.3
+    from invphys.models.data import r2_scores, split_indices
+
+    va = split_indices(200, 0.1, 5)[1]  # member 2's carve: its member_r2 is measured there
+    assert m["member_r2"][1] == pytest.approx(r2_scores(y[va], ens._member_predict(t[va])[1])[0])
+    shared = EnsembleSurrogate(members=3, hidden=(32, 32, 16), max_epochs=30, seed=4, member_splits=False)
+    assert shared.fit(t, y)["n_val"] == 20

@@ -9,7 +9,7 @@ from pydantic import Field
 
 from invphys.core.interfaces import Surrogate
 from invphys.models.base import validation_split
-from invphys.models.data import check_training_data, r2_scores
+from invphys.models.data import check_training_data, r2_scores, split_indices
 from invphys.plugins.surrogates.mlp import MLPSurrogate, train_mlp
 
 
@@ -26,7 +26,7 @@ class EnsembleSurrogate(MLPSurrogate, Surrogate):
 
     name: ClassVar[str] = "ensemble"
     #: settings an ensemble saved before they existed was trained with (the paper MLP's; filled in on load)
-    LEGACY: ClassVar[dict[str, Any]] = {**MLPSurrogate.LEGACY}
+    LEGACY: ClassVar[dict[str, Any]] = {**MLPSurrogate.LEGACY, "member_splits": False}
 
     class Config(MLPSurrogate.Config):
         # Defaults measured best on the orange-peel paper data (results/orange_peel_paper_surrogate/):
@@ -44,6 +44,10 @@ class EnsembleSurrogate(MLPSurrogate, Surrogate):
         max_epochs: int = Field(600, ge=1, description="upper bound on training epochs (the schedule's length)")
         patience: int = Field(600, ge=1, description="early stopping: epochs without a better validation loss")
         members: int = Field(5, ge=2, le=64, description="number of networks K")
+        member_splits: bool = Field(
+            True, description="without a validation set, member k keeps its best epoch on its own val_fraction "
+            "carve (seed + k), so the members together learn from every row; metrics are then out-of-fold")
+        val_fraction: float = Field(0.1, gt=0, lt=1, description="validation carve when fit() gets no validation set")
         bootstrap: bool = Field(False, description="train each member on a bootstrap resample (on 410 orange-peel rows this lowered held-out R^2 from 0.894 to 0.872)")
 
     def _build_net(self, d: int, m: int) -> Any:
@@ -55,6 +59,9 @@ class EnsembleSurrogate(MLPSurrogate, Surrogate):
             validation: tuple[np.ndarray, np.ndarray] | None = None, tracker: Any = None) -> dict[str, Any]:
         """Train the K members; metrics are the ensemble mean's (``r2`` ...) plus ``member_r2``.
 
+        With ``validation`` every member keeps its best epoch on it (the metrics' rows too); without it
+        and with ``member_splits``, member k uses its own seeded carve and the metrics are out-of-fold.
+
         ``tracker`` receives each member's per-epoch losses under ``member_<k>/`` (k from 1).
         """
         from invphys.models.nets import Ensemble
@@ -62,10 +69,15 @@ class EnsembleSurrogate(MLPSurrogate, Surrogate):
         c = self.config
         label = f"surrogate {self.name!r}"
         theta, y = check_training_data(theta, y, label)
-        tt, yt, tv, yv = validation_split(theta, y, validation, c.val_fraction, c.seed, label)
+        own = validation is None and c.member_splits
+        if own:
+            splits = [split_indices(len(theta), c.val_fraction, c.seed + k) for k in range(c.members)]
+            parts = [(theta[tr], y[tr], theta[va], y[va]) for tr, va in splits]
+        else:
+            parts = [validation_split(theta, y, validation, c.val_fraction, c.seed, label)] * c.members
         rng = np.random.default_rng(c.seed)
         nets, hists = [], []
-        for k in range(c.members):
+        for k, (tt, yt, tv, yv) in enumerate(parts):
             idx = rng.integers(0, len(tt), size=len(tt)) if c.bootstrap else np.arange(len(tt))
             net, hist = train_mlp(self, tt[idx], yt[idx], tv, yv, c.seed + k, progress,
                                   f"ensemble member {k + 1}/{c.members}",
@@ -73,11 +85,33 @@ class EnsembleSurrogate(MLPSurrogate, Surrogate):
             nets.append(net)
             hists.append(hist)
         self._net = Ensemble(nets).to(self.device).eval()
-        self._record_fit(theta, y, len(tt), (tv, yv), {"members": [h.to_dict() for h in hists]},
+        self._folded, self.dims = None, (theta.shape[1], y.shape[1])
+        extra: dict[str, Any] = {}
+        tv, yv = parts[0][2], parts[0][3]
+        if own:
+            tv, yv, extra = self._out_of_fold(theta, y, [va for _, va in splits])
+        self._record_fit(theta, y, len(parts[0][0]), (tv, yv), {"members": [h.to_dict() for h in hists]},
                          [h.epochs for h in hists], [h.best_epoch for h in hists],
-                         sum(h.train_time_s for h in hists))
-        self.metrics["member_r2"] = [r2_scores(yv, self._member_predict(tv)[k])[0] for k in range(c.members)]
+                         sum(h.train_time_s for h in hists), **extra)
+        # each member's R^2 on its own validation rows
+        self.metrics["member_r2"] = [r2_scores(p[3], self._member_predict(p[2])[k])[0] for k, p in enumerate(parts)]
         return self.metrics
+
+    def _out_of_fold(self, theta: np.ndarray, y: np.ndarray,
+                     held: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+        """Rows some member held out, and R^2/MSE of each row's mean over the members that held it out."""
+        mask = np.zeros((len(held), len(theta)), dtype=bool)
+        for k, va in enumerate(held):
+            mask[k, va] = True
+        rows = np.flatnonzero(mask.any(axis=0))
+        preds = self._member_predict(theta[rows])
+        w = mask[:, rows, None]
+        oof = (preds * w).sum(axis=0) / w.sum(axis=0)
+        r2, per = r2_scores(y[rows], oof)
+        scale = y[rows].std(axis=0)
+        scale = np.where(scale > 0, scale, 1.0)
+        return theta[rows], y[rows], {"r2": r2, "r2_per_feature": per, "validation": "out_of_fold",
+                                      "mse": float((((oof - y[rows]) / scale) ** 2).mean())}
 
     def predict(self, theta: np.ndarray) -> np.ndarray:
         """The members' mean prediction (B, M)."""
