@@ -160,6 +160,7 @@ def best_of_rows(best_of: dict[str, list[str]], answers: list[dict[str, Any]], v
             best = max(finite, key=lambda t: t[0])[1]
             distinct = {tuple(np.round(ans[(c, k)]["theta"], 12)) for c in cands}
             cost = {"optimizer": label, "type": "best_of", "role": "method", "source": best, "candidates": list(cands),
+                    "evaluator": "simulator", "device": ans[(best, k)].get("device", "cpu"),
                     "evaluations": int(sum(ans[(c, k)]["evaluations"] for c in cands)),
                     "wall_time_s": float(sum(ans[(c, k)]["wall_time_s"] for c in cands)),
                     "simulator_runs": len(distinct) + int(sum(ans[(c, k)].get("simulator_runs", 0) for c in cands))}
