@@ -141,3 +141,32 @@ def test_user_targets_without_ground_truth_validate_and_report(tmp_path) -> None
     assert rep["optimizers"]["sil"]["n_validated"] == 2
     assert rep["optimizers"]["sil"]["r_actual_mean"] == pytest.approx(
         np.mean([r["r_actual"] for r in rows if r["optimizer"] == "sil"]))
+
+
+def test_memo_survives_a_new_batch_size_but_not_another_simulator(tmp_path) -> None:
+    """Batching is no part of a run's identity (as in dataset stores); the simulator's settings are."""
+    from test_dataset_toy import ToyFeatures, ToyOscillator
+
+    from invphys.core.dataset import RunIdentity
+    from invphys.pipeline.runner import fingerprint
+    from invphys.pipeline.sim_checkpoint import SimCheckpoint
+    from invphys.plugins.validators.simulator import SimulatorValidator
+
+    theta = np.random.default_rng(0).uniform(size=(5, 3))
+    calls = []
+
+    def memo(sim, batch):
+        v = SimulatorValidator(batch_size=batch)
+        ck = SimCheckpoint(tmp_path / "m.jsonl", fingerprint(RunIdentity.of(sim).to_dict()))
+
+        def simulate(th, **kw):
+            calls.append(len(th))
+            return v.simulate_features(th, sim, ToyFeatures(), **kw)
+        return ck.simulate(theta, simulate, batch, 5)
+
+    a = memo(ToyOscillator(), 2)
+    assert calls == [2, 2, 1]
+    b = memo(ToyOscillator(), 4)  # another batch size: everything reused, bit for bit
+    assert calls == [2, 2, 1] and np.array_equal(a.features, b.features, equal_nan=True)
+    memo(ToyOscillator(substeps=3), 4)  # another simulator config: simulated again
+    assert calls == [2, 2, 1, 4, 1]

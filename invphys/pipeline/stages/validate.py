@@ -160,11 +160,13 @@ def _checkpoint(ctx: StageContext, validator: Any, simulator: Any, extractor: An
     """The stage's crash-safe memo of simulated vectors (None for a validator without simulate_features)."""
     if not hasattr(validator, "simulate_features"):
         return None
+    from invphys.core.dataset import RunIdentity
     from invphys.pipeline.runner import fingerprint
     from invphys.pipeline.sim_checkpoint import SimCheckpoint
 
-    identity = fingerprint({**ctx.spec.section_dump(["simulator", "features", "validator"]),
-                            "version": str(getattr(simulator, "version", ""))})
+    # the runs' identity as a dataset store keys them (device and batching do not count) and the features
+    sim = validator.simulator_for(simulator) if hasattr(validator, "simulator_for") else simulator
+    identity = fingerprint({"run": RunIdentity.of(sim).to_dict(), **ctx.spec.section_dump(["features"])})
     return SimCheckpoint(ctx.stage_dir / SIMULATED_FILE, identity)
 
 
