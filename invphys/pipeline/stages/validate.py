@@ -88,11 +88,13 @@ def run(ctx: StageContext) -> dict[str, Any]:
         # keep trajectories only of runs that may be rendered (the first RENDER_TARGETS targets)
         keep = {int(inverse[i]) for i in target_rows if chosen[i]["target_index"] < RENDER_TARGETS} if render else False
         assert ckpt is not None
+        reused0 = ckpt.reused  # the in-loop replay above counts too
         with _run_bar(ctx, len(unique), "validating") as on_run:
             sim = ckpt.simulate(unique, _bound(validator, simulator, extractor), validator.config.batch_size,
                                 len(extractor.feature_names), keep_trajectories=keep, on_run=on_run)
         if ckpt.reused:
-            ctx.log(f"{ckpt.reused} parameter vectors reused from {ckpt.path.name} (a resumed validation)")
+            ctx.log(f"{ckpt.reused - reused0} of {len(unique)} validated vectors ({ckpt.reused} simulator calls' "
+                    f"vectors in all) reused from {ckpt.path.name} (a resumed validation)")
         feats = sim.features[inverse]
         failures = [sim.failures[j] for j in inverse]
         stats = [sim.stats[j] for j in inverse]
