@@ -99,3 +99,18 @@ def test_members_early_stop_on_their_own_carves_and_report_out_of_fold() -> None
     assert m["member_r2"][1] == pytest.approx(r2_scores(y[va], ens._member_predict(t[va])[1])[0])
     shared = EnsembleSurrogate(members=3, hidden=(32, 32, 16), max_epochs=30, seed=4, member_splits=False)
     assert shared.fit(t, y)["n_val"] == 20
+
+
+def test_committed_bundle_surrogate_still_loads_and_matches_its_numpy_form() -> None:
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent / "inverters" / "orange_peel_quick"
+    if not (root / "surrogate" / "model.json").is_file():
+        pytest.skip("no committed orange_peel_quick bundle")
+    saved = json.loads((root / "surrogate" / "model.json").read_text())["config"]
+    model = EnsembleSurrogate.load(root / "surrogate")
+    assert model.config.activation == saved.get("activation", "relu")
+    prog = Program.load(root / "inference" / "surrogate.npz")
+    x = np.random.default_rng(0).uniform(0, 1, (40, model.dims[0]))
+    ref = model.predict(x)
+    assert np.allclose(prog(x).mean(0), ref, rtol=1e-4, atol=1e-5 * np.abs(ref).max())
