@@ -41,8 +41,8 @@ class EnsembleSurrogate(MLPSurrogate, Surrogate):
         schedule: Literal["constant", "one_cycle"] = Field(
             "one_cycle", description="learning rate: constant, or a one-cycle cosine schedule over max_epochs")
         lr: float = Field(3e-3, gt=0, description="(peak) learning rate")
-        max_epochs: int = Field(600, ge=1, description="upper bound on training epochs (the schedule's length)")
-        patience: int = Field(600, ge=1, description="early stopping: epochs without a better validation loss")
+        max_epochs: int = Field(200, ge=1, description="upper bound on training epochs (the schedule's length)")
+        patience: int = Field(200, ge=1, description="early stopping: epochs without a better validation loss")
         members: int = Field(5, ge=2, le=64, description="number of networks K")
         member_splits: bool = Field(
             True, description="without a validation set, member k keeps its best epoch on its own val_fraction "
