@@ -101,7 +101,7 @@ def test_members_early_stop_on_their_own_carves_and_report_out_of_fold() -> None
     assert shared.fit(t, y)["n_val"] == 20
 
 
-def test_committed_bundle_surrogate_still_loads_and_matches_its_numpy_form() -> None:
+def test_committed_bundle_surrogate_loads_with_its_saved_activation_and_matches_its_numpy_form() -> None:
     from pathlib import Path
 
     root = Path(__file__).resolve().parent.parent / "inverters" / "orange_peel_quick"
