@@ -19,20 +19,22 @@ from invphys.core.errors import InvphysError
 from invphys.core.interfaces import FeatureExtractor, PluginConfig
 from invphys.core.results import Trajectory
 
-FEATURE_NAMES: tuple[str, ...] = (
-    "final_separation",            # m
-    "peak_separation_rate",        # m/s
-    "fracture_onset_frame",        # frame index (real-valued)
-    "separation_half_time",        # frame index (real-valued)
-    "skin_dispersion",             # m
-    "skin_detachment_fraction",    # [0, 1]
-    "interior_mean_displacement",  # m
-    "interior_max_displacement",   # m (robust top statistic away from the gripper)
-    "interior_dispersion",         # m
-    "skin_mean_damage",            # [0, 1]
-    "interior_mean_damage",        # [0, 1]
-    "peeling_work",                # log10 of the gripper's work in J (our 12th feature)
-)
+#: feature name -> unit (docs/orange-peel/features.md); "" for a fraction or a damage in [0, 1]
+FEATURE_UNITS: dict[str, str] = {
+    "final_separation": "m",
+    "peak_separation_rate": "m/s",
+    "fracture_onset_frame": "frame",       # real-valued frame index
+    "separation_half_time": "frame",       # real-valued frame index
+    "skin_dispersion": "m",
+    "skin_detachment_fraction": "",
+    "interior_mean_displacement": "m",
+    "interior_max_displacement": "m",      # robust top statistic away from the gripper
+    "interior_dispersion": "m",
+    "skin_mean_damage": "",
+    "interior_mean_damage": "",
+    "peeling_work": "log10 J",             # our 12th feature
+}
+FEATURE_NAMES: tuple[str, ...] = tuple(FEATURE_UNITS)
 
 #: the floor of the gripper work before the logarithm (J)
 WORK_FLOOR = 1e-9
@@ -164,6 +166,10 @@ class OrangePeelFeatures(FeatureExtractor):
     @property
     def feature_names(self) -> tuple[str, ...]:
         return FEATURE_NAMES
+
+    @property
+    def feature_units(self) -> tuple[str, ...]:
+        return tuple(FEATURE_UNITS.values())
 
     def extract(self, trajectory: Trajectory) -> np.ndarray:
         """Features (12,) float64 of one trajectory, all finite."""
