@@ -197,7 +197,7 @@ def _build_kernels(serial_p2g: bool):
         G = gm.shape[1]
         if ti.static(serial_p2g):
             ti.loop_config(serialize=True)  # the work sum, like the scatter, in a fixed order
-        for b, i, j, q in gm:
+        for b, i, j, q in ti.ndrange(gm.shape[0], G, gm.shape[2], gm.shape[3]):  # a range-for: serialize applies
             m = gm[b, i, j, q]
             if k < nsub[b] and m > 0.0:
                 vel = gv[b, i, j, q] / m
@@ -273,7 +273,7 @@ def _build_kernels(serial_p2g: bool):
                     x: ND(vec3, 2), v: ND(vec3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2), out: ND(ti.f32, 2)):
         if ti.static(serial_p2g):
             ti.loop_config(serialize=True)  # float sums in a fixed order: features repeat bit for bit
-        for b, p in x:
+        for b, p in ti.ndrange(x.shape[0], x.shape[1]):  # a range-for: serialize applies
             xp = x[b, p]
             vp = v[b, p]
             dp = d[b, p]
