@@ -134,6 +134,10 @@ class Engine:
         self.allow_cpu_fallback = allow_cpu_fallback
         self.backend_options = backend_options
         self._backends: dict[int, Any] = {}
+        #: slot-substep accounting of every batch run so far (``useful``, ``launched``, ``efficiency``)
+        from invphys_anisompm.streaming import SlotCounters
+
+        self.counters = SlotCounters()
 
     def backend(self, batch: int) -> Any:
         """The backend object for batches of ``batch`` runs (allocated once per size)."""
@@ -163,6 +167,14 @@ class Engine:
                 if on_result is not None:
                     on_result(int(i), rec)
         return [r for r in out if r is not None]
+
+    def stream(self, model: Model, frames: int, record_every: int, batch_size: int, min_chunk: int = 1):
+        """Continuous batching: yield ``(i, record)`` for every run of ``model`` as it finishes, with
+        ``batch_size`` slots kept full (see :mod:`invphys_anisompm.streaming`)."""
+        from invphys_anisompm.streaming import stream_runs
+
+        return stream_runs(self, model, frames, record_every, batch_size, min_chunk=min_chunk,
+                           counters=self.counters)
 
     def run(self, model: Model, frames: int, record_every: int) -> list[RunRecord]:
         """Simulate every run of ``model`` as one batch: settling, then ``frames`` frames, recording
@@ -203,6 +215,9 @@ class Engine:
                 kin = kinematic_table(scene, frame, nsub, dt, alive)
             backend.set_frame(dt, nsub, kin, damage_on=not settling, damping=o.settle_damping if settling else 0.0)
             backend.advance(int(nsub.max()))
+            self.counters.useful += int(nsub.sum())
+            self.counters.launched += B * int(nsub.max())
+            self.counters.chunks += 1
             stats = backend.frame_stats(lo, hi)
             imp, w = backend.kinematic_sums()
             last_force[:] = imp * fps   # mean force over the frame: impulse / frame time

@@ -231,7 +231,7 @@ def _build_kernels(serial_p2g: bool):
                         gg[b * ngrip + gp, node[0], node[1], node[2]] += weight * mass
 
     @ti.kernel
-    def grid_update(k: ti.i32, dx: ti.f32, gravity: ti.f32, damping: ti.f32, bc: ti.i32, ngrip: ti.i32, ncol: ti.i32,
+    def grid_update(k: ti.i32, dx: ti.f32, gravity: ti.f32, damp: ND(ti.f32, 1), bc: ti.i32, ngrip: ti.i32, ncol: ti.i32,
                     nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1), kin: ND(ti.f32, 4), ctype: ND(ti.i32, 1),
                     ca: ND(vec3, 1), cb: ND(vec3, 1), csurf: ND(ti.i32, 1), fric: ND(ti.f32, 2),
                     held: ND(ti.i32, 3), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gg: ND(ti.f32, 4),
@@ -242,7 +242,7 @@ def _build_kernels(serial_p2g: bool):
             if k < nsub[b] and m > 0.0:
                 vel = gv[b, i, j, q] / m
                 vel[1] += dt[b] * gravity
-                vel /= 1.0 + damping * dt[b]
+                vel /= 1.0 + damp[b] * dt[b]
                 for g in range(ngrip):
                     if gg[b * ngrip + g, i, j, q] > 0.5 * m:
                         vk = vec3(kin[b, k, g, 3], kin[b, k, g, 4], kin[b, k, g, 5])
@@ -289,7 +289,7 @@ def _build_kernels(serial_p2g: bool):
                 gv[b, i, j, q] = vel
 
     @ti.kernel
-    def g2p(k: ti.i32, dx: ti.f32, l0sq: ti.f32, damage_on: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
+    def g2p(k: ti.i32, dx: ti.f32, l0sq: ti.f32, don: ND(ti.i32, 1), nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
             mat: ND(ti.f32, 3), body: ND(ti.i32, 1), grip: ND(ti.i32, 1), x0: ND(vec3, 1), kin: ND(ti.f32, 4),
             x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2),
             dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gd: ND(vec2, 4)):
@@ -319,7 +319,7 @@ def _build_kernels(serial_p2g: bool):
                         hess = hs[i] * w[j][1] * w[q][2] + w[i][0] * hs[j] * w[q][2] + w[i][0] * w[j][1] * hs[q]
                         lap += (g2[0] / g2[1] - dp) * hess
                 reg = body[p]
-                if damage_on != 0 and mat[b, reg, M_DMG] > 0.5:
+                if don[b] != 0 and mat[b, reg, M_DMG] > 0.5:
                     Dc = dp - l0sq * lap
                     rate = (1.0 - dp) * dtil[b, p] - Dc
                     d[b, p] = ti.min(1.0, dp + h / mat[b, reg, M_ETA] * ti.max(rate, 0.0))
@@ -358,7 +358,25 @@ def _build_kernels(serial_p2g: bool):
                     ti.atomic_add(out[b, col + a], xp[a])
                 ti.atomic_add(out[b, col + 3], dp)
 
-    return clear_grid, p2g, grid_update, g2p, frame_stats
+    @ti.kernel
+    def reset_slots(mask: ND(ti.i32, 1), x0: ND(vec3, 1), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2),
+                    F: ND(mat3, 2), d: ND(ti.f32, 2), dtil: ND(ti.f32, 2)):
+        for b, p in x:
+            if mask[b] != 0:
+                x[b, p] = x0[p]
+                v[b, p] = vec3(0.0)
+                C[b, p] = mat3(0.0)
+                F[b, p] = ti.Matrix.identity(ti.f32, 3)
+                d[b, p] = 0.0
+                dtil[b, p] = 0.0
+
+    @ti.kernel
+    def gather(idx: ND(ti.i32, 1), x: ND(vec3, 2), d: ND(ti.f32, 2), xo: ND(vec3, 2), do: ND(ti.f32, 2)):
+        for i, p in xo:
+            xo[i, p] = x[idx[i], p]
+            do[i, p] = d[idx[i], p]
+
+    return clear_grid, p2g, grid_update, g2p, frame_stats, reset_slots, gather
 
 
 _KERNELS: dict[bool, tuple] = {}
@@ -379,7 +397,7 @@ class TaichiBackend:
         serial = bool(o.deterministic and self.arch == "cpu")
         if serial not in _KERNELS:
             _KERNELS[serial] = _build_kernels(serial)
-        (self._clear, self._p2g, self._grid, self._g2p, self._stats) = _KERNELS[serial]
+        (self._clear, self._p2g, self._grid, self._g2p, self._stats, self._reset, self._gather) = _KERNELS[serial]
         B, N, G = self.batch, scene.n_particles, o.grid
         self.ngrip = len(scene.grips)
         self.ncol = len(scene.colliders)
@@ -417,8 +435,11 @@ class TaichiBackend:
         from invphys_anisompm.scene import SURFACES
 
         self.csurf = self._const(ti.i32, np.array([SURFACES[c.surface] for c in scene.colliders] or [0], np.int32))
-        self._damage_on = 1
-        self._damping = 0.0
+        self.damp = ti.ndarray(ti.f32, (B,))
+        self.don = ti.ndarray(ti.i32, (B,))
+        self._mat_host = np.zeros((B, len(scene.bodies), N_MAT), np.float32)
+        self._fric_host = np.zeros((B, NC1), np.float32)
+        self._gather_bufs: dict[int, tuple] = {}
 
     @staticmethod
     def _const(dtype, values: np.ndarray, shape: tuple | None = None):
@@ -431,10 +452,10 @@ class TaichiBackend:
         """Reset every run to the initial state with its own material table (B, n_bodies, N_MAT) and
         collider frictions (B, n_colliders)."""
         B, N = self.batch, self.scene.n_particles
-        self.mat.from_numpy(table.astype(np.float32))
-        fr = np.zeros((B, max(self.ncol, 1)), np.float32)
-        fr[:, :self.ncol] = friction
-        self.fric.from_numpy(fr)
+        self._mat_host[:] = table
+        self._fric_host[:, :self.ncol] = friction
+        self.mat.from_numpy(self._mat_host)
+        self.fric.from_numpy(self._fric_host)
         self.imp.fill(0.0)
         self.work.fill(0.0)
         self.x.from_numpy(np.broadcast_to(self.scene.positions.astype(np.float32), (B, N, 3)).copy())
@@ -448,7 +469,10 @@ class TaichiBackend:
                   damping: float = 0.0) -> None:
         """Per-run dt (B,), substep counts (B,), kinematic table (B, K, n_kinematic, 6) of the next frame,
         whether damage evolves, and the grid velocity damping rate (1/s; settling only)."""
-        self._damping = float(damping)
+        B = self.batch
+        self.damp.from_numpy(np.broadcast_to(np.asarray(damping, np.float32), (B,)).copy())
+        self.don.from_numpy((np.broadcast_to(np.asarray(damage_on), (B,)) != 0).astype(np.int32)
+                            * np.int32(self.options.damage))
         self.dt.from_numpy(dt.astype(np.float32))
         self.nsub.from_numpy(nsub.astype(np.int32))
         B, K = kin.shape[:2]
@@ -457,7 +481,6 @@ class TaichiBackend:
         if self.kin.shape != table.shape:
             self.kin = ti.ndarray(ti.f32, table.shape)
         self.kin.from_numpy(table)
-        self._damage_on = int(damage_on)
 
     def advance(self, n_steps: int) -> None:
         """Run substeps 0..n_steps-1 of the current frame (runs past their own nsub idle)."""
@@ -468,12 +491,37 @@ class TaichiBackend:
             self._clear(k, ng, self.nsub, self.gv, self.gm, self.gd, self.gg)
             self._p2g(k, dx, float(o.apic_blend), ng, self.nsub, self.dt, self.mat, self.body, self.fibre, self.vol,
                       self.grip, self.x, self.v, self.C, self.F, self.d, self.dtil, self.gv, self.gm, self.gd, self.gg)
-            self._grid(k, dx, float(o.gravity), self._damping, int(o.boundary_cells), self.ngrip, self.ncol, self.nsub, self.dt,
+            self._grid(k, dx, float(o.gravity), self.damp, int(o.boundary_cells), self.ngrip, self.ncol, self.nsub, self.dt,
                        self.kin, self.ctype, self.ca, self.cb, self.csurf, self.fric, self.held, self.gv, self.gm,
                        self.gg, self.imp, self.work)
-            self._g2p(k, dx, float(o.l0_cells) ** 2, self._damage_on * int(o.damage), self.nsub, self.dt, self.mat,
+            self._g2p(k, dx, float(o.l0_cells) ** 2, self.don, self.nsub, self.dt, self.mat,
                       self.body, self.grip, self.x0, self.kin, self.x, self.v, self.C, self.F, self.d, self.dtil,
                       self.gv, self.gd)
+
+    def load_slots(self, slots: np.ndarray, table: np.ndarray, friction: np.ndarray) -> None:
+        """Reset only runs ``slots`` (indices) to the initial state with materials ``table``
+        (len(slots), n_bodies, N_MAT) and frictions (len(slots), n_colliders); the others are untouched."""
+        slots = np.asarray(slots, np.int64)
+        self._mat_host[slots] = table
+        self._fric_host[slots, :self.ncol] = friction
+        self.mat.from_numpy(self._mat_host)
+        self.fric.from_numpy(self._fric_host)
+        mask = np.zeros(self.batch, np.int32)
+        mask[slots] = 1
+        m = ti.ndarray(ti.i32, (self.batch,))
+        m.from_numpy(mask)
+        self._reset(m, self.x0, self.x, self.v, self.C, self.F, self.d, self.dtil)
+
+    def read_slots(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (n, N, 3) and damage (n, N) of runs ``slots`` only (a device gather, then one copy)."""
+        slots = np.asarray(slots, np.int32)
+        n, N = len(slots), self.scene.n_particles
+        if n not in self._gather_bufs:
+            self._gather_bufs[n] = (ti.ndarray(ti.i32, (n,)), ti.ndarray(vec3, (n, N)), ti.ndarray(ti.f32, (n, N)))
+        idx, xo, do = self._gather_bufs[n]
+        idx.from_numpy(slots)
+        self._gather(idx, self.x, self.d, xo, do)
+        return xo.to_numpy(), do.to_numpy()
 
     def frame_stats(self, lo: float, hi: float) -> np.ndarray:
         """(B, n_stats) statistics of the current state (columns: :mod:`invphys_anisompm.failure`)."""

@@ -220,7 +220,8 @@ def clear_kernel(kstep: wp.array(dtype=wp.int32), ngrip: int, nsub: wp.array(dty
 
 
 @wp.kernel
-def grid_update_kernel(kstep: wp.array(dtype=wp.int32), dx: float, gravity: float, damping: float, bc: int, ngrip: int, ncol: int,
+def grid_update_kernel(kstep: wp.array(dtype=wp.int32), dx: float, gravity: float, damp: wp.array(dtype=wp.float32),
+                       bc: int, ngrip: int, ncol: int,
                        nsub: wp.array(dtype=wp.int32), dt: wp.array(dtype=wp.float32),
                        kin: wp.array4d(dtype=wp.float32), ctype: wp.array(dtype=wp.int32),
                        ca: wp.array(dtype=wp.vec3), cb: wp.array(dtype=wp.vec3), csurf: wp.array(dtype=wp.int32),
@@ -236,7 +237,7 @@ def grid_update_kernel(kstep: wp.array(dtype=wp.int32), dx: float, gravity: floa
     G = gm.shape[1]
     vel = gv[b, i, j, q] / m
     vel = vel + wp.vec3(0.0, dt[b] * gravity, 0.0)
-    vel = vel / (1.0 + damping * dt[b])
+    vel = vel / (1.0 + damp[b] * dt[b])
     ngrip_ = ngrip
     for g in range(ngrip_):
         if gg[b * ngrip + g, i, j, q] > 0.5 * m:
@@ -285,7 +286,7 @@ def grid_update_kernel(kstep: wp.array(dtype=wp.int32), dx: float, gravity: floa
 
 
 @wp.kernel
-def g2p_kernel(kstep: wp.array(dtype=wp.int32), dx: float, l0sq: float, damage_on: int,
+def g2p_kernel(kstep: wp.array(dtype=wp.int32), dx: float, l0sq: float, don: wp.array(dtype=wp.int32),
                nsub: wp.array(dtype=wp.int32), dt: wp.array(dtype=wp.float32), mat: wp.array3d(dtype=wp.float32),
                body: wp.array(dtype=wp.int32), grip: wp.array(dtype=wp.int32), x0: wp.array(dtype=wp.vec3),
                kin: wp.array4d(dtype=wp.float32), x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
@@ -321,7 +322,7 @@ def g2p_kernel(kstep: wp.array(dtype=wp.int32), dx: float, l0sq: float, damage_o
                     hess = hs[i] * w[j, 1] * w[q, 2] + w[i, 0] * hs[j] * w[q, 2] + w[i, 0] * w[j, 1] * hs[q]
                     lap += (g2[0] / g2[1] - dp) * hess
     reg = body[p]
-    if damage_on != 0 and mat[b, reg, C_DMG] > 0.5:
+    if don[b] != 0 and mat[b, reg, C_DMG] > 0.5:
         Dc = dp - l0sq * lap
         rate = (1.0 - dp) * dtil[b, p] - Dc
         d[b, p] = wp.min(1.0, dp + h / mat[b, reg, C_ETA] * wp.max(rate, 0.0))
@@ -334,6 +335,29 @@ def g2p_kernel(kstep: wp.array(dtype=wp.int32), dx: float, l0sq: float, damage_o
     else:
         v[b, p] = new_v
         x[b, p] = x[b, p] + h * new_v
+
+
+@wp.kernel
+def reset_slots_kernel(mask: wp.array(dtype=wp.int32), x0: wp.array(dtype=wp.vec3), x: wp.array2d(dtype=wp.vec3),
+                       v: wp.array2d(dtype=wp.vec3), C: wp.array2d(dtype=wp.mat33), F: wp.array2d(dtype=wp.mat33),
+                       d: wp.array2d(dtype=wp.float32), dtil: wp.array2d(dtype=wp.float32)):
+    b, p = wp.tid()
+    if mask[b] == 0:
+        return
+    x[b, p] = x0[p]
+    v[b, p] = wp.vec3(0.0)
+    C[b, p] = wp.mat33(0.0)
+    F[b, p] = wp.identity(n=3, dtype=wp.float32)
+    d[b, p] = 0.0
+    dtil[b, p] = 0.0
+
+
+@wp.kernel
+def gather_kernel(idx: wp.array(dtype=wp.int32), x: wp.array2d(dtype=wp.vec3), d: wp.array2d(dtype=wp.float32),
+                  xo: wp.array2d(dtype=wp.vec3), dout: wp.array2d(dtype=wp.float32)):
+    i, p = wp.tid()
+    xo[i, p] = x[idx[i], p]
+    dout[i, p] = d[idx[i], p]
 
 
 @wp.kernel
@@ -435,8 +459,12 @@ class WarpBackend:
         self.kin = None
         self._reserve_kin(max(GRAPH_CHUNK, 4 * o.min_substeps_per_frame))
         self._graphs: dict[int, object] = {}
-        self._damage_on = 1
-        self._damping = 0.0
+        self.damp = wp.zeros(B, dtype=wp.float32, device=self.wp_device)
+        self.don = wp.zeros(B, dtype=wp.int32, device=self.wp_device)
+        self._mat_host = np.zeros((B, len(scene.bodies), N_MAT), np.float32)
+        self._fric_host = np.zeros((B, NC1), np.float32)
+        self._slot_mask = wp.zeros(B, dtype=wp.int32, device=self.wp_device)
+        self._gather_bufs: dict[int, tuple] = {}
         self._x_init = np.ascontiguousarray(np.broadcast_to(scene.positions.astype(np.float32), (B, N, 3)))
         self._F_init = np.ascontiguousarray(np.broadcast_to(np.eye(3, dtype=np.float32), (B, N, 3, 3)))
 
@@ -451,10 +479,10 @@ class WarpBackend:
 
     def load(self, table: np.ndarray, friction: np.ndarray) -> None:
         """Reset every run to the initial state with its own materials and collider frictions."""
-        self.mat.assign(np.ascontiguousarray(table, dtype=np.float32))
-        fr = np.zeros((self.batch, max(self.ncol, 1)), np.float32)
-        fr[:, :self.ncol] = friction
-        self.fric.assign(fr)
+        self._mat_host[:] = table
+        self._fric_host[:, :self.ncol] = friction
+        self.mat.assign(self._mat_host)
+        self.fric.assign(self._fric_host)
         self.imp.zero_()
         self.work.zero_()
         self.x.assign(self._x_init)
@@ -475,10 +503,10 @@ class WarpBackend:
         table = np.zeros((self.batch, self._kin_capacity, self.nk1, 6), np.float32)
         table[:, :K, :kin.shape[2]] = kin
         self.kin.assign(table)
-        damage_on, damping = int(damage_on), float(damping)
-        if (damage_on, damping) != (self._damage_on, self._damping):
-            self._graphs = {}  # launch arguments are baked into captured graphs
-        self._damage_on, self._damping = damage_on, damping
+        B = self.batch
+        self.damp.assign(np.broadcast_to(np.asarray(damping, np.float32), (B,)).copy())
+        self.don.assign((np.broadcast_to(np.asarray(damage_on), (B,)) != 0).astype(np.int32)
+                        * np.int32(self.options.damage))
 
     def _substep(self) -> None:
         o, B, N, G = self.options, self.batch, self.scene.n_particles, self.options.grid
@@ -490,11 +518,11 @@ class WarpBackend:
             self.kstep, float(o.dx), float(o.apic_blend), ng, self.nsub, self.dt, self.mat, self.body, self.fibre,
             self.vol, self.grip, self.x, self.v, self.C, self.F, self.d, self.dtil, self.gv, self.gm, self.gd, self.gg])
         wp.launch(grid_update_kernel, dim=(B, G, G, G), device=dev, inputs=[
-            self.kstep, float(o.dx), float(o.gravity), self._damping, int(o.boundary_cells), self.ngrip, self.ncol, self.nsub,
+            self.kstep, float(o.dx), float(o.gravity), self.damp, int(o.boundary_cells), self.ngrip, self.ncol, self.nsub,
             self.dt, self.kin, self.ctype, self.ca, self.cb, self.csurf, self.fric, self.held, self.gv, self.gm,
             self.gg, self.imp, self.work])
         wp.launch(g2p_kernel, dim=(B, N), device=dev, inputs=[
-            self.kstep, float(o.dx), float(o.l0_cells) ** 2, self._damage_on * int(o.damage), self.nsub, self.dt,
+            self.kstep, float(o.dx), float(o.l0_cells) ** 2, self.don, self.nsub, self.dt,
             self.mat, self.body, self.grip, self.x0, self.kin, self.x, self.v, self.C, self.F, self.d, self.dtil,
             self.gv, self.gd])
         wp.launch(next_substep_kernel, dim=1, device=dev, inputs=[self.kstep])
@@ -520,6 +548,33 @@ class WarpBackend:
             wp.capture_launch(self._graph(GRAPH_CHUNK))
         for _ in range(rest):
             wp.capture_launch(self._graph(1))
+
+    def load_slots(self, slots: np.ndarray, table: np.ndarray, friction: np.ndarray) -> None:
+        """Reset only runs ``slots`` (indices) to the initial state with materials ``table``
+        (len(slots), n_bodies, N_MAT) and frictions (len(slots), n_colliders); the others are untouched."""
+        slots = np.asarray(slots, np.int64)
+        self._mat_host[slots] = table
+        self._fric_host[slots, :self.ncol] = friction
+        self.mat.assign(self._mat_host)
+        self.fric.assign(self._fric_host)
+        mask = np.zeros(self.batch, np.int32)
+        mask[slots] = 1
+        self._slot_mask.assign(mask)
+        wp.launch(reset_slots_kernel, dim=(self.batch, self.scene.n_particles), device=self.wp_device,
+                  inputs=[self._slot_mask, self.x0, self.x, self.v, self.C, self.F, self.d, self.dtil])
+
+    def read_slots(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (n, N, 3) and damage (n, N) of runs ``slots`` only (a device gather, then one copy)."""
+        slots = np.asarray(slots, np.int32)
+        n, N = len(slots), self.scene.n_particles
+        if n not in self._gather_bufs:
+            with wp.ScopedDevice(self.wp_device):
+                self._gather_bufs[n] = (wp.zeros(n, dtype=wp.int32), wp.zeros((n, N), dtype=wp.vec3),
+                                        wp.zeros((n, N), dtype=wp.float32))
+        idx, xo, do = self._gather_bufs[n]
+        idx.assign(slots)
+        wp.launch(gather_kernel, dim=(n, N), device=self.wp_device, inputs=[idx, self.x, self.d, xo, do])
+        return xo.numpy(), do.numpy()
 
     def frame_stats(self, lo: float, hi: float) -> np.ndarray:
         self.stats_out.zero_()

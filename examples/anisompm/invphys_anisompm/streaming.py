@@ -1,0 +1,233 @@
+"""Continuous batching: ``B`` slots stay full; a finished (or failed) run's slot is re-initialised on the
+device with the next parameter vector of the queue while the other slots keep running.
+
+Each slot has its own frame counter, time step, substep offset within its frame, kinematic table and
+feature accumulators. The host advances the batch in *chunks* of ``K`` substeps: a slot is active for
+``min(K, substeps left in its frame)`` of them, so slots reach their frame ends at different times;
+``K`` is the fewest substeps any slot has left in its frame (at least ``min_chunk``), so in a chunk no
+slot idles unless ``min_chunk`` asks for it. At a frame end the slot's statistics, failure checks and
+records are taken exactly as in :meth:`Engine.run`; particle states are the same bit-for-bit on the CPU
+with a serialised scatter (the per-frame force and work sums are added chunk by chunk in float64, so
+they agree to float32 rounding). Results stream out as runs finish.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+
+import numpy as np
+
+from invphys_anisompm.engine import (
+    RunRecord,
+    estimated_substeps,
+    frame_plan,
+    kinematic_speed,
+    kinematic_table,
+    run_dt_bound,
+    velocity_guard,
+)
+from invphys_anisompm.failure import BODY0, STAT_KE, STAT_VMAX, energy_bound, frame_failure, substep_failure
+from invphys_anisompm.model import Model
+
+
+class SlotCounters:
+    """Substep accounting of a stream: ``useful`` slot-substeps done by runs over ``launched`` ones
+    (``batch * substeps launched``); ``efficiency`` is their ratio (1.0: no slot ever idled)."""
+
+    def __init__(self) -> None:
+        self.useful = 0
+        self.launched = 0
+        self.chunks = 0
+
+    @property
+    def efficiency(self) -> float:
+        return self.useful / self.launched if self.launched else 0.0
+
+
+def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size: int, min_chunk: int = 1,
+                counters: SlotCounters | None = None) -> Iterator[tuple[int, RunRecord]]:
+    """Yield ``(i, record)`` for every run ``i`` of ``model`` as it finishes (costliest runs start first).
+
+    ``engine`` is an :class:`~invphys_anisompm.engine.Engine` (its backend for ``min(batch_size, runs)``
+    slots is reused across calls); ``min_chunk`` trades idle slot-substeps for fewer host round trips.
+    """
+    scene, o = engine.scene, engine.scene.options
+    n_runs = model.n_envs
+    if n_runs == 0:
+        return
+    B = min(int(batch_size), n_runs)
+    backend = engine.backend(B)
+    counters = counters if counters is not None else SlotCounters()
+    fps, dx = o.fps, o.dx
+    frame_dt = 1.0 / fps
+    lo, hi = 1.5 * dx, o.domain - 1.5 * dx
+    n_settle = round(o.settle_seconds * fps)
+    names = scene.kinematic_names
+    nk = len(names)
+    counts = np.array([max(b.count, 1) for b in scene.bodies], float)
+    table_all, fric_all = model.table(), model.friction
+    nsub_all, dt_all = frame_plan(fps, run_dt_bound(model, frames))
+    bound_all = energy_bound(model.total_mass(), model.wave_speed(), kinematic_speed(scene, frames), o.energy_factor)
+    queue = list(np.argsort(-estimated_substeps(model, frames), kind="stable"))[::-1]  # pop() = costliest
+
+    run = np.full(B, -1, np.int64)
+    step = np.zeros(B, np.int64)            # frames done: settling ones first, then 0..frames-1
+    cur_nsub = np.zeros(B, np.int64)
+    cur_dt = np.zeros(B)
+    off = np.zeros(B, np.int64)
+    stats_prev = np.zeros((B, backend.nstats))
+    imp_acc = np.zeros((B, max(nk, 1), 3))
+    w_acc = np.zeros((B, max(nk, 1)))
+    work = np.zeros((B, max(nk, 1)))
+    last_force = np.zeros((B, max(nk, 1), 3))
+    kin_slot: list[np.ndarray | None] = [None] * B
+    records: list[RunRecord | None] = [None] * B
+    started = np.zeros(B)
+
+    def begin_frame(b: int) -> str | None:
+        settling = step[b] < n_settle
+        frame = -1 - int(step[b]) if settling else int(step[b]) - n_settle
+        i = run[b]
+        nsub = velocity_guard(nsub_all[i:i + 1], stats_prev[b:b + 1, STAT_VMAX], dx, fps, o.velocity_cfl)
+        reason = substep_failure(int(nsub[0]), o.max_substeps_per_frame, frame, float(stats_prev[b, STAT_VMAX]))
+        if reason:
+            return reason
+        if nsub[0] > nsub_all[i]:
+            records[b].guard_frames += 1
+        dt = frame_dt / nsub
+        cur_nsub[b], cur_dt[b], off[b] = int(nsub[0]), float(dt[0]), 0
+        if settling:
+            kin_slot[b] = np.zeros((int(nsub[0]), max(nk, 1), 6))
+        else:
+            kin_slot[b] = kinematic_table(scene, frame, nsub, dt, np.ones(1, bool))[0]
+        return None
+
+    def record(group: list[int], frame_of: dict[int, int], recorded_of: dict[int, bool]) -> None:
+        host_of = {b: [r for r in scene.reductions if frame_of[b] % r.every == 0] for b in group}
+        need = [b for b in group if recorded_of[b] or host_of[b]]
+        xs: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        if need:
+            x, d = backend.read_slots(np.array(need))
+            xs = {b: (x[j:j + 1], d[j:j + 1]) for j, b in enumerate(need)}
+        for b in group:
+            rec, frame, st = records[b], frame_of[b], stats_prev[b]
+            s = rec.series
+            s.setdefault("max_speed", []).append(float(st[STAT_VMAX]))
+            s.setdefault("kinetic_energy", []).append(float(st[STAT_KE]))
+            for i, body in enumerate(scene.bodies):
+                col = BODY0 + 4 * i
+                s.setdefault(f"centroid/{body.name}", []).append(st[col:col + 3] / counts[i])
+                s.setdefault(f"mean_damage/{body.name}", []).append(float(st[col + 3] / counts[i]))
+            for c, (name, path) in enumerate(zip(names, scene.kinematic_paths, strict=True)):
+                s.setdefault(f"force/{name}", []).append(last_force[b, c].copy())
+                s.setdefault(f"work/{name}", []).append(float(work[b, c]))
+                s.setdefault(f"position/{name}", []).append(path.displacement(frame / fps))
+            for r in host_of[b]:
+                v = np.asarray(r.fn(*xs[b], scene), float).reshape(1, -1)[0]
+                s.setdefault(r.name, []).append(float(v[0]) if v.size == 1 else v.copy())
+            if recorded_of[b]:
+                rec.positions.append(xs[b][0][0].copy())
+                rec.damage.append(xs[b][1][0].copy())
+                rec.frames.append(frame)
+
+    def finish(b: int) -> tuple[int, RunRecord]:
+        rec = records[b]
+        rec.wall_time_s = (time.perf_counter() - started[b]) / B   # the run's share of the device
+        if rec.failure is not None:
+            rec.positions, rec.damage = [], []
+        out = (int(run[b]), rec)
+        run[b], records[b], kin_slot[b], cur_nsub[b] = -1, None, None, 0
+        return out
+
+    while True:
+        # refill empty slots from the queue (one device reset for all of them)
+        empty = [b for b in range(B) if run[b] < 0]
+        new = [(b, queue.pop()) for b in empty[:len(queue)]]
+        done: list[tuple[int, RunRecord]] = []
+        if new:
+            slots = np.array([b for b, _ in new])
+            idx = np.array([i for _, i in new])
+            backend.load_slots(slots, table_all[idx], fric_all[idx])
+            init_stats = backend.frame_stats(lo, hi) if n_settle == 0 else None
+            for b, i in new:
+                run[b], step[b], started[b] = i, 0, time.perf_counter()
+                records[b] = RunRecord(dt=float(dt_all[i]))
+                stats_prev[b] = init_stats[b] if init_stats is not None else 0.0
+                work[b] = imp_acc[b] = w_acc[b] = last_force[b] = 0.0
+                if n_settle == 0:
+                    record([b], {b: 0}, {b: True})
+                reason = begin_frame(b) if frames + n_settle > 0 else None
+                if reason:
+                    records[b].failure = reason
+                if reason or frames + n_settle == 0:
+                    done.append(finish(b))
+        yield from done
+        active = run >= 0
+        if not active.any():
+            if queue:
+                continue   # every new run failed at once: refill again
+            return
+        rem = np.where(active, cur_nsub - off, 0)
+        K = int(max(rem[active].min(), min(int(min_chunk), rem.max())))
+        n_chunk = np.minimum(rem, K)
+        cap = 1 << max(K - 1, 0).bit_length()
+        kin = np.zeros((B, cap, max(nk, 1), 6))
+        for b in np.flatnonzero(active):
+            kin[b, :n_chunk[b]] = kin_slot[b][off[b]:off[b] + n_chunk[b]]
+        settling = active & (step < n_settle)
+        backend.set_frame(np.where(active, cur_dt, frame_dt), n_chunk, kin, damage_on=~settling,
+                          damping=np.where(settling, o.settle_damping, 0.0))
+        backend.advance(K)
+        counters.useful += int(n_chunk.sum())
+        counters.launched += B * K
+        counters.chunks += 1
+        imp, w = backend.kinematic_sums()
+        imp_acc[:, :nk] += imp
+        w_acc[:, :nk] += w
+        off += n_chunk
+        ended = [int(b) for b in np.flatnonzero(active & (off >= cur_nsub))]
+        if not ended:
+            continue
+        stats = backend.frame_stats(lo, hi)
+        group, frame_of, recorded_of = [], {}, {}
+        for b in ended:
+            rec = records[b]
+            was_settling = step[b] < n_settle
+            frame = -1 - int(step[b]) if was_settling else int(step[b]) - n_settle
+            stats_prev[b] = stats[b]
+            last_force[b] = imp_acc[b] * fps
+            if was_settling:
+                rec.settle_substeps += int(cur_nsub[b])
+            else:
+                work[b] += w_acc[b]
+                rec.substeps += int(cur_nsub[b])
+            reason = frame_failure(stats[b], float(bound_all[run[b]]), frame + 1,
+                                   float(np.sum(imp_acc[b, :nk])) + float(np.sum(w_acc[b, :nk])))
+            imp_acc[b] = w_acc[b] = 0.0
+            if reason:
+                rec.failure = reason
+                done.append(finish(b))
+                continue
+            step[b] += 1
+            if step[b] == n_settle or not was_settling:
+                f = 0 if was_settling else frame + 1
+                group.append(b)
+                frame_of[b] = f
+                recorded_of[b] = was_settling or f % record_every == 0 or f == frames
+        if group:
+            record(group, frame_of, recorded_of)
+        for b in ended:
+            if run[b] < 0:
+                continue
+            if step[b] == n_settle + frames:
+                done.append(finish(b))
+                continue
+            reason = begin_frame(b)
+            if reason:
+                records[b].failure = reason
+                done.append(finish(b))
+        yield from done
+
+
+__all__ = ["SlotCounters", "stream_runs"]
