@@ -101,6 +101,24 @@ class Simulator(Plugin):
         """The name of the feature extractor that fits this simulator's trajectories, if any."""
         return None
 
+    #: True when :meth:`simulate_stream` keeps the device busy across the whole stream (continuous
+    #: batching: a finished run's slot takes the next row at once); executors then hand it all their rows.
+    native_stream: ClassVar[bool] = False
+
+    def simulate_stream(self, params: np.ndarray, batch_size: int | None = None
+                        ) -> Iterator[tuple[int, SimulationResult]]:
+        """Yield ``(i, result)`` for each row ``i`` of ``params`` (n, d) as it finishes, in any order.
+
+        Optional: a simulator with a warm device engine overrides it (and sets :attr:`native_stream`) to
+        keep ``batch_size`` runs in flight and start the next row as soon as one ends. This default
+        calls :meth:`simulate` on consecutive chunks of ``batch_size`` rows (all rows if None).
+        """
+        params = np.atleast_2d(np.asarray(params, dtype=np.float64))
+        step = max(1, int(batch_size or len(params) or 1))
+        for start in range(0, len(params), step):
+            for j, res in enumerate(self.simulate(params[start:start + step])):
+                yield start + j, res
+
     def describe(self) -> dict[str, Any]:
         """Provenance recorded with datasets (name, version, config)."""
         return {"simulator": self.name, "version": self.version, "config": self.config.model_dump()}

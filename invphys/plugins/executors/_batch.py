@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -91,10 +92,37 @@ def simulate_batch(simulator: Any, extractor: Any, params: np.ndarray,
     return results
 
 
+def stream_rows(simulator: Any, extractor: Any, params: np.ndarray, batch_size: int | None = None,
+                isolate_failures: bool = True) -> Iterator[tuple[int, SimulationResult]]:
+    """Yield ``(row, result)`` through :meth:`Simulator.simulate_stream` (continuous batching on a warm
+    simulator), features extracted and trajectories dropped as runs finish. If the stream raises
+    (other than an :class:`InvphysError`), the rows it has not returned go through
+    :func:`simulate_batch` instead, so one bad row fails alone as on the batch path."""
+    params = np.atleast_2d(np.asarray(params, dtype=np.float64))
+    seen: set[int] = set()
+    try:
+        for i, res in simulator.simulate_stream(params, batch_size):
+            _finish(res, extractor)
+            seen.add(int(i))
+            yield int(i), res
+    except InvphysError:
+        raise
+    except Exception:
+        rest = np.array([i for i in range(len(params)) if i not in seen], dtype=np.int64)
+        if len(rest):
+            yield from zip(rest.tolist(), simulate_batch(simulator, extractor, params[rest], isolate_failures),
+                           strict=True)
+
+
 def run_batch(simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None, params: np.ndarray,
               isolate_failures: bool = True) -> list[SimulationResult]:
     """Build (or reuse) the plugins and simulate one batch: the function workers execute."""
     simulator, extractor = build_plugins(simulator_spec, extractor_spec)
+    if getattr(simulator, "native_stream", False):   # continuous batching inside the task
+        out: list[SimulationResult | None] = [None] * len(np.atleast_2d(params))
+        for i, res in stream_rows(simulator, extractor, params, None, isolate_failures):
+            out[i] = res
+        return [r for r in out if r is not None]
     return simulate_batch(simulator, extractor, params, isolate_failures)
 
 

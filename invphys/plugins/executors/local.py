@@ -10,7 +10,7 @@ from pydantic import Field
 
 from invphys.core.interfaces import Executor, PluginConfig
 from invphys.core.results import SimulationResult
-from invphys.plugins.executors._batch import batches, build_plugins, simulate_batch
+from invphys.plugins.executors._batch import batches, build_plugins, simulate_batch, stream_rows
 
 
 class LocalExecutor(Executor):
@@ -25,9 +25,14 @@ class LocalExecutor(Executor):
 
     def run(self, simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None,
             params: np.ndarray, batch_size: int) -> Iterator[tuple[int, SimulationResult]]:
-        """Yield ``(row_index, result)`` batch by batch, in row order."""
+        """Yield ``(row_index, result)`` batch by batch, in row order; for a simulator with
+        ``native_stream`` (continuous batching), every row in one stream, in completion order."""
         simulator, extractor = build_plugins(simulator_spec, extractor_spec)
         params = np.atleast_2d(np.asarray(params, dtype=np.float64))
+        if getattr(simulator, "native_stream", False):
+            # one stream over every row: the simulator keeps its slots full across batch boundaries
+            yield from stream_rows(simulator, extractor, params, None, self.config.isolate_failures)
+            return
         for idx in batches(len(params), batch_size):
             results = simulate_batch(simulator, extractor, params[idx], self.config.isolate_failures)
             yield from zip(idx.tolist(), results, strict=True)
