@@ -27,11 +27,13 @@ import numpy as np
 PAPER_S_PER_RUN = 156.0
 
 
-def bare_mpm_rate(n_particles: int, grid: int, batch: int, steps: int) -> dict:
+def bare_mpm_rate(n_particles: int, grid: int, batch: int, steps: int, arch: str) -> dict:
     """Particle-substeps/s of a plain batched elastic MLS-MPM (fixed-corotated, APIC, gravity, walls) in
     Taichi: no damage, no colliders, no grips; ``batch`` boxes of ``n_particles`` on ``grid``^3."""
     import taichi as ti
+    from invphys_anisompm.backends.taichi_backend import ensure_taichi
 
+    ensure_taichi(arch)
     vec3, mat3 = ti.math.vec3, ti.math.mat3
     dx = 1.0 / grid
     side = round(n_particles ** (1 / 3))
@@ -175,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
         model = model_for(scene, params)
         sim = CheeseCutSimulator(preset=base.name)
         if a.reference_steps and time.perf_counter() - t_start < a.deadline_s:
-            ref = bare_mpm_rate(scene.n_particles, preset.grid, a.batch, a.reference_steps)
+            ref = bare_mpm_rate(scene.n_particles, preset.grid, a.batch, a.reference_steps, a.arch)
             ref["scene"] = scene_name
             out["reference"].append(ref)
             print(json.dumps(ref, default=float), flush=True)
