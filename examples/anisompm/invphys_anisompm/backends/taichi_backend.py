@@ -440,6 +440,7 @@ class TaichiBackend:
         self._mat_host = np.zeros((B, len(scene.bodies), N_MAT), np.float32)
         self._fric_host = np.zeros((B, NC1), np.float32)
         self._gather_bufs: dict[int, tuple] = {}
+        self._slot_mask = ti.ndarray(ti.i32, (B,))
 
     @staticmethod
     def _const(dtype, values: np.ndarray, shape: tuple | None = None):
@@ -508,9 +509,8 @@ class TaichiBackend:
         self.fric.from_numpy(self._fric_host)
         mask = np.zeros(self.batch, np.int32)
         mask[slots] = 1
-        m = ti.ndarray(ti.i32, (self.batch,))
-        m.from_numpy(mask)
-        self._reset(m, self.x0, self.x, self.v, self.C, self.F, self.d, self.dtil)
+        self._slot_mask.from_numpy(mask)
+        self._reset(self._slot_mask, self.x0, self.x, self.v, self.C, self.F, self.d, self.dtil)
 
     def read_slots(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Positions (n, N, 3) and damage (n, N) of runs ``slots`` only (a device gather, then one copy)."""
