@@ -52,3 +52,27 @@ def test_local_executor_streams_a_continuous_cheese_simulator() -> None:
             np.testing.assert_allclose(a.features, b.features, rtol=1e-4, atol=1e-6)
     assert config_hash(sim.config, sim.identity_ignores) == config_hash(
         build_plugins({**base, "scheduling": "lockstep"}, feats)[0].config, sim.identity_ignores)
+
+
+def test_process_executor_gives_each_worker_one_gpu(monkeypatch) -> None:
+    import multiprocessing
+    import os
+
+    from invphys.plugins.executors import ProcessExecutor
+    from invphys.plugins.executors.process import _init_worker, _terminate
+
+    counter = multiprocessing.get_context("spawn").Value("i", 0)
+    seen = []
+    for _ in range(3):
+        monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+        _init_worker({}, [3, 5], counter)
+        seen.append(os.environ["CUDA_VISIBLE_DEVICES"])
+    assert seen == ["3", "5", "3"]
+    ex = ProcessExecutor(gpus=[3, 5])
+    assert ex.workers == 2
+    pool = ex._pool()
+    try:
+        got = {pool.submit(os.getenv, "CUDA_VISIBLE_DEVICES").result(timeout=120) for _ in range(4)}
+    finally:
+        _terminate(pool)
+    assert got and got <= {"3", "5"}

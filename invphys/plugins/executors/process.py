@@ -15,8 +15,13 @@ from invphys.core.results import SimulationResult
 from invphys.plugins.executors._batch import batches, build_plugins, failed_result, run_batch
 
 
-def _init_worker(env: dict[str, str]) -> None:
+def _init_worker(env: dict[str, str], gpus: list[int] | None = None, counter: object = None) -> None:
     os.environ.update(env)
+    if gpus:
+        with counter.get_lock():  # type: ignore[attr-defined]
+            k = counter.value  # type: ignore[attr-defined]
+            counter.value += 1  # type: ignore[attr-defined]
+        os.environ["CUDA_VISIBLE_DEVICES"] = str(gpus[k % len(gpus)])
 
 
 class ProcessExecutor(Executor):
@@ -28,6 +33,10 @@ class ProcessExecutor(Executor):
     A worker process that dies (segfault, out of memory) breaks the pool: the pool is restarted and
     the batches it held are re-run one at a time (then row by row), so only the rows that kill a
     worker are stored as failed ("worker process died").
+
+    With ``gpus`` each worker sees one GPU (``CUDA_VISIBLE_DEVICES``) and keeps its warm simulator for
+    every batch it runs: several GPUs of one machine without Ray. A restarted pool numbers its workers
+    afresh.
     """
 
     name = "process"
@@ -42,6 +51,9 @@ class ProcessExecutor(Executor):
             None, ge=1, description="replace a worker after this many batches (bounds leaks)")
         isolate_failures: bool = Field(
             True, description="when a batch raises, re-run its rows one by one so only the bad row fails")
+        gpus: list[int] | None = Field(
+            None, description="one worker per GPU: worker k sees only GPU gpus[k] (CUDA_VISIBLE_DEVICES); "
+                              "workers defaults to len(gpus)")
 
     def _pool(self) -> Any:
         import multiprocessing
@@ -52,13 +64,16 @@ class ProcessExecutor(Executor):
             t = str(self.config.threads_per_worker)
             env = {"OMP_NUM_THREADS": t, "MKL_NUM_THREADS": t, "OPENBLAS_NUM_THREADS": t,
                    "TI_CPU_MAX_NUM_THREADS": t}
-        return ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=_init_worker, initargs=(env,),
+        ctx = multiprocessing.get_context("spawn")
+        gpus = self.config.gpus
+        counter = ctx.Value("i", 0) if gpus else None
+        return ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx,
+                                   initializer=_init_worker, initargs=(env, gpus, counter),
                                    max_tasks_per_child=self.config.max_tasks_per_child)
 
     @property
     def workers(self) -> int:
-        return self.config.workers or os.cpu_count() or 1
+        return self.config.workers or (len(self.config.gpus) if self.config.gpus else None) or os.cpu_count() or 1
 
     def run(self, simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None,
             params: np.ndarray, batch_size: int) -> Iterator[tuple[int, SimulationResult]]:
