@@ -149,7 +149,7 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
             slots = np.array([b for b, _ in new])
             idx = np.array([i for _, i in new])
             backend.load_slots(slots, table_all[idx], fric_all[idx])
-            init_stats = backend.frame_stats(lo, hi) if n_settle == 0 else None
+            init_stats = backend.frame_stats(lo, hi, slots) if n_settle == 0 else None
             for b, i in new:
                 run[b], step[b], started[b] = i, 0, time.perf_counter()
                 records[b] = RunRecord(dt=float(dt_all[i]))
@@ -189,7 +189,7 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
         ended = [int(b) for b in np.flatnonzero(active & (off >= cur_nsub))]
         if not ended:
             continue
-        stats = backend.frame_stats(lo, hi)
+        stats = backend.frame_stats(lo, hi, np.array(ended))
         group, frame_of, recorded_of = [], {}, {}
         for b in ended:
             rec = records[b]

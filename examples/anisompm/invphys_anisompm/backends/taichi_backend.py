@@ -334,9 +334,12 @@ def _build_kernels(serial_p2g: bool):
                     x[b, p] += h * new_v
 
     @ti.kernel
-    def frame_stats(lo: ti.f32, hi: ti.f32, mat: ND(ti.f32, 3), body: ND(ti.i32, 1), vol: ND(ti.f32, 1),
-                    x: ND(vec3, 2), v: ND(vec3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2), out: ND(ti.f32, 2)):
+    def frame_stats(lo: ti.f32, hi: ti.f32, mask: ND(ti.i32, 1), mat: ND(ti.f32, 3), body: ND(ti.i32, 1),
+                    vol: ND(ti.f32, 1), x: ND(vec3, 2), v: ND(vec3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2),
+                    out: ND(ti.f32, 2)):
         for b, p in x:
+            if mask[b] == 0:
+                continue
             xp = x[b, p]
             vp = v[b, p]
             dp = d[b, p]
@@ -441,6 +444,7 @@ class TaichiBackend:
         self._fric_host = np.zeros((B, NC1), np.float32)
         self._gather_bufs: dict[int, tuple] = {}
         self._slot_mask = ti.ndarray(ti.i32, (B,))
+        self._stats_mask = ti.ndarray(ti.i32, (B,))
 
     @staticmethod
     def _const(dtype, values: np.ndarray, shape: tuple | None = None):
@@ -523,10 +527,16 @@ class TaichiBackend:
         self._gather(idx, self.x, self.d, xo, do)
         return xo.to_numpy(), do.to_numpy()
 
-    def frame_stats(self, lo: float, hi: float) -> np.ndarray:
-        """(B, n_stats) statistics of the current state (columns: :mod:`invphys_anisompm.failure`)."""
+    def frame_stats(self, lo: float, hi: float, slots: np.ndarray | None = None) -> np.ndarray:
+        """(B, n_stats) statistics of the current state (columns: :mod:`invphys_anisompm.failure`); with
+        ``slots``, only those runs' rows are computed (the others are zero)."""
+        mask = np.ones(self.batch, np.int32)
+        if slots is not None:
+            mask[:] = 0
+            mask[np.asarray(slots, np.int64)] = 1
+        self._stats_mask.from_numpy(mask)
         self.stats_out.fill(0.0)
-        self._stats(lo, hi, self.mat, self.body, self.vol, self.x, self.v, self.F, self.d, self.stats_out)
+        self._stats(lo, hi, self._stats_mask, self.mat, self.body, self.vol, self.x, self.v, self.F, self.d, self.stats_out)
         return self.stats_out.to_numpy().astype(np.float64)
 
     def kinematic_sums(self) -> tuple[np.ndarray, np.ndarray]:

@@ -366,11 +366,14 @@ def next_substep_kernel(kstep: wp.array(dtype=wp.int32)):
 
 
 @wp.kernel
-def frame_stats_kernel(lo: float, hi: float, mat: wp.array3d(dtype=wp.float32), body: wp.array(dtype=wp.int32),
+def frame_stats_kernel(lo: float, hi: float, mask: wp.array(dtype=wp.int32), mat: wp.array3d(dtype=wp.float32),
+                       body: wp.array(dtype=wp.int32),
                        vol: wp.array(dtype=wp.float32), x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
                        F: wp.array2d(dtype=wp.mat33), d: wp.array2d(dtype=wp.float32),
                        out: wp.array2d(dtype=wp.float32)):
     b, p = wp.tid()
+    if mask[b] == 0:
+        return
     xp = x[b, p]
     vp = v[b, p]
     dp = d[b, p]
@@ -464,6 +467,7 @@ class WarpBackend:
         self._mat_host = np.zeros((B, len(scene.bodies), N_MAT), np.float32)
         self._fric_host = np.zeros((B, NC1), np.float32)
         self._slot_mask = wp.zeros(B, dtype=wp.int32, device=self.wp_device)
+        self._stats_mask = wp.zeros(B, dtype=wp.int32, device=self.wp_device)
         self._gather_bufs: dict[int, tuple] = {}
         self._x_init = np.ascontiguousarray(np.broadcast_to(scene.positions.astype(np.float32), (B, N, 3)))
         self._F_init = np.ascontiguousarray(np.broadcast_to(np.eye(3, dtype=np.float32), (B, N, 3, 3)))
@@ -576,10 +580,16 @@ class WarpBackend:
         wp.launch(gather_kernel, dim=(n, N), device=self.wp_device, inputs=[idx, self.x, self.d, xo, do])
         return xo.numpy(), do.numpy()
 
-    def frame_stats(self, lo: float, hi: float) -> np.ndarray:
+    def frame_stats(self, lo: float, hi: float, slots: np.ndarray | None = None) -> np.ndarray:
+        """(B, n_stats) statistics of the current state; with ``slots``, only those runs' rows."""
+        mask = np.ones(self.batch, np.int32)
+        if slots is not None:
+            mask[:] = 0
+            mask[np.asarray(slots, np.int64)] = 1
+        self._stats_mask.assign(mask)
         self.stats_out.zero_()
         wp.launch(frame_stats_kernel, dim=(self.batch, self.scene.n_particles), device=self.wp_device,
-                  inputs=[float(lo), float(hi), self.mat, self.body, self.vol, self.x, self.v, self.F, self.d,
+                  inputs=[float(lo), float(hi), self._stats_mask, self.mat, self.body, self.vol, self.x, self.v, self.F, self.d,
                           self.stats_out])
         return self.stats_out.numpy().astype(np.float64)
 
