@@ -13,55 +13,17 @@ import pytest
 
 pytest.importorskip("taichi")
 
-from invphys_anisompm import (
-    Box,
-    Cylinder,
-    Engine,
-    EngineOptions,
-    HalfSpace,
-    MaterialSpec,
-    SceneBuilder,
-    linear_cut,
-)
+from anisompm_scene import DX, FLOOR, build_scene, has_warp
+from invphys_anisompm import Box, Engine, EngineOptions, HalfSpace, MaterialSpec, SceneBuilder
 
-DX = 0.008
-FLOOR = 3 * DX
-
-
-def build(**options):
-    opts = EngineOptions(dx=DX, grid=16, fps=50.0, gravity=-9.81, settle_seconds=0.06, **options)
-    b = SceneBuilder(opts)
-    b.add_body("rind", Box((0.04, FLOOR + 0.032, 0.04), (0.088, FLOOR + 0.04, 0.072)),
-               MaterialSpec(E=8e4, nu=0.3, rho=1000.0, fracture_stretch=0.1, eta=0.02, fibre_ratio=3.0,
-                            fibre_alpha=-1.0),
-               fibres=lambda p: np.tile([1.0, 0.0, 0.0], (len(p), 1)))
-    b.add_body("paste", Box((0.04, FLOOR, 0.04), (0.088, FLOOR + 0.04, 0.072)),
-               MaterialSpec(E=3e4, nu=0.3, rho=1100.0, fracture_stretch=0.08, eta=0.02))
-    b.add_collider("board", HalfSpace((0, FLOOR, 0), (0, 1, 0)), surface="sticky")
-    b.add_collider("wire", Cylinder((0.064, FLOOR + 0.05, 0.056), 0.006, axis=2, half_length=0.1),
-                   friction=0.3, path=linear_cut((0, -1, 0), 0.035, 0.25, t_start=0.02))
-    b.add_grip("tab", Box((0.04, FLOOR + 0.016, 0.04), (0.045, FLOOR + 0.04, 0.072)),
-               linear_cut((-1, 0, 0), 0.01, 0.1), bodies=("paste",))
-    b.hold(Box((0.08, 0.0, 0.0), (0.2, FLOOR + 0.012, 0.2)))
-    return b.build()
-
-
-SCENE = build()
+SCENE = build_scene(settle_seconds=0.06)
 MODEL = SCENE.model(2).set_material("paste", E=[3e4, 6e4], eta=[0.02, 0.05]).set_friction("wire", [0.3, 0.0])
 
 
 @pytest.fixture(scope="module")
 def runs() -> dict:
     return {be: Engine(SCENE, backend=be, arch="cpu").run(MODEL, frames=10, record_every=5)
-            for be in ("taichi", "warp") if be == "taichi" or _has_warp()}
-
-
-def _has_warp() -> bool:
-    try:
-        import warp  # noqa: F401
-    except ImportError:
-        return False
-    return True
+            for be in ("taichi", "warp") if be == "taichi" or has_warp()}
 
 
 def test_taichi_and_warp_agree_on_cpu(runs) -> None:
@@ -119,7 +81,7 @@ def test_blow_up_is_a_failure_not_data() -> None:
     scene = dataclasses.replace(SCENE, options=dataclasses.replace(SCENE.options, cfl=10.0, velocity_cfl=10.0,
                                                                    min_substeps_per_frame=1))
     model = scene.model(1).set_material("paste", E=[5e6]).set_material("rind", E=[5e6])
-    for be in ("taichi", "warp") if _has_warp() else ("taichi",):
+    for be in ("taichi", "warp") if has_warp() else ("taichi",):
         rec = Engine(scene, backend=be, arch="cpu").run(model, frames=6, record_every=3)[0]
         assert not rec.ok and rec.positions == []
         assert rec.failure.split(":")[0] in {"nan", "domain", "energy", "dt"}, rec.failure

@@ -12,53 +12,20 @@ import pytest
 
 pytest.importorskip("taichi")
 
-from invphys_anisompm import (
-    Box,
-    Cylinder,
-    Engine,
-    EngineOptions,
-    HalfSpace,
-    MaterialSpec,
-    SceneBuilder,
-    linear_cut,
-)
+from anisompm_scene import build_scene, has_warp
+from invphys_anisompm import Engine
 
-DX = 0.008
-FLOOR = 3 * DX
 FRAMES = 6
 
-
-def build():
-    opts = EngineOptions(dx=DX, grid=16, fps=50.0, gravity=-9.81, settle_seconds=0.04)
-    b = SceneBuilder(opts)
-    b.add_body("rind", Box((0.04, FLOOR + 0.032, 0.04), (0.088, FLOOR + 0.04, 0.072)),
-               MaterialSpec(E=8e4, nu=0.3, rho=1000.0, fracture_stretch=0.1, eta=0.02, fibre_ratio=3.0,
-                            fibre_alpha=-1.0),
-               fibres=lambda p: np.tile([1.0, 0.0, 0.0], (len(p), 1)))
-    b.add_body("paste", Box((0.04, FLOOR, 0.04), (0.088, FLOOR + 0.04, 0.072)),
-               MaterialSpec(E=3e4, nu=0.3, rho=1100.0, fracture_stretch=0.08, eta=0.02))
-    b.add_collider("board", HalfSpace((0, FLOOR, 0), (0, 1, 0)), surface="sticky")
-    b.add_collider("wire", Cylinder((0.064, FLOOR + 0.05, 0.056), 0.006, axis=2, half_length=0.1),
-                   friction=0.3, path=linear_cut((0, -1, 0), 0.035, 0.25, t_start=0.02))
-    b.add_grip("tab", Box((0.04, FLOOR + 0.016, 0.04), (0.045, FLOOR + 0.04, 0.072)),
-               linear_cut((-1, 0, 0), 0.01, 0.1), bodies=("paste",))
-    b.hold(Box((0.08, 0.0, 0.0), (0.2, FLOOR + 0.012, 0.2)))
-    b.add_reduction("low_damage", lambda x, d, scene: (d < 0.5).mean(axis=1))
-    return b.build()
-
-
-SCENE = build()
+SCENE = build_scene(settle_seconds=0.04,
+                    reductions={"low_damage": lambda x, d, scene: (d < 0.5).mean(axis=1)})
 E = [3e4, 2e5, 6e4, 9e5, 1e5]
 MODEL = SCENE.model(len(E)).set_material("paste", E=E, eta=[0.02, 0.05, 0.01, 0.03, 0.02]) \
     .set_friction("wire", [0.3, 0.0, 0.1, 0.2, 0.3])
 
 
 def _backends() -> list[str]:
-    try:
-        import warp  # noqa: F401
-    except ImportError:
-        return ["taichi"]
-    return ["taichi", "warp"]
+    return ["taichi", "warp"] if has_warp() else ["taichi"]
 
 
 @pytest.mark.parametrize("backend", _backends())
