@@ -56,6 +56,12 @@ ReportFormat = Literal["md", "csv", "json"]
 REPORT_FORMATS: tuple[ReportFormat, ...] = ("md", "csv", "json")
 
 
+#: settings added after runs were cached: at these defaults they leave stage keys as they were
+KEY_NEUTRAL_DEFAULTS: dict[str, dict[str, Any]] = {
+    "dataset": {"extra_train": [], "early_stopping": "held_out"},
+}
+
+
 class _Section(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -70,6 +76,13 @@ class DatasetSection(_Section):
     if_missing: Literal["error", "generate"] = Field(
         "error", description="when `path` does not exist: fail, or generate `n` runs into the run directory")
     test_fraction: float = Field(0.2, gt=0, lt=1, description="held-out fraction (paper: 0.2)")
+    extra_train: list[str] = Field(
+        default_factory=list, description="more stores of the same simulator whose rows join the TRAINING split "
+                                          "only (held-out rows and targets stay the primary store's)")
+    early_stopping: Literal["held_out", "training_carve"] = Field(
+        "held_out", description="rows models early-stop on: held_out (the paper's 80/20; flatters held-out "
+                                "metrics a little) or training_carve (each model carves its own validation "
+                                "rows from the training split; held-out metrics are unbiased)")
     seed: int | None = Field(None, ge=0, le=MAX_SEED, description="sampling seed (defaults to the spec's seed)")
     limit_minutes: float | None = Field(None, gt=0, description="stop generating after this long (resumable)")
 
@@ -300,6 +313,12 @@ class ExperimentSpec(_Section):
     def section_dump(self, names: Iterable[str]) -> dict[str, Any]:
         """A JSON-able dump of the named sections (for stage fingerprints)."""
         data = self.model_dump(mode="json", by_alias=True)
+        for section, fields in KEY_NEUTRAL_DEFAULTS.items():  # added later: at their defaults, keys unchanged
+            block = data.get(section)
+            if isinstance(block, dict):
+                for name, default in fields.items():
+                    if block.get(name) == default:
+                        block.pop(name)
         return {n: data.get(n) for n in names}
 
 
@@ -471,6 +490,8 @@ def _dataset_problems(spec: ExperimentSpec) -> list[tuple[tuple[str, ...], str]]
             return [(("dataset", "path"), f"{ds.path!r} is not an invphys dataset (no _metadata.json)")]
         elif not p.exists() and ds.if_missing == "error":
             return [(("dataset", "path"), f"no dataset at {ds.path!r} (set `if_missing: generate` to create it)")]
+    if ds.extra_train:
+        problems += _extra_store_problems(ds.path, ds.extra_train)
     stages = spec.stages or []
     tg = spec.targets
     explicit = "n" in tg.model_fields_set and getattr(tg, "values", None) is None and getattr(tg, "file", None) is None
@@ -482,6 +503,23 @@ def _dataset_problems(spec: ExperimentSpec) -> list[tuple[tuple[str, ...], str]]
     if "validate_n" in tg.model_fields_set and "n" in tg.model_fields_set and tg.validate_n > tg.n:
         problems.append((("targets", "validate"), f"{tg.validate_n} targets to validate, but targets.n is {tg.n}"))
     return problems
+
+
+def _extra_store_problems(primary: str | None, extras: list[str]) -> list[tuple[tuple[str, ...], str]]:
+    """``dataset.extra_train``: each store readable and of the primary store's problem."""
+    from invphys.core.dataset_union import check_extra_stores
+
+    for i, extra in enumerate(extras):
+        broken = _store_problem(Path(extra)) if Path(extra).is_dir() else f"no dataset at {extra!r}"
+        if broken:
+            return [(("dataset", "extra_train", str(i)), broken)]
+    if primary is None or not (Path(primary) / "_metadata.json").is_file():
+        return [(("dataset", "extra_train"), "needs dataset.path: an existing primary store to join")]
+    try:
+        check_extra_stores(Path(primary), extras)
+    except InvphysError as exc:
+        return [(("dataset", "extra_train"), str(exc).removeprefix("dataset.extra_train: "))]
+    return []
 
 
 def _store_problem(path: Path) -> str | None:

@@ -86,23 +86,45 @@ class StageContext:
         return path is not None and self.dataset_path() == Path(path)
 
     def dataset(self) -> Any:
-        """The dataset's arrays (``DatasetArrays``): the dataset stage's store, or ``dataset.path``."""
+        """The dataset's arrays (``DatasetArrays``): the dataset stage's store, or ``dataset.path``,
+        followed by the rows of ``dataset.extra_train`` (see :meth:`split`)."""
         if "dataset" not in self._cache:
             from invphys.core.dataset import DatasetStore
+            from invphys.core.dataset_union import check_extra_stores, join_for_training
 
             path = self.dataset_path()
             if not path.exists():
                 raise InvphysError(f"no dataset at {path}: run the 'dataset' stage or set dataset.path")
-            self._cache["dataset"] = DatasetStore(path).arrays(ok_only=True)
+            primary = DatasetStore(path).arrays(ok_only=True)
+            extras = self.spec.dataset.extra_train
+            if extras:
+                check_extra_stores(path, extras)
+            self._cache["dataset_primary_rows"] = len(primary)
+            self._cache["dataset"] = join_for_training(primary, [DatasetStore(e).arrays(ok_only=True)
+                                                                 for e in extras])
         return self._cache["dataset"]
 
     def split(self) -> tuple[np.ndarray, np.ndarray]:
-        """(train_idx, test_idx) of the dataset's ok rows, deterministic by seed and test_fraction."""
-        n = len(self.dataset().theta)
+        """(train_idx, test_idx) of the dataset's ok rows, deterministic by seed and test_fraction.
+
+        The split is drawn over the primary store's rows only; rows of ``dataset.extra_train`` stores
+        (after them in :meth:`dataset`) all join the training split.
+        """
+        n_all = len(self.dataset().theta)
+        n = self._cache["dataset_primary_rows"]
         rng = np.random.default_rng(self.spec.seed)
         perm = rng.permutation(n)
         n_test = max(1, round(n * self.spec.dataset.test_fraction))
-        return np.sort(perm[n_test:]), np.sort(perm[:n_test])
+        train = np.concatenate([np.sort(perm[n_test:]), np.arange(n, n_all)])
+        return train, np.sort(perm[:n_test])
+
+    def data_fingerprint(self) -> str:
+        """The content fingerprint of the data the stages read: the store's, plus each extra store's."""
+        from invphys.pipeline.cache import data_fingerprint
+
+        own = data_fingerprint(self.dataset_path())
+        extras = [data_fingerprint(Path(e)) for e in self.spec.dataset.extra_train]
+        return "+".join([own, *extras])
 
     def scales(self) -> np.ndarray:
         """The paper's per-feature scales s_k = p95 - p5 over the training split."""

@@ -108,7 +108,7 @@ def _run_stages(spec: ExperimentSpec, out: Path, selected: list[str], force: Seq
         done_path = out / stage / DONE_FILE
         done = cache.read_done(done_path)
         components = {"spec": cache.digest(inputs), "plugins": cache.plugin_versions(spec, sections, reg),
-                      "data": cache.data_fingerprint(ctx.dataset_path()) if stage in cache.DATA_STAGES else "",
+                      "data": ctx.data_fingerprint() if stage in cache.DATA_STAGES else "",
                       "upstream": cache.digest(upstream)}
         fp = cache.digest({"components": components, "stage": stage})
         upstream = {**upstream, stage: [fp, (done or {}).get("run_id") if (done or {}).get("fingerprint") == fp
@@ -132,7 +132,7 @@ def _run_stages(spec: ExperimentSpec, out: Path, selected: list[str], force: Seq
         summary = {**summary, "wall_time_s": round(time.perf_counter() - t0, 3)}
         write_json(out / stage / SUMMARY_FILE, summary)
         if stage == "dataset":  # the key records the data as made (a re-run then finds it unchanged)
-            components["data"] = cache.data_fingerprint(ctx.dataset_path())
+            components["data"] = ctx.data_fingerprint()
             fp = cache.digest({"components": components, "stage": stage})
         run_id = uuid.uuid4().hex[:12]
         write_json(done_path, {"fingerprint": fp, "components": components, "run_id": run_id,

@@ -9,8 +9,9 @@ Writes, under ``OUT/train/``:
 and the run's inverter bundle ``OUT/inverter/`` (surrogate, latent models, configured optimisers; the
 invert stage adds the trained policies), see :mod:`invphys.inverter.writer`.
 
-The held-out test split is the validation set of every model (early stopping and metrics), as in the
-paper's 80/20 protocol. :func:`train_models` is the same work without a runner context.
+By default the held-out test split is also the validation set of every model (early stopping), as in
+the paper's 80/20 protocol; ``dataset.early_stopping: training_carve`` makes each model carve its own
+validation rows from the training split instead, so the held-out metrics are unbiased. :func:`train_models` is the same work without a runner context.
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ def run(ctx: StageContext) -> dict[str, Any]:
         out=ctx.stage_dir, registry=ctx.registry, seed=ctx.seed, progress=ctx.progress,
         feature_names=list(data.feature_names), param_names=list(data.param_names),
         dataset_fingerprint=data.fingerprint, log=ctx.log, tracker=ctx.tracker.scoped("train"),
+        early_stop_on_held_out=spec.dataset.early_stopping == "held_out",
     )
     summary["inverter"] = write_inverter(ctx, with_policies=False)
     return summary
@@ -64,12 +66,15 @@ def train_models(theta: np.ndarray, y: np.ndarray, train_idx: np.ndarray, test_i
                  surrogate: dict[str, Any] | None, latent_models: dict[str, dict[str, Any]], out: str | Path,
                  registry: Any = None, seed: int = 0, progress: bool = False,
                  feature_names: list[str] | None = None, param_names: list[str] | None = None,
-                 dataset_fingerprint: str | None = None, log: Any = None, tracker: Any = None) -> dict[str, Any]:
+                 dataset_fingerprint: str | None = None, log: Any = None, tracker: Any = None,
+                 early_stop_on_held_out: bool = True) -> dict[str, Any]:
     """Fit, evaluate on ``test_idx`` and save the surrogate and each latent model under ``out``.
 
     ``surrogate`` and each ``latent_models`` value are plugin blocks ``{"type": name, **config}``; a
     block without ``seed`` gets ``seed``. Returns the summary (also written as ``metrics.json``).
     ``tracker`` receives the per-epoch curves under ``surrogate/`` and ``latent_models/<label>/``.
+    ``early_stop_on_held_out=False``: the models never see the ``test_idx`` rows while fitting (each
+    carves its own validation rows from ``train_idx``).
     """
     from invphys import registry as registry_module
     from invphys.models.data import r2_scores
@@ -87,17 +92,18 @@ def train_models(theta: np.ndarray, y: np.ndarray, train_idx: np.ndarray, test_i
     pnames = list(param_names) if param_names else [f"theta{j}" for j in range(theta.shape[1])]
     tt, yt, tv, yv = theta[train_idx], y[train_idx], theta[test_idx], y[test_idx]
     info = {"feature_names": fnames, "param_names": pnames, "dataset_fingerprint": dataset_fingerprint,
-            "n_train": len(train_idx), "n_test": len(test_idx)}
+            "n_train": len(train_idx), "n_test": len(test_idx),
+            "early_stopping": "held_out" if early_stop_on_held_out else "training_carve"}
     say = log or (lambda message: None)
     summary: dict[str, Any] = {"n_train": len(train_idx), "n_test": len(test_idx),
                                "dataset_fingerprint": dataset_fingerprint, "feature_names": fnames,
-                               "surrogate": None, "latent_models": {}}
+                               "early_stopping": info["early_stopping"], "surrogate": None, "latent_models": {}}
     sur = None
     if surrogate is not None:
         sur = _create(reg, "surrogate", surrogate, seed, "surrogate")
         sur.info = {**getattr(sur, "info", {}), **info}
         say(f"training surrogate {sur.name!r} on {len(tt)} rows")
-        _fit(sur, tt, yt, tv, yv, progress, _scope(tracker, "surrogate"))
+        _fit(sur, tt, yt, (tv, yv) if early_stop_on_held_out else None, progress, _scope(tracker, "surrogate"))
         pred = sur.predict(tv)
         r2, per = r2_scores(yv, pred)
         _, std = sur.predict_with_uncertainty(tv)
@@ -114,7 +120,8 @@ def train_models(theta: np.ndarray, y: np.ndarray, train_idx: np.ndarray, test_i
         lat = _create(reg, "latent_model", block, seed, f"latent_models.{label}")
         lat.info = {**getattr(lat, "info", {}), **info, "label": label}
         say(f"training latent model {label!r} ({lat.name}) on {len(tt)} rows")
-        _fit(lat, tt, yt, tv, yv, progress, _scope(tracker, f"latent_models/{label}"))
+        _fit(lat, tt, yt, (tv, yv) if early_stop_on_held_out else None, progress,
+             _scope(tracker, f"latent_models/{label}"))
         z = lat.encode(tv)
         rec = lat.decode(z)
         entry = {"type": lat.name, "latent_dim": lat.latent_dim, "recon_mse": float(((rec - tv) ** 2).mean()),
@@ -156,13 +163,13 @@ def _create(reg: Any, kind: str, block: dict[str, Any], seed: int, where: str) -
         raise SpecError(problems) from None
 
 
-def _fit(model: Any, tt: np.ndarray, yt: np.ndarray, tv: np.ndarray, yv: np.ndarray, progress: bool,
-         tracker: Any = None) -> None:
-    """Fit with the held-out split as validation set and the tracker, when the plugin's ``fit`` accepts them."""
+def _fit(model: Any, tt: np.ndarray, yt: np.ndarray, validation: tuple[np.ndarray, np.ndarray] | None,
+         progress: bool, tracker: Any = None) -> None:
+    """Fit with ``validation`` (None: the model's own carve) and the tracker, when ``fit`` accepts them."""
     accepted = inspect.signature(model.fit).parameters
     extra: dict[str, Any] = {}
-    if "validation" in accepted:
-        extra["validation"] = (tv, yv)
+    if "validation" in accepted and validation is not None:
+        extra["validation"] = validation
     if "tracker" in accepted and tracker is not None:
         extra["tracker"] = tracker
     model.fit(tt, yt, progress=progress, **extra)
@@ -174,7 +181,10 @@ def _scope(tracker: Any, prefix: str) -> Any:
 
 def metrics_markdown(summary: dict[str, Any]) -> str:
     """The summary as markdown tables: surrogate R^2 per feature, latent-model metrics."""
-    lines = [f"# Training metrics\n\n{summary['n_train']} training rows, {summary['n_test']} held-out rows.\n"]
+    stop = {"held_out": "early stopping on the held-out rows (the paper's protocol)",
+            "training_carve": "early stopping on carves of the training rows"}.get(summary.get("early_stopping", ""), "")
+    lines = [f"# Training metrics\n\n{summary['n_train']} training rows, {summary['n_test']} held-out rows"
+             f"{'; ' + stop if stop else ''}.\n"]
     s = summary.get("surrogate")
     if s:
         lines += [f"## Surrogate `{s['type']}`\n", f"Held-out R²: **{s['r2']:.4f}** (mean over features)\n",

@@ -1,0 +1,117 @@
+"""Training on several stores (``dataset.extra_train``) and early stopping on a training carve.
+
+Real toy-simulator stores made by the dataset stage; real training; the held-out rows must stay the
+primary store's and never reach a model while it fits.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from invphys.core.errors import SpecError
+
+TOY = '{type: "test_dataset_toy:ToyOscillator", substeps: SUB}'
+
+
+def make_store(root, name: str, n: int, seed: int, substeps: int = 1):
+    from invphys.core.spec import parse_spec
+    from invphys.pipeline.runner import run_spec
+
+    spec = parse_spec(f"name: {name}\nseed: {seed}\nstages: [dataset]\n"
+                      f"simulator: {TOY.replace('SUB', str(substeps))}\n"
+                      f"dataset: {{n: {n}, batch_size: 32, sampler: uniform}}\n")
+    run_spec(spec, root / name, progress=False)
+    return root / name / "dataset" / "store"
+
+
+def train_spec(primary, extras=(), early_stopping: str = "held_out") -> str:
+    extra = ", ".join(f'"{e}"' for e in extras)
+    return (f"name: union\nseed: 3\nstages: [dataset, train]\nsimulator: {TOY.replace('SUB', '1')}\n"
+            f'dataset: {{path: "{primary}", extra_train: [{extra}], early_stopping: {early_stopping}}}\n'
+            "surrogate: {type: mlp, max_epochs: 30, patience: 10, hidden: [32, 32, 16], val_fraction: 0.25}\n")
+
+
+@pytest.fixture(scope="module")
+def stores(tmp_path_factory):
+    root = tmp_path_factory.mktemp("stores")
+    return {"a": make_store(root, "a", 80, seed=1), "b": make_store(root, "b", 40, seed=7),
+            "foreign": make_store(root, "foreign", 16, seed=1, substeps=2)}
+
+
+def test_extra_rows_join_training_only_and_the_held_out_split_is_unchanged(stores, tmp_path) -> None:
+    from invphys import registry
+    from invphys.core.dataset import DatasetStore
+    from invphys.core.spec import parse_spec
+    from invphys.pipeline.runner import StageContext, run_spec
+
+    def context(spec_text: str, out):
+        spec = parse_spec(spec_text)
+        return spec, StageContext(spec=spec, out=out, stage="train", registry=registry.default_registry(),
+                                  console=None, progress=False)
+
+    _, alone = context(train_spec(stores["a"]), tmp_path / "alone")
+    spec, joined = context(train_spec(stores["a"], [stores["b"]], "training_carve"), tmp_path / "joined")
+    tr0, te0 = alone.split()
+    tr1, te1 = joined.split()
+    d0, d1 = alone.dataset(), joined.dataset()
+    n_b = len(DatasetStore(stores["b"]).arrays(ok_only=True))  # the toy fails some runs on purpose
+    assert n_b > 20 and len(d1) == len(d0) + n_b and d1.fingerprint != d0.fingerprint
+    assert np.array_equal(d0.keys[te0], d1.keys[te1])  # the same held-out rows (so the same targets)
+    assert set(d1.keys[tr1]) == set(d0.keys[tr0]) | set(d1.keys[len(d0):])
+    assert not set(d1.keys[tr1]) & set(d1.keys[te1])
+
+    s = run_spec(spec, tmp_path / "joined", progress=False)["train"]
+    assert s["n_train"] == len(tr0) + n_b and s["n_test"] == len(te0)
+    assert s["early_stopping"] == "training_carve"
+    metrics = s["surrogate"]["metrics"]
+    assert metrics["n_train"] + metrics["n_val"] == s["n_train"]  # validation rows carved from training rows
+    assert "early stopping on carves of the training rows" in (tmp_path / "joined" / "train" / "metrics.md").read_text()
+
+    held = run_spec(parse_spec(train_spec(stores["a"])), tmp_path / "held", progress=False)["train"]
+    assert held["surrogate"]["metrics"]["n_val"] == held["n_test"]  # the paper's protocol: stops on held-out rows
+
+
+def test_defaults_leave_stage_keys_unchanged(stores) -> None:
+    from invphys.core.spec import parse_spec
+
+    plain = parse_spec(train_spec(stores["a"]).replace(", extra_train: [], early_stopping: held_out", ""))
+    explicit = parse_spec(train_spec(stores["a"]))
+    assert plain.section_dump(["dataset"]) == explicit.section_dump(["dataset"])
+    assert "extra_train" not in plain.section_dump(["dataset"])["dataset"]
+
+
+def test_adding_a_store_re_runs_training(stores, tmp_path) -> None:
+    from invphys.core.spec import parse_spec
+    from invphys.pipeline.runner import run_spec
+
+    out = tmp_path / "run"
+    run_spec(parse_spec(train_spec(stores["a"])), out, progress=False)
+    seen: list[tuple[str, str]] = []
+    run_spec(parse_spec(train_spec(stores["a"], [stores["b"]])), out, progress=False,
+             on_stage=lambda stage, status, _: seen.append((stage, status)))
+    assert ("train", "start") in seen
+
+
+def test_foreign_or_missing_extra_stores_are_refused(stores, tmp_path) -> None:
+    from invphys.core.spec import parse_spec
+
+    with pytest.raises(SpecError, match="config hash"):
+        parse_spec(train_spec(stores["a"], [stores["foreign"]]))
+    with pytest.raises(SpecError, match="no dataset at"):
+        parse_spec(train_spec(stores["a"], [tmp_path / "nothing"]))
+    with pytest.raises(SpecError, match="listed twice"):
+        parse_spec(train_spec(stores["a"], [stores["b"], stores["b"]]))
+
+
+def test_cli_says_one_line_and_exits_2(stores, tmp_path) -> None:
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(train_spec(stores["a"], [stores["foreign"]]))
+    proc = subprocess.run([sys.executable, "-m", "invphys.cli", "validate", str(spec)],
+                          capture_output=True, text=True, cwd=str(tmp_path),
+                          env={**__import__("os").environ, "PYTHONPATH": str(__import__("pathlib").Path(__file__).parent)})
+    assert proc.returncode == 2, proc.stderr
+    assert "extra_train" in proc.stderr and "Traceback" not in proc.stderr
