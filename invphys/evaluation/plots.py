@@ -22,7 +22,7 @@ def plot_protocol(summary: dict[str, dict[str, Any]], path: Path, reference: str
     if not items:
         return None
     items.sort(key=lambda x: x[1]["r_actual_mean"])
-    colours = {"baseline": "tab:orange", "reference": "tab:gray", "method": "tab:green"}
+    colours = {"baseline": "C1", "reference": "tab:gray", "method": "tab:green"}
     key = f"vs_{reference}"
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 0.9 + 0.38 * len(items)), sharey=True)
     ypos = np.arange(len(items))
@@ -37,7 +37,7 @@ def plot_protocol(summary: dict[str, dict[str, Any]], path: Path, reference: str
             ax2.errorbar(d["mean_diff"], y, xerr=[[d["mean_diff"] - dlo], [dhi - d["mean_diff"]]], fmt="o",
                          color="tab:green" if d.get("beats") else c, capsize=3)
     if reference in summary and summary[reference].get("r_actual_mean") is not None:
-        ax1.axvline(summary[reference]["r_actual_mean"], color="tab:orange", ls=":", lw=1)
+        ax1.axvline(summary[reference]["r_actual_mean"], color="C1", ls=":", lw=1)
     ax1.set_yticks(ypos, [f"{lab} (n={s['n_validated']})" for lab, s in items])
     ax1.set_xlabel("mean R_actual (simulator), 95 % bootstrap interval")
     ax1.set_xlim(0, 1.02)
