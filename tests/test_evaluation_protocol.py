@@ -147,3 +147,29 @@ def test_active_learning_rounds_add_simulated_rows_and_keep_the_best_answer(run_
     rep = json.loads((out / "report" / "report.json").read_text())
     assert rep["optimizers"]["active_learning"]["r_actual_mean"] == pytest.approx(best[-1])
     assert len(rep["active_learning"]) == 3 and "Active learning rounds" in (out / "report" / "report.md").read_text()
+
+
+def test_active_learning_with_several_proposals_never_ends_below_its_start(run_dir, tmp_path) -> None:
+    import shutil
+
+    from rich.console import Console
+
+    from invphys.core.spec import parse_spec
+    from invphys.pipeline.runner import run_spec
+
+    out, _ = run_dir
+    copy = tmp_path / "run"
+    shutil.copytree(out, copy)
+    spec = parse_spec(SPEC.replace("active: {rounds: 2,", "active: {proposals: 2, keep_start: true, rounds: 1,"))
+    summary = run_spec(spec, copy, stages=["active"], progress=False, console=Console(file=io.StringIO()))["active"]
+    rounds = summary["rounds"]
+    assert [r["simulator_runs"] for r in rounds] == [8, 8]  # 4 targets x 2 proposals, one batch per round
+    added = np.load(copy / "active" / "added.npz")
+    assert len(added["theta"]) == 8 - rounds[0]["failed"]
+    start = {r["target_index"]: r["r_actual"] for r in json.loads((out / "validate" / "validation.json").read_text())
+             if r["optimizer"] == "nearest_neighbour"}
+    final = json.loads((copy / "active" / "validation.json").read_text())
+    assert all(v["r_actual"] >= start[v["target_index"]] - 1e-12 for v in final)
+    assert summary["start_r_actual_mean"] == pytest.approx(np.mean([start[k] for k in range(4)]))
+    assert rounds[0]["best_so_far_mean"] >= summary["start_r_actual_mean"]
+    assert summary["start_simulator_runs_per_target"] >= 1

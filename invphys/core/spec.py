@@ -59,6 +59,7 @@ REPORT_FORMATS: tuple[ReportFormat, ...] = ("md", "csv", "json")
 #: settings added after runs were cached: at these defaults they leave stage keys as they were
 KEY_NEUTRAL_DEFAULTS: dict[str, dict[str, Any]] = {
     "dataset": {"extra_train": [], "early_stopping": "held_out"},
+    "active": {"proposals": 1, "keep_start": False},
 }
 
 
@@ -200,6 +201,10 @@ class ActiveSection(_Section):
     sigma0: float = Field(0.1, gt=0)
     uncertainty_penalty: float = Field(0.0, ge=0, description="lambda of the ensemble-std penalty")
     max_epochs: int | None = Field(None, ge=1, description="cap the surrogate's epochs when retraining")
+    proposals: int = Field(1, ge=1, le=64, description="proposals per target and round (independent CMA-ES "
+                                                       "searches, all simulated in the round's one batch)")
+    keep_start: bool = Field(False, description="the start answer's validated R_actual (validate stage) counts "
+                                                "as the best so far, so the answer is never worse than its start")
 
 
 class ExperimentSpec(_Section):

@@ -4,9 +4,11 @@ Round r (0 .. ``rounds``) for the first ``active.targets`` targets (default: the
 
 1. propose: CMA-ES (ask/tell, ``budget`` surrogate evaluations per target, optionally penalised by
    the ensemble's std) on the current surrogate, started at each target's best simulated answer so
-   far (round 0: the ``start`` label's answer, e.g. the nearest-neighbour baseline);
-2. simulate every proposal in one batch through the validator: this is round r's R_actual, and the
-   best simulated answer per target so far is the ``active_learning`` method's answer after round r;
+   far (round 0: the ``start`` label's answer, e.g. the nearest-neighbour baseline); ``proposals``
+   independent searches per target (seeds differ) give that many proposals;
+2. simulate every proposal in one batch through the validator: round r's R_actual is the best of a
+   target's proposals, and the best simulated answer per target so far is the ``active_learning``
+   method's answer after round r (with ``keep_start``, the start's validated R_actual counts too);
 3. add the successfully simulated proposals to the training rows and retrain the surrogate (same
    plugin and config as the train stage; ``max_epochs`` caps it). The dataset store is not modified:
    the added rows are written to ``added.npz``.
@@ -34,6 +36,22 @@ DEPENDS_ON: tuple[str, ...] = ("simulator", "features", "validator", "surrogate"
 
 ROUNDS_FILE = "rounds.json"
 LABEL = "active_learning"
+
+
+def _start_r_actual(ctx: StageContext, label: str, ks: list[int], m: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """The start answers' validated R_actual per target (-inf where not validated), their simulated
+    features (NaN there) and their mean simulator runs per target (what the start already cost)."""
+    from invphys.pipeline.stages.validate import load_evaluation_rows, load_validation
+
+    rows = [r for r in [*(load_validation(ctx) or []), *load_evaluation_rows(ctx)]
+            if r.get("optimizer") == label and r.get("problem") == "target" and r.get("r_actual") is not None]
+    by = {r["target_index"]: r for r in rows}
+    r_act = np.array([float(by[k]["r_actual"]) if k in by and np.isfinite(by[k]["r_actual"]) else -np.inf
+                      for k in ks])
+    actual = np.array([by[k]["actual"] if k in by and by[k].get("actual") else [np.nan] * m for k in ks],
+                      dtype=np.float64)
+    runs = float(np.mean([by[k].get("simulator_runs") or 1 for k in ks if k in by])) if by else 0.0
+    return r_act, actual, runs
 
 
 def _starts(ctx: StageContext, label: str, ks: list[int], targets: dict[str, Any]) -> np.ndarray:
@@ -90,8 +108,12 @@ def run(ctx: StageContext) -> dict[str, Any]:
         raise InvphysError("the active stage simulates through a validator with simulate_features ('simulator')")
     sim = SimulatorEvaluator.from_validator(validator, ctx.simulator(), ctx.extractor())
     best_theta = _starts(ctx, sec.start, ks, targets)
-    best_r = np.full(n, -np.inf)
-    best_y = np.full_like(feats, np.nan)
+    best_r, best_y, start_runs = np.full(n, -np.inf), np.full_like(feats, np.nan), 0.0
+    if sec.keep_start:
+        best_r, best_y, start_runs = _start_r_actual(ctx, sec.start, ks, feats.shape[1])
+        if not np.isfinite(best_r).any():
+            raise InvphysError(f"active.keep_start: the validate stage validated no {sec.start!r} answer")
+    start_r = best_r.copy()
     surrogate = ctx.surrogate()
     added_theta: list[np.ndarray] = []
     added_y: list[np.ndarray] = []
@@ -99,19 +121,23 @@ def run(ctx: StageContext) -> dict[str, Any]:
     for r in range(sec.rounds + 1):
         t0 = time.perf_counter()
         pen = UncertaintyPenalty(surrogate, scales, sec.uncertainty_penalty)
-        refined = refine_targets(feats, best_theta, scales, pen.predict, sec.budget, sec.popsize, sec.sigma0,
-                                 seed=ctx.seed * 1000 + r,
+        k_prop = sec.proposals
+        refined = refine_targets(np.repeat(feats, k_prop, axis=0), np.repeat(best_theta, k_prop, axis=0), scales,
+                                 pen.predict, sec.budget, sec.popsize, sec.sigma0, seed=ctx.seed * 1000 + r,
                                  score=lambda y, t, pen=pen: recovery_reward(y, t, scales) - pen.penalty(y))
-        proposals = np.array([x.theta for x in refined])
+        proposals = np.array([x.theta for x in refined])  # target i's proposals: rows i*k .. i*k+k-1
         propose_s = time.perf_counter() - t0
         runs0, sim_s0 = sim.runs, sim.wall_time_s
         y_sim = sim(proposals)
         ok = np.all(np.isfinite(y_sim), axis=1)
-        r_act = np.where(ok, recovery_reward(np.where(ok[:, None], y_sim, 0.0), feats, scales), 0.0)
+        r_all = np.where(ok, recovery_reward(np.where(ok[:, None], y_sim, 0.0), np.repeat(feats, k_prop, axis=0),
+                                             scales), 0.0).reshape(n, k_prop)
+        pick = np.arange(n) * k_prop + r_all.argmax(axis=1)
+        r_act = r_all.max(axis=1)
         better = r_act > best_r
         best_r = np.where(better, r_act, best_r)
-        best_theta = np.where(better[:, None], proposals, best_theta)
-        best_y = np.where(better[:, None], y_sim, best_y)
+        best_theta = np.where(better[:, None], proposals[pick], best_theta)
+        best_y = np.where(better[:, None], y_sim[pick], best_y)
         r2 = float(r2_scores(data.y[test_idx], surrogate.predict(data.theta[test_idx]))[0]) if len(test_idx) > 1 else None
         m, lo, hi = bootstrap_mean_ci(r_act, ctx.spec.evaluation.bootstrap, ctx.spec.evaluation.confidence, ctx.seed)
         bm, blo, bhi = bootstrap_mean_ci(best_r, ctx.spec.evaluation.bootstrap, ctx.spec.evaluation.confidence,
@@ -136,13 +162,14 @@ def run(ctx: StageContext) -> dict[str, Any]:
         np.savez_compressed(ctx.stage_dir / "added.npz", theta=np.concatenate(added_theta), y=np.concatenate(added_y))
     to_params = _to_params(ctx)
     predicted = surrogate.predict(best_theta)
-    runs_per_target = sim.runs / max(n, 1)
+    runs_per_target = sim.runs / max(n, 1) + start_runs
     rows, val = [], []
     for i, k in enumerate(ks):
         row = {"optimizer": LABEL, "type": "active_learning", "role": "method", "space": "raw", "evaluator": "shared",
                "problem": "target", "problem_id": f"t{k:02d}", "target_index": k, "dataset_row": targets["rows"][k],
                "r_surrogate": float(recovery_reward(predicted[i], feats[i], scales)),
-               "evaluations": int(sec.budget * (sec.rounds + 1)), "counted_evaluations": int(sec.budget * (sec.rounds + 1)),
+               "evaluations": int(sec.budget * sec.proposals * (sec.rounds + 1)),
+               "counted_evaluations": int(sec.budget * sec.proposals * (sec.rounds + 1)),
                "wall_time_s": float(sum(x["propose_s"] + x["simulator_s"] + x.get("retrain_s", 0.0) for x in rounds) / n),
                "theta": best_theta[i].tolist(), "point": best_theta[i].tolist(),
                "params": dict(zip(targets["param_names"], to_params(best_theta[i]), strict=True)),
@@ -159,7 +186,9 @@ def run(ctx: StageContext) -> dict[str, Any]:
                     "actual": best_y[i].tolist() if np.all(np.isfinite(best_y[i])) else None, "sim_time_s": None})
     write_json(ctx.stage_dir / "rows.json", rows)
     write_json(ctx.stage_dir / "validation.json", val)
-    return {"targets": n, "rounds": rounds, "simulator_runs": sim.runs}
+    return {"targets": n, "rounds": rounds, "simulator_runs": sim.runs, "proposals": sec.proposals,
+            "start": sec.start, "start_simulator_runs_per_target": start_runs,
+            "start_r_actual_mean": float(np.mean(start_r[np.isfinite(start_r)])) if sec.keep_start else None}
 
 
 def load_active(ctx: StageContext) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[dict[str, Any]]]:
