@@ -12,7 +12,7 @@ export PYTHONPATH=/tmp/gpusite:$REPO:$REPO/examples/orange_peel PYTHONUNBUFFERED
 nvidia-smi --query-gpu=name,memory.used --format=csv
 sed -e 's/^simulator: {type: orange_peel,/simulator: {type: "invphys_orange_peel.simulator:OrangePeelSimulator",/' \
     -e 's/^executor: {type: local}/executor: {type: local}\nfeatures: {type: "invphys_orange_peel.features:OrangePeelFeatures"}/' \
-    examples/orange_peel/invphys_orange_peel/specs/protocol_paper_amortised.yaml > /tmp/amortised_gpu.yaml && echo "tracker: none" >> /tmp/amortised_gpu.yaml
+    examples/orange_peel/invphys_orange_peel/specs/amortised_vs_lookup_paper.yaml > /tmp/amortised_gpu.yaml && echo "tracker: none" >> /tmp/amortised_gpu.yaml
 wc -l runs/protocol_paper_amortised/validate/simulated.jsonl
 T0=$(date +%s)
 timeout $LIMIT python3 -m invphys.cli run /tmp/amortised_gpu.yaml --out runs/protocol_paper_amortised --stage validate --no-progress \
