@@ -1,3 +1,4 @@
+# ruff: noqa: E702
 """Hyper-parameter choice on TRAINING rows only, through the simulator (device).
 
 Pseudo-targets: 32 farthest-point + 32 random training rows (scaled feature space). Each is answered
@@ -5,8 +6,13 @@ leave-one-out (the row itself excluded from the lookup) by the nearest neighbour
 variants; every distinct answer is simulated and scored R_gt against the row's own features.
 usage: python cvsim.py answers OUT.json   (CPU: answers only) | python cvsim.py simulate IN.json OUT.json
 """
-import json, os, sys, time
+import json
+import os
+import sys
+import time
+
 import numpy as np
+
 from invphys.core.objectives import recovery_reward
 from invphys.plugins.baselines.local_linear import LocalLinear
 
@@ -64,14 +70,15 @@ def answers():
         out["answers"][name] = {"theta": np.array(th).tolist(), "local_r": pr,
                                 "ms_per_target": 1e3 * (time.perf_counter() - t0) / len(rows)}
     for k, v in out["answers"].items():
-        print(k, "local/dataset R %.3f" % np.mean(v.get("local_r", v.get("dataset_r"))), "ms %.2f" % v.get("ms_per_target", 0))
+        print(k, "local/dataset R {:.3f}".format(np.mean(v.get("local_r", v.get("dataset_r")))), "ms {:.2f}".format(v.get("ms_per_target", 0)))
     return out
 
 def simulate(blob, dst):
-    from invphys.plugins.validators.simulator import SimulatorValidator
-    from invphys_orange_peel.simulator import OrangePeelSimulator
     from invphys_orange_peel.features import OrangePeelFeatures
-    T, Y, s = data(); rows = np.array(blob["rows"])
+    from invphys_orange_peel.simulator import OrangePeelSimulator
+
+    from invphys.plugins.validators.simulator import SimulatorValidator
+    _T, Y, s = data(); rows = np.array(blob["rows"])
     sim = OrangePeelSimulator(OrangePeelSimulator.Config(preset=os.environ.get("H2_PRESET", "paper"), backend="taichi", arch=os.environ.get("H2_ARCH", "cuda"), batch_size=256))
     ext = OrangePeelFeatures(); val = SimulatorValidator(SimulatorValidator.Config(batch_size=128))
     names = list(blob["answers"])

@@ -1,10 +1,15 @@
+# ruff: noqa: E702
 """Diagnostic (rule fixed before looking): answer with NPE's best-of-64 instead of the lookup when the
 residual-corrected ensemble scores it above the lookup row's real R. Uses the lean run's ensemble and
 its memoised simulations of both answers (no new runs)."""
-import json, numpy as np
+import json
+
+import numpy as np
+
 from invphys.core.objectives import recovery_reward
-from invphys.registry import default_registry
 from invphys.plugins.baselines.nearest_neighbour import NearestNeighbour
+from invphys.registry import default_registry
+
 v=json.load(open('runs/protocol_paper_lean/validate/validation.json'))
 tg=json.load(open('runs/protocol_paper_lean/invert/targets.json')); s=np.array(tg['scales']); Yt=np.array(tg['features'])
 tr=np.load('runs/protocol_paper_lean/inverter/data/train.npz'); T,Y=tr['theta'],tr['y']
