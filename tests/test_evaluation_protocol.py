@@ -173,3 +173,35 @@ def test_active_learning_with_several_proposals_never_ends_below_its_start(run_d
     assert summary["start_r_actual_mean"] == pytest.approx(np.mean([start[k] for k in range(4)]))
     assert rounds[0]["best_so_far_mean"] >= summary["start_r_actual_mean"]
     assert summary["start_simulator_runs_per_target"] >= 1
+
+
+def test_active_learning_resumes_and_extends_its_rounds(run_dir, tmp_path) -> None:
+    import shutil
+
+    from rich.console import Console
+
+    from invphys.core.spec import parse_spec
+    from invphys.pipeline.runner import run_spec
+
+    out, _ = run_dir
+    copy = tmp_path / "run"
+    shutil.copytree(out, copy)
+    shutil.rmtree(copy / "active")
+
+    def active(text: str) -> dict:
+        return run_spec(parse_spec(SPEC.replace("active: {rounds: 2,", text)), copy, stages=["active"],
+                        progress=False, console=Console(file=io.StringIO()))["active"]
+
+    one = active("active: {rounds: 1,")
+    assert one["resumed_after_round"] is None and len(one["rounds"]) == 2
+    three = active("active: {rounds: 3,")  # two more rounds: the first two are not simulated again
+    assert three["resumed_after_round"] == 1 and len(three["rounds"]) == 4
+    assert three["rounds"][:2] == [{**r, "retrain_s": three["rounds"][1].get("retrain_s")} if i == 1 else r
+                                   for i, r in enumerate(one["rounds"])]
+    assert three["simulator_runs"] == 4 * 4 and (copy / "active" / "surrogate_round3").is_dir()
+    best = [r["best_so_far_mean"] for r in three["rounds"]]
+    assert best == sorted(best)
+    added = np.load(copy / "active" / "added.npz")
+    assert len(added["theta"]) == sum(4 - r["failed"] for r in three["rounds"][:3])
+    other = active("active: {sigma0: 0.05, rounds: 1,")  # other settings: the saved rounds are not reused
+    assert other["resumed_after_round"] is None

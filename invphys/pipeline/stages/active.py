@@ -13,6 +13,11 @@ Round r (0 .. ``rounds``) for the first ``active.targets`` targets (default: the
    plugin and config as the train stage; ``max_epochs`` caps it). The dataset store is not modified:
    the added rows are written to ``added.npz``.
 
+Resumable: every finished round's state (answers, simulated rows, round records) goes atomically to
+``progress.npz``, keyed by every ``active`` setting but ``rounds``; a stopped stage (time limit, kill)
+resumes after its last finished round, and raising ``active.rounds`` later adds rounds to the
+recorded ones instead of starting over (other settings start afresh).
+
 Writes ``rounds.json`` (per round: training rows, the surrogate's R^2 on the test partition, mean
 R_actual of the proposals and of the best-so-far answers with bootstrap intervals, simulator runs
 and time), ``rows.json``/``validation.json`` (the final answers as report rows: label
@@ -117,8 +122,22 @@ def run(ctx: StageContext) -> dict[str, Any]:
     surrogate = ctx.surrogate()
     added_theta: list[np.ndarray] = []
     added_y: list[np.ndarray] = []
-    rounds = []
-    for r in range(sec.rounds + 1):
+    rounds: list[dict[str, Any]] = []
+    key = _checkpoint_key(ctx, n, feats)
+    first = 0
+    saved = _load_checkpoint(ctx, key)
+    if saved is not None:  # resume after the last round that finished (also when `rounds` grew)
+        rounds, best_theta, best_r, best_y = saved["rounds"], saved["best_theta"], saved["best_r"], saved["best_y"]
+        added_theta, added_y = saved["added_theta"], saved["added_y"]
+        first = len(rounds)
+        ctx.log(f"resuming after round {first - 1} ({first} rounds recorded in {CHECKPOINT_FILE})")
+        if first <= sec.rounds:
+            surrogate = _surrogate_for(ctx, first, theta_tr, y_tr, added_theta, added_y, rounds, key,
+                                       (best_theta, best_r, best_y))
+        elif first > 1:  # more rounds recorded than asked for: they are all kept
+            surrogate = _surrogate_for(ctx, first - 1, theta_tr, y_tr, added_theta[:-1], added_y[:-1],
+                                       rounds[:-1], key, None)
+    for r in range(first, sec.rounds + 1):
         t0 = time.perf_counter()
         pen = UncertaintyPenalty(surrogate, scales, sec.uncertainty_penalty)
         k_prop = sec.proposals
@@ -149,20 +168,21 @@ def run(ctx: StageContext) -> dict[str, Any]:
                        "propose_s": propose_s, "device": sim.device})
         ctx.log(f"round {r}: {rounds[-1]['train_rows']} training rows, surrogate R^2 {r2 if r2 is None else round(r2, 3)}, "
                 f"R_actual {m:.3f} [{lo:.3f}, {hi:.3f}], best so far {bm:.3f}")
-        if r == sec.rounds:
-            break
         added_theta.append(proposals[ok])
         added_y.append(y_sim[ok])
-        t1 = time.perf_counter()
-        surrogate = _retrain(ctx, np.concatenate([theta_tr, *added_theta]), np.concatenate([y_tr, *added_y]))
-        surrogate.save(ctx.stage_dir / f"surrogate_round{r + 1}")
-        rounds[-1]["retrain_s"] = time.perf_counter() - t1
+        _save_checkpoint(ctx, key, rounds, (best_theta, best_r, best_y), added_theta, added_y)
+        if r == sec.rounds:
+            break
+        surrogate = _retrain_round(ctx, r + 1, theta_tr, y_tr, added_theta, added_y, rounds)
+        _save_checkpoint(ctx, key, rounds, (best_theta, best_r, best_y), added_theta, added_y)
     write_json(ctx.stage_dir / ROUNDS_FILE, rounds)
-    if added_theta:
-        np.savez_compressed(ctx.stage_dir / "added.npz", theta=np.concatenate(added_theta), y=np.concatenate(added_y))
+    trained_on = len(rounds) - 1  # the last round's runs are simulated but not yet trained on
+    if trained_on:
+        np.savez_compressed(ctx.stage_dir / "added.npz", theta=np.concatenate(added_theta[:trained_on]),
+                            y=np.concatenate(added_y[:trained_on]))
     to_params = _to_params(ctx)
     predicted = surrogate.predict(best_theta)
-    runs_per_target = sim.runs / max(n, 1) + start_runs
+    runs_per_target = sum(x["simulator_runs"] for x in rounds) / max(n, 1) + start_runs
     rows, val = [], []
     for i, k in enumerate(ks):
         row = {"optimizer": LABEL, "type": "active_learning", "role": "method", "space": "raw", "evaluator": "shared",
@@ -186,9 +206,87 @@ def run(ctx: StageContext) -> dict[str, Any]:
                     "actual": best_y[i].tolist() if np.all(np.isfinite(best_y[i])) else None, "sim_time_s": None})
     write_json(ctx.stage_dir / "rows.json", rows)
     write_json(ctx.stage_dir / "validation.json", val)
-    return {"targets": n, "rounds": rounds, "simulator_runs": sim.runs, "proposals": sec.proposals,
+    return {"targets": n, "rounds": rounds, "simulator_runs": sum(x["simulator_runs"] for x in rounds),
+            "resumed_after_round": first - 1 if first else None, "proposals": sec.proposals,
             "start": sec.start, "start_simulator_runs_per_target": start_runs,
             "start_r_actual_mean": float(np.mean(start_r[np.isfinite(start_r)])) if sec.keep_start else None}
+
+
+def _retrain_round(ctx: StageContext, r: int, theta_tr: np.ndarray, y_tr: np.ndarray, added_theta: list[np.ndarray],
+                   added_y: list[np.ndarray], rounds: list[dict[str, Any]]) -> Any:
+    """Retrain on the training rows plus every simulated round so far; save as ``surrogate_round<r>``."""
+    t1 = time.perf_counter()
+    surrogate = _retrain(ctx, np.concatenate([theta_tr, *added_theta]), np.concatenate([y_tr, *added_y]))
+    surrogate.save(ctx.stage_dir / f"surrogate_round{r}")
+    rounds[-1]["retrain_s"] = time.perf_counter() - t1
+    return surrogate
+
+
+def _surrogate_for(ctx: StageContext, r: int, theta_tr: np.ndarray, y_tr: np.ndarray,
+                   added_theta: list[np.ndarray], added_y: list[np.ndarray], rounds: list[dict[str, Any]],
+                   key: str, best: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> Any:
+    """The surrogate round ``r`` proposes with: the saved one, or retrained now (a stop came before it
+    was saved); ``best`` given: the checkpoint is rewritten after retraining."""
+    path = ctx.stage_dir / f"surrogate_round{r}"
+    if "retrain_s" in rounds[-1] and path.is_dir():
+        cls = ctx.registry.get("surrogate", (ctx.spec.surrogate or {})["type"])
+        return cls.load(path)
+    surrogate = _retrain_round(ctx, r, theta_tr, y_tr, added_theta, added_y, rounds)
+    if best is not None:
+        _save_checkpoint(ctx, key, rounds, best, added_theta, added_y)
+    return surrogate
+
+
+CHECKPOINT_FILE = "progress.npz"
+
+
+def _checkpoint_key(ctx: StageContext, n: int, feats: np.ndarray) -> str:
+    """What a saved round must match to be resumed: everything but ``active.rounds``."""
+    from invphys.pipeline.cache import digest
+
+    sec = ctx.spec.active.model_dump(mode="json") if ctx.spec.active else {}
+    sec.pop("rounds", None)
+    return digest({"active": sec, "n": n, "targets": np.round(feats, 12).tolist(), "seed": ctx.seed,
+                   "surrogate": ctx.spec.surrogate, "validator": ctx.spec.validator, "simulator": ctx.spec.simulator,
+                   "data": ctx.dataset().fingerprint})
+
+
+def _save_checkpoint(ctx: StageContext, key: str, rounds: list[dict[str, Any]],
+                     best: tuple[np.ndarray, np.ndarray, np.ndarray], added_theta: list[np.ndarray],
+                     added_y: list[np.ndarray]) -> None:
+    """Every finished round's state, written atomically (a killed run resumes after its last round)."""
+    import io
+    import json
+
+    from invphys.core.atomic import atomic_write_bytes
+
+    buf = io.BytesIO()
+    np.savez_compressed(buf, key=np.array(key), rounds=np.array(json.dumps(rounds, default=float)),
+                        best_theta=best[0], best_r=best[1], best_y=best[2],
+                        added_sizes=np.array([len(a) for a in added_theta], dtype=np.int64),
+                        added_theta=np.concatenate(added_theta), added_y=np.concatenate(added_y))
+    atomic_write_bytes(ctx.stage_dir / CHECKPOINT_FILE, buf.getvalue())
+
+
+def _load_checkpoint(ctx: StageContext, key: str) -> dict[str, Any] | None:
+    """The saved rounds when they were made with the same settings (else None: start afresh)."""
+    import json
+
+    path = ctx.stage_dir / CHECKPOINT_FILE
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path) as z:
+            if str(z["key"]) != key:
+                ctx.log(f"{CHECKPOINT_FILE} was made with other settings; starting from round 0")
+                return None
+            cuts = np.cumsum(z["added_sizes"])[:-1]
+            return {"rounds": json.loads(str(z["rounds"])), "best_theta": z["best_theta"], "best_r": z["best_r"],
+                    "best_y": z["best_y"], "added_theta": list(np.split(z["added_theta"], cuts)),
+                    "added_y": list(np.split(z["added_y"], cuts))}
+    except (OSError, ValueError, KeyError) as exc:
+        ctx.log(f"{CHECKPOINT_FILE} is unreadable ({exc}); starting from round 0")
+        return None
 
 
 def load_active(ctx: StageContext) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[dict[str, Any]]]:
