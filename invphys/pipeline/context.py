@@ -111,7 +111,7 @@ class StageContext:
         (after them in :meth:`dataset`) all join the training split.
         """
         n_all = len(self.dataset().theta)
-        n = self._cache["dataset_primary_rows"]
+        n = self._cache.get("dataset_primary_rows", n_all)
         rng = np.random.default_rng(self.spec.seed)
         perm = rng.permutation(n)
         n_test = max(1, round(n * self.spec.dataset.test_fraction))
