@@ -205,3 +205,83 @@ def test_active_learning_resumes_and_extends_its_rounds(run_dir, tmp_path) -> No
     assert len(added["theta"]) == sum(4 - r["failed"] for r in three["rounds"][:3])
     other = active("active: {sigma0: 0.05, rounds: 1,")  # other settings: the saved rounds are not reused
     assert other["resumed_after_round"] is None
+
+
+class _QuadSim:
+    """A deterministic stand-in for the simulator evaluator: features = theta (counts runs and calls)."""
+
+    def __init__(self) -> None:
+        self.runs, self.calls, self.wall_time_s, self.device = 0, 0, 0.0, "toy"
+
+    def __call__(self, theta: np.ndarray) -> np.ndarray:
+        self.runs += len(theta)
+        self.calls += 1
+        self.wall_time_s += 0.01 * len(theta)
+        return np.array(theta, dtype=np.float64)
+
+
+def test_polish_never_worse_respects_budget_and_replays_its_log(tmp_path) -> None:
+    from invphys.core.objectives import recovery_reward
+    from invphys.plugins.evaluators.polish import BatchLog, polish
+
+    rng = np.random.default_rng(0)
+    targets = rng.uniform(0.2, 0.8, (6, 3))
+    starts = np.clip(targets + rng.normal(0, 0.15, targets.shape), 0, 1)
+    starts[5] = targets[5] + 1e-4  # already near-perfect: above `below`, left alone
+    scales = np.ones(3)
+    r0 = recovery_reward(starts, targets, scales)
+
+    def run(budget: int) -> tuple:
+        sim = _QuadSim()
+        log = BatchLog(tmp_path / "polish.npz", "k", sim)
+        return polish(targets, starts, r0, starts.copy(), scales, log, budget, popsize=4, sigma0=0.1,
+                      below=0.99, seed=1), sim, log
+
+    pol, sim, _ = run(4)  # one generation per polished target
+    assert pol.polished.tolist() == [True] * 5 + [False]
+    assert pol.runs.tolist() == [4] * 5 + [0] and sim.runs == 20 and sim.calls == 1  # one batch, no start re-run
+    assert np.all(pol.r_actual >= r0) and pol.r_actual[5] == r0[5] and np.array_equal(pol.theta[5], starts[5])
+    assert np.allclose(recovery_reward(pol.features, targets, scales), pol.r_actual)
+    more, sim2, log2 = run(12)  # three generations: the logged first one is replayed, not simulated again
+    assert more.runs.tolist() == [12] * 5 + [0] and sim2.runs == 40 and log2.replayed_runs == 20
+    assert np.all(more.r_actual >= pol.r_actual) and more.r_actual[:5].mean() > r0[:5].mean()
+    again, sim3, _ = run(12)  # a finished polish costs nothing again and gives the same answers
+    assert sim3.runs == 0 and np.array_equal(again.theta, more.theta) and again.seconds == pytest.approx(more.seconds)
+
+
+def test_active_polish_is_off_by_default_and_counts_its_runs(run_dir, tmp_path) -> None:
+    import shutil
+
+    from rich.console import Console
+
+    from invphys.core.spec import parse_spec
+    from invphys.pipeline.runner import run_spec
+
+    out, _ = run_dir
+    assert "polish" not in parse_spec(SPEC).section_dump(["active"])["active"]  # default: stage keys unchanged
+    assert not (out / "active" / "polish.json").exists()
+    copy = tmp_path / "run"
+    shutil.copytree(out, copy)
+    spec = parse_spec(SPEC.replace("active: {rounds: 2,",
+                                   "active: {polish: {budget: 8, popsize: 4, sigma0: 0.1, below: 0.999}, rounds: 2,"))
+    s = run_spec(spec, copy, stages=["active", "report"], progress=False, console=Console(file=io.StringIO()))
+    summary = s["active"]
+    assert summary["resumed_after_round"] == 2  # the polish does not invalidate the finished rounds
+    pol = summary["polish"]
+    val = json.loads((copy / "active" / "validation.json").read_text())
+    before = {v["target_index"]: v for v in val if v["optimizer"] == "active_learning"}
+    after = {v["target_index"]: v for v in val if v["optimizer"] == "active_polished"}
+    assert sorted(after) == sorted(before) == [0, 1, 2, 3]
+    polished = [k for k in before if before[k]["r_actual"] < 0.999]
+    assert pol["polished"] == len(polished) and pol["simulator_runs"] == 8 * len(polished) and pol["worse"] == 0
+    for k in before:
+        assert after[k]["r_actual"] >= before[k]["r_actual"]
+        extra = 8 if k in polished else 0
+        assert after[k]["simulator_runs"] == pytest.approx(before[k]["simulator_runs"] + extra)
+    rep = json.loads((copy / "report" / "report.json").read_text())
+    assert rep["optimizers"]["active_polished"]["r_actual_mean"] == pytest.approx(pol["r_actual_after_mean"])
+    assert rep["optimizers"]["active_learning"]["r_actual_mean"] == pytest.approx(pol["r_actual_before_mean"])
+    (copy / "active" / "DONE.json").unlink()  # force a re-run: the logged batches are replayed
+    again = run_spec(spec, copy, stages=["active"], progress=False, console=Console(file=io.StringIO()))["active"]
+    assert again["polish"]["replayed_runs"] == pol["simulator_runs"]
+    assert again["polish"]["r_actual_after_mean"] == pytest.approx(pol["r_actual_after_mean"])

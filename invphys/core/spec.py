@@ -59,7 +59,7 @@ REPORT_FORMATS: tuple[ReportFormat, ...] = ("md", "csv", "json")
 #: settings added after runs were cached: at these defaults they leave stage keys as they were
 KEY_NEUTRAL_DEFAULTS: dict[str, dict[str, Any]] = {
     "dataset": {"extra_train": [], "early_stopping": "held_out"},
-    "active": {"proposals": 1, "keep_start": False},
+    "active": {"proposals": 1, "keep_start": False, "polish": None},
 }
 
 
@@ -190,6 +190,17 @@ class TrackerSection(_Section):
         return {"type": value} if isinstance(value, str) else value
 
 
+class PolishSection(_Section):
+    """Simulator-in-the-loop polish after the last active round (``active.polish``)."""
+
+    budget: int = Field(24, ge=1, le=100_000, description="new simulator runs per polished target (CMA-ES on "
+                                                         "the simulator; the start is not re-simulated)")
+    popsize: int = Field(8, ge=2, description="CMA-ES population per target (each generation of all polished "
+                                              "targets is one simulator batch)")
+    sigma0: float = Field(0.05, gt=0, description="CMA-ES step size in the normalised parameter cube")
+    below: float = Field(0.95, gt=0, le=1, description="polish only targets whose best R_actual is below this")
+
+
 class ActiveSection(_Section):
     """Active learning (the ``active`` stage): propose, simulate, add to the training data, retrain."""
 
@@ -205,6 +216,8 @@ class ActiveSection(_Section):
                                                        "searches, all simulated in the round's one batch)")
     keep_start: bool = Field(False, description="the start answer's validated R_actual (validate stage) counts "
                                                 "as the best so far, so the answer is never worse than its start")
+    polish: PolishSection | None = Field(None, description="after the last round, CMA-ES on the real simulator "
+                                                           "from each target's best answer (label active_polished)")
 
 
 class ExperimentSpec(_Section):

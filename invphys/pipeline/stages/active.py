@@ -23,6 +23,14 @@ R_actual of the proposals and of the best-so-far answers with bootstrap interval
 and time), ``rows.json``/``validation.json`` (the final answers as report rows: label
 ``active_learning``) and ``surrogate_round<r>/`` (each retrained surrogate). The report shows the
 rounds and treats ``active_learning`` like any method. Policies are not retrained.
+
+``active.polish`` (off by default): after the last round, CMA-ES on the real simulator from each
+target's best answer whose R_actual is below ``polish.below`` (``budget`` new runs per target, each
+generation of all polished targets one batch; the answer is the best simulated point, its start
+included), reported as a second label ``active_polished`` whose cost adds the polish's runs and GPU
+seconds to ``active_learning``'s. Every simulated batch is logged to ``polish.npz``; a re-run replays
+it (a stopped polish resumes after its last batch; a larger budget extends a smaller one). Its
+settings are not part of the rounds' checkpoint key, so adding a polish never re-runs the rounds.
 """
 
 from __future__ import annotations
@@ -181,35 +189,108 @@ def run(ctx: StageContext) -> dict[str, Any]:
         np.savez_compressed(ctx.stage_dir / "added.npz", theta=np.concatenate(added_theta[:trained_on]),
                             y=np.concatenate(added_y[:trained_on]))
     to_params = _to_params(ctx)
-    predicted = surrogate.predict(best_theta)
     runs_per_target = sum(x["simulator_runs"] for x in rounds) / max(n, 1) + start_runs
-    rows, val = [], []
-    for i, k in enumerate(ks):
-        row = {"optimizer": LABEL, "type": "active_learning", "role": "method", "space": "raw", "evaluator": "shared",
-               "problem": "target", "problem_id": f"t{k:02d}", "target_index": k, "dataset_row": targets["rows"][k],
-               "r_surrogate": float(recovery_reward(predicted[i], feats[i], scales)),
-               "evaluations": int(sec.budget * sec.proposals * (sec.rounds + 1)),
-               "counted_evaluations": int(sec.budget * sec.proposals * (sec.rounds + 1)),
-               "wall_time_s": float(sum(x["propose_s"] + x["simulator_s"] + x.get("retrain_s", 0.0) for x in rounds) / n),
-               "theta": best_theta[i].tolist(), "point": best_theta[i].tolist(),
-               "params": dict(zip(targets["param_names"], to_params(best_theta[i]), strict=True)),
-               "predicted": predicted[i].tolist(), "history": [], "simulator_runs": runs_per_target,
-               "device": sim.device or "cpu"}
-        rows.append(row)
-        finite = bool(np.isfinite(best_r[i]) and best_r[i] > -np.inf)
-        val.append({**{key: row[key] for key in ("optimizer", "type", "role", "space", "evaluator", "problem", "problem_id",
-                                                  "target_index", "dataset_row", "evaluations", "wall_time_s", "theta",
-                                                  "simulator_runs", "device")},
-                    "r_surrogate": row["r_surrogate"], "r_actual": float(best_r[i]) if finite else float("nan"),
-                    "gap": row["r_surrogate"] - float(best_r[i]) if finite else float("nan"),
-                    "failure": None if np.all(np.isfinite(best_y[i])) else "no proposal simulated successfully",
-                    "actual": best_y[i].tolist() if np.all(np.isfinite(best_y[i])) else None, "sim_time_s": None})
+    wall = float(sum(x["propose_s"] + x["simulator_s"] + x.get("retrain_s", 0.0) for x in rounds) / n)
+    spec_row = {"to_params": to_params, "surrogate": surrogate, "feats": feats, "scales": scales, "ks": ks,
+                "targets": targets, "evaluations": int(sec.budget * sec.proposals * (sec.rounds + 1)),
+                "device": sim.device or "cpu"}
+    rows, val = _answer_rows(spec_row, LABEL, "active_learning", "shared", best_theta, best_r, best_y,
+                             np.full(n, runs_per_target), np.full(n, wall))
+    polish_summary = None
+    if sec.polish is not None:
+        pol = _polish(ctx, sec.polish, key, len(rounds), feats, scales, best_theta, best_r, best_y, sim)
+        share = pol.runs / max(int(pol.runs.sum()), 1) * pol.seconds  # a target's share of the polish's GPU time
+        prow, pval = _answer_rows({**spec_row, "device": pol.device or spec_row["device"]}, POLISH_LABEL,
+                                  "active_learning+simulator", "simulator", pol.theta, pol.r_actual, pol.features,
+                                  runs_per_target + pol.runs, wall + share)
+        rows, val = rows + prow, val + pval
+        polish_summary = _polish_summary(ctx, sec.polish, pol, best_r, runs_per_target, wall, share)
+        write_json(ctx.stage_dir / POLISH_FILE, polish_summary)
     write_json(ctx.stage_dir / "rows.json", rows)
     write_json(ctx.stage_dir / "validation.json", val)
     return {"targets": n, "rounds": rounds, "simulator_runs": sum(x["simulator_runs"] for x in rounds),
             "resumed_after_round": first - 1 if first else None, "proposals": sec.proposals,
             "start": sec.start, "start_simulator_runs_per_target": start_runs,
-            "start_r_actual_mean": float(np.mean(start_r[np.isfinite(start_r)])) if sec.keep_start else None}
+            "start_r_actual_mean": float(np.mean(start_r[np.isfinite(start_r)])) if sec.keep_start else None,
+            **({"polish": polish_summary} if polish_summary is not None else {})}
+
+
+def _answer_rows(c: dict[str, Any], label: str, kind: str, evaluator: str, theta: np.ndarray, r_act: np.ndarray,
+                 actual: np.ndarray, runs: np.ndarray, wall: np.ndarray) -> tuple[list[dict], list[dict]]:
+    """Report rows and validation rows of one label's answers (per-target runs and wall time)."""
+    from invphys.core.objectives import recovery_reward
+
+    predicted = c["surrogate"].predict(theta)
+    rows, val = [], []
+    for i, k in enumerate(c["ks"]):
+        row = {"optimizer": label, "type": kind, "role": "method", "space": "raw", "evaluator": evaluator,
+               "problem": "target", "problem_id": f"t{k:02d}", "target_index": k,
+               "dataset_row": c["targets"]["rows"][k],
+               "r_surrogate": float(recovery_reward(predicted[i], c["feats"][i], c["scales"])),
+               "evaluations": c["evaluations"], "counted_evaluations": c["evaluations"],
+               "wall_time_s": float(wall[i]), "theta": theta[i].tolist(), "point": theta[i].tolist(),
+               "params": dict(zip(c["targets"]["param_names"], c["to_params"](theta[i]), strict=True)),
+               "predicted": predicted[i].tolist(), "history": [], "simulator_runs": float(runs[i]),
+               "device": c["device"]}
+        rows.append(row)
+        finite = bool(np.isfinite(r_act[i]) and r_act[i] > -np.inf)
+        ok = bool(np.all(np.isfinite(actual[i])))
+        val.append({**{key: row[key] for key in ("optimizer", "type", "role", "space", "evaluator", "problem",
+                                                  "problem_id", "target_index", "dataset_row", "evaluations",
+                                                  "wall_time_s", "theta", "simulator_runs", "device")},
+                    "r_surrogate": row["r_surrogate"], "r_actual": float(r_act[i]) if finite else float("nan"),
+                    "gap": row["r_surrogate"] - float(r_act[i]) if finite else float("nan"),
+                    "failure": None if ok else "no proposal simulated successfully",
+                    "actual": actual[i].tolist() if ok else None, "sim_time_s": None})
+    return rows, val
+
+
+POLISH_LABEL = "active_polished"
+POLISH_FILE = "polish.json"
+POLISH_LOG = "polish.npz"
+
+
+def _polish(ctx: StageContext, cfg: Any, key: str, n_rounds: int, feats: np.ndarray, scales: np.ndarray,
+            theta: np.ndarray, r_act: np.ndarray, actual: np.ndarray, sim: Any) -> Any:
+    """``active.polish``: CMA-ES on the simulator from the best answers below ``cfg.below``; every
+    simulated batch is logged to ``polish.npz`` (a re-run replays it: nothing finished is simulated twice)."""
+    from invphys.pipeline.cache import digest
+    from invphys.plugins.evaluators.polish import BatchLog, polish
+
+    log_key = digest({"rounds": key, "n_rounds": n_rounds, "popsize": cfg.popsize, "sigma0": cfg.sigma0,
+                      "below": cfg.below})  # not the budget: a larger budget replays the smaller one's batches
+    batches = BatchLog(ctx.stage_dir / POLISH_LOG, log_key, sim, log=ctx.log)
+    t0 = time.perf_counter()
+    pol = polish(feats, theta, r_act, actual, scales, batches, cfg.budget, cfg.popsize, cfg.sigma0, cfg.below,
+                 seed=ctx.seed * 1000 + 999)
+    ctx.log(f"polish: {int(pol.polished.sum())} targets below {cfg.below}, {int(pol.runs.sum())} simulator runs "
+            f"({pol.replayed_runs} replayed) in {time.perf_counter() - t0:.1f} s; mean R_actual "
+            f"{float(np.mean(r_act)):.3f} -> {float(np.mean(pol.r_actual)):.3f}")
+    return pol
+
+
+def _polish_summary(ctx: StageContext, cfg: Any, pol: Any, before: np.ndarray, runs_per_target: float,
+                    wall: float, share: np.ndarray) -> dict[str, Any]:
+    from invphys.evaluation.stats import bootstrap_mean_ci
+
+    ev = ctx.spec.evaluation
+    m = pol.polished
+    after_all = bootstrap_mean_ci(pol.r_actual, ev.bootstrap, ev.confidence, ctx.seed)
+    before_all = bootstrap_mean_ci(before, ev.bootstrap, ev.confidence, ctx.seed)
+    diff = bootstrap_mean_ci(pol.r_actual - before, ev.bootstrap, ev.confidence, ctx.seed)
+    return {"settings": cfg.model_dump(mode="json"), "targets": len(m), "polished": int(m.sum()),
+            "improved": int((pol.r_actual > before).sum()), "worse": int((pol.r_actual < before).sum()),
+            "r_actual_before_mean": before_all[0], "r_actual_before_ci95": list(before_all[1:]),
+            "r_actual_after_mean": after_all[0], "r_actual_after_ci95": list(after_all[1:]),
+            "diff_mean": diff[0], "diff_ci95": list(diff[1:]),
+            "polished_before_mean": float(np.mean(before[m])) if m.any() else None,
+            "polished_after_mean": float(np.mean(pol.r_actual[m])) if m.any() else None,
+            "simulator_runs": int(pol.runs.sum()), "replayed_runs": pol.replayed_runs, "batches": pol.batches,
+            "simulator_s": pol.seconds, "device": pol.device,
+            "runs_per_polished_target": float(pol.runs[m].max()) if m.any() else 0.0,
+            "simulator_s_per_polished_target": float(share[m].max()) if m.any() else 0.0,
+            "total_runs_per_target_max": float(runs_per_target + pol.runs.max()),
+            "total_wall_s_per_target_max": float(wall + share.max())}
 
 
 def _retrain_round(ctx: StageContext, r: int, theta_tr: np.ndarray, y_tr: np.ndarray, added_theta: list[np.ndarray],
@@ -246,6 +327,7 @@ def _checkpoint_key(ctx: StageContext, n: int, feats: np.ndarray) -> str:
 
     sec = ctx.spec.active.model_dump(mode="json") if ctx.spec.active else {}
     sec.pop("rounds", None)
+    sec.pop("polish", None)  # the polish comes after the rounds: its settings do not invalidate them
     return digest({"active": sec, "n": n, "targets": np.round(feats, 12).tolist(), "seed": ctx.seed,
                    "surrogate": ctx.spec.surrogate, "validator": ctx.spec.validator, "simulator": ctx.spec.simulator,
                    "data": ctx.dataset().fingerprint})

@@ -3,5 +3,7 @@
 * :mod:`~invphys.plugins.evaluators.uncertainty`: the shared surrogate with an uncertainty penalty
   (score = R - lambda * normalised ensemble std), for any optimiser's problem or GC-PPO's reward;
 * :mod:`~invphys.plugins.evaluators.simulator_loop`: the real simulator in the loop, a population per
-  batch, with a budget in simulator runs, and the ask/tell driver that refines many targets at once.
+  batch, with a budget in simulator runs, and the ask/tell driver that refines many targets at once;
+* :mod:`~invphys.plugins.evaluators.polish`: that driver from answers already simulated (only those
+  below a threshold), with a log of simulated batches that a re-run replays (``active.polish``).
 """
