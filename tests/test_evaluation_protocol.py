@@ -233,13 +233,13 @@ def test_polish_never_worse_respects_budget_and_replays_its_log(tmp_path) -> Non
 
     def run(budget: int) -> tuple:
         sim = _QuadSim()
-        log = BatchLog(tmp_path / "polish.npz", "k", sim)
+        log = BatchLog(tmp_path / "polish.npz", "k", sim, chunk=7)  # logged in chunks of 7 runs
         return polish(targets, starts, r0, starts.copy(), scales, log, budget, popsize=4, sigma0=0.1,
                       below=0.99, seed=1), sim, log
 
     pol, sim, _ = run(4)  # one generation per polished target
     assert pol.polished.tolist() == [True] * 5 + [False]
-    assert pol.runs.tolist() == [4] * 5 + [0] and sim.runs == 20 and sim.calls == 1  # one batch, no start re-run
+    assert pol.runs.tolist() == [4] * 5 + [0] and sim.runs == 20 and sim.calls == 3  # 20 = 7+7+6, no start re-run
     assert np.all(pol.r_actual >= r0) and pol.r_actual[5] == r0[5] and np.array_equal(pol.theta[5], starts[5])
     assert np.allclose(recovery_reward(pol.features, targets, scales), pol.r_actual)
     more, sim2, log2 = run(12)  # three generations: the logged first one is replayed, not simulated again

@@ -259,7 +259,8 @@ def _polish(ctx: StageContext, cfg: Any, key: str, n_rounds: int, feats: np.ndar
 
     log_key = digest({"rounds": key, "n_rounds": n_rounds, "popsize": cfg.popsize, "sigma0": cfg.sigma0,
                       "below": cfg.below})  # not the budget: a larger budget replays the smaller one's batches
-    batches = BatchLog(ctx.stage_dir / POLISH_LOG, log_key, sim, log=ctx.log)
+    batches = BatchLog(ctx.stage_dir / POLISH_LOG, log_key, sim, log=ctx.log,
+                       chunk=int((ctx.spec.validator or {}).get("batch_size") or 0) or None)
     t0 = time.perf_counter()
     pol = polish(feats, theta, r_act, actual, scales, batches, cfg.budget, cfg.popsize, cfg.sigma0, cfg.below,
                  seed=ctx.seed * 1000 + 999)
@@ -285,7 +286,7 @@ def _polish_summary(ctx: StageContext, cfg: Any, pol: Any, before: np.ndarray, r
             "diff_mean": diff[0], "diff_ci95": list(diff[1:]),
             "polished_before_mean": float(np.mean(before[m])) if m.any() else None,
             "polished_after_mean": float(np.mean(pol.r_actual[m])) if m.any() else None,
-            "simulator_runs": int(pol.runs.sum()), "replayed_runs": pol.replayed_runs, "batches": pol.batches,
+            "simulator_runs": int(pol.runs.sum()), "replayed_runs": pol.replayed_runs, "generations": pol.batches,
             "simulator_s": pol.seconds, "device": pol.device,
             "runs_per_polished_target": float(pol.runs[m].max()) if m.any() else 0.0,
             "simulator_s_per_polished_target": float(share[m].max()) if m.any() else 0.0,

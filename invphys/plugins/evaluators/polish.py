@@ -33,12 +33,13 @@ class BatchLog:
     anything with ``__call__``, ``wall_time_s`` and ``device``). Batch ``i`` of a run is replayed when
     the logged batch ``i`` has the same points (within ``atol``); the first mismatch drops the rest of
     the log (the search diverged) and simulates from there. ``key`` names what the log was made for:
-    another key starts an empty log.
+    another key starts an empty log. ``chunk``: a call with more points is simulated and logged in
+    chunks of that many (a stop loses at most one chunk).
     """
 
     def __init__(self, path: Path | None, key: str, evaluator: Any,
-                 log: Callable[[str], None] | None = None, atol: float = 1e-9) -> None:
-        self.path, self.key, self.evaluator, self.atol = path, key, evaluator, atol
+                 log: Callable[[str], None] | None = None, atol: float = 1e-9, chunk: int | None = None) -> None:
+        self.path, self.key, self.evaluator, self.atol, self.chunk = path, key, evaluator, atol, chunk
         self._log = log or (lambda _msg: None)
         self.batches: list[dict[str, Any]] = self._load()
         self.calls = 0
@@ -77,6 +78,10 @@ class BatchLog:
 
     def __call__(self, theta: np.ndarray) -> np.ndarray:
         theta = np.atleast_2d(np.asarray(theta, dtype=np.float64))
+        step = self.chunk or len(theta) or 1
+        return np.concatenate([self._batch(theta[a:a + step]) for a in range(0, max(len(theta), 1), step)])
+
+    def _batch(self, theta: np.ndarray) -> np.ndarray:
         i = self.calls
         self.calls += 1
         if i < len(self.batches):
