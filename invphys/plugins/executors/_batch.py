@@ -17,12 +17,16 @@ from invphys.core.errors import InvphysError
 from invphys.core.results import RunStats, SimulationResult
 
 _CACHE: dict[str, tuple[Any, Any]] = {}
+#: plugin builds in this process (a warm worker builds once per spec, whatever the number of batches)
+BUILDS = 0
 
 
 def build_plugins(simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None) -> tuple[Any, Any]:
     """The (simulator, extractor) for these blocks, built once per process through the registry."""
+    global BUILDS
     key = json.dumps([simulator_spec, extractor_spec], sort_keys=True, default=str)
     if key not in _CACHE:
+        BUILDS += 1
         from invphys import registry
 
         simulator = registry.create("simulator", dict(simulator_spec))

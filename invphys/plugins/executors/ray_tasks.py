@@ -12,6 +12,7 @@ from invphys.core.errors import InvphysError
 from invphys.core.interfaces import Executor, PluginConfig
 from invphys.core.results import SimulationResult
 from invphys.plugins.executors._batch import batches, build_plugins, failed_result, run_batch
+from invphys.plugins.executors._ray import connect, import_ray
 
 
 class RayExecutor(Executor):
@@ -43,17 +44,9 @@ class RayExecutor(Executor):
     def run(self, simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None,
             params: np.ndarray, batch_size: int) -> Iterator[tuple[int, SimulationResult]]:
         """Yield ``(row_index, result)`` as tasks complete (completion order)."""
-        import ray
-
         cfg = self.config
-        started = False
-        if not ray.is_initialized():
-            try:
-                ray.init(address=cfg.address, num_cpus=cfg.num_cpus if cfg.address is None else None,
-                         include_dashboard=False, log_to_driver=False, configure_logging=False)
-            except (ConnectionError, RuntimeError, ValueError) as exc:
-                raise InvphysError(f"cannot start or reach Ray (address={cfg.address!r}): {exc}") from exc
-            started = True
+        ray = import_ray(self.name)
+        started = connect(ray, cfg.address, cfg.num_cpus)
         try:
             yield from self._run(ray, simulator_spec, extractor_spec, params, batch_size)
         finally:

@@ -1,0 +1,259 @@
+"""The ``ray_actors`` executor: one long-lived warm simulator actor per GPU (or per CPU slot) of a Ray
+node or cluster; idle actors pull the next chunk of rows."""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+from collections import deque
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from invphys.core.errors import InvphysError
+from invphys.core.interfaces import Executor, PluginConfig
+from invphys.core.results import SimulationResult
+from invphys.plugins.executors import _batch
+from invphys.plugins.executors._ray import connect, import_ray
+
+
+class SimulatorActor:
+    """The body of one Ray actor: a process that builds each simulator and extractor once (from their
+    spec blocks, :func:`~invphys.plugins.executors._batch.build_plugins`) and keeps them, with their
+    compiled kernels and allocated fields, for every chunk it runs."""
+
+    def __init__(self, env: dict[str, str]) -> None:
+        os.environ.update(env)
+        self.chunks = 0
+        self.rows = 0
+        self.busy_s = 0.0
+
+    def run(self, simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None, params: np.ndarray,
+            isolate_failures: bool) -> list[SimulationResult]:
+        """Simulate one chunk on the warm simulator (continuous batching for a ``native_stream`` one)."""
+        t0 = time.perf_counter()
+        try:
+            return _batch.run_batch(simulator_spec, extractor_spec, params, isolate_failures)
+        finally:
+            self.chunks += 1
+            self.rows += len(np.atleast_2d(params))
+            self.busy_s += time.perf_counter() - t0
+
+    def info(self) -> dict[str, Any]:
+        """Where this actor runs and what it has done: pid, host, GPU ids, chunks, rows, busy seconds,
+        plugin builds (one per spec: kernels compiled once), and the slot counters of warm engines."""
+        import ray
+
+        useful = launched = 0
+        for simulator, _ in _batch._CACHE.values():
+            engine = getattr(simulator, "_engine", None)
+            counters = getattr(engine, "counters", None)
+            if counters is not None:
+                useful, launched = useful + int(counters.useful), launched + int(counters.launched)
+        return {"pid": os.getpid(), "host": platform.node(), "gpu_ids": [str(g) for g in ray.get_gpu_ids()],
+                "cuda_visible_devices": os.environ.get("CUDA_VISIBLE_DEVICES"), "chunks": self.chunks,
+                "rows": self.rows, "busy_s": self.busy_s, "builds": _batch.BUILDS,
+                "useful_slot_substeps": useful, "launched_slot_substeps": launched}
+
+
+class RayActorsExecutor(Executor):
+    """Spreads rows over warm simulator actors of a Ray node or cluster: one actor per GPU by default.
+
+    Each actor is a long-lived process that builds the simulator once and keeps it (compiled kernels,
+    allocated fields) for every chunk, so kernels compile once per actor, not once per task. Rows are
+    cut into chunks of ``chunk_size`` (default: the dataset's batch size); an actor that finishes a chunk
+    pulls the next one, so a slow GPU does not hold the others up, and results stream back chunk by chunk.
+    A simulator with continuous batching (``native_stream``) streams each chunk through its slots: make
+    chunks a few times its ``batch_size`` so slots stay full. With ``num_gpus: 0`` the actors are CPU
+    processes.
+
+    Failures are per row: a chunk whose simulator raises is re-run row by row inside the actor
+    (``isolate_failures``); an actor that dies (segfault, out of memory) is restarted by Ray (at most
+    ``max_restarts`` times) and the rows of its chunk are re-run one at a time, each alone on an actor,
+    so only the rows that kill an actor are stored as failed (``ray actor died: ...``).
+
+    With ``keep_actors`` the actors (and a Ray instance this executor started) live on after ``run`` for
+    the next call on the same executor (simulator-in-the-loop optimisation, active learning); call
+    :meth:`close` to release them.
+    """
+
+    name = "ray_actors"
+
+    class Config(PluginConfig):
+        address: str | None = Field(None, description="Ray cluster address; None starts a local instance")
+        num_cpus: int | None = Field(None, ge=1, description="CPUs of a local instance (default: all)")
+        num_gpus: float = Field(
+            1.0, ge=0, description="GPUs each actor holds (1: one actor per GPU; 0: CPU actors)")
+        num_cpus_per_actor: float = Field(
+            1.0, ge=0, description="CPUs each actor holds; also its OMP/MKL/taichi CPU threads (at least 1)")
+        actors: int | None = Field(
+            None, ge=1, description="number of actors (default: cluster GPUs / num_gpus, or CPUs / "
+                                    "num_cpus_per_actor for CPU actors)")
+        chunk_size: int | None = Field(
+            None, ge=1, description="rows an actor pulls at a time (default: the dataset's batch size)")
+        prefetch: int = Field(
+            0, ge=0, description="chunks queued on a busy actor beyond the one it runs (0: pull when idle)")
+        max_restarts: int = Field(8, ge=0, description="restarts of an actor whose process died")
+        isolate_failures: bool = Field(
+            True, description="when a chunk raises, re-run its rows one by one so only the bad row fails")
+        runtime_env: dict[str, Any] | None = Field(None, description="Ray runtime_env of the actors")
+        keep_actors: bool = Field(
+            False, description="keep the warm actors (and a Ray instance started here) after run for the "
+                               "next call; close() releases them")
+
+    def __init__(self, config: PluginConfig | dict[str, Any] | None = None, **settings: Any) -> None:
+        super().__init__(config, **settings)
+        self._ray: Any = None
+        self._started = False
+        self._actors: list[Any] = []
+
+    # -- the actor pool ----------------------------------------------------------------------
+    def _connect(self) -> Any:
+        if self._ray is None or not self._ray.is_initialized():
+            self._ray = ray = import_ray(self.name)
+            self._started = connect(ray, self.config.address, self.config.num_cpus) or self._started
+            self._actors = []
+        return self._ray
+
+    def _size(self, ray: Any) -> int:
+        """Actors to start, checked against the cluster's GPUs and CPUs."""
+        cfg = self.config
+        resources = ray.cluster_resources()
+        gpus, cpus = float(resources.get("GPU", 0)), float(resources.get("CPU", 0))
+        where = f"Ray at {cfg.address!r}" if cfg.address else "the local Ray instance"
+        if cfg.num_gpus > 0:
+            if gpus < cfg.num_gpus:
+                raise InvphysError(
+                    f"executor 'ray_actors' asks for {cfg.num_gpus:g} GPU per actor but {where} sees "
+                    f"{gpus:g} GPUs (set num_gpus: 0 for CPU actors)")
+            n = cfg.actors or int(gpus // cfg.num_gpus + 1e-9)
+            if n * cfg.num_gpus > gpus + 1e-9:
+                raise InvphysError(f"executor 'ray_actors': {n} actors x {cfg.num_gpus:g} GPUs need "
+                                   f"{n * cfg.num_gpus:g} GPUs but {where} has {gpus:g}")
+        else:
+            n = cfg.actors or max(1, int(cpus // cfg.num_cpus_per_actor + 1e-9) if cfg.num_cpus_per_actor else 1)
+        if n * cfg.num_cpus_per_actor > cpus + 1e-9:
+            raise InvphysError(f"executor 'ray_actors': {n} actors x {cfg.num_cpus_per_actor:g} CPUs need "
+                               f"{n * cfg.num_cpus_per_actor:g} CPUs but {where} has {cpus:g}")
+        return n
+
+    def _pool(self) -> list[Any]:
+        """The warm actors, started on first use."""
+        ray = self._connect()
+        if not self._actors:
+            cfg = self.config
+            threads = str(max(1, int(cfg.num_cpus_per_actor)))
+            env = {"OMP_NUM_THREADS": threads, "MKL_NUM_THREADS": threads, "OPENBLAS_NUM_THREADS": threads,
+                   "TI_CPU_MAX_NUM_THREADS": threads}
+            options: dict[str, Any] = {"num_cpus": cfg.num_cpus_per_actor, "num_gpus": cfg.num_gpus,
+                                       "max_restarts": cfg.max_restarts, "max_task_retries": 0}
+            if cfg.runtime_env:
+                options["runtime_env"] = cfg.runtime_env
+            actor_cls = ray.remote(SimulatorActor).options(**options)
+            self._actors = [actor_cls.remote(env) for _ in range(self._size(ray))]
+        return self._actors
+
+    def warm(self, simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None,
+             params: np.ndarray) -> None:
+        """Run ``params`` once on every actor (results dropped): builds the plugins and compiles their
+        kernels everywhere before timed or latency-bound work."""
+        pool = self._pool()
+        params = np.atleast_2d(np.asarray(params, dtype=np.float64))
+        self._ray.get([a.run.remote(simulator_spec, extractor_spec, params, True) for a in pool])
+
+    def actor_info(self) -> list[dict[str, Any]]:
+        """:meth:`SimulatorActor.info` of every actor of the pool (empty before the first run)."""
+        return self._ray.get([a.info.remote() for a in self._actors]) if self._actors else []
+
+    def close(self) -> None:
+        """Kill the actors and shut down a Ray instance this executor started."""
+        ray, actors, self._actors = self._ray, self._actors, []
+        if ray is None:
+            return
+        for actor in actors:
+            try:
+                ray.kill(actor)
+            except Exception:
+                pass
+        if self._started and ray.is_initialized():
+            ray.shutdown()
+        self._started = False
+
+    # -- running -------------------------------------------------------------------------------
+    def run(self, simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None,
+            params: np.ndarray, batch_size: int) -> Iterator[tuple[int, SimulationResult]]:
+        """Yield ``(row_index, result)`` as chunks finish (completion order)."""
+        try:
+            pool = self._pool()
+            yield from self._run(pool, simulator_spec, extractor_spec, params, batch_size)
+        finally:
+            if not self.config.keep_actors:
+                self.close()
+
+    def _run(self, pool: list[Any], simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None,
+             params: np.ndarray, batch_size: int) -> Iterator[tuple[int, SimulationResult]]:
+        ray, cfg = self._ray, self.config
+        from ray.exceptions import RayActorError
+
+        params = np.atleast_2d(np.asarray(params, dtype=np.float64))
+        todo = deque(_batch.batches(len(params), cfg.chunk_size or batch_size))
+        suspects: deque[np.ndarray] = deque()   # rows of a chunk whose actor died: each re-run alone
+        load = [0] * len(pool)                  # chunks in flight per actor
+        deaths = [0] * len(pool)
+        alone: set[int] = set()                 # actors running a suspect row (nothing else goes there)
+        inflight: dict[Any, tuple[int, np.ndarray, bool]] = {}
+
+        def failed(idx: np.ndarray, reason: str) -> list[SimulationResult]:
+            simulator, _ = _batch.build_plugins(simulator_spec, None)
+            return [_batch.failed_result(simulator, params[i], reason[:500]) for i in idx]
+
+        def submit(a: int, idx: np.ndarray, single: bool) -> None:
+            ref = pool[a].run.remote(simulator_spec, extractor_spec, params[idx], cfg.isolate_failures)
+            inflight[ref] = (a, idx, single)
+            load[a] += 1
+            if single:
+                alone.add(a)
+
+        try:
+            while todo or suspects or inflight:
+                live = [a for a in range(len(pool)) if deaths[a] <= cfg.max_restarts]
+                for a in sorted(live, key=lambda k: load[k]):   # idle actors pull first
+                    if a in alone:
+                        continue
+                    if suspects and load[a] == 0:
+                        submit(a, suspects.popleft(), True)
+                    elif todo and not suspects and load[a] <= cfg.prefetch:
+                        submit(a, todo.popleft(), False)
+                if not inflight:   # every actor died too often: the rest cannot run
+                    reason = f"ray actor died more than max_restarts={cfg.max_restarts} times"
+                    for idx in [*suspects, *todo]:
+                        yield from zip(idx.tolist(), failed(idx, reason), strict=True)
+                    return
+                done, _ = ray.wait(list(inflight), num_returns=1)
+                for ref in done:
+                    a, idx, single = inflight.pop(ref)
+                    load[a] -= 1
+                    alone.discard(a)
+                    try:
+                        results = ray.get(ref)
+                    except Exception as exc:
+                        cause = getattr(exc, "cause", None) or exc
+                        if isinstance(cause, InvphysError):
+                            raise InvphysError(str(cause)) from exc
+                        died = isinstance(exc, RayActorError)
+                        deaths[a] += died
+                        if died and not single and (cfg.isolate_failures or len(idx) == 1):
+                            suspects.extend(np.array([i]) for i in idx)   # find the row that kills it
+                            continue
+                        kind = "ray actor died" if died else "ray actor call failed"
+                        results = failed(idx, f"{kind}: {type(cause).__name__}: {cause}")
+                    yield from zip(idx.tolist(), results, strict=True)
+        finally:
+            for ref in inflight:
+                try:
+                    ray.cancel(ref)
+                except Exception:
+                    pass
