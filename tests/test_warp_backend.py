@@ -1,4 +1,4 @@
-"""The Warp backend of the orange peel on CPU: selection, parity with Taichi, determinism, errors.
+"""The Warp backend of the engine, through the orange peel on CPU: selection, parity with Taichi, determinism, errors.
 
 Real simulator runs at the tiny preset (2,112 particles). The Warp module compiles once with the
 bundled clang (~5 s, cached in ~/.cache/warp); Taichi compiles its kernels on first use.
@@ -111,7 +111,7 @@ def test_blow_up_is_reported_like_taichi() -> None:
 
 def test_cuda_request_without_gpu() -> None:
     """arch='cuda' on a machine without CUDA: a clear error, or CPU when fallback is allowed."""
-    from invphys_orange_peel.backends.warp_backend import cuda_available
+    from invphys_anisompm.backends.warp_backend import cuda_available
 
     if cuda_available():
         pytest.skip("a CUDA device is present")
@@ -162,7 +162,7 @@ def test_warp_grid_mass_and_kernel_times() -> None:
     for unit in BENCH_UNIT[[4, 12]]:
         params = SPACE.denormalize(unit[None])
         assert all(r.ok for r in sim.simulate(params))
-        backend = sim._backend(1)
+        backend = sim.engine.backend(1)
         particle_mass = params[:, 1] * 1000.0 * sim.scene.volume * sim.scene.n_particles
         np.testing.assert_allclose(backend.grid_mass(), particle_mass, rtol=1e-4)
     times = backend.kernel_times(2)

@@ -6,7 +6,7 @@ if [ ! -d /tmp/gpusite/taichi ]; then
   python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/gpusite \
     .gpu/tix/*.whl .gpu/h5/*.whl || exit 1
 fi
-export PYTHONPATH=/tmp/gpusite:$REPO:$REPO/examples/orange_peel PYTHONUNBUFFERED=1 INVPHYS_DISABLE_PLUGIN_AUTOLOAD=1
+export PYTHONPATH=/tmp/gpusite:$REPO:$REPO/examples/anisompm:$REPO/examples/orange_peel PYTHONUNBUFFERED=1 INVPHYS_DISABLE_PLUGIN_AUTOLOAD=1
 nvidia-smi --query-gpu=name,memory.used --format=csv
 sed -e 's/^simulator: {type: orange_peel,/simulator: {type: "invphys_orange_peel.simulator:OrangePeelSimulator",/' \
     -e 's/^executor: {type: local}/executor: {type: local}\nfeatures: {type: "invphys_orange_peel.features:OrangePeelFeatures"}/' \

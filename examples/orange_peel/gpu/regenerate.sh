@@ -11,7 +11,7 @@
 # so that other people's uncommitted work cannot change a long generation.
 set -uo pipefail
 [ -d .gpu/src/invphys ] && rm -rf invphys && cp -r .gpu/src/invphys invphys
-export PYTHONPATH=/tmp/gpusite:$PWD:$PWD/examples/orange_peel PYTHONUNBUFFERED=1
+export PYTHONPATH=/tmp/gpusite:$PWD:$PWD/examples/anisompm:$PWD/examples/orange_peel PYTHONUNBUFFERED=1
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT" /tmp/ds
 ship_paper() { tar -C /tmp/ds -cf "$OUT/paper.tar" --exclude='.*.tmp' orange_peel_paper 2>/dev/null; \
                cp /tmp/paper.log "$OUT/paper.log" 2>/dev/null; true; }

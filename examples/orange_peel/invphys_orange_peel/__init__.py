@@ -1,4 +1,5 @@
-"""The orange-peel AnisoMPM simulator for invphys (Taichi backend; a Warp backend shares all but kernels).
+"""The orange-peel AnisoMPM simulator for invphys: a scene, a parameter map and features on the ``invphys-anisompm``
+engine (Taichi and Warp).
 
 Import-cheap: nothing here imports taichi or warp. Typical use::
 

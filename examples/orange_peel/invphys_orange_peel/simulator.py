@@ -1,8 +1,8 @@
-"""The ``orange_peel`` simulator plugin: batched AnisoMPM orange peeling (Taichi; Warp later)."""
+"""The ``orange_peel`` simulator plugin: batched AnisoMPM orange peeling on the ``invphys-anisompm`` engine."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -10,10 +10,16 @@ from pydantic import Field, field_validator
 
 from invphys.core.interfaces import PluginConfig, Simulator
 from invphys.core.params import ParameterSpace
-from invphys.core.results import RunStats, SimulationResult, Trajectory
+from invphys.core.results import RunStats, SimulationResult, TimeSeries, Trajectory
 from invphys_orange_peel import SIMULATOR_VERSION
-from invphys_orange_peel.driver import RunRecord, StepSettings, estimated_substeps, run_batch
-from invphys_orange_peel.material import materials_from_params
+from invphys_orange_peel.engine_scene import (
+    GRIPPER,
+    INTERIOR_BODY,
+    SKIN_BODY,
+    OrangeScene,
+    build_orange_scene,
+    model_for,
+)
 from invphys_orange_peel.parameters import parameter_space
 from invphys_orange_peel.presets import PRESETS, Preset, get_preset
 from invphys_orange_peel.scene import Scene, build_scene
@@ -21,20 +27,32 @@ from invphys_orange_peel.scene import Scene, build_scene
 #: default gravity (m/s^2); see docs/orange-peel/physics.md for why it is not -9.81
 GRAVITY = -0.3
 
+#: the time series every ok run carries (every frame 0..frames): name -> (unit, description)
+SERIES: dict[str, tuple[str, str]] = {
+    "separation": ("m", "distance between the skin's and the interior's centroids"),
+    "mean_damage": ("", "mean damage of all particles"),
+    "gripper_work": ("J", "work done by the gripper on the orange since frame 0"),
+    "gripper_force": ("N", "magnitude of the orange's mean force on the gripper over each frame"),
+    "max_speed": ("m/s", "peak particle speed"),
+    "kinetic_energy": ("J", "kinetic energy of all particles"),
+}
+
 
 class OrangePeelSimulator(Simulator):
     """Half an orange peeled by a gripper along a fixed arc, simulated with AnisoMPM-style MPM.
 
-    Each row of ``params`` is one run (9 parameters of paper Table 1, physical units). Runs are
-    sorted by their elastic time step and advanced ``batch_size`` at a time, one kernel launch per
-    substep for the whole batch. Each result carries a :class:`Trajectory` of every
-    ``record_every``-th frame (labels 0 = skin, 1 = interior).
+    Each row of ``params`` is one run (9 parameters of paper Table 1, physical units). The scene is an
+    ``invphys-anisompm`` engine scene (:mod:`invphys_orange_peel.engine_scene`); runs are sorted by cost
+    and advanced ``batch_size`` at a time (or, with ``scheduling: continuous``, ``batch_size`` slots kept
+    full), one kernel launch per substep for the whole batch. Each result carries a :class:`Trajectory`
+    of every ``record_every``-th frame (labels 0 = skin, 1 = interior) and the series of :data:`SERIES`.
     """
 
     name: ClassVar[str] = "orange_peel"
     version: ClassVar[str] = SIMULATOR_VERSION
     #: settings that change where or how fast runs go, not their results: left out of a run's stored identity
-    identity_ignores: ClassVar[tuple[str, ...]] = ("arch", "allow_cpu_fallback", "batch_size", "deterministic")
+    identity_ignores: ClassVar[tuple[str, ...]] = ("arch", "allow_cpu_fallback", "batch_size", "deterministic",
+                                                   "scheduling")
 
     class Config(PluginConfig):
         """Settings of the orange-peel simulator."""
@@ -62,6 +80,10 @@ class OrangePeelSimulator(Simulator):
         damage: bool = Field(True, description="evolve the phase-field damage")
         deterministic: bool = Field(True, description="serialise CPU scatter so runs repeat bit-for-bit")
         energy_factor: float = Field(4.0, gt=0, description="kinetic-energy blow-up bound factor")
+        scheduling: Literal["lockstep", "continuous"] = Field(
+            "lockstep", description="lockstep: batches of similar cost run together until the slowest ends; "
+                                    "continuous: batch_size slots stay full, a finished run's slot takes the "
+                                    "next run at once (results stream out as runs finish)")
 
         @field_validator("preset")
         @classmethod
@@ -73,7 +95,8 @@ class OrangePeelSimulator(Simulator):
     def __init__(self, config: PluginConfig | dict[str, Any] | None = None, **settings: Any) -> None:
         super().__init__(config, **settings)
         self._scene: Scene | None = None
-        self._backends: dict[int, Any] = {}
+        self._engine_scene: OrangeScene | None = None
+        self._engine: Any = None
 
     # -- description --------------------------------------------------------------------------
     def parameter_space(self) -> ParameterSpace:
@@ -88,9 +111,27 @@ class OrangePeelSimulator(Simulator):
 
     @property
     def scene(self) -> Scene:
+        """The orange's geometry (particles in the orange's order, labels, fibres, gripped patch, arc)."""
         if self._scene is None:
             self._scene = build_scene(self.preset)
         return self._scene
+
+    @property
+    def engine_scene(self) -> OrangeScene:
+        """The engine scene built from :attr:`scene` and the config."""
+        if self._engine_scene is None:
+            self._engine_scene = build_orange_scene(self.scene, self.engine_options(), gripper=self.config.gripper)
+        return self._engine_scene
+
+    @property
+    def engine(self) -> Any:
+        """The warm :class:`invphys_anisompm.Engine` (kernels compiled and fields allocated once)."""
+        if self._engine is None:
+            from invphys_anisompm import Engine
+
+            self._engine = Engine(self.engine_scene.engine, backend=self.config.backend, arch=self.config.arch,
+                                  allow_cpu_fallback=self.config.allow_cpu_fallback)
+        return self._engine
 
     @property
     def frames(self) -> int:
@@ -100,59 +141,90 @@ class OrangePeelSimulator(Simulator):
     def record_every(self) -> int:
         return self.config.record_every or self.preset.record_every
 
-    def step_settings(self) -> StepSettings:
-        c = self.config
-        return StepSettings(cfl=c.cfl, velocity_cfl=c.velocity_cfl, min_substeps_per_frame=c.min_substeps_per_frame,
-                            max_substeps_per_frame=c.max_substeps_per_frame, eta_dt_factor=c.eta_dt_factor,
-                            gravity=c.gravity, settle_seconds=c.settle_seconds, l0_cells=c.l0_cells,
-                            apic_blend=c.apic_blend, damage_on=c.damage, gripper_on=c.gripper,
-                            deterministic=c.deterministic, energy_factor=c.energy_factor)
+    @property
+    def native_stream(self) -> bool:  # type: ignore[override]
+        return self.config.scheduling == "continuous"
 
-    def _backend(self, batch: int) -> Any:
-        if batch not in self._backends:
-            from invphys_orange_peel.backends import load_backend
+    def engine_options(self) -> Any:
+        """The engine's :class:`~invphys_anisompm.EngineOptions` of this config (no settling damping: the
+        orange settles under gravity alone; the gripper is slow, so no kinematic CFL bound applies)."""
+        from invphys_anisompm import EngineOptions
 
-            cls = load_backend(self.config.backend)
-            self._backends[batch] = cls(self.scene, batch, self.step_settings(), arch=self.config.arch,
-                                        allow_cpu_fallback=self.config.allow_cpu_fallback)
-        return self._backends[batch]
+        c, p = self.config, self.preset
+        return EngineOptions(dx=self.scene.dx, grid=p.grid, fps=p.fps, gravity=c.gravity,
+                             settle_seconds=c.settle_seconds, cfl=c.cfl, velocity_cfl=c.velocity_cfl,
+                             min_substeps_per_frame=c.min_substeps_per_frame,
+                             max_substeps_per_frame=c.max_substeps_per_frame, eta_dt_factor=c.eta_dt_factor,
+                             kinematic_cfl=1e9, apic_blend=c.apic_blend, l0_cells=c.l0_cells,
+                             damage=c.damage, deterministic=c.deterministic, energy_factor=c.energy_factor)
 
     # -- simulation ---------------------------------------------------------------------------
     def simulate(self, params: np.ndarray,
                  on_result: Callable[[int, SimulationResult], None] | None = None) -> list[SimulationResult]:
         """Simulate each row of ``params`` (B, 9); see :class:`Simulator.simulate`."""
-        x = self.parameter_space().check(np.atleast_2d(np.asarray(params, dtype=np.float64)))
-        x = x.reshape(-1, self.parameter_space().dim)
-        scene, settings = self.scene, self.step_settings()
-        materials = materials_from_params(x)
-        order = np.argsort(estimated_substeps(materials, scene, self.frames, self.preset.fps, settings),
-                           kind="stable")
+        x = self._check(params)
         results: list[SimulationResult | None] = [None] * len(x)
-        bs = self.config.batch_size
-        for start in range(0, len(order), bs):
-            idx = order[start:start + bs]
-            backend = self._backend(len(idx))
-            records, wall = run_batch(backend, scene, materials.take(idx), self.frames, self.preset.fps,
-                                      self.record_every, settings)
-            for j, (row, rec) in enumerate(zip(idx, records, strict=True)):
-                stats = RunStats(substeps=rec.substeps + rec.settle_substeps, wall_time_s=wall / len(idx),
-                                 backend=self.config.backend, device=backend.device, preset=self.preset.name,
-                                 simulator=self.name, simulator_version=self.version)
-                res = self._result(x[row], rec, stats, batch_wall=wall, batch_size=len(idx), slot=j)
-                results[row] = res
-                if on_result is not None:
-                    on_result(int(row), res)
+
+        def done(i: int, rec: Any) -> None:
+            results[i] = res = self._finished(x[i], rec)
+            if on_result is not None:
+                on_result(i, res)
+
+        model = model_for(self.engine_scene, x)
+        if self.config.scheduling == "continuous":
+            for i, rec in self.engine.stream(model, self.frames, self.record_every, self.config.batch_size):
+                done(i, rec)
+        else:
+            self.engine.run_batched(model, self.frames, self.record_every, self.config.batch_size, on_result=done)
         return [r for r in results if r is not None]
 
-    def _result(self, params: np.ndarray, rec: RunRecord, stats: RunStats, **extra: Any) -> SimulationResult:
+    def simulate_stream(self, params: np.ndarray, batch_size: int | None = None
+                        ) -> Iterator[tuple[int, SimulationResult]]:
+        """Yield ``(i, result)`` as runs finish: continuous batching over every row, ``batch_size`` (default:
+        the config's) slots kept full on the warm engine, whatever ``scheduling`` says."""
+        x = self._check(params)
+        for i, rec in self.engine.stream(model_for(self.engine_scene, x), self.frames, self.record_every,
+                                         int(batch_size or self.config.batch_size)):
+            yield i, self._finished(x[i], rec)
+
+    def _check(self, params: np.ndarray) -> np.ndarray:
+        space = self.parameter_space()
+        return space.check(np.atleast_2d(np.asarray(params, dtype=np.float64))).reshape(-1, space.dim)
+
+    def _finished(self, params: np.ndarray, rec: Any) -> SimulationResult:
+        stats = RunStats(substeps=rec.substeps + rec.settle_substeps, wall_time_s=rec.wall_time_s,
+                         backend=self.config.backend, device=self.engine.device, preset=self.preset.name,
+                         simulator=self.name, simulator_version=self.version)
         if rec.failure is not None:
             return SimulationResult(params=params, ok=False, stats=stats, failure=rec.failure)
-        scene = self.scene
-        frames = np.asarray(rec.frames, dtype=np.int64)
+        return SimulationResult(params=params, ok=True, stats=stats, trajectory=self._trajectory(rec))
+
+    def _trajectory(self, rec: Any) -> Trajectory:
+        scene, es = self.scene, self.engine_scene
+        counts = {b.name: b.count for b in es.engine.bodies}
+        n_all = sum(counts.values())
+        separation = np.linalg.norm(rec.series_array(f"centroid/{SKIN_BODY}")
+                                    - rec.series_array(f"centroid/{INTERIOR_BODY}"), axis=1)
+        mean_damage = (rec.series_array(f"mean_damage/{SKIN_BODY}") * counts[SKIN_BODY]
+                       + rec.series_array(f"mean_damage/{INTERIOR_BODY}") * counts[INTERIOR_BODY]) / n_all
+        n = len(separation)
+        if self.config.gripper:
+            work = rec.series_array(f"work/{GRIPPER}")
+            force = np.linalg.norm(rec.series_array(f"force/{GRIPPER}"), axis=1)
+        else:
+            work, force = np.zeros(n), np.zeros(n)
+        values = {"separation": separation, "mean_damage": mean_damage, "gripper_work": work,
+                  "gripper_force": force, "max_speed": rec.series_array("max_speed"),
+                  "kinetic_energy": rec.series_array("kinetic_energy")}
         fps = self.preset.fps
-        traj = Trajectory(
-            positions=np.stack(rec.positions).astype(np.float32),
-            damage=np.stack(rec.damage).astype(np.float32),
+        times = np.arange(n) / fps
+        series = {k: TimeSeries(times=times, values=v, unit=SERIES[k][0], description=SERIES[k][1])
+                  for k, v in values.items()}
+        frames = np.asarray(rec.frames, dtype=np.int64)
+        return Trajectory(
+            series=series,
+            positions=es.to_orange_order(np.stack(rec.positions)).astype(np.float32),
+            damage=es.to_orange_order(np.stack(rec.damage)).astype(np.float32),
             labels=scene.labels.astype(np.int8),
             frame_indices=frames,
             fps=fps,
@@ -162,17 +234,14 @@ class OrangePeelSimulator(Simulator):
                 "dx": scene.dx, "radius": scene.radius, "skin_thickness": scene.skin_thickness,
                 "centre": scene.centre.copy(), "domain": scene.domain, "frames": self.frames,
                 "record_every": self.record_every, "preset": self.preset.name,
-                "max_speed": np.asarray(rec.max_speed, np.float32),
-                "kinetic_energy": np.asarray(rec.kinetic_energy, np.float32),
+                # frames 1..frames, as before the engine (frame 0 is the settled state)
+                "max_speed": values["max_speed"][1:].astype(np.float32),
+                "kinetic_energy": values["kinetic_energy"][1:].astype(np.float32),
                 # every frame 0..frames (not only recorded ones): the smooth features read these
-                "frame_separation": np.asarray(rec.separation, np.float64),
-                "frame_mean_damage": np.asarray(rec.mean_damage, np.float64),
-                "frame_work": np.asarray(rec.work, np.float64),
+                "frame_separation": separation, "frame_mean_damage": mean_damage, "frame_work": work,
                 "dt": rec.dt, "settle_substeps": rec.settle_substeps, "guard_frames": rec.guard_frames,
-                **extra,
             },
         )
-        return SimulationResult(params=params, ok=True, stats=stats, trajectory=traj)
 
     # -- rendering ----------------------------------------------------------------------------
     def render(self, trajectory: Trajectory, path: Any, *, max_frames: int = 60, animation: str = "gif",

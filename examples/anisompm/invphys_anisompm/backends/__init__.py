@@ -7,6 +7,10 @@ A backend implements ``load(table, friction)``, ``set_frame(dt, nsub, kin, damag
 
 from __future__ import annotations
 
+import contextlib
+import os
+import sys
+from collections.abc import Iterator
 from typing import Any
 
 from invphys.core.errors import InvphysError, PluginLoadError, did_you_mean
@@ -15,18 +19,48 @@ BACKENDS = {"taichi": "invphys_anisompm.backends.taichi_backend:TaichiBackend",
             "warp": "invphys_anisompm.backends.warp_backend:WarpBackend"}
 
 
+@contextlib.contextmanager
+def quiet_library() -> Iterator[None]:
+    """Silence a heavy library's start-up lines (Taichi's banner and log, Warp's "initialized" and
+    "could not find the CUDA driver" lines) at the file-descriptor level, so native prints are caught too
+    and ``--json`` output stays clean. With ``INVPHYS_DEBUG=1`` (the CLI's ``--debug``) nothing is hidden."""
+    if os.environ.get("INVPHYS_DEBUG", "") not in ("", "0"):
+        yield
+        return
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    saved = []
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        for fd in (1, 2):
+            saved.append((fd, os.dup(fd)))
+            os.dup2(devnull, fd)
+        os.close(devnull)
+    except OSError:  # no real descriptors (e.g. an embedded interpreter): keep going, unsilenced
+        pass
+    try:
+        with contextlib.redirect_stdout(sys.stderr):
+            yield
+    finally:
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        for fd, old in saved:
+            os.dup2(old, fd)
+            os.close(old)
+
+
 def load_backend(name: str) -> Any:
     """The backend class called ``name`` (imports its library now)."""
-    import contextlib
     import importlib
-    import sys
 
     if name not in BACKENDS:
         raise InvphysError(f"unknown AnisoMPM backend {name!r}.{did_you_mean(name, BACKENDS)} "
                            f"Backends: {', '.join(BACKENDS)}")
     module_name, _, cls_name = BACKENDS[name].partition(":")
     try:
-        with contextlib.redirect_stdout(sys.stderr):  # keep library banners off stdout (--json)
+        with quiet_library():  # keep library banners off stdout (--json) and out of normal runs
             module = importlib.import_module(module_name)
     except ModuleNotFoundError as exc:
         raise PluginLoadError(f"the AnisoMPM {name!r} backend is not available: {exc}. "

@@ -8,13 +8,13 @@ advances a whole batch; a run whose substep index ``k`` is past its own ``nsub[b
 
 
 import contextlib
-import sys
 import threading
 
 import numpy as np
 import taichi as ti
 
 from invphys.core.errors import DeviceUnavailableError, InvphysError
+from invphys_anisompm.backends import quiet_library
 from invphys_anisompm.failure import BODY0, n_stats
 from invphys_anisompm.materials import M_ALPHA, M_DMG, M_ETA, M_KF, M_LAM, M_MU, M_RES, M_RHO, M_SC, N_MAT
 
@@ -73,7 +73,7 @@ def ensure_taichi(arch: str, allow_cpu_fallback: bool = False) -> str:
                 raise InvphysError(f"Taichi is already initialised on {_initialised_arch!r} in this process "
                                    f"and cannot switch to {want!r}; use one arch per process")
             return want
-        with contextlib.redirect_stdout(sys.stderr):  # Taichi's banner must not pollute stdout
+        with quiet_library():  # Taichi's start-up lines: hidden unless INVPHYS_DEBUG=1
             ti.init(arch=ti.cuda if want == "cuda" else ti.cpu, default_fp=ti.f32, random_seed=0,
                     offline_cache=True, log_level=ti.WARN)
         _initialised_arch = want
@@ -237,7 +237,9 @@ def _build_kernels(serial_p2g: bool):
                     held: ND(ti.i32, 3), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gg: ND(ti.f32, 4),
                     imp: ND(vec3, 2), work: ND(ti.f32, 2)):
         G = gm.shape[1]
-        for b, i, j, q in gm:
+        if ti.static(serial_p2g):
+            ti.loop_config(serialize=True)  # the force and work sums, like the scatter, in a fixed order
+        for b, i, j, q in ti.ndrange(gm.shape[0], G, gm.shape[2], gm.shape[3]):  # a range-for: serialize applies
             m = gm[b, i, j, q]
             if k < nsub[b] and m > 0.0:
                 vel = gv[b, i, j, q] / m
@@ -337,7 +339,9 @@ def _build_kernels(serial_p2g: bool):
     def frame_stats(lo: ti.f32, hi: ti.f32, mask: ND(ti.i32, 1), mat: ND(ti.f32, 3), body: ND(ti.i32, 1),
                     vol: ND(ti.f32, 1), x: ND(vec3, 2), v: ND(vec3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2),
                     out: ND(ti.f32, 2)):
-        for b, p in x:
+        if ti.static(serial_p2g):
+            ti.loop_config(serialize=True)  # float sums in a fixed order: features repeat bit for bit
+        for b, p in ti.ndrange(x.shape[0], x.shape[1]):  # a range-for: serialize applies
             if mask[b] == 0:
                 continue
             xp = x[b, p]
@@ -487,21 +491,45 @@ class TaichiBackend:
             self.kin = ti.ndarray(ti.f32, table.shape)
         self.kin.from_numpy(table)
 
-    def advance(self, n_steps: int) -> None:
-        """Run substeps 0..n_steps-1 of the current frame (runs past their own nsub idle)."""
+    def _stages(self, k: int) -> dict[str, object]:
+        """The substep's kernel launches in order, by stage name (each a no-argument callable)."""
         o = self.options
         dx = float(o.dx)
         ng = max(self.ngrip, 1)
+        return {
+            "clear": lambda: self._clear(k, ng, self.nsub, self.gv, self.gm, self.gd, self.gg),
+            "p2g": lambda: self._p2g(k, dx, float(o.apic_blend), ng, self.nsub, self.dt, self.mat, self.body,
+                                     self.fibre, self.vol, self.grip, self.x, self.v, self.C, self.F, self.d,
+                                     self.dtil, self.gv, self.gm, self.gd, self.gg),
+            "grid": lambda: self._grid(k, dx, float(o.gravity), self.damp, int(o.boundary_cells), self.ngrip,
+                                       self.ncol, self.nsub, self.dt, self.kin, self.ctype, self.ca, self.cb,
+                                       self.csurf, self.fric, self.held, self.gv, self.gm, self.gg, self.imp,
+                                       self.work),
+            "g2p": lambda: self._g2p(k, dx, float(o.l0_cells) ** 2, self.don, self.nsub, self.dt, self.mat,
+                                     self.body, self.grip, self.x0, self.kin, self.x, self.v, self.C, self.F,
+                                     self.d, self.dtil, self.gv, self.gd),
+        }
+
+    def advance(self, n_steps: int) -> None:
+        """Run substeps 0..n_steps-1 of the current frame (runs past their own nsub idle)."""
         for k in range(n_steps):
-            self._clear(k, ng, self.nsub, self.gv, self.gm, self.gd, self.gg)
-            self._p2g(k, dx, float(o.apic_blend), ng, self.nsub, self.dt, self.mat, self.body, self.fibre, self.vol,
-                      self.grip, self.x, self.v, self.C, self.F, self.d, self.dtil, self.gv, self.gm, self.gd, self.gg)
-            self._grid(k, dx, float(o.gravity), self.damp, int(o.boundary_cells), self.ngrip, self.ncol, self.nsub, self.dt,
-                       self.kin, self.ctype, self.ca, self.cb, self.csurf, self.fric, self.held, self.gv, self.gm,
-                       self.gg, self.imp, self.work)
-            self._g2p(k, dx, float(o.l0_cells) ** 2, self.don, self.nsub, self.dt, self.mat,
-                      self.body, self.grip, self.x0, self.kin, self.x, self.v, self.C, self.F, self.d, self.dtil,
-                      self.gv, self.gd)
+            for launch in self._stages(k).values():
+                launch()
+
+    def kernel_times(self, n_steps: int = 20) -> dict[str, float]:
+        """Mean seconds per launch of each substep stage over ``n_steps`` synchronised substeps (profiling;
+        advances the state, so use a throw-away batch)."""
+        import time
+
+        total: dict[str, float] = {}
+        for _ in range(n_steps):
+            for name, launch in self._stages(0).items():
+                ti.sync()
+                t0 = time.perf_counter()
+                launch()
+                ti.sync()
+                total[name] = total.get(name, 0.0) + time.perf_counter() - t0
+        return {k: v / n_steps for k, v in total.items()}
 
     def load_slots(self, slots: np.ndarray, table: np.ndarray, friction: np.ndarray) -> None:
         """Reset only runs ``slots`` (indices) to the initial state with materials ``table``

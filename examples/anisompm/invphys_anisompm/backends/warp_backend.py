@@ -16,6 +16,7 @@ import numpy as np
 import warp as wp
 
 from invphys.core.errors import DeviceUnavailableError
+from invphys_anisompm.backends import quiet_library
 from invphys_anisompm.failure import BODY0, n_stats
 from invphys_anisompm.materials import M_ALPHA, M_DMG, M_ETA, M_KF, M_LAM, M_MU, M_RES, M_RHO, M_SC, N_MAT
 from invphys_anisompm.scene import SURFACES
@@ -34,7 +35,7 @@ C_BODY0 = wp.constant(BODY0)
 
 def cuda_available() -> bool:
     """Whether Warp sees a CUDA device here (initialises Warp)."""
-    with _init_lock:
+    with _init_lock, quiet_library():
         wp.init()
     return wp.is_cuda_available()
 
@@ -42,7 +43,7 @@ def cuda_available() -> bool:
 def resolve_device(arch: str, allow_cpu_fallback: bool = False) -> str:
     """The Warp device for ``arch`` ("cpu", "cuda" or "auto"): "cpu" or "cuda:0"."""
     if arch == "cpu":
-        with _init_lock:
+        with _init_lock, quiet_library():
             wp.init()
         return "cpu"
     if cuda_available():
@@ -512,24 +513,55 @@ class WarpBackend:
         self.don.assign((np.broadcast_to(np.asarray(damage_on), (B,)) != 0).astype(np.int32)
                         * np.int32(self.options.damage))
 
-    def _substep(self) -> None:
-        o, B, N, G = self.options, self.batch, self.scene.n_particles, self.options.grid
-        dev = self.wp_device
-        ng = max(self.ngrip, 1)
-        wp.launch(clear_kernel, dim=(B, G, G, G), device=dev,
-                  inputs=[self.kstep, ng, self.nsub, self.gv, self.gm, self.gd, self.gg])
-        wp.launch(self._p2g_kernel, dim=(B, N), device=dev, inputs=[
-            self.kstep, float(o.dx), float(o.apic_blend), ng, self.nsub, self.dt, self.mat, self.body, self.fibre,
-            self.vol, self.grip, self.x, self.v, self.C, self.F, self.d, self.dtil, self.gv, self.gm, self.gd, self.gg])
-        wp.launch(grid_update_kernel, dim=(B, G, G, G), device=dev, inputs=[
+    def _clear(self) -> None:
+        B, G = self.batch, self.options.grid
+        wp.launch(clear_kernel, dim=(B, G, G, G), device=self.wp_device,
+                  inputs=[self.kstep, max(self.ngrip, 1), self.nsub, self.gv, self.gm, self.gd, self.gg])
+
+    def _p2g(self) -> None:
+        o = self.options
+        wp.launch(self._p2g_kernel, dim=(self.batch, self.scene.n_particles), device=self.wp_device, inputs=[
+            self.kstep, float(o.dx), float(o.apic_blend), max(self.ngrip, 1), self.nsub, self.dt, self.mat, self.body,
+            self.fibre, self.vol, self.grip, self.x, self.v, self.C, self.F, self.d, self.dtil, self.gv, self.gm,
+            self.gd, self.gg])
+
+    def _grid_update(self) -> None:
+        o, G = self.options, self.options.grid
+        wp.launch(grid_update_kernel, dim=(self.batch, G, G, G), device=self.wp_device, inputs=[
             self.kstep, float(o.dx), float(o.gravity), self.damp, int(o.boundary_cells), self.ngrip, self.ncol, self.nsub,
             self.dt, self.kin, self.ctype, self.ca, self.cb, self.csurf, self.fric, self.held, self.gv, self.gm,
             self.gg, self.imp, self.work])
-        wp.launch(g2p_kernel, dim=(B, N), device=dev, inputs=[
+
+    def _g2p(self) -> None:
+        o = self.options
+        wp.launch(g2p_kernel, dim=(self.batch, self.scene.n_particles), device=self.wp_device, inputs=[
             self.kstep, float(o.dx), float(o.l0_cells) ** 2, self.don, self.nsub, self.dt,
             self.mat, self.body, self.grip, self.x0, self.kin, self.x, self.v, self.C, self.F, self.d, self.dtil,
             self.gv, self.gd])
-        wp.launch(next_substep_kernel, dim=1, device=dev, inputs=[self.kstep])
+
+    def _substep(self) -> None:
+        self._clear()
+        self._p2g()
+        self._grid_update()
+        self._g2p()
+        wp.launch(next_substep_kernel, dim=1, device=self.wp_device, inputs=[self.kstep])
+
+    def kernel_times(self, n_steps: int = 20) -> dict[str, float]:
+        """Mean seconds per launch of each substep stage over ``n_steps`` synchronised substeps (profiling;
+        advances the state of substep 0 of the current frame, so use a throw-away batch)."""
+        import time
+
+        stages = {"clear": self._clear, "p2g": self._p2g, "grid": self._grid_update, "g2p": self._g2p}
+        total = dict.fromkeys(stages, 0.0)
+        self.kstep.zero_()
+        for _ in range(n_steps):
+            for name, launch in stages.items():
+                wp.synchronize_device(self.wp_device)
+                t0 = time.perf_counter()
+                launch()
+                wp.synchronize_device(self.wp_device)
+                total[name] += time.perf_counter() - t0
+        return {k: v / n_steps for k, v in total.items()}
 
     def _graph(self, n: int):
         if n not in self._graphs:

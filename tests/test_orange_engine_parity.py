@@ -1,0 +1,77 @@
+"""The orange peel on the AnisoMPM engine reproduces the orange peel's own kernels (before the port).
+
+`tests/data/orange_peel_reference_tiny.npz` holds the 12 features, substeps and per-frame series of seven
+tiny-preset runs made on the CPU by the orange peel's own Taichi and Warp kernels (simulator 0.2.0,
+commit in the file; `tests/data/make_orange_reference.py`). The engine-based simulator must give the same
+substeps and the same features to float32 round-off amplified by fracture. Taichi is checked on three of
+the rows in `test_orange_sim.py` (its module-wide simulation); Warp here on two rows (~10 s).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from invphys_orange_peel.features import FEATURE_NAMES, OrangePeelFeatures
+
+REFERENCE = Path(__file__).parent / "data" / "orange_peel_reference_tiny.npz"
+
+
+def reference() -> dict[str, np.ndarray]:
+    with np.load(REFERENCE, allow_pickle=False) as ref:
+        return {k: ref[k] for k in ref.files}
+
+
+def assert_matches_reference(results: list, backend: str, rows: list[int]) -> None:
+    """Substeps equal, every feature within 5e-3 relative (median 1e-4), series to round-off."""
+    ref = reference()
+    assert tuple(ref["feature_names"]) == FEATURE_NAMES
+    np.testing.assert_array_equal(ref["params"][rows], np.stack([r.params for r in results]))
+    ext = OrangePeelFeatures()
+    got = np.stack([ext.extract(r.trajectory) for r in results])
+    want = ref[f"{backend}_features"][rows]
+    assert [r.stats.substeps for r in results] == list(ref[f"{backend}_substeps"][rows])
+    rel = np.abs(got - want) / np.maximum(np.abs(want), 1e-12)
+    assert np.median(rel) <= 1e-4, dict(zip(FEATURE_NAMES, np.median(rel, axis=0), strict=True))
+    assert rel.max() <= 5e-3, dict(zip(FEATURE_NAMES, rel.max(axis=0), strict=True))
+    for key, atol in (("frame_separation", 1e-5), ("frame_mean_damage", 1e-3), ("frame_work", 1e-4)):
+        series = np.stack([r.trajectory.extra[key] for r in results])
+        np.testing.assert_allclose(series, ref[f"{backend}_{key}"][rows], atol=atol, err_msg=key)
+    moved = np.abs(ref[f"{backend}_final_positions"][rows] - results[0].trajectory.positions[0]).max()
+    assert moved > 1e-2  # the runs really peel: the comparison is not vacuous
+    final = np.stack([r.trajectory.positions[-1] for r in results])
+    assert np.abs(final - ref[f"{backend}_final_positions"][rows]).max() < 1e-3 * moved
+
+
+def test_warp_on_the_engine_reproduces_the_reference() -> None:
+    pytest.importorskip("warp")
+    from invphys_orange_peel.simulator import OrangePeelSimulator
+
+    rows = [0, 1]
+    sim = OrangePeelSimulator(backend="warp", preset="tiny", arch="cpu", batch_size=2)
+    results = sim.simulate(reference()["params"][rows])
+    assert all(r.ok for r in results)
+    assert results[0].stats.backend == "warp"
+    assert_matches_reference(results, "warp", rows)
+
+
+def test_continuous_batching_gives_the_lockstep_results() -> None:
+    """The engine's continuous batching serves the orange too: same features as lock-step batches."""
+    pytest.importorskip("warp")
+    from invphys_orange_peel.simulator import OrangePeelSimulator
+
+    params = reference()["params"][[0, 1]]
+    lock = OrangePeelSimulator(backend="warp", preset="tiny", arch="cpu", batch_size=2, frames=24)
+    cont = OrangePeelSimulator(backend="warp", preset="tiny", arch="cpu", batch_size=1, frames=24,
+                               scheduling="continuous")
+    assert cont.native_stream and not lock.native_stream
+    ext = OrangePeelFeatures()
+    a = [ext.extract(r.trajectory) for r in lock.simulate(params)]
+    b = {i: ext.extract(r.trajectory) for i, r in cont.simulate_stream(params)}
+    assert sorted(b) == [0, 1]
+    for i in range(2):
+        np.testing.assert_allclose(b[i], a[i], rtol=1e-5, atol=1e-7)
+    from invphys.core.dataset import RunIdentity
+
+    assert RunIdentity.of(lock) == RunIdentity.of(cont)  # scheduling is not part of a run's identity
