@@ -1,8 +1,9 @@
 """Taichi vs Warp orange-peel backends: feature parity (CPU) and side-by-side speed (GPU).
 
 Both modes simulate the same fixed parameter vectors (``--n`` uniform draws in the unit cube,
-``--seed``) through the shared driver (:func:`invphys_orange_peel.driver.run_batch`), one batch per
-backend, and extract the 12 features with :class:`invphys_orange_peel.features.OrangePeelFeatures`.
+``--seed``) on the warm engine of :class:`invphys_orange_peel.simulator.OrangePeelSimulator` (the
+``invphys-anisompm`` engine, one backend object per batch size), one batch per backend, and extract the
+12 features with :class:`invphys_orange_peel.features.OrangePeelFeatures`.
 
     # CPU parity at the tiny preset (writes backends_cpu_parity.json)
     python benchmarks/bench_backends.py parity --preset tiny --n 16 --batch 4 --out benchmarks/results
@@ -29,15 +30,15 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-for p in (ROOT, ROOT / "examples" / "orange_peel"):
+for p in (ROOT, ROOT / "examples" / "orange_peel", ROOT / "examples" / "anisompm"):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 
-from invphys_orange_peel.driver import RunRecord, StepSettings, run_batch  # noqa: E402
-from invphys_orange_peel.material import materials_from_params  # noqa: E402
+from invphys_orange_peel.engine_scene import model_for  # noqa: E402
 from invphys_orange_peel.parameters import parameter_space  # noqa: E402
 from invphys_orange_peel.presets import get_preset  # noqa: E402
 from invphys_orange_peel.scene import build_scene  # noqa: E402
+from invphys_orange_peel.simulator import OrangePeelSimulator  # noqa: E402
 
 PAPER_SECONDS_PER_RUN = 156.0
 
@@ -48,14 +49,13 @@ def parameter_set(n: int, seed: int) -> np.ndarray:
     return parameter_space().denormalize(unit)
 
 
-def make_backend(name: str, scene, batch: int, settings: StepSettings, arch: str, use_graphs: bool | None = None,
-                 gpu_deterministic: bool = False):
-    from invphys_orange_peel.backends import load_backend
-
-    cls = load_backend(name)
-    if name == "warp":
-        return cls(scene, batch, settings, arch=arch, use_graphs=use_graphs, gpu_deterministic=gpu_deterministic)
-    return cls(scene, batch, settings, arch=arch)
+def make_backend(name: str, preset: str, batch: int, arch: str, use_graphs: bool | None = None,
+                 gpu_deterministic: bool = False) -> OrangePeelSimulator:
+    """An orange-peel simulator on backend ``name`` whose engine holds a backend for ``batch`` runs."""
+    sim = OrangePeelSimulator(backend=name, preset=preset, arch=arch, batch_size=batch, warp_graphs=use_graphs,
+                              gpu_deterministic=gpu_deterministic)
+    sim.engine.backend(batch)
+    return sim
 
 
 def max_diff(fa: list, fb: list) -> float:
@@ -64,19 +64,19 @@ def max_diff(fa: list, fb: list) -> float:
                 if a is not None and b is not None), default=0.0)
 
 
-def deterministic_check(backend, scene, params, frames: int, preset, settings, arch: str) -> dict:
+def deterministic_check(sim, params, frames: int, arch: str) -> dict:
     """Warp on CUDA with and without deterministic atomics: two passes each, same batch, ``frames``."""
     out: dict = {"frames": frames}
-    a = simulate(backend, scene, params, frames, preset.fps, preset.record_every, settings)
-    b = simulate(backend, scene, params, frames, preset.fps, preset.record_every, settings)
+    a = simulate(sim, params, frames)
+    b = simulate(sim, params, frames)
     out["default"] = {"wall_s": [a["wall_s"], b["wall_s"]],
                       "max_final_position_diff_m": max_diff(a["final_positions"], b["final_positions"])}
     for graphs in (True, False):
         try:
-            det = make_backend("warp", scene, len(params), settings, arch, use_graphs=graphs, gpu_deterministic=True)
-            simulate(det, scene, params, 2, preset.fps, 1, settings)
-            a = simulate(det, scene, params, frames, preset.fps, preset.record_every, settings)
-            b = simulate(det, scene, params, frames, preset.fps, preset.record_every, settings)
+            det = make_backend("warp", sim.config.preset, len(params), arch, use_graphs=graphs, gpu_deterministic=True)
+            simulate(det, params, 2, record_every=1)
+            a = simulate(det, params, frames)
+            b = simulate(det, params, frames)
         except Exception as exc:  # record why, then try without graphs
             out[f"deterministic_graphs_{graphs}_error"] = repr(exc)[:500]
             continue
@@ -87,37 +87,22 @@ def deterministic_check(backend, scene, params, frames: int, preset, settings, a
     return out
 
 
-def features_of(records: list[RunRecord], scene, fps: float) -> list[list[float] | None]:
-    """The 12 features of each successful run (None for failed runs)."""
+def simulate(sim: OrangePeelSimulator, params: np.ndarray, frames: int, record_every: int | None = None) -> dict:
+    """One timed batch on the simulator's warm engine; wall time, substeps, failures, features, throughput."""
     from invphys_orange_peel.features import OrangePeelFeatures
 
-    from invphys.core.results import Trajectory
-
     fe = OrangePeelFeatures()
-    out: list[list[float] | None] = []
-    for rec in records:
-        if rec.failure is not None:
-            out.append(None)
-            continue
-        traj = Trajectory(positions=np.stack(rec.positions), damage=np.stack(rec.damage), labels=scene.labels,
-                          frame_indices=np.asarray(rec.frames), fps=fps,
-                          extra={"dx": scene.dx, "radius": scene.radius, "gripped": scene.gripped,
-                                 "frame_separation": np.asarray(rec.separation),
-                                 "frame_mean_damage": np.asarray(rec.mean_damage),
-                                 "frame_work": np.asarray(rec.work)})
-        out.append([float(v) for v in fe.extract(traj)])
-    return out
-
-
-def simulate(backend, scene, params: np.ndarray, frames: int, fps: float, record_every: int,
-             settings: StepSettings) -> dict:
-    """One timed batch; returns wall time, substeps, failures, features and throughput."""
-    records, wall = run_batch(backend, scene, materials_from_params(params), frames, fps, record_every, settings)
+    t0 = time.perf_counter()
+    records = sim.engine.run(model_for(sim.engine_scene, params), frames, record_every or sim.record_every)
+    wall = time.perf_counter() - t0
+    results = [sim.result_from_record(p, r) for p, r in zip(params, records, strict=True)]
     substeps = [r.substeps for r in records]
+    n_particles = sim.scene.n_particles
     return {"wall_s": wall, "wall_per_run_s": wall / len(records), "substeps": substeps,
-            "particle_substeps_per_s": scene.n_particles * float(sum(substeps)) / wall,
-            "failures": [r.failure for r in records], "features": features_of(records, scene, fps),
-            "final_positions": [r.positions[-1] if r.failure is None else None for r in records]}
+            "particle_substeps_per_s": n_particles * float(sum(substeps)) / wall,
+            "failures": [r.failure for r in results],
+            "features": [[float(v) for v in fe.extract(r.trajectory)] if r.ok else None for r in results],
+            "final_positions": [r.trajectory.positions[-1] if r.ok else None for r in results]}
 
 
 def compare(fa: list, fb: list) -> dict:
@@ -154,7 +139,6 @@ def cmd_parity(args: argparse.Namespace) -> dict:
     scene = build_scene(preset)
     frames = args.frames or preset.frames
     params = parameter_set(args.n, args.seed)
-    settings = StepSettings()
     result: dict = {"mode": "parity", "preset": preset.name, "particles": scene.n_particles, "frames": frames,
                     "n": args.n, "seed": args.seed, "batch": args.batch, "arch": "cpu",
                     "params": params.tolist(), "machine": machine(), "backends": {}}
@@ -164,14 +148,14 @@ def cmd_parity(args: argparse.Namespace) -> dict:
         for s in range(0, args.n, args.batch):
             chunk = params[s:s + args.batch]
             if len(chunk) not in backends:
-                backends[len(chunk)] = make_backend(name, scene, len(chunk), settings, "cpu")
-            r = simulate(backends[len(chunk)], scene, chunk, frames, preset.fps, preset.record_every, settings)
+                backends[len(chunk)] = make_backend(name, preset.name, len(chunk), "cpu")
+            r = simulate(backends[len(chunk)], chunk, frames)
             feats += r["features"]
             subs += r["substeps"]
             fails += r["failures"]
             wall += r["wall_s"]
         result["backends"][name] = {"features": feats, "substeps": subs, "failures": fails, "wall_s": wall,
-                                    "device": backends[min(backends)].device}
+                                    "device": backends[min(backends)].engine.device}
         print(f"{name}: {wall:.1f} s, failures {sum(f is not None for f in fails)}", flush=True)
     result["comparison"] = compare(result["backends"]["taichi"]["features"], result["backends"]["warp"]["features"])
     return result
@@ -180,21 +164,19 @@ def cmd_parity(args: argparse.Namespace) -> dict:
 def cmd_one(args: argparse.Namespace) -> dict:
     """One backend on one device (run in its own process by ``gpu``)."""
     preset = get_preset(args.preset)
-    scene = build_scene(preset)
     frames = args.frames or preset.frames
     params = parameter_set(args.n, args.seed)
-    settings = StepSettings()
     deadline = time.perf_counter() + args.budget_s
     t0 = time.perf_counter()
-    backend = make_backend(args.backend, scene, len(params), settings, args.arch)
+    backend = make_backend(args.backend, preset.name, len(params), args.arch)
     init_s = time.perf_counter() - t0
     t0 = time.perf_counter()
-    simulate(backend, scene, params, 2, preset.fps, 1, settings)  # compile / capture
+    simulate(backend, params, 2, record_every=1)  # compile / capture
     warmup_s = time.perf_counter() - t0
-    out = {"backend": args.backend, "device": backend.device, "init_s": init_s, "warmup_s": warmup_s, "passes": []}
+    out = {"backend": args.backend, "device": backend.engine.device, "simulator_version": backend.version, "init_s": init_s, "warmup_s": warmup_s, "passes": []}
     finals = []
     for rep in range(args.repeats):
-        r = simulate(backend, scene, params, frames, preset.fps, preset.record_every, settings)
+        r = simulate(backend, params, frames)
         finals.append(r.pop("final_positions"))
         out["passes"].append(r)
         print(f"{args.backend} pass {rep}: {r['wall_s']:.2f} s, {r['particle_substeps_per_s']:.3g} "
@@ -206,16 +188,15 @@ def cmd_one(args: argparse.Namespace) -> dict:
                      if a is not None and b is not None) for f0, f1 in itertools.pairwise(finals)]
         out["max_final_position_diff_m"] = max(diffs)
     if args.backend == "warp" and args.deterministic_frames and time.perf_counter() < deadline:
-        out["gpu_determinism"] = deterministic_check(backend, scene, params, args.deterministic_frames, preset,
-                                                     settings, args.arch)
+        out["gpu_determinism"] = deterministic_check(backend, params, args.deterministic_frames, args.arch)
         print("determinism:", json.dumps(out["gpu_determinism"]), flush=True)
     # one run alone (launch-overhead bound): Warp with and without CUDA graphs, Taichi as is
     variants = {"graphs_on": True, "graphs_off": False} if args.backend == "warp" and args.arch == "cuda" \
         else {"default": None}
     for label, graphs in variants.items():
-        b1 = make_backend(args.backend, scene, 1, settings, args.arch, use_graphs=graphs)
-        simulate(b1, scene, params[:1], 2, preset.fps, 1, settings)
-        r = simulate(b1, scene, params[:1], 24, preset.fps, preset.record_every, settings)
+        b1 = make_backend(args.backend, preset.name, 1, args.arch, use_graphs=graphs)
+        simulate(b1, params[:1], 2, record_every=1)
+        r = simulate(b1, params[:1], 24)
         out[f"batch1_24_frames_{label}"] = {"wall_s": r["wall_s"], "substeps": r["substeps"][0],
                                             "substeps_per_s": r["substeps"][0] / r["wall_s"]}
     return out

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path[:0] = [str(ROOT), str(ROOT / "examples" / "orange_peel")]
+sys.path[:0] = [str(ROOT), str(ROOT / "examples" / "orange_peel"), str(ROOT / "examples" / "anisompm")]
 
 
 def jacobians(y: np.ndarray, ok: np.ndarray, points: int, dim: int, h: float, scales: np.ndarray) -> list:

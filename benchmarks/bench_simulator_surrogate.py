@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path[:0] = [str(ROOT), str(ROOT / "examples" / "orange_peel")]
+sys.path[:0] = [str(ROOT), str(ROOT / "examples" / "orange_peel"), str(ROOT / "examples" / "anisompm")]
 
 PAPER = {"activation": "relu", "batch_norm": True, "dropout": 0.1, "optimizer": "adam", "schedule": "constant",
          "lr": 1e-3, "max_epochs": 1000, "patience": 50}
