@@ -100,6 +100,10 @@ def test_warm_cpu_actors_match_local_and_isolate_failures(ray_instance, tmp_path
         first = ex.actor_info()
         again = _collect(ex, sim, feats, params[:6], batch_size=3)   # same warm actors, no rebuild
         info = ex.actor_info()
+        assert ex.apply(_substeps_of, sim, feats) == [1, 1]
+        ex.config.actors = 1   # a smaller pool later: the first warm actor takes every chunk
+        _collect(ex, sim, feats, params[:6], batch_size=3)
+        one = ex.actor_info()
     finally:
         ex.close()
     for i in local:
@@ -116,6 +120,11 @@ def test_warm_cpu_actors_match_local_and_isolate_failures(ray_instance, tmp_path
     assert all(d["builds"] == 1 for d in info)            # one simulator build per actor, for 10 chunks
     assert sum(d["chunks"] for d in first) == 8 and all(d["chunks"] >= 1 for d in first)   # both pulled
     assert sum(d["rows"] for d in info) == 30
+    assert one[0]["chunks"] == info[0]["chunks"] + 2 and one[1]["chunks"] == info[1]["chunks"]
+
+
+def _substeps_of(simulator, extractor) -> int:
+    return simulator.config.substeps
 
 
 def test_an_actor_that_dies_fails_only_its_row_and_generation_stores(ray_instance, tmp_path) -> None:

@@ -42,6 +42,10 @@ class SimulatorActor:
             self.rows += len(np.atleast_2d(params))
             self.busy_s += time.perf_counter() - t0
 
+    def apply(self, fn: Any, simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None) -> Any:
+        """``fn(simulator, extractor)`` on this actor's warm plugins (a warm-up, a counter reset)."""
+        return fn(*_batch.build_plugins(simulator_spec, extractor_spec))
+
     def info(self) -> dict[str, Any]:
         """Where this actor runs and what it has done: pid, host, GPU ids, chunks, rows, busy seconds,
         plugin builds (one per spec: kernels compiled once), and the slot counters of warm engines."""
@@ -76,8 +80,10 @@ class RayActorsExecutor(Executor):
     so only the rows that kill an actor are stored as failed (``ray actor died: ...``).
 
     With ``keep_actors`` the actors (and a Ray instance this executor started) live on after ``run`` for
-    the next call on the same executor (simulator-in-the-loop optimisation, active learning); call
-    :meth:`close` to release them.
+    the next call on the same executor (simulator-in-the-loop optimisation, active learning); a later
+    run with a smaller ``config.actors`` uses the first actors of the warm pool. :meth:`warm` and
+    :meth:`apply` prepare the actors' plugins, :meth:`actor_info` reports on them, :meth:`close`
+    releases them.
     """
 
     name = "ray_actors"
@@ -164,6 +170,12 @@ class RayActorsExecutor(Executor):
         params = np.atleast_2d(np.asarray(params, dtype=np.float64))
         self._ray.get([a.run.remote(simulator_spec, extractor_spec, params, True) for a in pool])
 
+    def apply(self, fn: Any, simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None) -> list[Any]:
+        """``fn(simulator, extractor)`` on every actor's warm plugins (built there once per spec), in
+        parallel; their return values. ``fn`` must be importable on the actors (a module-level function)."""
+        pool = self._pool()
+        return self._ray.get([a.apply.remote(fn, simulator_spec, extractor_spec) for a in pool])
+
     def actor_info(self) -> list[dict[str, Any]]:
         """:meth:`SimulatorActor.info` of every actor of the pool (empty before the first run)."""
         return self._ray.get([a.info.remote() for a in self._actors]) if self._actors else []
@@ -197,6 +209,8 @@ class RayActorsExecutor(Executor):
              params: np.ndarray, batch_size: int) -> Iterator[tuple[int, SimulationResult]]:
         ray, cfg = self._ray, self.config
         from ray.exceptions import RayActorError
+
+        pool = pool[:min(len(pool), cfg.actors or len(pool))]   # a smaller `actors` later: the first ones
 
         params = np.atleast_2d(np.asarray(params, dtype=np.float64))
         todo = deque(_batch.batches(len(params), cfg.chunk_size or batch_size))
