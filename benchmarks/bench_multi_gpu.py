@@ -61,19 +61,21 @@ class SizedCheeseCut(CheeseCutSimulator):
 
 
 def warm_up(simulator, extractor) -> dict:
-    """On an actor: compile every kernel at the configured slot count (one frame of ``batch_size`` runs
-    through the stream), then zero the slot counters."""
+    """On an actor: compile every kernel at the configured slot count (one frame of ``2 x batch_size``
+    runs through the stream, so finished slots are also re-loaded), then zero the slot counters."""
+    import ray
     from invphys_anisompm.streaming import SlotCounters
     from invphys_cheese_cut.scene import model_for
 
     t0 = time.perf_counter()
     space = simulator.parameter_space()
-    x = space.denormalize(np.random.default_rng(123).random((simulator.config.batch_size, space.dim)))
+    x = space.denormalize(np.random.default_rng(123).random((2 * simulator.config.batch_size, space.dim)))
     list(simulator.engine.stream(model_for(simulator.scene, x), 1, 1, simulator.config.batch_size,
                                  min_chunk=simulator.config.min_chunk))
     simulator.engine.counters = SlotCounters()
-    return {"warmup_s": time.perf_counter() - t0, "device": simulator.engine.device,
-            "particles": int(simulator.scene.n_particles)}
+    ids = [str(g) for g in ray.get_gpu_ids()]
+    return {"warmup_s": time.perf_counter() - t0, "device": simulator.engine.device, "gpu_ids": ids,
+            "gpu_names": [n for i in ids for n in gpu_names(i)], "particles": int(simulator.scene.n_particles)}
 
 
 def take_counters(simulator, extractor) -> dict:
@@ -86,9 +88,11 @@ def take_counters(simulator, extractor) -> dict:
             "host_chunks": int(c.chunks), "slot_efficiency": c.efficiency}
 
 
-def gpu_names() -> list[str]:
+def gpu_names(index: str | None = None) -> list[str]:
+    """``nvidia-smi``'s name and memory of every GPU (or of GPU ``index``); empty without one."""
     try:
-        out = subprocess.run(["nvidia-smi", "--query-gpu=name,memory.total", "--format=csv,noheader"],
+        out = subprocess.run(["nvidia-smi", "--query-gpu=index,name,memory.total", "--format=csv,noheader",
+                              *(["-i", index] if index is not None else [])],
                              capture_output=True, text=True, timeout=30).stdout
         return [line.strip() for line in out.splitlines() if line.strip()]
     except (OSError, subprocess.SubprocessError):
@@ -170,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
         out["actors_info"] = ex.actor_info()
         try:
             import taichi
-            out["taichi"] = taichi.__version__
+            out["taichi"] = ".".join(map(str, taichi.__version__))
         except ImportError:
             pass
         print(json.dumps({"warmup": out["warmup"], "wall_s": out["warmup_wall_s"]}), flush=True)
