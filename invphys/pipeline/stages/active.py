@@ -193,7 +193,7 @@ def run(ctx: StageContext) -> dict[str, Any]:
     wall = float(sum(x["propose_s"] + x["simulator_s"] + x.get("retrain_s", 0.0) for x in rounds) / n)
     spec_row = {"to_params": to_params, "surrogate": surrogate, "feats": feats, "scales": scales, "ks": ks,
                 "targets": targets, "evaluations": int(sec.budget * sec.proposals * (sec.rounds + 1)),
-                "device": sim.device or "cpu"}
+                "device": sim.device or next((x["device"] for x in reversed(rounds) if x.get("device")), "cpu")}
     rows, val = _answer_rows(spec_row, LABEL, "active_learning", "shared", best_theta, best_r, best_y,
                              np.full(n, runs_per_target), np.full(n, wall))
     polish_summary = None
