@@ -285,3 +285,48 @@ def test_active_polish_is_off_by_default_and_counts_its_runs(run_dir, tmp_path) 
     again = run_spec(spec, copy, stages=["active"], progress=False, console=Console(file=io.StringIO()))["active"]
     assert again["polish"]["replayed_runs"] == pol["simulator_runs"]
     assert again["polish"]["r_actual_after_mean"] == pytest.approx(pol["r_actual_after_mean"])
+
+
+def test_active_polish_passes_start_from_the_previous_pass_and_replay_it(run_dir, tmp_path) -> None:
+    import shutil
+
+    from rich.console import Console
+
+    from invphys.core.spec import parse_spec
+    from invphys.pipeline.runner import run_spec
+
+    out, _ = run_dir
+    copy = tmp_path / "run"
+    shutil.copytree(out, copy)
+    first = "{budget: 4, popsize: 4, sigma0: 0.1, below: 0.999}"
+    one = parse_spec(SPEC.replace("active: {rounds: 2,", f"active: {{polish: {first}, rounds: 2,"))
+    quiet = {"progress": False, "console": Console(file=io.StringIO())}
+    single = run_spec(one, copy, stages=["active"], **quiet)["active"]["polish"]
+    (copy / "active" / "DONE.json").unlink()
+    two = parse_spec(SPEC.replace("active: {rounds: 2,", f"active: {{polish: [{first}, {{budget: 4, popsize: 4, "
+                                  "sigma0: 0.05, below: 0.9995}], rounds: 2,"))
+    pol = run_spec(two, copy, stages=["active"], **quiet)["active"]["polish"]
+    assert len(pol["passes"]) == 2 and len(pol["settings"]) == 2
+    p1, p2 = pol["passes"]
+    assert p1["replayed_runs"] == single["simulator_runs"] and p1["r_actual_after_mean"] == single["r_actual_after_mean"]
+    assert p2["r_actual_before_mean"] == pytest.approx(p1["r_actual_after_mean"])  # pass 2 starts from pass 1
+    assert pol["r_actual_after_mean"] == pytest.approx(p2["r_actual_after_mean"])
+    assert p2["r_actual_after_mean"] >= p1["r_actual_after_mean"]
+    assert pol["simulator_runs"] == p1["simulator_runs"] + p2["simulator_runs"] > p1["simulator_runs"]
+    assert (copy / "active" / "polish_pass2.npz").is_file()
+    val = json.loads((copy / "active" / "validation.json").read_text())
+    before = {v["target_index"]: v for v in val if v["optimizer"] == "active_learning"}
+    after = {v["target_index"]: v for v in val if v["optimizer"] == "active_polished"}
+    extra = sum(after[k]["simulator_runs"] - before[k]["simulator_runs"] for k in before)
+    assert extra == pytest.approx(pol["simulator_runs"])  # every pass's runs are counted per target
+    (copy / "active" / "DONE.json").unlink()  # both passes replay their logs: nothing is simulated again
+    again = run_spec(two, copy, stages=["active"], **quiet)["active"]["polish"]
+    assert again["replayed_runs"] == pol["simulator_runs"]
+    assert again["r_actual_after_mean"] == pytest.approx(pol["r_actual_after_mean"])
+
+
+def test_active_polish_rejects_an_empty_list_of_passes() -> None:
+    from invphys.core.spec import parse_spec
+
+    with pytest.raises(Exception, match="1 to 8 passes"):
+        parse_spec(SPEC.replace("active: {rounds: 2,", "active: {polish: [], rounds: 2,"))

@@ -216,8 +216,16 @@ class ActiveSection(_Section):
                                                        "searches, all simulated in the round's one batch)")
     keep_start: bool = Field(False, description="the start answer's validated R_actual (validate stage) counts "
                                                 "as the best so far, so the answer is never worse than its start")
-    polish: PolishSection | None = Field(None, description="after the last round, CMA-ES on the real simulator "
-                                                           "from each target's best answer (label active_polished)")
+    polish: PolishSection | list[PolishSection] | None = Field(
+        None, description="after the last round, CMA-ES on the real simulator from each target's best answer "
+                          "(label active_polished); a list: passes, each from the previous pass's answers")
+
+    @field_validator("polish")
+    @classmethod
+    def _polish_passes(cls, value: Any) -> Any:
+        if isinstance(value, list) and not 1 <= len(value) <= 8:
+            raise ValueError(f"polish: give 1 to 8 passes, got {len(value)}")
+        return value
 
 
 class ExperimentSpec(_Section):

@@ -31,6 +31,8 @@ included), reported as a second label ``active_polished`` whose cost adds the po
 seconds to ``active_learning``'s. Every simulated batch is logged to ``polish.npz``; a re-run replays
 it (a stopped polish resumes after its last batch; a larger budget extends a smaller one). Its
 settings are not part of the rounds' checkpoint key, so adding a polish never re-runs the rounds.
+A list of polish settings runs passes, each from the previous pass's answers (its own log,
+``polish_pass<k>.npz``), e.g. a first pass on the worst targets and a second, wider one after it.
 """
 
 from __future__ import annotations
@@ -198,13 +200,12 @@ def run(ctx: StageContext) -> dict[str, Any]:
                              np.full(n, runs_per_target), np.full(n, wall))
     polish_summary = None
     if sec.polish is not None:
-        pol = _polish(ctx, sec.polish, key, len(rounds), feats, scales, best_theta, best_r, best_y, sim)
-        share = pol.runs / max(int(pol.runs.sum()), 1) * pol.seconds  # a target's share of the polish's GPU time
+        pol, share, polish_summary = _polish_passes(ctx, sec.polish, key, len(rounds), feats, scales,
+                                                    (best_theta, best_r, best_y), sim, runs_per_target, wall)
         prow, pval = _answer_rows({**spec_row, "device": pol.device or spec_row["device"]}, POLISH_LABEL,
                                   "active_learning+simulator", "simulator", pol.theta, pol.r_actual, pol.features,
                                   runs_per_target + pol.runs, wall + share)
         rows, val = rows + prow, val + pval
-        polish_summary = _polish_summary(ctx, sec.polish, pol, best_r, runs_per_target, wall, share)
         write_json(ctx.stage_dir / POLISH_FILE, polish_summary)
     write_json(ctx.stage_dir / "rows.json", rows)
     write_json(ctx.stage_dir / "validation.json", val)
@@ -250,28 +251,65 @@ POLISH_FILE = "polish.json"
 POLISH_LOG = "polish.npz"
 
 
+def _polish_passes(ctx: StageContext, cfg: Any, key: str, n_rounds: int, feats: np.ndarray, scales: np.ndarray,
+                   start: tuple[np.ndarray, np.ndarray, np.ndarray], sim: Any, runs_per_target: float,
+                   wall: float) -> tuple[Any, np.ndarray, dict[str, Any]]:
+    """Run ``active.polish`` (one pass, or a list of passes each from the previous pass's answers).
+
+    Returns the final answers with the runs of all passes, each target's share of the polish's GPU
+    seconds, and ``polish.json``'s content (a list adds ``passes``: every pass's own summary).
+    """
+    from dataclasses import replace
+
+    passes = cfg if isinstance(cfg, list) else [cfg]
+    current, total, share, summaries = start, None, np.zeros(len(feats)), []
+    for k, settings in enumerate(passes):
+        pol = _polish(ctx, settings, key, n_rounds, feats, scales, *current, sim, k, passes[:k])
+        pass_share = pol.runs / max(int(pol.runs.sum()), 1) * pol.seconds  # a target's share of the GPU time
+        summaries.append(_polish_summary(ctx, settings, pol, current[1], runs_per_target + (
+            total.runs if total is not None else 0), wall + share, pass_share))
+        share = share + pass_share
+        total = pol if total is None else replace(
+            pol, runs=total.runs + pol.runs, polished=total.polished | pol.polished, seconds=total.seconds + pol.seconds,
+            batches=total.batches + pol.batches, replayed_runs=total.replayed_runs + pol.replayed_runs,
+            device=pol.device or total.device)
+        current = (pol.theta, pol.r_actual, pol.features)
+    if not isinstance(cfg, list):
+        return total, share, summaries[0]
+    summary = _polish_summary(ctx, passes[-1], total, start[1], runs_per_target, wall, share)
+    summary["settings"] = [p.model_dump(mode="json") for p in passes]
+    return total, share, {**summary, "passes": summaries}
+
+
 def _polish(ctx: StageContext, cfg: Any, key: str, n_rounds: int, feats: np.ndarray, scales: np.ndarray,
-            theta: np.ndarray, r_act: np.ndarray, actual: np.ndarray, sim: Any) -> Any:
-    """``active.polish``: CMA-ES on the simulator from the best answers below ``cfg.below``; every
-    simulated batch is logged to ``polish.npz`` (a re-run replays it: nothing finished is simulated twice)."""
+            theta: np.ndarray, r_act: np.ndarray, actual: np.ndarray, sim: Any, index: int = 0,
+            previous: list[Any] | None = None) -> Any:
+    """One polish pass: CMA-ES on the simulator from the answers below ``cfg.below``; every simulated
+    batch is logged to ``polish.npz`` (pass ``k`` > 0: ``polish_pass<k+1>.npz``), and a re-run replays
+    it (nothing finished is simulated twice)."""
     from invphys.pipeline.cache import digest
     from invphys.plugins.evaluators.polish import BatchLog, polish
 
-    log_key = digest({"rounds": key, "n_rounds": n_rounds, "popsize": cfg.popsize, "sigma0": cfg.sigma0,
-                      "below": cfg.below})  # not the budget: a larger budget replays the smaller one's batches
-    batches = BatchLog(ctx.stage_dir / POLISH_LOG, log_key, sim, log=ctx.log,
+    fields = {"rounds": key, "n_rounds": n_rounds, "popsize": cfg.popsize, "sigma0": cfg.sigma0, "below": cfg.below}
+    if index:  # a later pass depends on every earlier pass's settings (its starts are their answers)
+        fields["after"] = [p.model_dump(mode="json") for p in previous or []]
+    log_key = digest(fields)  # not the budget: a larger budget replays the smaller one's batches
+    log_name = POLISH_LOG if index == 0 else f"polish_pass{index + 1}.npz"
+    batches = BatchLog(ctx.stage_dir / log_name, log_key, sim, log=ctx.log,
                        chunk=int((ctx.spec.validator or {}).get("batch_size") or 0) or None)
     t0 = time.perf_counter()
     pol = polish(feats, theta, r_act, actual, scales, batches, cfg.budget, cfg.popsize, cfg.sigma0, cfg.below,
-                 seed=ctx.seed * 1000 + 999)
-    ctx.log(f"polish: {int(pol.polished.sum())} targets below {cfg.below}, {int(pol.runs.sum())} simulator runs "
+                 seed=ctx.seed * 1000 + 999 + 7919 * index)
+    ctx.log(f"polish pass {index + 1}: {int(pol.polished.sum())} targets below {cfg.below}, "
+            f"{int(pol.runs.sum())} simulator runs "
             f"({pol.replayed_runs} replayed) in {time.perf_counter() - t0:.1f} s; mean R_actual "
             f"{float(np.mean(r_act)):.3f} -> {float(np.mean(pol.r_actual)):.3f}")
     return pol
 
 
-def _polish_summary(ctx: StageContext, cfg: Any, pol: Any, before: np.ndarray, runs_per_target: float,
-                    wall: float, share: np.ndarray) -> dict[str, Any]:
+def _polish_summary(ctx: StageContext, cfg: Any, pol: Any, before: np.ndarray, runs_per_target: Any,
+                    wall: Any, share: np.ndarray) -> dict[str, Any]:
+    """``polish.json`` of a pass (or of all passes): ``runs_per_target``/``wall``: the cost before it."""
     from invphys.evaluation.stats import bootstrap_mean_ci
 
     ev = ctx.spec.evaluation
@@ -290,8 +328,8 @@ def _polish_summary(ctx: StageContext, cfg: Any, pol: Any, before: np.ndarray, r
             "simulator_s": pol.seconds, "device": pol.device,
             "runs_per_polished_target": float(pol.runs[m].max()) if m.any() else 0.0,
             "simulator_s_per_polished_target": float(share[m].max()) if m.any() else 0.0,
-            "total_runs_per_target_max": float(runs_per_target + pol.runs.max()),
-            "total_wall_s_per_target_max": float(wall + share.max())}
+            "total_runs_per_target_max": float(np.max(runs_per_target + pol.runs)),
+            "total_wall_s_per_target_max": float(np.max(wall + share))}
 
 
 def _retrain_round(ctx: StageContext, r: int, theta_tr: np.ndarray, y_tr: np.ndarray, added_theta: list[np.ndarray],
