@@ -18,7 +18,7 @@ import numpy as np
 
 from invphys_anisompm.failure import BODY0, STAT_KE, STAT_VMAX, energy_bound, frame_failure, substep_failure
 from invphys_anisompm.model import Model
-from invphys_anisompm.scene import Scene
+from invphys_anisompm.scene import Scene, SceneError
 
 
 @dataclass
@@ -123,12 +123,16 @@ class Engine:
         backend: ``"taichi"`` or ``"warp"``.
         arch: ``"cpu"``, ``"cuda"`` or ``"auto"`` (CUDA if present).
         allow_cpu_fallback: run on the CPU when CUDA is asked for but absent.
+        cost_estimator: ``f(model, frames) -> (n_runs,)`` estimated slot-substeps of each run (what
+            batches are sorted by and continuous batching's queue is ordered by); default
+            :func:`estimated_substeps` (exact unless the velocity guard binds).
         backend_options: passed to the backend (Warp: ``use_graphs``, ``gpu_deterministic``).
     """
 
     def __init__(self, scene: Scene, backend: str = "taichi", arch: str = "cpu", allow_cpu_fallback: bool = False,
-                 **backend_options: Any) -> None:
+                 cost_estimator: Callable[[Model, int], np.ndarray] | None = None, **backend_options: Any) -> None:
         self.scene = scene
+        self.cost_estimator = cost_estimator
         self.backend_name = backend
         self.arch = arch
         self.allow_cpu_fallback = allow_cpu_fallback
@@ -149,6 +153,11 @@ class Engine:
                                         **self.backend_options)
         return self._backends[batch]
 
+    def estimate_cost(self, model: Model, frames: int) -> np.ndarray:
+        """(n_runs,) estimated slot-substeps of each run of ``model`` (settling included)."""
+        f = self.cost_estimator or estimated_substeps
+        return np.asarray(f(model, frames), float).reshape(model.n_envs)
+
     @property
     def device(self) -> str:
         return next(iter(self._backends.values())).device if self._backends else ""
@@ -157,7 +166,7 @@ class Engine:
                     on_result: Callable[[int, RunRecord], None] | None = None) -> list[RunRecord]:
         """Every run of ``model``, ``batch_size`` at a time, cheapest first; records in model order.
         ``on_result(i, record)`` is called as soon as run ``i``'s batch ends."""
-        order = np.argsort(estimated_substeps(model, frames), kind="stable")
+        order = np.argsort(self.estimate_cost(model, frames), kind="stable")
         out: list[RunRecord | None] = [None] * model.n_envs
         for start in range(0, len(order), batch_size):
             idx = order[start:start + batch_size]
@@ -168,13 +177,17 @@ class Engine:
                     on_result(int(i), rec)
         return [r for r in out if r is not None]
 
-    def stream(self, model: Model, frames: int, record_every: int, batch_size: int, min_chunk: int = 1):
+    def stream(self, model: Model, frames: int, record_every: int, batch_size: int, min_chunk: int = 1,
+               queue_order: str = "longest_first", cost: np.ndarray | None = None):
         """Continuous batching: yield ``(i, record)`` for every run of ``model`` as it finishes, with
-        ``batch_size`` slots kept full (see :mod:`invphys_anisompm.streaming`)."""
-        from invphys_anisompm.streaming import stream_runs
+        ``batch_size`` slots kept full (see :mod:`invphys_anisompm.streaming`). ``queue_order``:
+        ``longest_first`` (by ``cost``, default :meth:`estimate_cost`) or ``given`` (row order)."""
+        from invphys_anisompm.streaming import QUEUE_ORDERS, stream_runs
 
+        if queue_order not in QUEUE_ORDERS:  # checked here, not at the generator's first step
+            raise SceneError(f"unknown queue order {queue_order!r}; known: {', '.join(QUEUE_ORDERS)}")
         return stream_runs(self, model, frames, record_every, batch_size, min_chunk=min_chunk,
-                           counters=self.counters)
+                           counters=self.counters, order=queue_order, cost=cost)
 
     def run(self, model: Model, frames: int, record_every: int) -> list[RunRecord]:
         """Simulate every run of ``model`` as one batch: settling, then ``frames`` frames, recording

@@ -6,9 +6,10 @@ feature accumulators. The host advances the batch in *chunks* of ``K`` substeps:
 ``min(K, substeps left in its frame)`` of them, so slots reach their frame ends at different times;
 ``K`` is the fewest substeps any slot has left in its frame (at least ``min_chunk``), so in a chunk no
 slot idles unless ``min_chunk`` asks for it. At a frame end the slot's statistics, failure checks and
-records are taken exactly as in :meth:`Engine.run`; particle states are the same bit-for-bit on the CPU
-with a serialised scatter (the per-frame force and work sums are added chunk by chunk in float64, so
-they agree to float32 rounding). Results stream out as runs finish.
+records are taken exactly as in :meth:`Engine.run`; a slot's force and work sums stay on the device for
+the whole frame and are read (and reset) at its end, as in the lock-step path. So on the CPU with a
+serialised scatter every record is bit-for-bit the lock-step one, whatever the slot, the queue order or
+the other runs of the batch. Results stream out as runs finish.
 """
 
 from __future__ import annotations
@@ -20,7 +21,6 @@ import numpy as np
 
 from invphys_anisompm.engine import (
     RunRecord,
-    estimated_substeps,
     frame_plan,
     kinematic_speed,
     kinematic_table,
@@ -45,12 +45,36 @@ class SlotCounters:
         return self.useful / self.launched if self.launched else 0.0
 
 
+#: orders in which the queue hands runs to free slots
+QUEUE_ORDERS = ("longest_first", "given")
+
+
+def queue_order(cost: np.ndarray, order: str = "longest_first") -> np.ndarray:
+    """The run indices in the order free slots take them.
+
+    ``longest_first`` (LPT): costliest first by ``cost`` (ties in row order), so the long runs start at
+    once instead of finishing alone at the end; ``given``: row order. A run's result never depends on
+    its slot or start time, only the finishing order changes.
+    """
+    from invphys_anisompm.scene import SceneError
+
+    if order not in QUEUE_ORDERS:
+        raise SceneError(f"unknown queue order {order!r}; known: {', '.join(QUEUE_ORDERS)}")
+    cost = np.asarray(cost, float)
+    if order == "given":
+        return np.arange(len(cost))
+    return np.argsort(-cost, kind="stable")
+
+
 def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size: int, min_chunk: int = 1,
-                counters: SlotCounters | None = None) -> Iterator[tuple[int, RunRecord]]:
-    """Yield ``(i, record)`` for every run ``i`` of ``model`` as it finishes (costliest runs start first).
+                counters: SlotCounters | None = None, order: str = "longest_first",
+                cost: np.ndarray | None = None) -> Iterator[tuple[int, RunRecord]]:
+    """Yield ``(i, record)`` for every run ``i`` of ``model`` as it finishes.
 
     ``engine`` is an :class:`~invphys_anisompm.engine.Engine` (its backend for ``min(batch_size, runs)``
     slots is reused across calls); ``min_chunk`` trades idle slot-substeps for fewer host round trips.
+    ``order`` is the queue order (:func:`queue_order`) over ``cost`` (per-run estimated slot-substeps;
+    default :meth:`Engine.estimate_cost`).
     """
     scene, o = engine.scene, engine.scene.options
     n_runs = model.n_envs
@@ -69,7 +93,11 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
     table_all, fric_all = model.table(), model.friction
     nsub_all, dt_all = frame_plan(fps, run_dt_bound(model, frames))
     bound_all = energy_bound(model.total_mass(), model.wave_speed(), kinematic_speed(scene, frames), o.energy_factor)
-    queue = list(np.argsort(-estimated_substeps(model, frames), kind="stable"))[::-1]  # pop() = costliest
+    if cost is None:
+        cost = engine.estimate_cost(model, frames)
+    if len(cost) != n_runs:
+        raise ValueError(f"cost has {len(cost)} entries for {n_runs} runs")
+    queue = [int(i) for i in queue_order(cost, order)][::-1]  # pop() = the next run
 
     run = np.full(B, -1, np.int64)
     step = np.zeros(B, np.int64)            # frames done: settling ones first, then 0..frames-1
@@ -140,6 +168,7 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
         run[b], records[b], kin_slot[b], cur_nsub[b] = -1, None, None, 0
         return out
 
+    backend.kinematic_sums()   # start every slot's sums from zero (a warm backend may hold a previous batch's)
     while True:
         # refill empty slots from the queue (one device reset for all of them)
         empty = [b for b in range(B) if run[b] < 0]
@@ -182,13 +211,14 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
         counters.useful += int(n_chunk.sum())
         counters.launched += B * K
         counters.chunks += 1
-        imp, w = backend.kinematic_sums()
-        imp_acc[:, :nk] += imp
-        w_acc[:, :nk] += w
         off += n_chunk
         ended = [int(b) for b in np.flatnonzero(active & (off >= cur_nsub))]
         if not ended:
             continue
+        # a slot's force/work sums stay on the device for its whole frame (float32, as in lock-step)
+        imp, w = backend.kinematic_sums(np.array(ended))
+        imp_acc[ended, :nk] = imp
+        w_acc[ended, :nk] = w
         stats = backend.frame_stats(lo, hi, np.array(ended))
         group, frame_of, recorded_of = [], {}, {}
         for b in ended:
@@ -230,4 +260,4 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
         yield from done
 
 
-__all__ = ["SlotCounters", "stream_runs"]
+__all__ = ["QUEUE_ORDERS", "SlotCounters", "queue_order", "stream_runs"]

@@ -52,7 +52,8 @@ class OrangePeelSimulator(Simulator):
     version: ClassVar[str] = SIMULATOR_VERSION
     #: settings that change where or how fast runs go, not their results: left out of a run's stored identity
     identity_ignores: ClassVar[tuple[str, ...]] = ("arch", "allow_cpu_fallback", "batch_size", "deterministic",
-                                                   "scheduling", "warp_graphs", "gpu_deterministic")
+                                                   "scheduling", "warp_graphs", "gpu_deterministic",
+                                                   "queue_order", "min_chunk")
 
     class Config(PluginConfig):
         """Settings of the orange-peel simulator."""
@@ -84,6 +85,13 @@ class OrangePeelSimulator(Simulator):
             "lockstep", description="lockstep: batches of similar cost run together until the slowest ends; "
                                     "continuous: batch_size slots stay full, a finished run's slot takes the "
                                     "next run at once (results stream out as runs finish)")
+        queue_order: Literal["longest_first", "given"] = Field(
+            "longest_first", description="continuous: order in which free slots take runs; longest_first "
+                                         "starts the costliest (estimated substeps) at once, given keeps row "
+                                         "order (results and their row indices are the same either way)")
+        min_chunk: int = Field(1, ge=1, le=4096, description="continuous: fewest substeps per host round trip "
+                                                             "(larger: fewer round trips, slots idle past "
+                                                             "their frame end)")
         warp_graphs: bool | None = Field(None, description="Warp on CUDA: replay substeps as CUDA graphs "
                                                            "(None: on for CUDA)")
         gpu_deterministic: bool = Field(False, description="Warp on CUDA: deterministic scatter atomics "
@@ -178,7 +186,7 @@ class OrangePeelSimulator(Simulator):
 
         model = model_for(self.engine_scene, x)
         if self.config.scheduling == "continuous":
-            for i, rec in self.engine.stream(model, self.frames, self.record_every, self.config.batch_size):
+            for i, rec in self._stream(model, self.config.batch_size):
                 done(i, rec)
         else:
             self.engine.run_batched(model, self.frames, self.record_every, self.config.batch_size, on_result=done)
@@ -189,9 +197,13 @@ class OrangePeelSimulator(Simulator):
         """Yield ``(i, result)`` as runs finish: continuous batching over every row, ``batch_size`` (default:
         the config's) slots kept full on the warm engine, whatever ``scheduling`` says."""
         x = self._check(params)
-        for i, rec in self.engine.stream(model_for(self.engine_scene, x), self.frames, self.record_every,
-                                         int(batch_size or self.config.batch_size)):
+        for i, rec in self._stream(model_for(self.engine_scene, x), int(batch_size or self.config.batch_size)):
             yield i, self.result_from_record(x[i], rec)
+
+    def _stream(self, model: Any, batch_size: int) -> Iterator[tuple[int, Any]]:
+        c = self.config
+        return self.engine.stream(model, self.frames, self.record_every, batch_size, min_chunk=c.min_chunk,
+                                  queue_order=c.queue_order)
 
     def _check(self, params: np.ndarray) -> np.ndarray:
         space = self.parameter_space()

@@ -1,7 +1,9 @@
 """Compute backends: each module holds only state and kernels and imports its library (taichi, warp) at top.
 
 A backend implements ``load(table, friction)``, ``set_frame(dt, nsub, kin, damage_on)``, ``advance(n)``,
-``frame_stats(lo, hi)``, ``kinematic_sums()``, ``read()``, ``sync()`` (and ``grid_mass()`` for checks).
+``frame_stats(lo, hi)``, ``kinematic_sums()``, ``read()``, ``sync()`` (and ``grid_mass()`` for checks);
+continuous batching also uses ``load_slots``, ``read_slots``, ``frame_stats(lo, hi, slots)`` and
+``kinematic_sums(slots)``.
 :func:`load_backend` imports one lazily, so that nothing else pays for taichi or warp.
 """
 

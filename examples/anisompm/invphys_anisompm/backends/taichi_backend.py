@@ -567,14 +567,23 @@ class TaichiBackend:
         self._stats(lo, hi, self._stats_mask, self.mat, self.body, self.vol, self.x, self.v, self.F, self.d, self.stats_out)
         return self.stats_out.to_numpy().astype(np.float64)
 
-    def kinematic_sums(self) -> tuple[np.ndarray, np.ndarray]:
+    def kinematic_sums(self, slots: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(impulse (B, n_kin, 3) the material gave each kinematic object, work (B, n_kin) the objects did
-        on the material) since the last call; the accumulators are reset."""
+        on the material) since the last call; the accumulators are reset. With ``slots``, only those
+        runs' rows are returned (len(slots), ...) and reset; the others keep accumulating on the device
+        (continuous batching reads a run's sums once per frame, as the lock-step path does)."""
         n = self.ngrip + self.ncol
-        imp = self.imp.to_numpy().astype(np.float64)[:, :n]
-        work = self.work.to_numpy().astype(np.float64)[:, :n]
-        self.imp.fill(0.0)
-        self.work.fill(0.0)
+        imp_all, work_all = self.imp.to_numpy(), self.work.to_numpy()
+        if slots is None:
+            self.imp.fill(0.0)
+            self.work.fill(0.0)
+            return imp_all.astype(np.float64)[:, :n], work_all.astype(np.float64)[:, :n]
+        slots = np.asarray(slots, np.int64)
+        imp, work = imp_all[slots, :n].astype(np.float64), work_all[slots, :n].astype(np.float64)
+        imp_all[slots] = 0.0
+        work_all[slots] = 0.0
+        self.imp.from_numpy(imp_all)
+        self.work.from_numpy(work_all)
         return imp, work
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:

@@ -625,12 +625,21 @@ class WarpBackend:
                           self.stats_out])
         return self.stats_out.numpy().astype(np.float64)
 
-    def kinematic_sums(self) -> tuple[np.ndarray, np.ndarray]:
+    def kinematic_sums(self, slots: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Impulse and work sums since the last call (see the Taichi backend); with ``slots``, only those
+        runs' rows are returned and reset (the others keep accumulating)."""
         n = self.ngrip + self.ncol
-        imp = self.imp.numpy().astype(np.float64)[:, :n]
-        work = self.work.numpy().astype(np.float64)[:, :n]
-        self.imp.zero_()
-        self.work.zero_()
+        imp_all, work_all = self.imp.numpy().copy(), self.work.numpy().copy()  # on the CPU .numpy() is a view
+        if slots is None:
+            self.imp.zero_()
+            self.work.zero_()
+            return imp_all.astype(np.float64)[:, :n], work_all.astype(np.float64)[:, :n]
+        slots = np.asarray(slots, np.int64)
+        imp, work = imp_all[slots, :n].astype(np.float64), work_all[slots, :n].astype(np.float64)
+        imp_all[slots] = 0.0
+        work_all[slots] = 0.0
+        self.imp.assign(imp_all)
+        self.work.assign(work_all)
         return imp, work
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:
