@@ -216,10 +216,9 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
         if not ended:
             continue
         # a slot's force/work sums stay on the device for its whole frame (float32, as in lock-step)
-        imp, w = backend.kinematic_sums(np.array(ended))
+        stats, imp, w = backend.frame_end(lo, hi, np.array(ended))
         imp_acc[ended, :nk] = imp
         w_acc[ended, :nk] = w
-        stats = backend.frame_stats(lo, hi, np.array(ended))
         group, frame_of, recorded_of = [], {}, {}
         for b in ended:
             rec = records[b]

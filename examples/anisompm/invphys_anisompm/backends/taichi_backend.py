@@ -335,6 +335,31 @@ def _build_kernels(serial_p2g: bool):
                     v[b, p] = new_v
                     x[b, p] += h * new_v
 
+    @ti.func
+    def _particle_stats(b: ti.i32, p: ti.i32, lo: ti.f32, hi: ti.f32, mat: ti.template(), body: ti.template(),
+                        vol: ti.template(), x: ti.template(), v: ti.template(), F: ti.template(), d: ti.template(),
+                        out: ti.template()):
+        xp = x[b, p]
+        vp = v[b, p]
+        dp = d[b, p]
+        s = vp.norm()
+        bad = 0
+        if not (s < 1e20) or not (ti.abs(xp).max() < 1e20) or not (ti.abs(F[b, p]).max() < 1e20) \
+                or not (ti.abs(dp) < 1e20):
+            bad = 1
+        if bad != 0:
+            ti.atomic_add(out[b, 2], 1.0)
+        else:
+            reg = body[p]
+            ti.atomic_max(out[b, 0], s)
+            ti.atomic_add(out[b, 1], 0.5 * mat[b, reg, M_RHO] * vol[p] * s * s)
+            if xp.min() < lo or xp.max() > hi:
+                ti.atomic_add(out[b, 3], 1.0)
+            col = BODY0 + 4 * reg
+            for a in ti.static(range(3)):
+                ti.atomic_add(out[b, col + a], xp[a])
+            ti.atomic_add(out[b, col + 3], dp)
+
     @ti.kernel
     def frame_stats(lo: ti.f32, hi: ti.f32, mask: ND(ti.i32, 1), mat: ND(ti.f32, 3), body: ND(ti.i32, 1),
                     vol: ND(ti.f32, 1), x: ND(vec3, 2), v: ND(vec3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2),
@@ -342,28 +367,30 @@ def _build_kernels(serial_p2g: bool):
         if ti.static(serial_p2g):
             ti.loop_config(serialize=True)  # float sums in a fixed order: features repeat bit for bit
         for b, p in ti.ndrange(x.shape[0], x.shape[1]):  # a range-for: serialize applies
-            if mask[b] == 0:
-                continue
-            xp = x[b, p]
-            vp = v[b, p]
-            dp = d[b, p]
-            s = vp.norm()
-            bad = 0
-            if not (s < 1e20) or not (ti.abs(xp).max() < 1e20) or not (ti.abs(F[b, p]).max() < 1e20) \
-                    or not (ti.abs(dp) < 1e20):
-                bad = 1
-            if bad != 0:
-                ti.atomic_add(out[b, 2], 1.0)
-            else:
-                reg = body[p]
-                ti.atomic_max(out[b, 0], s)
-                ti.atomic_add(out[b, 1], 0.5 * mat[b, reg, M_RHO] * vol[p] * s * s)
-                if xp.min() < lo or xp.max() > hi:
-                    ti.atomic_add(out[b, 3], 1.0)
-                col = BODY0 + 4 * reg
+            if mask[b] != 0:
+                _particle_stats(b, p, lo, hi, mat, body, vol, x, v, F, d, out)
+
+    @ti.kernel
+    def frame_end(lo: ti.f32, hi: ti.f32, mask: ND(ti.i32, 1), nstats: ti.i32, nk: ti.i32, mat: ND(ti.f32, 3),
+                  body: ND(ti.i32, 1), vol: ND(ti.f32, 1), x: ND(vec3, 2), v: ND(vec3, 2), F: ND(mat3, 2),
+                  d: ND(ti.f32, 2), imp: ND(vec3, 2), work: ND(ti.f32, 2), out: ND(ti.f32, 2)):
+        """One launch at the end of a chunk: zero ``out``, the statistics of the masked runs (as
+        ``frame_stats``), then their force and work sums moved into ``out`` (4 columns per object after
+        the statistics) and reset on the device."""
+        for b, c in ti.ndrange(out.shape[0], out.shape[1]):
+            out[b, c] = 0.0
+        if ti.static(serial_p2g):
+            ti.loop_config(serialize=True)
+        for b, p in ti.ndrange(x.shape[0], x.shape[1]):
+            if mask[b] != 0:
+                _particle_stats(b, p, lo, hi, mat, body, vol, x, v, F, d, out)
+        for b, c in ti.ndrange(imp.shape[0], nk):
+            if mask[b] != 0:
                 for a in ti.static(range(3)):
-                    ti.atomic_add(out[b, col + a], xp[a])
-                ti.atomic_add(out[b, col + 3], dp)
+                    out[b, nstats + 4 * c + a] = imp[b, c][a]
+                out[b, nstats + 4 * c + 3] = work[b, c]
+                imp[b, c] = vec3(0.0)
+                work[b, c] = 0.0
 
     @ti.kernel
     def reset_slots(mask: ND(ti.i32, 1), x0: ND(vec3, 1), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2),
@@ -383,7 +410,7 @@ def _build_kernels(serial_p2g: bool):
             xo[i, p] = x[idx[i], p]
             do[i, p] = d[idx[i], p]
 
-    return clear_grid, p2g, grid_update, g2p, frame_stats, reset_slots, gather
+    return clear_grid, p2g, grid_update, g2p, frame_stats, reset_slots, gather, frame_end
 
 
 _KERNELS: dict[bool, tuple] = {}
@@ -404,7 +431,8 @@ class TaichiBackend:
         serial = bool(o.deterministic and self.arch == "cpu")
         if serial not in _KERNELS:
             _KERNELS[serial] = _build_kernels(serial)
-        (self._clear, self._p2g, self._grid, self._g2p, self._stats, self._reset, self._gather) = _KERNELS[serial]
+        (self._clear, self._p2g, self._grid, self._g2p, self._stats, self._reset, self._gather,
+         self._frame_end) = _KERNELS[serial]
         B, N, G = self.batch, scene.n_particles, o.grid
         self.ngrip = len(scene.grips)
         self.ncol = len(scene.colliders)
@@ -427,6 +455,7 @@ class TaichiBackend:
         self.dt = ti.ndarray(ti.f32, (B,))
         self.kin = ti.ndarray(ti.f32, (B, 1, NK1, 6))
         self.stats_out = ti.ndarray(ti.f32, (B, self.nstats))
+        self.end_out = ti.ndarray(ti.f32, (B, self.nstats + 4 * NK1))
         self.imp = ti.ndarray(vec3, (B, NK1))
         self.work = ti.ndarray(ti.f32, (B, NK1))
         self.body = self._const(ti.i32, scene.body.astype(np.int32))
@@ -447,6 +476,7 @@ class TaichiBackend:
         self._mat_host = np.zeros((B, len(scene.bodies), N_MAT), np.float32)
         self._fric_host = np.zeros((B, NC1), np.float32)
         self._gather_bufs: dict[int, tuple] = {}
+        self._uploaded: dict[str, np.ndarray] = {}
         self._slot_mask = ti.ndarray(ti.i32, (B,))
         self._stats_mask = ti.ndarray(ti.i32, (B,))
 
@@ -479,10 +509,12 @@ class TaichiBackend:
         """Per-run dt (B,), substep counts (B,), kinematic table (B, K, n_kinematic, 6) of the next frame,
         whether damage evolves, and the grid velocity damping rate (1/s; settling only)."""
         B = self.batch
-        self.damp.from_numpy(np.broadcast_to(np.asarray(damping, np.float32), (B,)).copy())
-        self.don.from_numpy((np.broadcast_to(np.asarray(damage_on), (B,)) != 0).astype(np.int32)
-                            * np.int32(self.options.damage))
-        self.dt.from_numpy(dt.astype(np.float32))
+        # each host -> device copy costs a round trip on CUDA: per-run values that did not change since
+        # the last frame or chunk (damping, damage switch, dt) are not sent again
+        self._upload("damp", np.broadcast_to(np.asarray(damping, np.float32), (B,)).copy())
+        self._upload("don", (np.broadcast_to(np.asarray(damage_on), (B,)) != 0).astype(np.int32)
+                     * np.int32(self.options.damage))
+        self._upload("dt", dt.astype(np.float32))
         self.nsub.from_numpy(nsub.astype(np.int32))
         B, K = kin.shape[:2]
         table = np.zeros((B, K, self.nk1, 6), np.float32)
@@ -490,6 +522,12 @@ class TaichiBackend:
         if self.kin.shape != table.shape:
             self.kin = ti.ndarray(ti.f32, table.shape)
         self.kin.from_numpy(table)
+
+    def _upload(self, name: str, values: np.ndarray) -> None:
+        last = self._uploaded.get(name)
+        if last is None or not np.array_equal(last, values):
+            getattr(self, name).from_numpy(values)
+            self._uploaded[name] = values
 
     def _stages(self, k: int) -> dict[str, object]:
         """The substep's kernel launches in order, by stage name (each a no-argument callable)."""
@@ -566,6 +604,20 @@ class TaichiBackend:
         self.stats_out.fill(0.0)
         self._stats(lo, hi, self._stats_mask, self.mat, self.body, self.vol, self.x, self.v, self.F, self.d, self.stats_out)
         return self.stats_out.to_numpy().astype(np.float64)
+
+    def frame_end(self, lo: float, hi: float, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``frame_stats(lo, hi, slots)`` and ``kinematic_sums(slots)`` in one launch and one copy back:
+        (stats (B, n_stats), impulse (len(slots), n_kin, 3), work (len(slots), n_kin))."""
+        slots = np.asarray(slots, np.int64)
+        mask = np.zeros(self.batch, np.int32)
+        mask[slots] = 1
+        self._stats_mask.from_numpy(mask)
+        n, ns = self.ngrip + self.ncol, self.nstats
+        self._frame_end(lo, hi, self._stats_mask, ns, n, self.mat, self.body, self.vol, self.x, self.v, self.F,
+                        self.d, self.imp, self.work, self.end_out)
+        out = self.end_out.to_numpy().astype(np.float64)
+        sums = out[slots, ns:ns + 4 * n].reshape(len(slots), n, 4)
+        return out[:, :ns], sums[..., :3], sums[..., 3]
 
     def kinematic_sums(self, slots: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(impulse (B, n_kin, 3) the material gave each kinematic object, work (B, n_kin) the objects did

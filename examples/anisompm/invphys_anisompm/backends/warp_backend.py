@@ -625,6 +625,11 @@ class WarpBackend:
                           self.stats_out])
         return self.stats_out.numpy().astype(np.float64)
 
+    def frame_end(self, lo: float, hi: float, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``frame_stats(lo, hi, slots)`` and ``kinematic_sums(slots)`` (see the Taichi backend)."""
+        imp, work = self.kinematic_sums(slots)
+        return self.frame_stats(lo, hi, slots), imp, work
+
     def kinematic_sums(self, slots: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Impulse and work sums since the last call (see the Taichi backend); with ``slots``, only those
         runs' rows are returned and reset (the others keep accumulating)."""
