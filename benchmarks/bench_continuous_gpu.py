@@ -81,7 +81,7 @@ def profile(sim, params: np.ndarray, batch: int) -> dict:
             "note": "no substeps launched in the chunk timing: uploads, frame statistics kernel, sums, copies back"}
 
 
-def run_case(sim, params: np.ndarray, batch: int, case: str, ext) -> tuple[dict, np.ndarray]:
+def run_case(sim, params: np.ndarray, batch: int, case: str, ext) -> tuple[dict, np.ndarray | None]:
     from invphys_anisompm.streaming import SlotCounters
     from invphys_orange_peel.engine_scene import model_for
 
@@ -106,11 +106,13 @@ def run_case(sim, params: np.ndarray, batch: int, case: str, ext) -> tuple[dict,
     n = sim.engine_scene.engine.n_particles
     runs = len(params)
     substeps = np.array([records[i].substeps + records[i].settle_substeps for i in range(runs)])
-    feats = np.full((runs, len(ext.feature_names)), np.nan)
-    for i in range(runs):
-        res = sim.result_from_record(params[i], records[i])
-        if res.ok:
-            feats[i] = ext.extract(res.trajectory)
+    feats = None
+    if ext is not None:
+        feats = np.full((runs, len(ext.feature_names)), np.nan)
+        for i in range(runs):
+            res = sim.result_from_record(params[i], records[i])
+            if res.ok:
+                feats[i] = ext.extract(res.trajectory)
     row = {"case": case, "scheduling": "lockstep" if case == "lockstep" else "continuous", "queue_order": order,
            "min_chunk": mc, "batch": batch, "runs": runs, "wall_s": wall, "seconds_per_run": wall / runs,
            "x_paper_156s": PAPER_SECONDS_PER_RUN / (wall / runs),
@@ -134,6 +136,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--cases", nargs="+", default=["continuous:16:longest_first", "continuous:16:given", "lockstep"])
     ap.add_argument("--budget", type=float, default=1e9, help="seconds; a case starts only if the last fits")
     ap.add_argument("--profile", action="store_true")
+    ap.add_argument("--no-features", action="store_true", help="skip the feature agreement (host time)")
     ap.add_argument("--tag", default="")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
@@ -148,7 +151,7 @@ def main(argv: list[str] | None = None) -> dict:
     sim = OrangePeelSimulator(preset=args.preset, arch=args.arch, batch_size=args.batch)
     space = sim.parameter_space()
     params = space.denormalize(np.random.default_rng(args.seed).uniform(size=(args.runs, space.dim)))
-    ext = OrangePeelFeatures()
+    ext = None if args.no_features else OrangePeelFeatures()
     t0 = time.perf_counter()   # compile every kernel the cases use (run, stream, frame end, gathers)
     warm = model_for(sim.engine_scene, params[:args.batch])
     sim.engine.run(warm, 1, 1)
@@ -182,7 +185,9 @@ def main(argv: list[str] | None = None) -> dict:
             continue
         row, feats = run_case(sim, params, args.batch, case, ext)
         last_wall = row["wall_s"]
-        if first is None:
+        if feats is None:
+            pass
+        elif first is None:
             first = feats
         else:   # the same rows through another schedule: feature agreement (GPU round-off only)
             ok = np.isfinite(first).all(axis=1) & np.isfinite(feats).all(axis=1)

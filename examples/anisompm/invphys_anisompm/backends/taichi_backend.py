@@ -336,9 +336,9 @@ def _build_kernels(serial_p2g: bool):
                     x[b, p] += h * new_v
 
     @ti.func
-    def _particle_stats(b: ti.i32, p: ti.i32, lo: ti.f32, hi: ti.f32, mat: ti.template(), body: ti.template(),
-                        vol: ti.template(), x: ti.template(), v: ti.template(), F: ti.template(), d: ti.template(),
-                        out: ti.template()):
+    def _particle_stats(b: ti.i32, r: ti.i32, p: ti.i32, lo: ti.f32, hi: ti.f32, mat: ti.template(),
+                        body: ti.template(), vol: ti.template(), x: ti.template(), v: ti.template(),
+                        F: ti.template(), d: ti.template(), acc: ti.template()):
         xp = x[b, p]
         vp = v[b, p]
         dp = d[b, p]
@@ -348,42 +348,66 @@ def _build_kernels(serial_p2g: bool):
                 or not (ti.abs(dp) < 1e20):
             bad = 1
         if bad != 0:
-            ti.atomic_add(out[b, 2], 1.0)
+            ti.atomic_add(acc[b, r, 2], 1.0)
         else:
             reg = body[p]
-            ti.atomic_max(out[b, 0], s)
-            ti.atomic_add(out[b, 1], 0.5 * mat[b, reg, M_RHO] * vol[p] * s * s)
+            ti.atomic_max(acc[b, r, 0], s)
+            ti.atomic_add(acc[b, r, 1], 0.5 * mat[b, reg, M_RHO] * vol[p] * s * s)
             if xp.min() < lo or xp.max() > hi:
-                ti.atomic_add(out[b, 3], 1.0)
+                ti.atomic_add(acc[b, r, 3], 1.0)
             col = BODY0 + 4 * reg
             for a in ti.static(range(3)):
-                ti.atomic_add(out[b, col + a], xp[a])
-            ti.atomic_add(out[b, col + 3], dp)
+                ti.atomic_add(acc[b, r, col + a], xp[a])
+            ti.atomic_add(acc[b, r, col + 3], dp)
 
+    @ti.func
+    def _reduce_stats(mask: ti.template(), acc: ti.template(), out: ti.template()):
+        """out[b, c] = max (column 0) or sum over the partial rows acc[b, :, c], masked runs only."""
+        for b, c in ti.ndrange(acc.shape[0], acc.shape[2]):
+            if mask[b] != 0:
+                t = 0.0
+                for r in range(acc.shape[1]):
+                    if c == 0:
+                        t = ti.max(t, acc[b, r, c])
+                    else:
+                        t += acc[b, r, c]
+                out[b, c] = t
+
+    # Frame statistics: each run's particles add into ``acc.shape[1]`` partial rows (particle p into row
+    # p % R), then the rows are reduced. On a GPU R = 256 spreads the atomics of 50k particles over 256
+    # addresses per column instead of one (same-address float atomics serialise); on the CPU R = 1.
     @ti.kernel
     def frame_stats(lo: ti.f32, hi: ti.f32, mask: ND(ti.i32, 1), mat: ND(ti.f32, 3), body: ND(ti.i32, 1),
                     vol: ND(ti.f32, 1), x: ND(vec3, 2), v: ND(vec3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2),
-                    out: ND(ti.f32, 2)):
+                    acc: ND(ti.f32, 3), out: ND(ti.f32, 2)):
+        for b, r, c in ti.ndrange(acc.shape[0], acc.shape[1], acc.shape[2]):
+            if mask[b] != 0:
+                acc[b, r, c] = 0.0
         if ti.static(serial_p2g):
             ti.loop_config(serialize=True)  # float sums in a fixed order: features repeat bit for bit
         for b, p in ti.ndrange(x.shape[0], x.shape[1]):  # a range-for: serialize applies
             if mask[b] != 0:
-                _particle_stats(b, p, lo, hi, mat, body, vol, x, v, F, d, out)
+                _particle_stats(b, p % acc.shape[1], p, lo, hi, mat, body, vol, x, v, F, d, acc)
+        _reduce_stats(mask, acc, out)
 
     @ti.kernel
     def frame_end(lo: ti.f32, hi: ti.f32, mask: ND(ti.i32, 1), nstats: ti.i32, nk: ti.i32, mat: ND(ti.f32, 3),
                   body: ND(ti.i32, 1), vol: ND(ti.f32, 1), x: ND(vec3, 2), v: ND(vec3, 2), F: ND(mat3, 2),
-                  d: ND(ti.f32, 2), imp: ND(vec3, 2), work: ND(ti.f32, 2), out: ND(ti.f32, 2)):
+                  d: ND(ti.f32, 2), imp: ND(vec3, 2), work: ND(ti.f32, 2), acc: ND(ti.f32, 3), out: ND(ti.f32, 2)):
         """One launch at the end of a chunk: zero ``out``, the statistics of the masked runs (as
         ``frame_stats``), then their force and work sums moved into ``out`` (4 columns per object after
         the statistics) and reset on the device."""
         for b, c in ti.ndrange(out.shape[0], out.shape[1]):
             out[b, c] = 0.0
+        for b, r, c in ti.ndrange(acc.shape[0], acc.shape[1], acc.shape[2]):
+            if mask[b] != 0:
+                acc[b, r, c] = 0.0
         if ti.static(serial_p2g):
             ti.loop_config(serialize=True)
         for b, p in ti.ndrange(x.shape[0], x.shape[1]):
             if mask[b] != 0:
-                _particle_stats(b, p, lo, hi, mat, body, vol, x, v, F, d, out)
+                _particle_stats(b, p % acc.shape[1], p, lo, hi, mat, body, vol, x, v, F, d, acc)
+        _reduce_stats(mask, acc, out)
         for b, c in ti.ndrange(imp.shape[0], nk):
             if mask[b] != 0:
                 for a in ti.static(range(3)):
@@ -421,7 +445,8 @@ class TaichiBackend:
 
     name = "taichi"
 
-    def __init__(self, scene, batch: int, arch: str = "cpu", allow_cpu_fallback: bool = False, **_: object):
+    def __init__(self, scene, batch: int, arch: str = "cpu", allow_cpu_fallback: bool = False,
+                 stats_partials: int | None = None, **_: object):
         self.arch = ensure_taichi(arch, allow_cpu_fallback)
         self.device = device_name(self.arch)
         self.scene = scene
@@ -455,6 +480,9 @@ class TaichiBackend:
         self.dt = ti.ndarray(ti.f32, (B,))
         self.kin = ti.ndarray(ti.f32, (B, 1, NK1, 6))
         self.stats_out = ti.ndarray(ti.f32, (B, self.nstats))
+        # partial rows of the frame statistics (see the kernels): 256 on a GPU, 1 (the plain sum) on the CPU
+        R = int(stats_partials or (256 if self.arch == "cuda" else 1))
+        self.stats_acc = ti.ndarray(ti.f32, (B, R, self.nstats))
         self.end_out = ti.ndarray(ti.f32, (B, self.nstats + 4 * NK1))
         self.imp = ti.ndarray(vec3, (B, NK1))
         self.work = ti.ndarray(ti.f32, (B, NK1))
@@ -602,7 +630,8 @@ class TaichiBackend:
             mask[np.asarray(slots, np.int64)] = 1
         self._stats_mask.from_numpy(mask)
         self.stats_out.fill(0.0)
-        self._stats(lo, hi, self._stats_mask, self.mat, self.body, self.vol, self.x, self.v, self.F, self.d, self.stats_out)
+        self._stats(lo, hi, self._stats_mask, self.mat, self.body, self.vol, self.x, self.v, self.F, self.d,
+                    self.stats_acc, self.stats_out)
         return self.stats_out.to_numpy().astype(np.float64)
 
     def frame_end(self, lo: float, hi: float, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -614,7 +643,7 @@ class TaichiBackend:
         self._stats_mask.from_numpy(mask)
         n, ns = self.ngrip + self.ncol, self.nstats
         self._frame_end(lo, hi, self._stats_mask, ns, n, self.mat, self.body, self.vol, self.x, self.v, self.F,
-                        self.d, self.imp, self.work, self.end_out)
+                        self.d, self.imp, self.work, self.stats_acc, self.end_out)
         out = self.end_out.to_numpy().astype(np.float64)
         sums = out[slots, ns:ns + 4 * n].reshape(len(slots), n, 4)
         return out[:, :ns], sums[..., :3], sums[..., 3]
