@@ -62,7 +62,9 @@ def profile(sim, params: np.ndarray, batch: int) -> dict:
     chunk = {}
     nsub = np.zeros(batch, np.int64)
     kin1 = np.zeros((batch, 16, nk, 6))
-    for name in ("separate", "fused"):
+    for name in ("separate", "fused", "fused_all_slots"):
+        if name == "fused_all_slots":
+            slots = np.arange(batch)
         be.sync()
         t0 = time.perf_counter()
         for r in range(reps):
