@@ -112,6 +112,8 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
     kin_slot: list[np.ndarray | None] = [None] * B
     records: list[RunRecord | None] = [None] * B
     started = np.zeros(B)
+    kin_cache: dict[tuple[int, int], np.ndarray] = {}   # (frame, substeps) -> kinematic table (read only)
+    pos_cache: dict[tuple[int, int], np.ndarray] = {}   # (frame, object) -> displacement
 
     def begin_frame(b: int) -> str | None:
         settling = step[b] < n_settle
@@ -128,7 +130,12 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
         if settling:
             kin_slot[b] = np.zeros((int(nsub[0]), max(nk, 1), 6))
         else:
-            kin_slot[b] = kinematic_table(scene, frame, nsub, dt, np.ones(1, bool))[0]
+            key = (frame, int(nsub[0]))   # runs with the same substeps share a frame's table
+            if key not in kin_cache:
+                if len(kin_cache) >= 4096:
+                    kin_cache.pop(next(iter(kin_cache)))
+                kin_cache[key] = kinematic_table(scene, frame, nsub, dt, np.ones(1, bool))[0]
+            kin_slot[b] = kin_cache[key]
         return None
 
     def record(group: list[int], frame_of: dict[int, int], recorded_of: dict[int, bool]) -> None:
@@ -150,7 +157,9 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
             for c, (name, path) in enumerate(zip(names, scene.kinematic_paths, strict=True)):
                 s.setdefault(f"force/{name}", []).append(last_force[b, c].copy())
                 s.setdefault(f"work/{name}", []).append(float(work[b, c]))
-                s.setdefault(f"position/{name}", []).append(path.displacement(frame / fps))
+                if (frame, c) not in pos_cache:
+                    pos_cache[(frame, c)] = path.displacement(frame / fps)
+                s.setdefault(f"position/{name}", []).append(pos_cache[(frame, c)].copy())
             for r in host_of[b]:
                 v = np.asarray(r.fn(*xs[b], scene), float).reshape(1, -1)[0]
                 s.setdefault(r.name, []).append(float(v[0]) if v.size == 1 else v.copy())
