@@ -44,7 +44,17 @@ def invert(
     top_k: int = typer.Option(1, "--top-k", "-k", min=1, help="diverse candidates per target"),
     refine: int = typer.Option(0, "--refine", min=0, help="CMA-ES surrogate evaluations refining each candidate"),
     validate: bool = typer.Option(False, "--validate", help="re-run the simulator on the answers (R_actual)"),
-    sim_option: list[str] = typer.Option(None, "--sim-option", help="simulator config KEY=VALUE for --validate"),
+    sim_option: list[str] = typer.Option(None, "--sim-option",
+                                         help="simulator config KEY=VALUE for --validate and --polish"),
+    polish: int | None = typer.Option(None, "--polish", help="CMA-ES on the simulator from each validated answer: "
+                                      "N new simulator runs per target (implies --validate)"),
+    polish_below: float | None = typer.Option(None, "--polish-below",
+                                              help="polish only targets whose R_actual is below R (default 1)"),
+    polish_sigma: float | None = typer.Option(None, "--polish-sigma",
+                                              help="polish step in the normalised [0, 1] cube (default 0.012)"),
+    polish_popsize: int | None = typer.Option(None, "--polish-popsize", help="points per generation (default 8)"),
+    polish_log: Path | None = typer.Option(None, "--polish-log",
+                                           help="log of the polish's runs: a stopped polish resumes from it"),
     seed: int = typer.Option(0, "--seed", help="seed of stochastic rollouts and optimisers"),
     allow_mismatch: bool = typer.Option(False, "--allow-mismatch",
                                         help="load a bundle made with another simulator version"),
@@ -54,6 +64,7 @@ def invert(
     from invphys.inverter import load_inverter
     from invphys.inverter.targets import cli_targets
 
+    polish_settings = _polish_settings(polish, polish_below, polish_sigma, polish_popsize, polish_log)
     inv = load_inverter(bundle, strict=not allow_mismatch)
     for note in inv.notes:
         console.print(f"[yellow]warning:[/] {escape(note)}", soft_wrap=True)
@@ -62,8 +73,11 @@ def invert(
     for r in results:
         for w in r.warnings:
             console.print(f"[yellow]warning:[/] target {escape(r.label)}: {escape(w)}", soft_wrap=True)
-    if validate:
-        _validate(inv, results, _options(sim_option or []))
+    overrides = _options(sim_option or [])
+    if validate or polish_settings:
+        _validate(inv, results, overrides)
+    if polish_settings:
+        _polish(inv, results, overrides, seed, **polish_settings)
     data = {"bundle": str(bundle), "method": results[0].method, "results": [r.to_dict() for r in results]}
     emit(data, as_json, lambda _: [_render(r) for r in results])
 
@@ -76,6 +90,65 @@ def _validate(inv: Any, results: list[Any], overrides: dict[str, Any]) -> None:
                   console=console, transient=False) as bar:
         task = bar.add_task("validating", total=total)
         inv.validate(results, overrides=overrides, on_run=lambda _i: bar.advance(task))
+
+
+def _polish_settings(budget: int | None, below: float | None, sigma: float | None, popsize: int | None,
+                     log: Path | None) -> dict[str, Any]:
+    """The ``--polish*`` options as :meth:`Inverter.polish` arguments ({} without ``--polish``)."""
+    import math
+
+    if budget is None:
+        given = [n for n, v in (("--polish-below", below), ("--polish-sigma", sigma), ("--polish-popsize", popsize),
+                                ("--polish-log", log)) if v is not None]
+        if given:
+            raise InvphysError(f"{', '.join(given)} needs --polish N (simulator runs per target)")
+        return {}
+    if budget < 0:
+        raise InvphysError(f"--polish must be >= 0 simulator runs per target, got {budget}")
+    if sigma is not None and not (math.isfinite(sigma) and sigma > 0):
+        raise InvphysError(f"--polish-sigma must be > 0 (a step in the normalised [0, 1] cube), got {sigma}")
+    if below is not None and not 0 < below <= 1:
+        raise InvphysError(f"--polish-below must be in (0, 1], got {below}")
+    if popsize is not None and popsize < 2:
+        raise InvphysError(f"--polish-popsize must be >= 2, got {popsize}")
+    if log is not None and log.is_dir():
+        raise InvphysError(f"--polish-log {log} is a directory; name a file (e.g. polish.npz)")
+    out: dict[str, Any] = {"budget": budget, "log": log}
+    for key, value in (("below", below), ("sigma0", sigma), ("popsize", popsize)):
+        if value is not None:
+            out[key] = value
+    return out
+
+
+def _polish(inv: Any, results: list[Any], overrides: dict[str, Any], seed: int, **settings: Any) -> None:
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    below = settings.get("below", 1.0)
+    starts = [max((c.r_actual for c in r.candidates if c.r_actual is not None and c.r_actual == c.r_actual),
+                  default=float("nan")) for r in results]
+    total = sum(settings["budget"] for r0 in starts if not r0 >= below)
+    with Progress(TextColumn("polishing"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=console, transient=False) as bar:
+        task = bar.add_task("polishing", total=total)
+        inv.polish(results, overrides=overrides, seed=seed, on_batch=lambda runs, _replayed: bar.advance(task, runs),
+                   **settings)
+        bar.update(task, completed=total)
+    for r in results:
+        p = r.polish
+        if not p["polished"]:
+            console.print(f"polish {escape(r.label)}: R_actual {_r(p['start_r_actual'])} >= {below:g}, not polished",
+                          soft_wrap=True)
+            continue
+        console.print(f"polish {escape(r.label)}: R_actual {_r(p['start_r_actual'])} -> {_r(p['r_actual'])} "
+                      f"({p['runs']} simulator runs{'' if p['improved'] else ', start kept'})", soft_wrap=True)
+    call = results[0].polish["call"] if results else {}
+    if call.get("replayed_runs"):
+        console.print(f"polish: {call['replayed_runs']} of {call['runs']} runs replayed from {escape(str(call['log']))}",
+                      soft_wrap=True)
+
+
+def _r(value: float) -> str:
+    return "failed" if value != value else f"{value:.3f}"
 
 
 def _render(result: Any) -> None:

@@ -7,11 +7,13 @@
     res.parameters                                               # {"E": 812.4, "rho": ..., ...}
     res = inv.invert(target, method="cma_es", top_k=3, refine=200)
     inv.validate(res)                                            # re-run the simulator: R_actual, gap
+    inv.polish(res, budget=24)                                   # CMA-ES on the simulator from the answer
 """
 
 from __future__ import annotations
 
 import contextlib
+import logging
 import time
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -29,8 +31,13 @@ from invphys.inverter.result import Candidate, InversionResult
 #: candidates closer than this (RMS distance in normalised parameter space) count as one
 MIN_DISTANCE = 0.05
 REFINE_SIGMA0 = 0.1
+#: polish's CMA-ES step in [0, 1]^d: the simulator is sharp in its parameters (orange peel, paper
+#: preset: sigma0 0.05 improved 13 of 62 targets in its first generation; 0.012 improved 31 of 35 in
+#: three generations, none got worse; results/orange_peel_paper_active_polish)
+POLISH_SIGMA0 = 0.012
 #: batches of at least this many targets run with :func:`blas_threads` (a single target does not pay it)
 BLAS_LIMIT_ROWS = 32
+_LOG = logging.getLogger("invphys.inverter")
 #: candidate thetas (P, d), their sources, evaluations spent
 Pool = tuple[np.ndarray, list[str], int]
 
@@ -394,6 +401,14 @@ class Inverter:
             block = {"type": name}
         return self.bundle.registry.create("feature_extractor", block)
 
+    def _simulation(self, overrides: Mapping[str, Any] | None, batch_size: int) -> tuple[Any, Any, Any]:
+        """(simulator, extractor, simulator validator) for re-running candidates."""
+        if batch_size < 1:
+            raise InvphysError(f"batch_size must be >= 1, got {batch_size}")
+        sim = self.simulator(overrides)
+        ext = self.extractor(sim)
+        return sim, ext, self.bundle.registry.create("validator", {"type": "simulator", "batch_size": batch_size})
+
     def validate(self, results: InversionResult | Sequence[InversionResult], overrides: Mapping[str, Any] | None = None,
                  batch_size: int = 16, on_run: Callable[[int], None] | None = None
                  ) -> InversionResult | list[InversionResult]:
@@ -404,10 +419,15 @@ class Inverter:
         """
         single = isinstance(results, InversionResult)
         items = [results] if single else list(results)
-        sim = self.simulator(overrides)
-        ext = self.extractor(sim)
-        validator = self.bundle.registry.create("validator", {"type": "simulator", "batch_size": batch_size})
-        cands = [(r, c) for r in items for c in r.candidates]
+        self._simulate([(r, c) for r in items for c in r.candidates], *self._simulation(overrides, batch_size),
+                       on_run=on_run)
+        return items[0] if single else items
+
+    def _simulate(self, cands: list[tuple[InversionResult, Candidate]], sim: Any, ext: Any, validator: Any,
+                  on_run: Callable[[int], None] | None = None) -> None:
+        """Simulate candidates (with their results): fills ``actual``, ``r_actual``, ``gap``, ``failure``."""
+        if not cands:
+            return
         theta = np.array([c.theta for _, c in cands])
         if hasattr(validator, "simulate_features"):
             sim_out = validator.simulate_features(theta, sim, ext, on_run=on_run)
@@ -425,4 +445,108 @@ class Inverter:
             else:
                 c.actual, c.r_actual = None, float("nan")
             c.gap = c.r_surrogate - c.r_actual
+
+    # -- simulator-in-the-loop polish -------------------------------------------------------------------
+    def polish(self, results: InversionResult | Sequence[InversionResult], budget: int = 24, popsize: int = 8,
+               sigma0: float = POLISH_SIGMA0, below: float = 1.0, overrides: Mapping[str, Any] | None = None,
+               batch_size: int = 16, log: str | Path | None = None, seed: int = 0,
+               on_batch: Callable[[int, bool], None] | None = None) -> InversionResult | list[InversionResult]:
+        """Ask/tell CMA-ES on the real simulator from each result's best simulated candidate.
+
+        Candidates not validated yet are validated first. A result whose best R_actual is below
+        ``below`` gets ``budget`` new simulator runs (``popsize`` points per generation, step ``sigma0``
+        in [0, 1]^d; every generation of all results is simulated as one batch, in chunks of
+        ``batch_size``). A better simulated point becomes a new first candidate (source
+        ``"<start> + polish"``); otherwise the start moves first: the answer is never worse. Partial
+        targets are scored over their given features, as :meth:`validate` scores them. ``log``: an
+        ``.npz`` file of every simulated batch, so that a stopped polish resumes (a re-run replays the
+        logged batches; a larger ``budget`` replays the smaller one's). ``on_batch(runs, replayed)``
+        follows each batch. Fills ``result.polish``; returns ``results`` (updated in place).
+        """
+        from invphys.plugins.evaluators.polish import BatchLog, polish
+        from invphys.plugins.evaluators.simulator_loop import SimulatorEvaluator
+
+        check_polish(budget, popsize, sigma0, below)
+        single = isinstance(results, InversionResult)
+        items = [results] if single else list(results)
+        if log is not None and Path(log).is_dir():
+            raise InvphysError(f"polish log {log} is a directory; name a file (e.g. polish.npz)")
+        sim, ext, validator = self._simulation(overrides, batch_size)
+        self._simulate([(r, c) for r in items for c in r.candidates if c.r_actual is None and c.failure is None],
+                       sim, ext, validator)
+        starts = [max(r.candidates, key=lambda c: -np.inf if c.r_actual is None or not np.isfinite(c.r_actual)
+                      else c.r_actual) for r in items]
+        m = len(self.feature_names)
+        targets = np.array([np.where(r.mask, r.target, np.nan) for r in items], dtype=np.float64)
+        theta = np.array([c.theta for c in starts], dtype=np.float64)
+        r0 = np.array([np.nan if c.r_actual is None else c.r_actual for c in starts], dtype=np.float64)
+        feats = np.array([np.full(m, np.nan) if c.actual is None else c.actual for c in starts], dtype=np.float64)
+        chosen = ~(r0 >= below)  # NaN (the start failed) is polished too
+        settings = {"budget": budget, "popsize": popsize, "sigma0": sigma0, "below": below, "seed": seed}
+        key = self._polish_key(targets, theta, chosen, settings, overrides)
+        batches = BatchLog(None if log is None else Path(log), key, SimulatorEvaluator.from_validator(validator, sim, ext),
+                           log=_polish_note, chunk=batch_size, on_batch=on_batch)
+        t0 = time.perf_counter()
+        if budget > 0 and chosen.any():
+            pol = polish(targets, theta, r0, feats, self.bundle.scales, batches, budget, popsize, sigma0, below,
+                         seed=seed, score=self._masked_score)
+            new_theta, new_r, new_feats, runs = pol.theta, pol.r_actual, pol.features, pol.runs
+            seconds, device = pol.seconds, pol.device
+        else:
+            new_theta, new_r, new_feats, runs, seconds, device = theta, r0, feats, np.zeros(len(items), int), 0.0, ""
+        total = int(runs.sum())
+        call = {"targets": len(items), "polished": int(chosen.sum()) if budget > 0 else 0, "runs": total,
+                "replayed_runs": batches.replayed_runs, "simulator_s": seconds, "device": device,
+                "wall_time_s": time.perf_counter() - t0, "log": None if log is None else str(log)}
+        for i, (r, start) in enumerate(zip(items, starts, strict=True)):
+            improved = bool(chosen[i] and np.isfinite(new_r[i]) and not new_r[i] <= r0[i])
+            if improved:
+                cand = self._candidates(new_theta[i][None, :], [f"{start.source} + polish"], r.target, r.mask)[0]
+                cand.actual, cand.r_actual = new_feats[i].copy(), float(new_r[i])
+                cand.gap = cand.r_surrogate - cand.r_actual
+                r.candidates.insert(0, cand)
+            elif chosen[i] and budget > 0:
+                r.candidates.insert(0, r.candidates.pop(next(j for j, c in enumerate(r.candidates) if c is start)))
+            r.polish = {"polished": bool(chosen[i] and budget > 0), "improved": improved, "start_source": start.source,
+                        "start_r_actual": float(r0[i]), "r_actual": float(new_r[i]), "runs": int(runs[i]),
+                        "simulator_s": float(runs[i] / max(total, 1) * seconds), "device": device,
+                        "settings": dict(settings), "call": call}
         return items[0] if single else items
+
+    def _masked_score(self, y: np.ndarray, targets: np.ndarray) -> np.ndarray:
+        """R over each row's given features (a missing feature is NaN in ``targets``), as in :meth:`validate`."""
+        given = np.isfinite(targets)
+        return masked_recovery(y, np.where(given, targets, 0.0), self.bundle.scales, given, self.bundle.kappa)
+
+    def _polish_key(self, targets: np.ndarray, theta: np.ndarray, chosen: np.ndarray, settings: dict[str, Any],
+                    overrides: Mapping[str, Any] | None) -> str:
+        """What a polish log was made for: bundle, simulator config, targets, starts and settings (not the
+        budget: a larger budget replays the smaller one's batches)."""
+        import hashlib
+        import json
+
+        head = {"bundle": self.bundle.manifest.get("bundle_id", ""), "files": self.bundle.manifest.get("files", {}),
+                "simulator": self.bundle.manifest["simulator"].get("config", {}), "overrides": dict(overrides or {}),
+                "settings": {k: v for k, v in settings.items() if k != "budget"}, "polished": chosen.tolist()}
+        h = hashlib.sha256(json.dumps(head, sort_keys=True, default=str).encode())
+        h.update(np.ascontiguousarray(targets, dtype=np.float64).tobytes())
+        h.update(np.ascontiguousarray(theta, dtype=np.float64).tobytes())
+        return h.hexdigest()[:24]
+
+
+def check_polish(budget: int, popsize: int, sigma0: float, below: float) -> None:
+    """Raise :class:`InvphysError` for polish settings that cannot run."""
+    if not isinstance(budget, (int, np.integer)) or isinstance(budget, bool) or budget < 0:
+        raise InvphysError(f"polish budget must be a whole number >= 0 of simulator runs per target, got {budget!r}")
+    if not isinstance(popsize, (int, np.integer)) or isinstance(popsize, bool) or popsize < 2:
+        raise InvphysError(f"polish popsize must be a whole number >= 2, got {popsize!r}")
+    if not (isinstance(sigma0, (int, float, np.floating)) and np.isfinite(sigma0) and sigma0 > 0):
+        raise InvphysError(f"polish sigma0 must be > 0 (a step in the normalised [0, 1] parameter cube), got {sigma0!r}")
+    if not (isinstance(below, (int, float, np.floating)) and 0 < below <= 1):
+        raise InvphysError(f"polish below must be in (0, 1] (polish targets whose R_actual is below it), got {below!r}")
+
+
+def _polish_note(message: str) -> None:
+    """The polish log's messages: each batch at debug level, anything unexpected at info."""
+    quiet = message.startswith("polish batch") and "other points" not in message
+    (_LOG.debug if quiet else _LOG.info)(message)

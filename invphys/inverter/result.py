@@ -31,7 +31,8 @@ class InversionResult:
 
     ``parameters``, ``theta``, ``predicted``, ``r_surrogate`` and ``uncertainty`` describe the best
     candidate; ``candidates`` holds all (``top_k``). Mappings are keyed by name in the bundle's order;
-    parameters are in physical units (``units``), features in the features' units.
+    parameters are in physical units (``units``), features in the features' units. ``polish``: what
+    :meth:`~invphys.inverter.Inverter.polish` did (None when it did not run).
     """
 
     label: str
@@ -47,6 +48,7 @@ class InversionResult:
     wall_time_s: float = 0.0
     warnings: list[str] = field(default_factory=list)
     bundle_id: str = ""
+    polish: dict[str, Any] | None = None
 
     @property
     def best(self) -> Candidate:
@@ -113,6 +115,8 @@ class InversionResult:
             "evaluations": int(self.evaluations), "wall_time_s": round(float(self.wall_time_s), 6),
             "candidates": [candidate(i + 1, c) for i, c in enumerate(self.candidates)],
             "warnings": list(self.warnings)}
+        if self.polish is not None:
+            data["polish"] = {k: _f(v) if isinstance(v, float) else v for k, v in self.polish.items()}
         if len(self.candidates) > 1:
             data["spread"] = {k: _f(v) for k, v in self.spread().items()}
         return data

@@ -34,13 +34,16 @@ class BatchLog:
     the logged batch ``i`` has the same points (within ``atol``); the first mismatch drops the rest of
     the log (the search diverged) and simulates from there. ``key`` names what the log was made for:
     another key starts an empty log. ``chunk``: a call with more points is simulated and logged in
-    chunks of that many (a stop loses at most one chunk).
+    chunks of that many (a stop loses at most one chunk). ``on_batch(runs, replayed)`` is called after
+    each batch (progress bars).
     """
 
     def __init__(self, path: Path | None, key: str, evaluator: Any,
-                 log: Callable[[str], None] | None = None, atol: float = 1e-9, chunk: int | None = None) -> None:
+                 log: Callable[[str], None] | None = None, atol: float = 1e-9, chunk: int | None = None,
+                 on_batch: Callable[[int, bool], None] | None = None) -> None:
         self.path, self.key, self.evaluator, self.atol, self.chunk = path, key, evaluator, atol, chunk
         self._log = log or (lambda _msg: None)
+        self._on_batch = on_batch or (lambda _runs, _replayed: None)
         self.batches: list[dict[str, Any]] = self._load()
         self.calls = 0
         self.runs = 0
@@ -92,6 +95,7 @@ class BatchLog:
                 self.seconds += float(b["seconds"])
                 self.device = b["device"] or self.device
                 self._log(f"polish batch {i}: {len(theta)} runs replayed from {Path(str(self.path)).name}")
+                self._on_batch(len(theta), True)
                 return np.array(b["y"], dtype=np.float64)
             self._log(f"polish batch {i}: the search asked other points than logged; simulating from here")
             del self.batches[i:]
@@ -105,6 +109,7 @@ class BatchLog:
                              "theta": theta.copy(), "y": y.copy()})
         self._save()
         self._log(f"polish batch {i}: {len(theta)} runs simulated in {seconds:.1f} s")
+        self._on_batch(len(theta), False)
         return y
 
 
@@ -125,11 +130,14 @@ class Polished:
 
 def polish(targets: np.ndarray, theta: np.ndarray, r_actual: np.ndarray, features: np.ndarray,
            scales: np.ndarray, evaluate: Any, budget: int, popsize: int = 8, sigma0: float = 0.05,
-           below: float = 0.95, seed: int = 0) -> Polished:
+           below: float = 0.95, seed: int = 0,
+           score: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> Polished:
     """CMA-ES on the simulator from each answer with ``r_actual < below`` (``budget`` new runs each).
 
     ``evaluate``: a :class:`BatchLog` or a ``SimulatorEvaluator`` (features of normalised points,
     NaN rows for failures). A start whose ``features`` are not finite is simulated first (1 run).
+    ``score(features (B, M), targets (B, M)) -> (B,)`` scores points and must match how ``r_actual``
+    was computed (default: R_gt with kappa 3 over every feature; the inverter passes a masked R).
     """
     from invphys.plugins.evaluators.simulator_loop import refine_targets
 
@@ -155,13 +163,14 @@ def polish(targets: np.ndarray, theta: np.ndarray, r_actual: np.ndarray, feature
             out[resim] = evaluate(points[resim])
         return out
 
-    refined = refine_targets(np.asarray(targets, dtype=np.float64)[idx], theta[idx], scales, ev, budget + 1,
-                             popsize, sigma0, seed=seed)
+    targets = np.asarray(targets, dtype=np.float64)
+    refined = refine_targets(targets[idx], theta[idx], scales, ev, budget + 1, popsize, sigma0, seed=seed, score=score)
     for j, (i, x) in enumerate(zip(idx, refined, strict=True)):
         runs[i] = x.evaluated - 1 + int(resim[j])
         if x.features is None or not np.all(np.isfinite(x.features)):
             continue
-        r_new = float(recovery_reward(x.features, targets[i], scales))
+        r_new = float(recovery_reward(x.features, targets[i], scales) if score is None else
+                      np.asarray(score(x.features[None, :], targets[i][None, :]), dtype=np.float64)[0])
         if r_new > r_actual[i] or not np.isfinite(r_actual[i]):
             theta[i], r_actual[i], features[i] = x.theta, r_new, x.features
     seconds = float(getattr(evaluate, "seconds", getattr(evaluate, "wall_time_s", 0.0))) - seconds0
