@@ -136,7 +136,8 @@ def _polish(inv: Any, results: list[Any], overrides: dict[str, Any], seed: int, 
     for r in results:
         p = r.polish
         if not p["polished"]:
-            console.print(f"polish {escape(r.label)}: R_actual {_r(p['start_r_actual'])} >= {below:g}, not polished",
+            why = "--polish 0" if settings["budget"] == 0 else f"R_actual >= {below:g}"
+            console.print(f"polish {escape(r.label)}: R_actual {_r(p['start_r_actual'])}, not polished ({why})",
                           soft_wrap=True)
             continue
         console.print(f"polish {escape(r.label)}: R_actual {_r(p['start_r_actual'])} -> {_r(p['r_actual'])} "

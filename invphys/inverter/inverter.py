@@ -418,7 +418,7 @@ class Inverter:
         called as each run finishes. Returns ``results`` (updated in place).
         """
         single = isinstance(results, InversionResult)
-        items = [results] if single else list(results)
+        items: list[InversionResult] = [results] if isinstance(results, InversionResult) else list(results)
         self._simulate([(r, c) for r in items for c in r.candidates], *self._simulation(overrides, batch_size),
                        on_run=on_run)
         return items[0] if single else items
@@ -468,7 +468,7 @@ class Inverter:
 
         check_polish(budget, popsize, sigma0, below)
         single = isinstance(results, InversionResult)
-        items = [results] if single else list(results)
+        items: list[InversionResult] = [results] if isinstance(results, InversionResult) else list(results)
         if log is not None and Path(log).is_dir():
             raise InvphysError(f"polish log {log} is a directory; name a file (e.g. polish.npz)")
         sim, ext, validator = self._simulation(overrides, batch_size)
