@@ -44,6 +44,9 @@ def _args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--arch", default=None, help="simulator arch override (cuda, cpu)")
     p.add_argument("--sim-batch", type=int, default=None, help="simulator launch width override")
+    p.add_argument("--scheduling", default=None, choices=["lockstep", "continuous"],
+                   help="simulator scheduling override (not part of the run identity)")
+    p.add_argument("--min-chunk", type=int, default=None, help="continuous: fewest substeps per host round trip")
     p.add_argument("--chunk", type=int, default=200, help="rows per simulator call (a stop loses one chunk)")
     p.add_argument("--preset", default=None, help="simulator preset override (tests: tiny)")
     p.add_argument("--targets", type=int, default=None, help="first N targets only (smoke runs)")
@@ -93,14 +96,16 @@ def main(argv: list[str] | None = None) -> int:
     r_start = recovery_reward(np.nan_to_num(feats0), targets, scales)
     r_start = np.where(np.all(np.isfinite(feats0), axis=1), r_start, np.nan)
 
-    overrides = {k: v for k, v in (("arch", a.arch), ("batch_size", a.sim_batch), ("preset", a.preset)) if v}
+    overrides = {k: v for k, v in (("arch", a.arch), ("batch_size", a.sim_batch), ("preset", a.preset),
+                                   ("scheduling", a.scheduling), ("min_chunk", a.min_chunk)) if v}
     sim = inv.simulator(overrides)
     ext = inv.extractor(sim)
     validator = inv.bundle.registry.create("validator", {"type": "simulator", "batch_size": a.chunk})
     evaluator = SimulatorEvaluator.from_validator(validator, sim, ext)
     settings = {"budget": a.budget, "popsize": a.popsize, "sigma0": a.sigma0, "below": a.below, "seed": a.seed}
+    # the log is keyed on the physics (the run identity), not on how runs are scheduled on the device
     key = hashlib.sha256(json.dumps({"targets": targets.tolist(), "starts": theta0.tolist(), **settings,
-                                     "sim": {**inv.bundle.manifest["simulator"]["config"], **overrides}},
+                                     "sim": RunIdentity.of(sim).to_dict()},
                                     sort_keys=True).encode()).hexdigest()[:16]
     a.log.parent.mkdir(parents=True, exist_ok=True)
     log = BatchLog(a.log, key, evaluator, log=lambda m: print(m, flush=True), chunk=a.chunk)
