@@ -104,7 +104,10 @@ def main(argv: list[str] | None = None) -> int:
     evaluator = SimulatorEvaluator.from_validator(validator, sim, ext)
     settings = {"budget": a.budget, "popsize": a.popsize, "sigma0": a.sigma0, "below": a.below, "seed": a.seed}
     # the log is keyed on the physics (the run identity), not on how runs are scheduled on the device
-    key = hashlib.sha256(json.dumps({"targets": targets.tolist(), "starts": theta0.tolist(), **settings,
+    # and not on the budget: the seeded searches ask the same points, so a larger budget simulates only the
+    # extra generations and a smaller one replays the first ones
+    keyed = {k: v for k, v in settings.items() if k != "budget"}
+    key = hashlib.sha256(json.dumps({"targets": targets.tolist(), "starts": theta0.tolist(), **keyed,
                                      "sim": RunIdentity.of(sim).to_dict()},
                                     sort_keys=True).encode()).hexdigest()[:16]
     a.log.parent.mkdir(parents=True, exist_ok=True)
