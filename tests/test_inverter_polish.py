@@ -135,8 +135,10 @@ def test_cli_polish_json_and_bad_values(inv, bundle, tmp_path, monkeypatch) -> N
     monkeypatch.chdir(tmp_path)
     log = tmp_path / "logs" / "p.npz"
     res = _invoke("invert", str(bundle), *feats, "--polish", "16", "--polish-popsize", "4", "--polish-log", str(log),
-                  "--json")
+                  "--sim-batch", "3", "--json")
     assert res.exit_code == 0, res.output
+    with np.load(log) as z:  # --sim-batch: the polish simulated (and logged) at most 3 rows per call
+        assert {m["runs"] for m in json.loads(str(z["meta"]))} <= {1, 2, 3}
     out = json.loads(res.stdout)["results"][0]
     p = out["polish"]
     assert p["runs"] == 16 and p["settings"] == {"budget": 16, "popsize": 4, "sigma0": 0.012, "below": 1.0, "seed": 0}

@@ -46,6 +46,8 @@ def invert(
     validate: bool = typer.Option(False, "--validate", help="re-run the simulator on the answers (R_actual)"),
     sim_option: list[str] = typer.Option(None, "--sim-option",
                                          help="simulator config KEY=VALUE for --validate and --polish"),
+    sim_batch: int = typer.Option(16, "--sim-batch", min=1,
+                                  help="rows per simulator call for --validate and --polish (on a GPU: 64-200)"),
     polish: int | None = typer.Option(None, "--polish", help="CMA-ES on the simulator from each validated answer: "
                                       "N new simulator runs per target (implies --validate)"),
     polish_below: float | None = typer.Option(None, "--polish-below",
@@ -75,21 +77,21 @@ def invert(
             console.print(f"[yellow]warning:[/] target {escape(r.label)}: {escape(w)}", soft_wrap=True)
     overrides = _options(sim_option or [])
     if validate or polish_settings:
-        _validate(inv, results, overrides)
+        _validate(inv, results, overrides, sim_batch)
     if polish_settings:
-        _polish(inv, results, overrides, seed, **polish_settings)
+        _polish(inv, results, overrides, seed, batch_size=sim_batch, **polish_settings)
     data = {"bundle": str(bundle), "method": results[0].method, "results": [r.to_dict() for r in results]}
     emit(data, as_json, lambda _: [_render(r) for r in results])
 
 
-def _validate(inv: Any, results: list[Any], overrides: dict[str, Any]) -> None:
+def _validate(inv: Any, results: list[Any], overrides: dict[str, Any], batch_size: int = 16) -> None:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     total = sum(len(r.candidates) for r in results)
     with Progress(TextColumn("validating"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=console, transient=False) as bar:
         task = bar.add_task("validating", total=total)
-        inv.validate(results, overrides=overrides, on_run=lambda _i: bar.advance(task))
+        inv.validate(results, overrides=overrides, batch_size=batch_size, on_run=lambda _i: bar.advance(task))
 
 
 def _polish_settings(budget: int | None, below: float | None, sigma: float | None, popsize: int | None,
