@@ -23,8 +23,6 @@ from typing import Any
 
 import numpy as np
 
-from invphys.core.objectives import recovery_reward
-
 
 class BatchLog:
     """Memoised batches of a deterministic search: replay the logged ones, simulate and log the rest.
@@ -169,8 +167,7 @@ def polish(targets: np.ndarray, theta: np.ndarray, r_actual: np.ndarray, feature
         runs[i] = x.evaluated - 1 + int(resim[j])
         if x.features is None or not np.all(np.isfinite(x.features)):
             continue
-        r_new = float(recovery_reward(x.features, targets[i], scales) if score is None else
-                      np.asarray(score(x.features[None, :], targets[i][None, :]), dtype=np.float64)[0])
+        r_new = x.score  # refine_targets scored it with ``score`` (default: the same R_gt as r_actual)
         if r_new > r_actual[i] or not np.isfinite(r_actual[i]):
             theta[i], r_actual[i], features[i] = x.theta, r_new, x.features
     seconds = float(getattr(evaluate, "seconds", getattr(evaluate, "wall_time_s", 0.0))) - seconds0
