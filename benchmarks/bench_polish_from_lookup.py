@@ -6,6 +6,11 @@ surrogate), then run ask/tell CMA-ES on the real simulator from that row
 ``invphys invert --polish``) on the targets whose lookup R_actual is below ``--below``. No surrogate,
 no active learning, no retraining: what does the simulator alone buy per run?
 
+``--start LABEL`` starts from another method's validated answers in the same report instead (e.g.
+``active_polished``: a further polish of an earlier refined run). Such answers have no stored
+features, so each polished start is simulated once more: its re-simulated R against the report's
+validated R is recorded (``start_resimulated``), a check of the best-of-N selection's optimism.
+
 Inputs: a protocol ``report.json`` (its 100 targets and the lookup's validated answers) and the inverter
 bundle that was trained on the same split (its ``data/train.npz`` holds the lookup rows' stored
 features, so the starts are not simulated again; its recorded simulator config is used, with
@@ -36,11 +41,12 @@ import numpy as np
 def _args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--report", type=Path, required=True, help="protocol report.json (targets, lookup answers)")
+    p.add_argument("--start", default="nearest_neighbour", help="label in the report whose answers are polished")
     p.add_argument("--bundle", type=Path, required=True, help="inverter bundle trained on the same split")
     p.add_argument("--budget", type=int, default=24, help="new simulator runs per polished target")
     p.add_argument("--popsize", type=int, default=8)
     p.add_argument("--sigma0", type=float, default=0.012, help="CMA-ES step in the normalised cube")
-    p.add_argument("--below", type=float, default=0.9, help="polish targets whose lookup R_actual is below")
+    p.add_argument("--below", type=float, default=0.9, help="polish targets whose start R_actual is below")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--arch", default=None, help="simulator arch override (cuda, cpu)")
     p.add_argument("--sim-batch", type=int, default=None, help="simulator launch width override")
@@ -57,9 +63,13 @@ def _args(argv: list[str] | None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def _lookup_starts(report: dict, space, train: dict, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The lookup's answers (normalised theta), validated R_actual and the rows' stored features."""
-    rows = {r["target_index"]: r for r in report["rows"] if r["optimizer"] == "nearest_neighbour"}
+def _starts(report: dict, label: str, space, train: dict, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A label's answers (normalised theta), validated R_actual and, where an answer is a training row, its
+    stored features (NaN otherwise: polish() simulates such a start once)."""
+    rows = {r["target_index"]: r for r in report["rows"] if r["optimizer"] == label}
+    if len(rows) < n:
+        labels = sorted({r["optimizer"] for r in report["rows"]})
+        raise SystemExit(f"{label!r} answers {len(rows)} of {n} targets in the report (labels: {', '.join(labels)})")
     names = space.names
     phys = np.array([[rows[i][f"param_{k}"] for k in names] for i in range(n)])
     theta = space.normalize(phys)
@@ -69,6 +79,22 @@ def _lookup_starts(report: dict, space, train: dict, n: int) -> tuple[np.ndarray
     found = d[np.arange(n), j] < 1e-6
     feats = np.where(found[:, None], train["y"][j], np.nan)
     return theta, r_val, feats
+
+
+class _FirstCall:
+    """Passes calls through to a BatchLog and keeps the first call's features (the re-simulated starts)."""
+
+    def __init__(self, inner) -> None:
+        self.inner, self.first = inner, None
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        out = self.inner(points)
+        if self.first is None:
+            self.first = np.array(out, dtype=np.float64)
+        return out
+
+    def __getattr__(self, name: str):
+        return getattr(self.inner, name)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -92,7 +118,8 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("the bundle's feature scales differ from the report's: not the same split")
     with np.load(a.bundle / "data" / "train.npz") as z:
         train = {"theta": z["theta"], "y": z["y"]}
-    theta0, r_lookup, feats0 = _lookup_starts(report, space, train, n)
+    theta0, r_given, feats0 = _starts(report, a.start, space, train, n)
+    r_lookup = _starts(report, "nearest_neighbour", space, train, n)[1]
     r_start = recovery_reward(np.nan_to_num(feats0), targets, scales)
     r_start = np.where(np.all(np.isfinite(feats0), axis=1), r_start, np.nan)
 
@@ -111,14 +138,24 @@ def main(argv: list[str] | None = None) -> int:
                                      "sim": RunIdentity.of(sim).to_dict()},
                                     sort_keys=True).encode()).hexdigest()[:16]
     a.log.parent.mkdir(parents=True, exist_ok=True)
-    log = BatchLog(a.log, key, evaluator, log=lambda m: print(m, flush=True), chunk=a.chunk)
-    # a start's R comes from its stored features (the lookup's validated R_actual where a row is missing)
-    start_r = np.where(np.isfinite(r_start), r_start, r_lookup)
+    log = _FirstCall(BatchLog(a.log, key, evaluator, log=lambda m: print(m, flush=True), chunk=a.chunk))
+    # a start's R comes from its stored features (the label's validated R_actual where a row is missing)
+    start_r = np.where(np.isfinite(r_start), r_start, r_given)
     t0 = time.perf_counter()
     pol = polish(targets, theta0, start_r, feats0, scales, log, a.budget, a.popsize, a.sigma0, a.below, seed=a.seed)
     wall = time.perf_counter() - t0
     improved = pol.r_actual > start_r + 1e-12
-    final = np.where(improved, pol.r_actual, r_lookup)  # an unimproved target keeps the lookup's validated answer
+    final = np.where(improved, pol.r_actual, r_given)  # an unimproved target keeps its validated start
+    resim = pol.polished & ~np.all(np.isfinite(feats0), axis=1)
+    start_resim = None
+    if resim.any() and log.first is not None and len(log.first) == int(resim.sum()):
+        r_re = recovery_reward(np.nan_to_num(log.first), targets[resim], scales)
+        r_re = np.where(np.all(np.isfinite(log.first), axis=1), r_re, np.nan)
+        dif = r_re - r_given[resim]
+        start_resim = {"n": int(resim.sum()), "r_resimulated_mean": float(np.nanmean(r_re)),
+                       "r_validated_mean": float(r_given[resim].mean()), "diff_mean": float(np.nanmean(dif)),
+                       "abs_diff_median": float(np.nanmedian(np.abs(dif))), "abs_diff_max": float(np.nanmax(np.abs(dif))),
+                       "failed": int(np.isnan(r_re).sum())}
 
     sets = np.array(["farthest_point" if i < len(tg["features"]) // 2 else "random" for i in range(n)])
     sel = tg.get("selection", "")
@@ -136,10 +173,12 @@ def main(argv: list[str] | None = None) -> int:
         "simulator_version": inv.bundle.manifest["simulator"]["version"],
         "config_hash": RunIdentity.of(sim).config,
         "simulator_config": {**inv.bundle.manifest["simulator"]["config"], **overrides},
-        "report": str(a.report), "bundle": str(a.bundle), "selection": sel, "targets": n,
+        "report": str(a.report), "start": a.start, "bundle": str(a.bundle), "selection": sel, "targets": n,
         "settings": settings,
         "starts_from_stored_rows": int(np.all(np.isfinite(feats0), axis=1).sum()),
-        "start_r_stored_vs_validated_max_abs": float(np.nanmax(np.abs(r_start - r_lookup))),
+        "start_r_stored_vs_validated_max_abs": float(np.nanmax(np.abs(r_start - r_given)))
+        if np.isfinite(r_start).any() else None,
+        "start_resimulated": start_resim,
         "polished": int(pol.polished.sum()),
         "improved": int(improved.sum()),
         "runs": {"total": int(pol.runs.sum()), "per_target_mean": float(pol.runs.mean()),
@@ -147,13 +186,17 @@ def main(argv: list[str] | None = None) -> int:
                  "replayed": pol.replayed_runs},
         "simulator_seconds": pol.seconds, "wall_s_this_call": wall,
         "gpu_seconds_per_polished_target": pol.seconds / max(int(pol.polished.sum()), 1),
-        "r_actual": {"lookup": stats(r_lookup), "lookup_then_polish": stats(final)},
+        # "lookup": the nearest-neighbour baseline; "start": the --start label's validated answers
+        "r_actual": {"lookup": stats(r_lookup), "start": stats(r_given), "start_then_polish": stats(final)},
         "vs_lookup": paired_difference(final, r_lookup),
-        "polished_targets": {"before": stats(r_lookup[pol.polished]), "after": stats(final[pol.polished])},
-        "by_set": {s: {"lookup": float(r_lookup[sets == s].mean()), "polished": float(final[sets == s].mean())}
+        "vs_start": paired_difference(final, r_given),
+        "polished_targets": {"before": stats(r_given[pol.polished]), "after": stats(final[pol.polished])},
+        "by_set": {s: {"lookup": float(r_lookup[sets == s].mean()), "start": float(r_given[sets == s].mean()),
+                       "polished": float(final[sets == s].mean())}
                    for s in ("farthest_point", "random") if (sets == s).any()},
-        "per_target": [{"index": i, "lookup": float(r_lookup[i]), "final": float(final[i]),
-                        "runs": int(pol.runs[i]), "polished": bool(pol.polished[i])} for i in range(n)],
+        "per_target": [{"index": i, "lookup": float(r_lookup[i]), "start": float(r_given[i]), "final": float(final[i]),
+                        "runs": int(pol.runs[i]), "polished": bool(pol.polished[i]),
+                        "theta": space.denormalize(pol.theta[i:i + 1])[0].tolist()} for i in range(n)],
     }
     if a.compare is not None:
         other = json.loads(a.compare.read_text())
@@ -164,13 +207,13 @@ def main(argv: list[str] | None = None) -> int:
                 rr = {r["target_index"]: r["r_actual"] for r in other["rows"] if r["optimizer"] == lab}
                 if len(rr) >= n:
                     v = np.array([rr[i] for i in range(n)], dtype=np.float64)
-                    comp[lab] = {**stats(v), "lookup_then_polish_minus_this": paired_difference(final, v)}
+                    comp[lab] = {**stats(v), "polished_minus_this": paired_difference(final, v)}
             out["compare"] = {"report": str(a.compare), "labels": comp}
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps(out, indent=1) + "\n")
     m = out["r_actual"]
-    print(f"lookup {m['lookup']['mean']:.4f} -> polished {m['lookup_then_polish']['mean']:.4f} "
-          f"{m['lookup_then_polish']['ci95']}; vs lookup {out['vs_lookup']['mean_diff']:+.4f} "
+    print(f"{a.start} {m['start']['mean']:.4f} -> polished {m['start_then_polish']['mean']:.4f} "
+          f"{m['start_then_polish']['ci95']}; vs lookup {out['vs_lookup']['mean_diff']:+.4f} "
           f"{out['vs_lookup']['ci95']}; {out['polished']} polished, {out['improved']} improved, "
           f"{out['runs']['total']} runs ({pol.replayed_runs} replayed), {pol.seconds:.0f} simulator-s")
     return 0
