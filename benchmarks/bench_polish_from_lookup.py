@@ -59,6 +59,9 @@ def _args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--log", type=Path, required=True, help="batch log (.npz): replayed by a re-run")
     p.add_argument("--compare", type=Path, default=None, help="another report.json on the same targets: "
                    "its labels' per-target R_actual are compared (e.g. the active + polish run)")
+    p.add_argument("--recheck", type=int, default=0, metavar="K",
+                   help="simulate every final answer K more times, independently of the search (best-of-N "
+                        "optimism: the answer's R was measured by the very run that selected it)")
     p.add_argument("--out", type=Path, required=True)
     return p.parse_args(argv)
 
@@ -95,6 +98,32 @@ class _FirstCall:
 
     def __getattr__(self, name: str):
         return getattr(self.inner, name)
+
+
+def _recheck(k: int, evaluator, theta: np.ndarray, targets: np.ndarray, scales: np.ndarray, final: np.ndarray,
+             r_lookup: np.ndarray, stats, path: Path) -> dict:
+    """Re-simulate the final answers ``k`` times (fresh runs, no log): mean R per target and its spread."""
+    from invphys.core.objectives import recovery_reward
+    from invphys.evaluation.stats import paired_difference
+
+    n = len(theta)
+    t0 = time.perf_counter()
+    y = np.asarray(evaluator(np.repeat(theta, k, axis=0)), dtype=np.float64).reshape(n, k, -1)
+    seconds = time.perf_counter() - t0
+    ok = np.all(np.isfinite(y), axis=2)
+    r = np.where(ok, recovery_reward(np.nan_to_num(y).reshape(n * k, -1), np.repeat(targets, k, axis=0),
+                                     scales).reshape(n, k), np.nan)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, theta=theta, y=y, r=r)
+    r_mean = np.nanmean(np.where(ok, r, np.nan), axis=1)
+    dif = r - final[:, None]
+    return {"k": k, "runs": n * k, "failed": int((~ok).sum()), "seconds": seconds, "features": str(path.name),
+            "r_actual_resimulated": stats(r_mean),
+            "resimulated_minus_selected": {"mean": float(np.nanmean(dif)), "median_abs": float(np.nanmedian(np.abs(dif))),
+                                           "targets_below_by_0.01": int((np.nanmin(dif, axis=1) < -0.01).sum()),
+                                           "worst": float(np.nanmin(dif))},
+            "vs_lookup": paired_difference(r_mean, r_lookup),
+            "per_target": [[float(x) for x in row] for row in r]}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -198,6 +227,9 @@ def main(argv: list[str] | None = None) -> int:
                         "runs": int(pol.runs[i]), "polished": bool(pol.polished[i]),
                         "theta": space.denormalize(pol.theta[i:i + 1])[0].tolist()} for i in range(n)],
     }
+    if a.recheck > 0:
+        out["recheck"] = _recheck(a.recheck, evaluator, pol.theta[:n], targets, scales, final, r_lookup, stats,
+                                  a.out.with_suffix(".recheck.npz"))
     if a.compare is not None:
         other = json.loads(a.compare.read_text())
         if np.allclose(np.asarray(other["targets"]["features"])[:n], targets):
