@@ -330,3 +330,53 @@ def test_active_polish_rejects_an_empty_list_of_passes() -> None:
 
     with pytest.raises(Exception, match="1 to 8 passes"):
         parse_spec(SPEC.replace("active: {rounds: 2,", "active: {polish: [], rounds: 2,"))
+
+
+def test_active_polish_confirm_is_key_neutral_off_and_counts_and_replays_its_runs(run_dir, tmp_path) -> None:
+    import shutil
+
+    from rich.console import Console
+
+    from invphys.core.spec import parse_spec
+    from invphys.pipeline.runner import run_spec
+
+    plain = "{budget: 4, popsize: 4, sigma0: 0.1, below: 0.999}"
+    off = parse_spec(SPEC.replace("active: {rounds: 2,", "active: {polish: {budget: 4, popsize: 4, sigma0: 0.1, "
+                                  "below: 0.999, confirm: 0, confirm_candidates: 3}, rounds: 2,"))
+    assert off.section_dump(["active"]) == parse_spec(SPEC.replace(
+        "active: {rounds: 2,", f"active: {{polish: {plain}, rounds: 2,")).section_dump(["active"])  # key unchanged
+    assert off.active.polish.key_dump() == {"budget": 4, "popsize": 4, "sigma0": 0.1, "below": 0.999}
+    with pytest.raises(Exception, match="confirm"):
+        parse_spec(SPEC.replace("active: {rounds: 2,", "active: {polish: {confirm: -1}, rounds: 2,"))
+    with pytest.raises(Exception, match="confirm_candidates"):
+        parse_spec(SPEC.replace("active: {rounds: 2,", "active: {polish: {confirm: 2, confirm_candidates: 0}, rounds: 2,"))
+    out, _ = run_dir
+    copy = tmp_path / "run"
+    shutil.copytree(out, copy)
+    quiet = {"progress": False, "console": Console(file=io.StringIO())}
+    first = run_spec(off, copy, stages=["active"], **quiet)["active"]["polish"]  # confirm off: a plain polish
+    assert "confirm" not in first and first["settings"] == {"budget": 4, "popsize": 4, "sigma0": 0.1, "below": 0.999}
+    (copy / "active" / "DONE.json").unlink()
+    on = parse_spec(SPEC.replace("active: {rounds: 2,", "active: {polish: {budget: 4, popsize: 4, sigma0: 0.1, "
+                                 "below: 0.999, confirm: 2, confirm_candidates: 3}, rounds: 2,"))
+    pol = run_spec(on, copy, stages=["active", "report"], **quiet)["active"]["polish"]
+    c = pol["confirm"]
+    n_pol, n = pol["polished"], pol["targets"]
+    assert pol["replayed_runs"] == first["simulator_runs"] == 4 * n_pol  # the log made without confirm replays
+    sizes = [t["candidates"] for t in c["targets"]]
+    assert sorted(sizes) == [1] * (n - n_pol) + [3] * n_pol and c["simulator_runs"] == 2 * sum(sizes)
+    assert pol["simulator_runs"] == first["simulator_runs"] + c["simulator_runs"]
+    # the toy simulator is deterministic: every re-run reproduces, so the answers and their R stay
+    assert c["changed"] == 0 and c["r_confirmed_mean"] == pytest.approx(c["r_selected_mean"], abs=1e-12)
+    assert c["r_selected_mean"] == pytest.approx(first["r_actual_after_mean"], abs=1e-12)
+    val = json.loads((copy / "active" / "validation.json").read_text())
+    before = {v["target_index"]: v for v in val if v["optimizer"] == "active_learning"}
+    after = {v["target_index"]: v for v in val if v["optimizer"] == "active_polished"}
+    for t, k in zip(c["targets"], sorted(after), strict=True):  # the rows carry the confirmed R and its runs
+        assert after[k]["r_actual"] == pytest.approx(t["r_confirmed"], abs=1e-12)
+        assert after[k]["simulator_runs"] == pytest.approx(before[k]["simulator_runs"] + t["runs"] +
+                                                           (4 if t["candidates"] == 3 else 0))
+    (copy / "active" / "DONE.json").unlink()  # a re-run replays the search and the confirmation
+    again = run_spec(on, copy, stages=["active"], **quiet)["active"]["polish"]
+    assert again["replayed_runs"] == pol["simulator_runs"] and again["confirm"] == {**c, "replayed_runs":
+                                                                                  c["simulator_runs"]}

@@ -155,3 +155,138 @@ def test_cli_polish_json_and_bad_values(inv, bundle, tmp_path, monkeypatch) -> N
         lines = [ln for ln in bad.output.strip().splitlines() if ln.strip()]
         assert bad.exit_code == 2 and len(lines) == 1 and lines[0].startswith("error:"), bad.output
         assert needle in lines[0], lines[0]
+
+
+# -- confirm: re-simulate the best candidates and answer with the best mean R ------------------------------
+@pytest.fixture
+def chaotic(monkeypatch):
+    """The toy simulator made slightly chaotic (each run's stiffness is jittered by its own draw, like a
+    GPU run of a chaotic simulator), counting rows; ``state["kill_after"]``: rows before a KeyboardInterrupt."""
+    from test_dataset_toy import ToyOscillator
+
+    state = {"rows": 0, "rng": np.random.default_rng(5), "jitter": 0.02, "kill_after": None}
+    inner = ToyOscillator.simulate
+
+    def jittered(self, params, on_result=None):
+        p = np.array(np.atleast_2d(params), dtype=np.float64)
+        if state["kill_after"] is not None and state["rows"] + len(p) > state["kill_after"]:
+            raise KeyboardInterrupt("killed")
+        state["rows"] += len(p)
+        p[:, 0] *= np.exp(state["jitter"] * state["rng"].standard_normal(len(p)))
+        return inner(self, np.clip(p, 1.0, 1e4), on_result)
+
+    monkeypatch.setattr(ToyOscillator, "simulate", jittered)
+    return state
+
+
+def test_confirm_answers_with_the_best_mean_candidate_and_records_its_runs(inv, chaotic) -> None:
+    from invphys.inverter.objective import masked_recovery
+
+    _, y = inv.bundle.data("test")
+    base = inv.validate(inv.invert_many(y[:6]))
+    r0 = np.array([r.r_actual for r in base])
+    below = float(np.sort(r0)[4])  # the best target is not polished: its answer alone is confirmed
+    chaotic.update(rows=0, rng=np.random.default_rng(5))
+    plain = inv.polish(copy.deepcopy(base), budget=16, below=below, seed=2)
+    chaotic.update(rows=0, rng=np.random.default_rng(5))  # the same jitter again: the same search
+    res = inv.polish(copy.deepcopy(base), budget=16, below=below, seed=2, confirm=3, confirm_candidates=3)
+    chosen = r0 < below
+    assert chaotic["rows"] == chosen.sum() * (16 + 3 * 3) + (~chosen).sum() * 3
+    changed = 0
+    for p0, r, ch in zip(plain, res, chosen, strict=True):
+        c = r.polish["confirm"]
+        assert r.polish["settings"] == {"budget": 16, "popsize": 8, "sigma0": 0.012, "below": below, "seed": 2,
+                                        "confirm": 3, "confirm_candidates": 3}
+        assert c["candidates"] == (3 if ch else 1) and c["repeats"] == 3 and c["runs"] == 3 * c["candidates"]
+        assert r.polish["runs"] == (16 if ch else 0) + c["runs"]
+        assert c["r_selected"] == p0.r_actual and c["selected_theta"] == p0.theta.tolist()  # the search is unchanged
+        assert c["candidate_r_selected"][0] == c["r_selected"]
+        runs = np.array(c["run_r"])
+        assert runs.shape == (c["candidates"], 3) and np.all((runs > 0) & (runs <= 1))
+        assert len({round(v, 12) for v in runs.ravel()}) > 1  # re-runs of a chaotic simulator differ
+        assert np.abs(runs - np.array(c["candidate_r_selected"])[:, None]).max() < 0.05  # ... but only a little
+        means = runs.mean(axis=1)
+        assert c["candidate_r_mean"] == pytest.approx(means.tolist(), abs=1e-12)
+        assert c["pick"] == int(np.argmax(means)) and c["changed"] == (c["pick"] > 0)
+        assert r.r_actual == c["r_confirmed"] == r.polish["r_actual"] == pytest.approx(means.max(), abs=1e-12)
+        assert r.best.gap == pytest.approx(r.best.r_surrogate - r.r_actual)
+        # the answer's features are those of the run that found it (its R: the candidate's selecting R)
+        sel = float(masked_recovery(r.best.actual, r.target, inv.bundle.scales, r.mask, inv.bundle.kappa))
+        assert sel == pytest.approx(c["candidate_r_selected"][c["pick"]], abs=1e-12)
+        if c["changed"]:
+            changed += 1
+            assert not np.array_equal(r.theta, p0.theta) and means[c["pick"]] > means[0]
+        else:
+            assert np.array_equal(r.theta, p0.theta)
+    assert changed >= 1  # with this jitter, best-of-N and best mean disagree somewhere
+    assert np.mean([c.polish["confirm"]["r_confirmed"] for c in res]) < np.mean([p.r_actual for p in plain])
+    json.dumps(res[0].to_dict(), allow_nan=False)
+
+
+def test_confirm_off_leaves_the_polish_as_it_was_and_its_log_replays(inv, sim_rows, tmp_path) -> None:
+    _, y = inv.bundle.data("test")
+    base = inv.validate(inv.invert_many(y[:3]))
+    log = tmp_path / "polish.npz"
+    plain = inv.polish(copy.deepcopy(base), budget=8, log=log, batch_size=5)
+    off = inv.polish(copy.deepcopy(base), budget=8, log=log, batch_size=5, confirm=0, confirm_candidates=2)
+    assert [r.to_dict() | {"polish": None} for r in off] == [r.to_dict() | {"polish": None} for r in plain]
+    for a, b in zip(plain, off, strict=True):
+        assert "confirm" not in b.polish and set(b.polish) == set(a.polish)
+        assert b.polish["settings"] == {"budget": 8, "popsize": 8, "sigma0": 0.012, "below": 1.0, "seed": 0}
+    sim_rows[0] = 0  # a log made without confirm: its search replays, only the confirmation is simulated
+    on = inv.polish(copy.deepcopy(base), budget=8, log=log, batch_size=5, confirm=2, confirm_candidates=2)
+    assert sim_rows[0] == 3 * 2 * 2 and on[0].polish["call"]["replayed_runs"] == 3 * 8
+    for a, b in zip(plain, on, strict=True):  # the toy is deterministic: re-runs reproduce, nothing changes
+        c = b.polish["confirm"]
+        assert c["r_selected"] == a.r_actual and c["r_confirmed"] == pytest.approx(a.r_actual, abs=1e-12)
+        assert not c["changed"] and np.array_equal(a.theta, b.theta)
+
+
+def test_a_killed_confirm_resumes_from_the_log(inv, chaotic, tmp_path) -> None:
+    _, y = inv.bundle.data("test")
+    base = inv.validate(inv.invert_many(y[:3]))
+    log = tmp_path / "polish.npz"
+    total = 3 * 8 + 3 * 2 * 3  # the search, then 2 candidates x 3 re-runs per target
+    chaotic.update(rows=0, kill_after=3 * 8 + 10)  # killed in the confirmation (chunks of 5: 10 rows logged)
+    with pytest.raises(KeyboardInterrupt):
+        inv.polish(copy.deepcopy(base), budget=8, log=log, batch_size=5, confirm=3, confirm_candidates=2)
+    chaotic.update(rows=0, kill_after=None)
+    first = inv.polish(copy.deepcopy(base), budget=8, log=log, batch_size=5, confirm=3, confirm_candidates=2)
+    assert chaotic["rows"] == total - (3 * 8 + 10) and first[0].polish["call"]["replayed_runs"] == 3 * 8 + 10
+    chaotic["rows"] = 0
+    again = inv.polish(copy.deepcopy(base), budget=8, log=log, batch_size=5, confirm=3, confirm_candidates=2)
+    assert chaotic["rows"] == 0 and again[0].polish["call"]["replayed_runs"] == total
+    for a, b in zip(first, again, strict=True):
+        assert a.polish["confirm"] == b.polish["confirm"] and np.array_equal(a.theta, b.theta)
+        assert a.r_actual == b.r_actual and a.polish["runs"] == b.polish["runs"] == 8 + 6
+
+
+def test_cli_polish_confirm_and_its_bad_values(inv, bundle, tmp_path, monkeypatch) -> None:
+    from invphys.core.errors import InvphysError
+
+    _, y = inv.bundle.data("test")
+    feats = [a for n, v in zip(inv.feature_names, y[2], strict=True) for a in ("--feature", f"{n}={v}")]
+    monkeypatch.chdir(tmp_path)
+    res = _invoke("invert", str(bundle), *feats, "--polish", "8", "--polish-confirm", "2",
+                  "--polish-confirm-candidates", "3", "--json")
+    assert res.exit_code == 0, res.output
+    p = json.loads(res.stdout)["results"][0]["polish"]
+    c = p["confirm"]
+    assert p["settings"]["confirm"] == 2 and p["settings"]["confirm_candidates"] == 3
+    assert c["candidates"] == 3 and c["runs"] == 6 and p["runs"] == 8 + 6 and len(c["run_r"]) == 3
+    assert f"confirm {inv.invert(dict(zip(inv.feature_names, map(float, y[2]), strict=True))).label}" in res.stderr
+    assert "(mean of 2 re-runs; candidate" in res.stderr
+    for args, needle in ((["--polish", "4", "--polish-confirm", "-1"], "--polish-confirm must be >= 0"),
+                         (["--polish", "4", "--polish-confirm", "2", "--polish-confirm-candidates", "0"],
+                          "--polish-confirm-candidates must be >= 1"),
+                         (["--polish", "4", "--polish-confirm-candidates", "2"], "needs --polish-confirm"),
+                         (["--polish-confirm", "2"], "needs --polish")):
+        bad = _invoke("invert", str(bundle), *feats, *args)
+        lines = [ln for ln in bad.output.strip().splitlines() if ln.strip()]
+        assert bad.exit_code == 2 and len(lines) == 1 and lines[0].startswith("error:"), bad.output
+        assert needle in lines[0], lines[0]
+    r = inv.evaluate(theta=[0.5, 0.5, 0.5], target=y[0])
+    for kw, msg in (({"confirm": -1}, "confirm"), ({"confirm": 1.5}, "confirm"),
+                    ({"confirm": 1, "confirm_candidates": 0}, "confirm_candidates")):
+        with pytest.raises(InvphysError, match=msg):
+            inv.polish(r, **kw)

@@ -57,6 +57,12 @@ def invert(
     polish_popsize: int | None = typer.Option(None, "--polish-popsize", help="points per generation (default 8)"),
     polish_log: Path | None = typer.Option(None, "--polish-log",
                                            help="log of the polish's runs: a stopped polish resumes from it"),
+    polish_confirm: int | None = typer.Option(
+        None, "--polish-confirm", help="re-simulate each target's best candidates K times after the polish and "
+        "answer with the best mean R (the polish's R is a best-of-N run; default 0: off)"),
+    polish_confirm_candidates: int | None = typer.Option(
+        None, "--polish-confirm-candidates", help="candidates per target that --polish-confirm re-simulates "
+        "(default 4; cost: candidates x K runs per target)"),
     seed: int = typer.Option(0, "--seed", help="seed of stochastic rollouts and optimisers"),
     allow_mismatch: bool = typer.Option(False, "--allow-mismatch",
                                         help="load a bundle made with another simulator version"),
@@ -66,7 +72,8 @@ def invert(
     from invphys.inverter import load_inverter
     from invphys.inverter.targets import cli_targets
 
-    polish_settings = _polish_settings(polish, polish_below, polish_sigma, polish_popsize, polish_log)
+    polish_settings = _polish_settings(polish, polish_below, polish_sigma, polish_popsize, polish_log,
+                                       polish_confirm, polish_confirm_candidates)
     inv = load_inverter(bundle, strict=not allow_mismatch)
     for note in inv.notes:
         console.print(f"[yellow]warning:[/] {escape(note)}", soft_wrap=True)
@@ -95,13 +102,14 @@ def _validate(inv: Any, results: list[Any], overrides: dict[str, Any], batch_siz
 
 
 def _polish_settings(budget: int | None, below: float | None, sigma: float | None, popsize: int | None,
-                     log: Path | None) -> dict[str, Any]:
+                     log: Path | None, confirm: int | None = None, candidates: int | None = None) -> dict[str, Any]:
     """The ``--polish*`` options as :meth:`Inverter.polish` arguments ({} without ``--polish``)."""
     import math
 
     if budget is None:
         given = [n for n, v in (("--polish-below", below), ("--polish-sigma", sigma), ("--polish-popsize", popsize),
-                                ("--polish-log", log)) if v is not None]
+                                ("--polish-log", log), ("--polish-confirm", confirm),
+                                ("--polish-confirm-candidates", candidates)) if v is not None]
         if given:
             raise InvphysError(f"{', '.join(given)} needs --polish N (simulator runs per target)")
         return {}
@@ -115,8 +123,15 @@ def _polish_settings(budget: int | None, below: float | None, sigma: float | Non
         raise InvphysError(f"--polish-popsize must be >= 2, got {popsize}")
     if log is not None and log.is_dir():
         raise InvphysError(f"--polish-log {log} is a directory; name a file (e.g. polish.npz)")
+    if confirm is not None and confirm < 0:
+        raise InvphysError(f"--polish-confirm must be >= 0 re-runs per candidate, got {confirm}")
+    if candidates is not None and candidates < 1:
+        raise InvphysError(f"--polish-confirm-candidates must be >= 1, got {candidates}")
+    if candidates is not None and not confirm:
+        raise InvphysError("--polish-confirm-candidates needs --polish-confirm K (re-runs per candidate)")
     out: dict[str, Any] = {"budget": budget, "log": log}
-    for key, value in (("below", below), ("sigma0", sigma), ("popsize", popsize)):
+    for key, value in (("below", below), ("sigma0", sigma), ("popsize", popsize), ("confirm", confirm or None),
+                       ("confirm_candidates", candidates)):
         if value is not None:
             out[key] = value
     return out
@@ -129,6 +144,9 @@ def _polish(inv: Any, results: list[Any], overrides: dict[str, Any], seed: int, 
     starts = [max((c.r_actual for c in r.candidates if c.r_actual is not None and c.r_actual == c.r_actual),
                   default=float("nan")) for r in results]
     total = sum(settings["budget"] for r0 in starts if not r0 >= below)
+    if settings.get("confirm"):  # at most: every candidate of a polished target, the answer of the others
+        total += settings["confirm"] * sum(settings.get("confirm_candidates", 4) if not r0 >= below and
+                                           settings["budget"] else 1 for r0 in starts)
     with Progress(TextColumn("polishing"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=console, transient=False) as bar:
         task = bar.add_task("polishing", total=total)
@@ -142,12 +160,33 @@ def _polish(inv: Any, results: list[Any], overrides: dict[str, Any], seed: int, 
             console.print(f"polish {escape(r.label)}: R_actual {_r(p['start_r_actual'])}, not polished ({why})",
                           soft_wrap=True)
             continue
-        console.print(f"polish {escape(r.label)}: R_actual {_r(p['start_r_actual'])} -> {_r(p['r_actual'])} "
-                      f"({p['runs']} simulator runs{'' if p['improved'] else ', start kept'})", soft_wrap=True)
+        if "confirm" in p:
+            c = p["confirm"]
+            runs = p["runs"] - c["runs"]
+            console.print(f"polish {escape(r.label)}: R_actual {_r(p['start_r_actual'])} -> "
+                          f"{_r(_none_nan(c['r_selected']))} ({runs} simulator runs, best of them)", soft_wrap=True)
+        else:
+            console.print(f"polish {escape(r.label)}: R_actual {_r(p['start_r_actual'])} -> {_r(p['r_actual'])} "
+                          f"({p['runs']} simulator runs{'' if p['improved'] else ', start kept'})", soft_wrap=True)
+    for r in results:
+        c = r.polish.get("confirm")
+        if c is None:
+            continue
+        if c["pick"] < 0:
+            console.print(f"confirm {escape(r.label)}: nothing simulated successfully to confirm", soft_wrap=True)
+            continue
+        console.print(f"confirm {escape(r.label)}: R_actual {_r(_none_nan(c['r_selected']))} (best of N) -> "
+                      f"{_r(_none_nan(c['r_confirmed']))} (mean of {c['repeats']} re-runs; candidate "
+                      f"{c['pick'] + 1} of {c['candidates']}{', answer changed' if c['changed'] else ''}; "
+                      f"{c['runs']} simulator runs)", soft_wrap=True)
     call = results[0].polish["call"] if results else {}
     if call.get("replayed_runs"):
         console.print(f"polish: {call['replayed_runs']} of {call['runs']} runs replayed from {escape(str(call['log']))}",
                       soft_wrap=True)
+
+
+def _none_nan(value: float | None) -> float:
+    return float("nan") if value is None else value
 
 
 def _r(value: float) -> str:

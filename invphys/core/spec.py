@@ -199,6 +199,19 @@ class PolishSection(_Section):
                                               "targets is one simulator batch)")
     sigma0: float = Field(0.05, gt=0, description="CMA-ES step size in the normalised parameter cube")
     below: float = Field(0.95, gt=0, le=1, description="polish only targets whose best R_actual is below this")
+    confirm: int = Field(0, ge=0, le=1000, description="after the polish, re-simulate each target's best "
+                                                       "confirm_candidates points this many times and answer "
+                                                       "with the best mean R (0: off)")
+    confirm_candidates: int = Field(4, ge=1, le=1000, description="points per target that confirm re-simulates "
+                                                                  "(a target not polished: its answer alone)")
+
+    def key_dump(self) -> dict[str, Any]:
+        """The settings as JSON; without the confirm keys when confirm is off (keys made before it existed)."""
+        out = self.model_dump(mode="json")
+        if not self.confirm:
+            out.pop("confirm")
+            out.pop("confirm_candidates")
+        return out
 
 
 class ActiveSection(_Section):
@@ -345,6 +358,11 @@ class ExperimentSpec(_Section):
                 for name, default in fields.items():
                     if block.get(name) == default:
                         block.pop(name)
+        polish = (data.get("active") or {}).get("polish")
+        for one in polish if isinstance(polish, list) else [polish] if isinstance(polish, dict) else []:
+            if not one.get("confirm"):  # added later: off, the polish's stage key is unchanged
+                one.pop("confirm", None)
+                one.pop("confirm_candidates", None)
         return {n: data.get(n) for n in names}
 
 

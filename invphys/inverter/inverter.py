@@ -450,7 +450,8 @@ class Inverter:
     def polish(self, results: InversionResult | Sequence[InversionResult], budget: int = 24, popsize: int = 8,
                sigma0: float = POLISH_SIGMA0, below: float = 1.0, overrides: Mapping[str, Any] | None = None,
                batch_size: int = 16, log: str | Path | None = None, seed: int = 0,
-               on_batch: Callable[[int, bool], None] | None = None) -> InversionResult | list[InversionResult]:
+               on_batch: Callable[[int, bool], None] | None = None, confirm: int = 0,
+               confirm_candidates: int = 4) -> InversionResult | list[InversionResult]:
         """Ask/tell CMA-ES on the real simulator from each result's best simulated candidate.
 
         Candidates not validated yet are validated first. A result whose best R_actual is below
@@ -462,11 +463,21 @@ class Inverter:
         ``.npz`` file of every simulated batch, so that a stopped polish resumes (a re-run replays the
         logged batches; a larger ``budget`` replays the smaller one's). ``on_batch(runs, replayed)``
         follows each batch. Fills ``result.polish``; returns ``results`` (updated in place).
+
+        ``confirm`` K > 0: afterwards, every result's best ``confirm_candidates`` simulated points (its
+        polish's answer and the next best points its polish simulated; a result that was not polished:
+        its answer alone) are simulated K more times, all in one batch through the same log, and the
+        candidate with the best mean R over those K runs becomes the first candidate, with that mean as
+        its ``r_actual`` (its ``actual`` stays the features of the run that found it; other candidates
+        keep their single-run R). ``result.polish["confirm"]`` records ``r_selected`` (best of N),
+        ``r_confirmed``, every run's R and whether the answer changed
+        (:func:`~invphys.plugins.evaluators.polish.confirm`). Cost: K x candidates runs per result.
         """
-        from invphys.plugins.evaluators.polish import BatchLog, polish
+        from invphys.plugins.evaluators.polish import BatchLog, Polished, polish
+        from invphys.plugins.evaluators.polish import confirm as confirm_answers
         from invphys.plugins.evaluators.simulator_loop import SimulatorEvaluator
 
-        check_polish(budget, popsize, sigma0, below)
+        check_polish(budget, popsize, sigma0, below, confirm, confirm_candidates)
         single = isinstance(results, InversionResult)
         items: list[InversionResult] = [results] if isinstance(results, InversionResult) else list(results)
         if log is not None and Path(log).is_dir():
@@ -483,34 +494,51 @@ class Inverter:
         feats = np.array([np.full(m, np.nan) if c.actual is None else c.actual for c in starts], dtype=np.float64)
         chosen = ~(r0 >= below)  # NaN (the start failed) is polished too
         settings = {"budget": budget, "popsize": popsize, "sigma0": sigma0, "below": below, "seed": seed}
-        key = self._polish_key(targets, theta, chosen, settings, overrides)
+        key = self._polish_key(targets, theta, chosen, settings, overrides)  # not confirm: a log without it replays
+        if confirm:
+            settings.update(confirm=confirm, confirm_candidates=confirm_candidates)
         batches = BatchLog(None if log is None else Path(log), key, SimulatorEvaluator.from_validator(validator, sim, ext),
                            log=_polish_note, chunk=batch_size, on_batch=on_batch)
         t0 = time.perf_counter()
         if budget > 0 and chosen.any():
             pol = polish(targets, theta, r0, feats, self.bundle.scales, batches, budget, popsize, sigma0, below,
                          seed=seed, score=self._masked_score)
-            new_theta, new_r, new_feats, runs = pol.theta, pol.r_actual, pol.features, pol.runs
-            seconds, device = pol.seconds, pol.device
         else:
-            new_theta, new_r, new_feats, runs, seconds, device = theta, r0, feats, np.zeros(len(items), int), 0.0, ""
+            pol = Polished(theta, r0, feats, np.zeros(len(items), np.int64), chosen & (budget > 0), 0.0, 0, 0, "")
+        polished_theta = pol.theta.copy()
+        if confirm:
+            pol = confirm_answers(pol, targets, self.bundle.scales, batches, confirm, confirm_candidates,
+                                  score=self._masked_score).apply(pol)
+        new_theta, new_r, new_feats, runs, seconds, device = (pol.theta, pol.r_actual, pol.features, pol.runs,
+                                                              pol.seconds, pol.device)
         total = int(runs.sum())
         call = {"targets": len(items), "polished": int(chosen.sum()) if budget > 0 else 0, "runs": total,
                 "replayed_runs": batches.replayed_runs, "simulator_s": seconds, "device": device,
                 "wall_time_s": time.perf_counter() - t0, "log": None if log is None else str(log)}
         for i, (r, start) in enumerate(zip(items, starts, strict=True)):
-            improved = bool(chosen[i] and np.isfinite(new_r[i]) and not new_r[i] <= r0[i])
+            if confirm:  # the answer is a confirmed candidate: the start, or a point the polish simulated
+                moved = bool((pol.confirmed is not None and pol.confirmed.pick[i] >= 0) or (chosen[i] and budget > 0))
+                improved = bool(moved and not np.array_equal(new_theta[i], start.theta))
+            else:
+                moved = bool(chosen[i] and budget > 0)
+                improved = bool(chosen[i] and np.isfinite(new_r[i]) and not new_r[i] <= r0[i])
             if improved:
                 cand = self._candidates(new_theta[i][None, :], [f"{start.source} + polish"], r.target, r.mask)[0]
                 cand.actual, cand.r_actual = new_feats[i].copy(), float(new_r[i])
                 cand.gap = cand.r_surrogate - cand.r_actual
                 r.candidates.insert(0, cand)
-            elif chosen[i] and budget > 0:
+            elif moved:
                 r.candidates.insert(0, r.candidates.pop(next(j for j, c in enumerate(r.candidates) if c is start)))
+                if confirm:
+                    start.r_actual = float(new_r[i])
+                    start.gap = start.r_surrogate - start.r_actual
             r.polish = {"polished": bool(chosen[i] and budget > 0), "improved": improved, "start_source": start.source,
                         "start_r_actual": float(r0[i]), "r_actual": float(new_r[i]), "runs": int(runs[i]),
                         "simulator_s": float(runs[i] / max(total, 1) * seconds), "device": device,
                         "settings": dict(settings), "call": call}
+            if pol.confirmed is not None:
+                r.polish["confirm"] = {**pol.confirmed.record(i),
+                                       "selected_theta": [float(v) for v in polished_theta[i]]}
         return items[0] if single else items
 
     def _masked_score(self, y: np.ndarray, targets: np.ndarray) -> np.ndarray:
@@ -534,8 +562,14 @@ class Inverter:
         return h.hexdigest()[:24]
 
 
-def check_polish(budget: int, popsize: int, sigma0: float, below: float) -> None:
+def check_polish(budget: int, popsize: int, sigma0: float, below: float, confirm: int = 0,
+                 confirm_candidates: int = 4) -> None:
     """Raise :class:`InvphysError` for polish settings that cannot run."""
+    if not isinstance(confirm, (int, np.integer)) or isinstance(confirm, bool) or confirm < 0:
+        raise InvphysError(f"polish confirm must be a whole number >= 0 of re-runs per candidate, got {confirm!r}")
+    if (not isinstance(confirm_candidates, (int, np.integer)) or isinstance(confirm_candidates, bool)
+            or confirm_candidates < 1):
+        raise InvphysError(f"polish confirm_candidates must be a whole number >= 1, got {confirm_candidates!r}")
     if not isinstance(budget, (int, np.integer)) or isinstance(budget, bool) or budget < 0:
         raise InvphysError(f"polish budget must be a whole number >= 0 of simulator runs per target, got {budget!r}")
     if not isinstance(popsize, (int, np.integer)) or isinstance(popsize, bool) or popsize < 2:

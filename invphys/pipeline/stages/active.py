@@ -33,6 +33,9 @@ it (a stopped polish resumes after its last batch; a larger budget extends a sma
 settings are not part of the rounds' checkpoint key, so adding a polish never re-runs the rounds.
 A list of polish settings runs passes, each from the previous pass's answers (its own log,
 ``polish_pass<k>.npz``), e.g. a first pass on the worst targets and a second, wider one after it.
+A pass's ``confirm: K`` (off by default) re-simulates each target's best ``confirm_candidates``
+points K times after its search (same log) and answers with the best mean R, which the report rows
+then carry as R_actual (the search's answer is a best-of-N run of a slightly chaotic simulator).
 """
 
 from __future__ import annotations
@@ -277,7 +280,7 @@ def _polish_passes(ctx: StageContext, cfg: Any, key: str, n_rounds: int, feats: 
     if not isinstance(cfg, list):
         return total, share, summaries[0]
     summary = _polish_summary(ctx, passes[-1], total, start[1], runs_per_target, wall, share)
-    summary["settings"] = [p.model_dump(mode="json") for p in passes]
+    summary["settings"] = [p.key_dump() for p in passes]
     return total, share, {**summary, "passes": summaries}
 
 
@@ -288,11 +291,11 @@ def _polish(ctx: StageContext, cfg: Any, key: str, n_rounds: int, feats: np.ndar
     batch is logged to ``polish.npz`` (pass ``k`` > 0: ``polish_pass<k+1>.npz``), and a re-run replays
     it (nothing finished is simulated twice)."""
     from invphys.pipeline.cache import digest
-    from invphys.plugins.evaluators.polish import BatchLog, polish
+    from invphys.plugins.evaluators.polish import BatchLog, confirm, polish
 
     fields = {"rounds": key, "n_rounds": n_rounds, "popsize": cfg.popsize, "sigma0": cfg.sigma0, "below": cfg.below}
     if index:  # a later pass depends on every earlier pass's settings (its starts are their answers)
-        fields["after"] = [p.model_dump(mode="json") for p in previous or []]
+        fields["after"] = [p.key_dump() for p in previous or []]
     log_key = digest(fields)  # not the budget: a larger budget replays the smaller one's batches
     log_name = POLISH_LOG if index == 0 else f"polish_pass{index + 1}.npz"
     batches = BatchLog(ctx.stage_dir / log_name, log_key, sim, log=ctx.log,
@@ -300,6 +303,13 @@ def _polish(ctx: StageContext, cfg: Any, key: str, n_rounds: int, feats: np.ndar
     t0 = time.perf_counter()
     pol = polish(feats, theta, r_act, actual, scales, batches, cfg.budget, cfg.popsize, cfg.sigma0, cfg.below,
                  seed=ctx.seed * 1000 + 999 + 7919 * index)
+    if cfg.confirm:  # through the same log, after the search's batches (a log made without it still replays)
+        selected = pol.r_actual
+        conf = confirm(pol, feats, scales, batches, cfg.confirm, cfg.confirm_candidates)
+        pol = conf.apply(pol)
+        ctx.log(f"polish pass {index + 1}: confirmed {cfg.confirm_candidates} candidates x {cfg.confirm} re-runs; "
+                f"mean R_actual {float(np.mean(selected)):.3f} (best of N) -> {float(np.mean(pol.r_actual)):.3f} "
+                f"(mean of re-runs), {int(conf.changed.sum())} answers changed")
     ctx.log(f"polish pass {index + 1}: {int(pol.polished.sum())} targets below {cfg.below}, "
             f"{int(pol.runs.sum())} simulator runs "
             f"({pol.replayed_runs} replayed) in {time.perf_counter() - t0:.1f} s; mean R_actual "
@@ -317,7 +327,7 @@ def _polish_summary(ctx: StageContext, cfg: Any, pol: Any, before: np.ndarray, r
     after_all = bootstrap_mean_ci(pol.r_actual, ev.bootstrap, ev.confidence, ctx.seed)
     before_all = bootstrap_mean_ci(before, ev.bootstrap, ev.confidence, ctx.seed)
     diff = bootstrap_mean_ci(pol.r_actual - before, ev.bootstrap, ev.confidence, ctx.seed)
-    return {"settings": cfg.model_dump(mode="json"), "targets": len(m), "polished": int(m.sum()),
+    out = {"settings": cfg.key_dump(), "targets": len(m), "polished": int(m.sum()),
             "improved": int((pol.r_actual > before).sum()), "worse": int((pol.r_actual < before).sum()),
             "r_actual_before_mean": before_all[0], "r_actual_before_ci95": list(before_all[1:]),
             "r_actual_after_mean": after_all[0], "r_actual_after_ci95": list(after_all[1:]),
@@ -330,6 +340,16 @@ def _polish_summary(ctx: StageContext, cfg: Any, pol: Any, before: np.ndarray, r
             "simulator_s_per_polished_target": float(share[m].max()) if m.any() else 0.0,
             "total_runs_per_target_max": float(np.max(runs_per_target + pol.runs)),
             "total_wall_s_per_target_max": float(np.max(wall + share))}
+    c = pol.confirmed
+    if c is not None and cfg.confirm:
+        ok = c.pick >= 0
+        out["confirm"] = {"repeats": c.repeats, "candidates": cfg.confirm_candidates, "confirmed": int(ok.sum()),
+                          "changed": int(c.changed.sum()), "simulator_runs": int(c.runs.sum()),
+                          "replayed_runs": c.replayed_runs, "simulator_s": c.seconds,
+                          "r_selected_mean": float(np.mean(c.r_selected[ok])) if ok.any() else None,
+                          "r_confirmed_mean": float(np.mean(c.r_confirmed[ok])) if ok.any() else None,
+                          "targets": [c.record(i) for i in range(len(m))]}
+    return out
 
 
 def _retrain_round(ctx: StageContext, r: int, theta_tr: np.ndarray, y_tr: np.ndarray, added_theta: list[np.ndarray],

@@ -5,5 +5,6 @@
 * :mod:`~invphys.plugins.evaluators.simulator_loop`: the real simulator in the loop, a population per
   batch, with a budget in simulator runs, and the ask/tell driver that refines many targets at once;
 * :mod:`~invphys.plugins.evaluators.polish`: that driver from answers already simulated (only those
-  below a threshold), with a log of simulated batches that a re-run replays (``active.polish``).
+  below a threshold), with a log of simulated batches that a re-run replays (``active.polish``), and
+  ``confirm``: re-simulate each target's best points and answer with the best mean R.
 """

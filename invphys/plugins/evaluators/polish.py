@@ -10,6 +10,10 @@ included, so no target gets worse.
 appended atomically to an ``.npz`` file; a re-run with the same seeds asks the same points and gets
 their features from the log instead of the simulator, so a stopped polish loses at most the batch in
 flight, a finished one costs nothing again, and the logged runs still count in the cost.
+
+:func:`confirm` (optional, after a polish) re-simulates each target's best few simulated points a few
+times through the same log and answers with the best *mean* R: the polish's R is the best of N runs
+of a slightly chaotic simulator, so it is optimistic; the confirmed mean is the R that reproduces.
 """
 
 from __future__ import annotations
@@ -124,6 +128,11 @@ class Polished:
     batches: int
     replayed_runs: int
     device: str
+    #: per target: every point simulated for it (theta (n, d), score (n,), features (n, M)), its start
+    #: first; None for a target that was not polished (its answer is its only simulated point)
+    points: list[tuple[np.ndarray, np.ndarray, np.ndarray] | None] | None = None
+    #: what :func:`confirm` did (None: not confirmed); its answers are already in theta/r_actual/features
+    confirmed: Confirmed | None = None
 
 
 def polish(targets: np.ndarray, theta: np.ndarray, r_actual: np.ndarray, features: np.ndarray,
@@ -162,8 +171,11 @@ def polish(targets: np.ndarray, theta: np.ndarray, r_actual: np.ndarray, feature
         return out
 
     targets = np.asarray(targets, dtype=np.float64)
-    refined = refine_targets(targets[idx], theta[idx], scales, ev, budget + 1, popsize, sigma0, seed=seed, score=score)
+    refined = refine_targets(targets[idx], theta[idx], scales, ev, budget + 1, popsize, sigma0, seed=seed, score=score,
+                             keep=True)
+    points: list[tuple[np.ndarray, np.ndarray, np.ndarray] | None] = [None] * n
     for j, (i, x) in enumerate(zip(idx, refined, strict=True)):
+        points[i] = x.points
         runs[i] = x.evaluated - 1 + int(resim[j])
         if x.features is None or not np.all(np.isfinite(x.features)):
             continue
@@ -172,4 +184,144 @@ def polish(targets: np.ndarray, theta: np.ndarray, r_actual: np.ndarray, feature
             theta[i], r_actual[i], features[i] = x.theta, r_new, x.features
     seconds = float(getattr(evaluate, "seconds", getattr(evaluate, "wall_time_s", 0.0))) - seconds0
     return Polished(theta, r_actual, features, runs, mask, seconds, calls[0] - 1 + int(resim.any()),
-                    int(getattr(evaluate, "replayed_runs", 0)), str(getattr(evaluate, "device", "") or ""))
+                    int(getattr(evaluate, "replayed_runs", 0)), str(getattr(evaluate, "device", "") or ""), points)
+
+
+@dataclass
+class Confirmed:
+    """What :func:`confirm` did, per target (``C_t`` candidates of target ``t``, ``repeats`` re-runs each).
+
+    ``theta``/``r_actual``/``features`` are the answers: each target's candidate with the best mean R
+    over its re-runs, that mean as its R (``r_confirmed``), and the features of the run that found it.
+    ``r_selected``: the polish's answer's R (best of N single runs). ``candidates[t]`` (C_t, d): the
+    re-simulated points, the polish's answer first; ``selected[t]`` (C_t,): each one's R from the run
+    that found it; ``values[t]`` (C_t, repeats): the R of every re-run (NaN: the run failed, counted as
+    R 0 in the mean). ``pick[t]``: the answer's index among the candidates (-1: nothing to confirm, the
+    target never simulated successfully; its answer is left as it was).
+    """
+
+    theta: np.ndarray
+    r_actual: np.ndarray
+    features: np.ndarray
+    r_selected: np.ndarray
+    candidates: list[np.ndarray]
+    selected: list[np.ndarray]
+    values: list[np.ndarray]
+    pick: np.ndarray
+    runs: np.ndarray  # re-runs per target (candidates x repeats)
+    repeats: int
+    seconds: float
+    replayed_runs: int
+    device: str
+
+    @property
+    def r_confirmed(self) -> np.ndarray:
+        return self.r_actual
+
+    @property
+    def changed(self) -> np.ndarray:
+        """Targets whose answer is not the polish's (best-of-N) answer."""
+        return self.pick > 0
+
+    def means(self, t: int) -> np.ndarray:
+        """Mean R of each of target ``t``'s candidates over its re-runs (a failed run counts as 0)."""
+        return np.nan_to_num(self.values[t], nan=0.0).mean(axis=1) if self.values[t].size else np.zeros(0)
+
+    def record(self, t: int) -> dict[str, Any]:
+        """Target ``t``'s confirmation as JSON-able values (None for NaN)."""
+        def f(v: Any) -> float | None:
+            return float(v) if np.isfinite(v) else None
+
+        return {"repeats": self.repeats, "candidates": len(self.candidates[t]), "pick": int(self.pick[t]),
+                "changed": bool(self.changed[t]), "r_selected": f(self.r_selected[t]),
+                "r_confirmed": f(self.r_actual[t]) if self.pick[t] >= 0 else None,
+                "candidate_r_selected": [f(v) for v in self.selected[t]],
+                "candidate_r_mean": [f(v) for v in self.means(t)],
+                "run_r": [[f(v) for v in row] for row in self.values[t]],
+                "runs": int(self.runs[t])}
+
+    def apply(self, pol: Polished) -> Polished:
+        """``pol`` with the confirmed answers, and the re-runs added to its runs and seconds."""
+        from dataclasses import replace
+
+        return replace(pol, theta=self.theta.copy(), r_actual=self.r_actual.copy(), features=self.features.copy(),
+                       runs=pol.runs + self.runs, seconds=pol.seconds + self.seconds,
+                       replayed_runs=pol.replayed_runs + self.replayed_runs, device=self.device or pol.device,
+                       confirmed=self)
+
+
+def confirm(pol: Polished, targets: np.ndarray, scales: np.ndarray, evaluate: Any, repeats: int,
+            candidates: int = 4, score: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+            kappa: float = 3.0) -> Confirmed:
+    """Re-simulate each target's best ``candidates`` points ``repeats`` times; answer with the best mean.
+
+    The simulator is slightly chaotic: the polish's answer is the best of N single runs, so its R is
+    optimistic (re-simulated, most answers reproduce but a few drop a lot). Each target's candidates are
+    its polish's answer and the next best distinct points the polish simulated for it, by the R of the
+    run that found them (a target that was not polished has one candidate: its answer). Every
+    candidate of every target is simulated ``repeats`` more times, all in one ``evaluate`` call
+    (through the polish's :class:`BatchLog`, it is logged and replayed like the search; re-run ``k`` of
+    every candidate comes before re-run ``k + 1`` of any); the answer is the candidate with the best
+    mean R over these new runs (ties: the earlier candidate, so the polish's answer), and that mean is
+    its R. The run that selected a candidate is *not* in its mean (it is the best-of-N draw the
+    confirmation is there to correct). The mean is still slightly optimistic, as the same re-runs
+    choose among the candidates, but far less than best-of-N. A failed re-run counts as R 0.
+
+    ``score`` must be the polish's (default R_gt with ``kappa``); targets may hold NaN for features
+    that ``score`` ignores. Cost: ``repeats`` x (number of candidates) runs per target.
+    """
+    from invphys.core.errors import InvphysError
+    from invphys.core.objectives import recovery_reward
+
+    if repeats < 1 or candidates < 1:
+        raise InvphysError(f"confirm: repeats and candidates must be >= 1, got {repeats} and {candidates}")
+    score = score or (lambda y, t: recovery_reward(y, t, scales, kappa))
+    targets = np.asarray(targets, dtype=np.float64)
+    n = len(pol.theta)
+    cands: list[np.ndarray] = []
+    sel: list[np.ndarray] = []
+    feats: list[np.ndarray] = []
+    for i in range(n):
+        answer = (pol.theta[i][None, :], np.array([pol.r_actual[i]], dtype=np.float64), pol.features[i][None, :])
+        pts = (pol.points[i] if pol.points is not None else None) or answer
+        ok = np.isfinite(pts[1]) & np.all(np.isfinite(pts[2]), axis=1)
+        th, sc, fe = pts[0][ok], pts[1][ok], pts[2][ok]
+        first = [j for j in range(len(th)) if np.array_equal(th[j], pol.theta[i])]
+        if first:
+            order = [first[0]]
+        elif np.isfinite(answer[1][0]) and np.all(np.isfinite(answer[2])):  # not among the points: add it
+            th, sc, fe = (np.concatenate([a, b]) for a, b in zip(answer, (th, sc, fe), strict=True))
+            order = [0]
+        else:
+            order = []
+        for j in np.argsort(-sc, kind="stable"):
+            if len(order) >= candidates:
+                break
+            if not any(np.array_equal(th[j], th[k]) for k in order):
+                order.append(int(j))
+        cands.append(th[order].reshape(len(order), -1))
+        sel.append(sc[order])
+        feats.append(fe[order].reshape(len(order), -1))
+    sizes = np.array([len(c) for c in cands], dtype=np.int64)
+    owners = np.repeat(np.arange(n), sizes)
+    seconds0 = float(getattr(evaluate, "seconds", getattr(evaluate, "wall_time_s", 0.0)))
+    replayed0 = int(getattr(evaluate, "replayed_runs", 0))
+    values = [np.zeros((s, repeats)) for s in sizes]
+    if sizes.sum():
+        flat = np.concatenate(cands)
+        y = np.asarray(evaluate(np.tile(flat, (repeats, 1))), dtype=np.float64)
+        r = np.asarray(score(y, targets[np.tile(owners, repeats)]), dtype=np.float64)
+        r = np.where(np.all(np.isfinite(y), axis=1) & np.isfinite(r), r, np.nan).reshape(repeats, -1).T
+        values = np.split(r, np.cumsum(sizes)[:-1])
+    theta, r_act, features = pol.theta.copy(), pol.r_actual.copy(), pol.features.copy()
+    pick = np.full(n, -1, dtype=np.int64)
+    for i in range(n):
+        if sizes[i] == 0:
+            continue
+        means = np.nan_to_num(values[i], nan=0.0).mean(axis=1)
+        pick[i] = int(np.argmax(means))
+        theta[i], r_act[i], features[i] = cands[i][pick[i]], means[pick[i]], feats[i][pick[i]]
+    seconds = float(getattr(evaluate, "seconds", getattr(evaluate, "wall_time_s", 0.0))) - seconds0
+    return Confirmed(theta, r_act, features, np.array(pol.r_actual, dtype=np.float64), cands, sel, list(values),
+                     pick, sizes * repeats, repeats, seconds, int(getattr(evaluate, "replayed_runs", 0)) - replayed0,
+                     str(getattr(evaluate, "device", "") or ""))

@@ -76,12 +76,15 @@ class Refined:
     features: np.ndarray | None
     evaluated: int
     history: list[tuple[int, float]] = field(default_factory=list)
+    #: with ``keep=True``: every simulated point (n, d), its score (n,) and features (n, M), the start first
+    points: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
 def refine_targets(targets: np.ndarray, starts: np.ndarray, scales: np.ndarray,
                    evaluate: Callable[[np.ndarray], np.ndarray], budget: int, popsize: int = 8,
                    sigma0: float = 0.1, seed: int = 0, kappa: float = 3.0,
-                   score: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> list[Refined]:
+                   score: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+                   keep: bool = False) -> list[Refined]:
     """Refine each target's start with ask/tell CMA-ES; one ``evaluate`` call per generation for all.
 
     Args:
@@ -89,6 +92,7 @@ def refine_targets(targets: np.ndarray, starts: np.ndarray, scales: np.ndarray,
         evaluate: features (B, M) of normalised parameters (B, d); NaN rows for failures (score -inf).
         budget: evaluations per target, the start's included.
         score: ``score(features (B, M), targets (B, M)) -> (B,)``; default R_gt with ``kappa``.
+        keep: fill each target's :attr:`Refined.points` (every point it simulated, in order).
     """
     from invphys.core.spaces import raw_space
     from invphys.plugins.optimizers.cma_es import CMAES
@@ -112,6 +116,8 @@ def refine_targets(targets: np.ndarray, starts: np.ndarray, scales: np.ndarray,
     y0 = evaluate(starts)
     s0 = scored(y0, targets)
     out = [Refined(starts[t].copy(), float(s0[t]), y0[t].copy(), 1, [(1, float(s0[t]))]) for t in range(n_t)]
+    kept: list[list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = [
+        [(starts[t:t + 1], s0[t:t + 1], np.atleast_2d(y0[t]))] for t in range(n_t)]
     while True:
         asks = []
         for t, search in enumerate(searches):
@@ -132,9 +138,14 @@ def refine_targets(targets: np.ndarray, starts: np.ndarray, scales: np.ndarray,
             sl = slice(start, start + n)
             start += n
             searches[t].tell(asks[t], s[sl])
+            if keep:
+                kept[t].append((np.array(asks[t]), s[sl].copy(), y[sl].copy()))
             out[t].evaluated += n
             i = int(np.argmax(s[sl]))
             if s[sl][i] > out[t].score:
                 out[t].theta, out[t].score, out[t].features = asks[t][i].copy(), float(s[sl][i]), y[sl][i].copy()
             out[t].history.append((out[t].evaluated, out[t].score))
+    if keep:
+        for t in range(n_t):
+            out[t].points = tuple(np.concatenate([k[j] for k in kept[t]]) for j in range(3))  # type: ignore[assignment]
     return out
