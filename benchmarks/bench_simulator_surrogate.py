@@ -16,6 +16,20 @@ TRAINING rows only (the held-out rows stay the main store's 20 %): more data, sa
 
 Learning curves (``--curve`` training-set sizes, same held-out rows) for ``mlp_paper`` and ``mlp_new``
 (and ``ensemble`` with ``--curve-ensemble``).
+
+``--transform NAME=KIND`` (repeatable) redefines a stored feature by a monotone map before training, as a
+simulator that reported the feature in those units would; R^2 (``r2``, ``r2_per_feature``) is then measured
+in the transformed units, which is what a feature so redefined would be judged on, and the JSON adds the
+back-transformed predictions' R^2 in raw units (``r2_raw_units``, ...) and a ``transforms`` record. Kinds:
+
+* ``log10``: ``log10(v)`` (every value must be > 0);
+* ``log10_gain[:C]``: ``log10(v - C)``, the log of the excess over a fixed physical baseline C (every value
+  must exceed C). Without ``:C`` only ``final_separation`` of an ``orange_peel`` store has a default: the
+  centroid separation of the store preset's unsettled scene (skin dome against flesh, the same for every
+  run; 0.0216 m for ``paper``). The redefinition proper would subtract each run's settled ``sep(0)``,
+  which the stored data do not hold.
+
+Without ``--transform`` nothing changes (same training targets, same JSON).
 """
 
 from __future__ import annotations
@@ -52,6 +66,51 @@ def _models(seed: int, val: float, paper_ensemble: bool) -> dict:
     return out
 
 
+def _scene_separation(identity: dict) -> float:
+    """Centroid distance of skin and flesh in the preset's scene before settling (metres)."""
+    from invphys_orange_peel.presets import get_preset
+    from invphys_orange_peel.scene import INTERIOR, SKIN, build_scene
+
+    scene = build_scene(get_preset(identity["preset"]))
+    pos = scene.positions
+    return float(np.linalg.norm(pos[scene.labels == SKIN].mean(axis=0) - pos[scene.labels == INTERIOR].mean(axis=0)))
+
+
+def parse_transform(spec: str, names: list[str], identity: dict | None) -> tuple[str, dict]:
+    """``NAME=KIND`` -> (name, record): ``kind``, ``offset`` C (0 for ``log10``), ``offset_source``."""
+    name, sep, kind = spec.partition("=")
+    if not sep or name not in names:
+        raise SystemExit(f"--transform {spec!r}: expected NAME=KIND with NAME one of {', '.join(names)}")
+    kind, colon, value = kind.partition(":")
+    if kind == "log10" and not colon:
+        return name, {"kind": "log10", "offset": 0.0, "offset_source": "none", "definition": "log10(v)"}
+    if kind != "log10_gain":
+        raise SystemExit(f"--transform {spec!r}: KIND is log10 or log10_gain[:C]")
+    if colon:
+        offset, source = float(value), "given constant (the same for every run)"
+    elif name == "final_separation" and (identity or {}).get("simulator") == "orange_peel":
+        offset = _scene_separation(identity)
+        source = (f"separation of the unsettled {identity['preset']!r} scene (skin-dome and flesh centroids "
+                  "before settling; the same for every run). A redefined feature would subtract each "
+                  "run's settled sep(0), which the stored data do not hold")
+    else:
+        raise SystemExit(f"--transform {spec!r}: no default baseline for {name}; give log10_gain:C")
+    return name, {"kind": "log10_gain", "offset": offset, "offset_source": source, "definition": "log10(v - C)"}
+
+
+def forward(v: np.ndarray, rec: dict) -> np.ndarray:
+    """The transformed feature (raises if a value is not above the offset)."""
+    excess = np.asarray(v, dtype=np.float64) - rec["offset"]
+    if not (excess > 0).all():
+        raise SystemExit(f"{rec['kind']}: {int((excess <= 0).sum())} value(s) not above the offset {rec['offset']}")
+    return np.log10(excess)
+
+
+def inverse(u: np.ndarray, rec: dict) -> np.ndarray:
+    """Raw units back from the transformed ones."""
+    return rec["offset"] + 10.0 ** np.asarray(u, dtype=np.float64)
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("dataset", type=Path)
@@ -63,6 +122,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--models", default="", help="comma-separated subset of the models to run")
     ap.add_argument("--extra", type=Path, action="append", default=[],
                     help="another store whose rows join the training rows only (repeatable)")
+    ap.add_argument("--transform", action="append", default=[], metavar="NAME=KIND",
+                    help="train and score feature NAME as log10 or log10_gain[:C] (repeatable; see above)")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
 
@@ -88,6 +149,14 @@ def main(argv: list[str] | None = None) -> dict:
         tt, yt = np.concatenate([tt, extra.theta]), np.concatenate([yt, extra.y])
         extra_info.append({"dataset": str(path), "rows": len(extra.theta), "fingerprint": extra.fingerprint,
                            "identity": more.metadata.get("identity")})
+    transforms = dict(parse_transform(spec, names, store.metadata.get("identity")) for spec in args.transform)
+    yv_raw = yv
+    if transforms:
+        yt, yv = yt.copy(), yv.copy()
+        for name, rec in transforms.items():
+            j = names.index(name)
+            rec["raw_range"] = [float(min(yt[:, j].min(), yv[:, j].min())), float(max(yt[:, j].max(), yv[:, j].max()))]
+            yt[:, j], yv[:, j] = forward(yt[:, j], rec), forward(yv[:, j], rec)
     out: dict = {
         "benchmark": "bench_simulator_surrogate",
         "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
@@ -100,6 +169,10 @@ def main(argv: list[str] | None = None) -> dict:
                     "threads_per_model": 1},
         "models": {},
     }
+    if transforms:
+        out["transforms"] = transforms
+        out["r2_units"] = ("r2, r2_min_feature, r2_per_feature: transformed units for the transformed features "
+                           "(raw for the rest); *_raw_units: predictions back-transformed, all raw units")
     factories = _models(args.seed, args.val_fraction, args.paper_ensemble)
     chosen = [m for m in args.models.split(",") if m] or list(factories)
 
@@ -110,15 +183,27 @@ def main(argv: list[str] | None = None) -> dict:
     def run(label: str, rows: np.ndarray) -> dict:
         model = factories[label]()
         m = model.fit(tt[rows], yt[rows])
-        r2, per = r2_scores(yv, model.predict(tv))
-        return {"r2": r2, "r2_min_feature": min(per), "r2_per_feature": dict(zip(names, per, strict=True)),
-                "epochs": m["epochs"], "best_epoch": m["best_epoch"], "train_time_s": m["train_time_s"],
-                "n_train": len(rows), "config": model.config.model_dump(mode="json")}
+        pred = model.predict(tv)
+        r2, per = r2_scores(yv, pred)
+        res = {"r2": r2, "r2_min_feature": min(per), "r2_per_feature": dict(zip(names, per, strict=True)),
+               "epochs": m["epochs"], "best_epoch": m["best_epoch"], "train_time_s": m["train_time_s"],
+               "n_train": len(rows), "config": model.config.model_dump(mode="json")}
+        if transforms:
+            raw = np.array(pred, dtype=np.float64)
+            for name, rec in transforms.items():
+                raw[:, names.index(name)] = inverse(raw[:, names.index(name)], rec)
+            r2_raw, per_raw = r2_scores(yv_raw, raw)
+            res.update({"r2_raw_units": r2_raw, "r2_min_feature_raw_units": min(per_raw),
+                        "r2_per_feature_raw_units": dict(zip(names, per_raw, strict=True))})
+        return res
 
     for label in chosen:
         res = out["models"][label] = run(label, np.arange(len(tt)))
         print(f"{label}: R^2 {res['r2']:.4f} (min {res['r2_min_feature']:.3f}, {res['train_time_s']:.0f} s); "
               + ", ".join(f"{k} {v:.3f}" for k, v in res["r2_per_feature"].items()), flush=True)
+        if transforms:
+            print(f"{label} (raw units): R^2 {res['r2_raw_units']:.4f} (min {res['r2_min_feature_raw_units']:.3f}); "
+                  + ", ".join(f"{k} {res['r2_per_feature_raw_units'][k]:.3f}" for k in transforms), flush=True)
         save()
     curves = [c for c in ("mlp_paper", "mlp_new") + (("ensemble",) if args.curve_ensemble else ()) if c in chosen]
     for label in curves:
