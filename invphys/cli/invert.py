@@ -88,7 +88,12 @@ def invert(
     if polish_settings:
         _polish(inv, results, overrides, seed, batch_size=sim_batch, **polish_settings)
     data = {"bundle": str(bundle), "method": results[0].method, "results": [r.to_dict() for r in results]}
-    emit(data, as_json, lambda _: [_render(r) for r in results])
+
+    def render(_: Any) -> None:
+        for r in results:
+            _render(r)
+
+    emit(data, as_json, render)
 
 
 def _validate(inv: Any, results: list[Any], overrides: dict[str, Any], batch_size: int = 16) -> None:

@@ -160,6 +160,8 @@ def actor_program(model: Any, obs_dim: int, seed: int = 0) -> tuple[Program, np.
     try:
         from torch import nn
 
+        if policy is None:  # not a stable-baselines3 model
+            return None
         if not isinstance(policy.features_extractor, nn.Flatten) and \
                 type(policy.features_extractor).__name__ != "FlattenExtractor":
             return None

@@ -24,7 +24,7 @@ import numpy as np
 
 from invphys.core.errors import InvphysError, did_you_mean
 from invphys.core.user_targets import UserTargets, from_array, from_mappings
-from invphys.inverter.bundle import Bundle
+from invphys.inverter.bundle import Bundle, as_latent, as_surrogate
 from invphys.inverter.objective import MaskedRecovery, masked_recovery
 from invphys.inverter.result import Candidate, InversionResult
 
@@ -193,9 +193,9 @@ class Inverter:
             if fit is not None and {"theta", "y", "scales"} <= set(inspect.signature(fit).parameters):
                 fit(theta, y, self.bundle.scales)  # a dataset baseline learns from the training rows
             else:
-                pols = ", ".join(self._policy_labels()) or "none"
+                trained = ", ".join(self._policy_labels()) or "none"
                 raise InvphysError(f"method {label!r} is a goal-conditioned policy that needs training first "
-                                   f"(invphys run trains and bundles it); this bundle's trained policies: {pols}")
+                                   f"(invphys run trains and bundles it); this bundle's trained policies: {trained}")
         self._plugins[label] = (plugin, entry)
         return self._plugins[label]
 
@@ -304,7 +304,8 @@ class Inverter:
             objective = MaskedRecovery(goal, self.bundle.scales, t.mask[i], self.bundle.kappa)
             thetas, srcs, spent = [], [], 0
             for r in range(top_k):
-                problem = build_problem(space, objective, budget, surrogate=self.bundle.surrogate, latent=latent,
+                problem = build_problem(space, objective, budget, surrogate=as_surrogate(self.bundle.surrogate),
+                                        latent=None if latent is None else as_latent(latent),
                                         predict=predict, target=goal, seed=seed + 1000 * r + i,
                                         feature_mean=mean, feature_std=std)
                 with _quiet_cma():

@@ -38,7 +38,9 @@ class Program:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         with open(path, "wb") as fh:  # np.savez on a handle keeps the name (no ".npz" appended)
-            np.savez(fh, **{PROGRAM_KEY: np.array(json.dumps(self.ops))}, **self.arrays)
+            # numpy's stub types savez's `allow_pickle: bool` keyword, and mypy cannot tell that these
+            # ** mappings (array names -> arrays) never hold that key: a third-party typing limitation
+            np.savez(fh, **{PROGRAM_KEY: np.array(json.dumps(self.ops))}, **self.arrays)  # type: ignore[arg-type]
         return path
 
     @classmethod

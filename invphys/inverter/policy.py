@@ -73,6 +73,8 @@ class PolicyRunner:
         if self._program is not None:
             a = self._program(obs).astype(np.float64)
             if stochastic is not None and stochastic.any():
+                if self._log_std is None:  # set with the program in __init__
+                    raise InvphysError(f"policy {self.label!r}: its NumPy program has no log_std")
                 noise = rng.standard_normal((int(stochastic.sum()), a.shape[1])) * np.exp(self._log_std)
                 a[stochastic] += noise
             return np.clip(a, -1.0, 1.0)
