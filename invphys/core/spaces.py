@@ -25,7 +25,8 @@ from typing import Any
 import numpy as np
 
 from invphys.core.errors import InvphysError
-from invphys.core.interfaces import LatentModel, Problem, SearchSpace, Surrogate
+from invphys.core.interfaces import Problem, SearchSpace
+from invphys.core.protocols import FeatureHead, LatentCodec, Predictor
 
 EVALUATORS = ("shared", "own_head")
 
@@ -67,7 +68,7 @@ def raw_space(dim: int, name: str = "raw") -> SearchSpace:
     return SearchSpace(name=name, dim=int(dim), low=0.0, high=1.0, to_theta=identity, from_theta=identity)
 
 
-def latent_space(model: LatentModel, name: str = "latent", bound: float | None = None) -> SearchSpace:
+def latent_space(model: LatentCodec, name: str = "latent", bound: float | None = None) -> SearchSpace:
     """A latent model's box [-b, b]^k (b = ``model.latent_bound`` unless given); decode clips to [0, 1]."""
     b = float(model.latent_bound if bound is None else bound)
     if b <= 0:
@@ -85,7 +86,7 @@ def latent_space(model: LatentModel, name: str = "latent", bound: float | None =
                        from_theta=encode)
 
 
-def make_predict(space: SearchSpace, surrogate: Surrogate | None, latent: LatentModel | None = None,
+def make_predict(space: SearchSpace, surrogate: Predictor | None, latent: FeatureHead | None = None,
                  evaluator: str = "shared") -> Callable[[np.ndarray], np.ndarray]:
     """The features (B, M) behind search points (B, dim) of ``space``.
 
@@ -120,7 +121,7 @@ def make_predict(space: SearchSpace, surrogate: Surrogate | None, latent: Latent
 
 
 def build_problem(space: SearchSpace, objective: Callable[[np.ndarray], np.ndarray], budget: int, *,
-                  surrogate: Surrogate | None = None, latent: LatentModel | None = None,
+                  surrogate: Predictor | None = None, latent: FeatureHead | None = None,
                   evaluator: str = "shared", predict: Callable[[np.ndarray], np.ndarray] | None = None,
                   target: np.ndarray | None = None, initial: np.ndarray | None = None, seed: int = 0,
                   feature_mean: np.ndarray | None = None, feature_std: np.ndarray | None = None,

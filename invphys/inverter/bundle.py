@@ -10,7 +10,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol, cast
+from typing import Any
 
 import numpy as np
 
@@ -18,46 +18,6 @@ from invphys.core.errors import InvphysError
 from invphys.core.params import Parameter, ParameterSpace
 from invphys.inverter.manifest import BundleError, python_mismatch, read_manifest
 from invphys.inverter.numeric import Program
-
-if TYPE_CHECKING:
-    from invphys.core.interfaces import LatentModel, Surrogate
-
-
-class SurrogateLike(Protocol):
-    """What the search-space helpers use of a surrogate (:class:`FastSurrogate` provides it)."""
-
-    def predict(self, theta: np.ndarray) -> np.ndarray: ...
-
-    def predict_with_uncertainty(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
-
-
-class LatentLike(Protocol):
-    """What the search-space helpers use of a latent model (:class:`FastLatent` provides it)."""
-
-    @property
-    def latent_dim(self) -> int: ...
-
-    @property
-    def latent_bound(self) -> float: ...
-
-    def encode(self, theta: np.ndarray) -> np.ndarray: ...
-
-    def decode(self, z: np.ndarray) -> np.ndarray: ...
-
-    def predict_features(self, z: np.ndarray) -> np.ndarray: ...
-
-
-# invphys.core.spaces (latent_space, make_predict, build_problem) annotates its model arguments with the
-# nominal plugin ABCs Surrogate / LatentModel (with fit/save/load), though it only calls the methods
-# above. The bundle's NumPy-backed FastSurrogate / FastLatent are not plugins, so they satisfy the
-# Protocols structurally (checked by mypy at each call of these helpers) and are handed over through
-# these two casts. Once core.spaces takes Protocols, drop the casts and pass the objects directly.
-def as_surrogate(model: SurrogateLike) -> Surrogate:
-    return cast("Surrogate", model)
-
-
-def as_latent(model: LatentLike) -> LatentModel:
-    return cast("LatentModel", model)
 
 
 class FastSurrogate:
@@ -236,7 +196,7 @@ class Bundle:
 
         key = f"space:{label}"
         if key not in self._cache:
-            self._cache[key] = raw_space(self.space.dim) if label == "raw" else latent_space(as_latent(self.latent(label)), name=label)
+            self._cache[key] = raw_space(self.space.dim) if label == "raw" else latent_space(self.latent(label), name=label)
         return self._cache[key]
 
     def predictor(self, space_label: str, evaluator: str = "shared") -> Callable[[np.ndarray], np.ndarray]:
@@ -245,7 +205,7 @@ class Bundle:
 
         space = self.search_space(space_label)
         latent = None if space_label == "raw" else self.latent(space_label)
-        return make_predict(space, as_surrogate(self.surrogate), None if latent is None else as_latent(latent), evaluator)
+        return make_predict(space, self.surrogate, latent, evaluator)
 
     def data(self, split: str = "train") -> tuple[np.ndarray, np.ndarray]:
         """(theta, y) of the bundle's training or held-out partition."""

@@ -24,7 +24,7 @@ import numpy as np
 
 from invphys.core.errors import InvphysError, did_you_mean
 from invphys.core.user_targets import UserTargets, from_array, from_mappings
-from invphys.inverter.bundle import Bundle, as_latent, as_surrogate
+from invphys.inverter.bundle import Bundle
 from invphys.inverter.objective import MaskedRecovery, masked_recovery
 from invphys.inverter.result import Candidate, InversionResult
 
@@ -304,8 +304,8 @@ class Inverter:
             objective = MaskedRecovery(goal, self.bundle.scales, t.mask[i], self.bundle.kappa)
             thetas, srcs, spent = [], [], 0
             for r in range(top_k):
-                problem = build_problem(space, objective, budget, surrogate=as_surrogate(self.bundle.surrogate),
-                                        latent=None if latent is None else as_latent(latent),
+                problem = build_problem(space, objective, budget, surrogate=self.bundle.surrogate,
+                                        latent=latent,
                                         predict=predict, target=goal, seed=seed + 1000 * r + i,
                                         feature_mean=mean, feature_std=std)
                 with _quiet_cma():
