@@ -45,6 +45,7 @@ def _args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--warm", type=int, default=20, help="substeps advanced before the profiled ones")
     p.add_argument("--dt", type=float, default=1e-4, help="substep (s) of the warm-up and profiled substeps")
     p.add_argument("--arch", default="cuda", help="cpu: a check of the child alone (no ncu)")
+    p.add_argument("--p2g", default="atomic", choices=["atomic", "tiled"], help="the Taichi scatter profiled")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--out", type=Path, default=None)
     return p.parse_args(argv)
@@ -59,7 +60,7 @@ def _child(a: argparse.Namespace) -> None:
 
     space = parameter_space()
     params = space.denormalize(np.random.default_rng(0).uniform(size=(a.batch, space.dim)))
-    sim = OrangePeelSimulator(backend="taichi", preset=a.preset, arch=a.arch, batch_size=a.batch)
+    sim = OrangePeelSimulator(backend="taichi", preset=a.preset, arch=a.arch, batch_size=a.batch, taichi_p2g=a.p2g)
     backend = sim.engine.backend(a.batch)
     model = model_for(sim.engine_scene, params)
     backend.load(model.table(), model.friction)
@@ -102,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     for s in SECTIONS:
         cmd += ["--section", s]
     child = [sys.executable, str(Path(__file__).resolve()), "--child", "--preset", a.preset, "--batch",
-             str(a.batch), "--warm", str(a.warm), "--dt", str(a.dt)]
+             str(a.batch), "--warm", str(a.warm), "--dt", str(a.dt), "--p2g", a.p2g]
     proc = subprocess.run(cmd + child, capture_output=True, text=True)
     if a.out:  # ncu's own CSV beside the JSON, whatever happens to the parsing
         a.out.parent.mkdir(parents=True, exist_ok=True)
@@ -117,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     kernels = _parse(proc.stdout)
     out = {"benchmark": "bench_kernel_profile", "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
            "command": "python " + " ".join(shlex.quote(x) for x in [sys.argv[0], *(argv or sys.argv[1:])]),
-           "device": gpu, "preset": a.preset, "batch": a.batch, "warm_substeps": a.warm, "dt": a.dt,
+           "device": gpu, "preset": a.preset, "batch": a.batch, "p2g": a.p2g, "warm_substeps": a.warm, "dt": a.dt,
            "ncu": " ".join(cmd), **info, "kernels": kernels}
     text = json.dumps(out, indent=1) + "\n"
     if a.out:

@@ -53,7 +53,7 @@ class OrangePeelSimulator(Simulator):
     #: settings that change where or how fast runs go, not their results: left out of a run's stored identity
     identity_ignores: ClassVar[tuple[str, ...]] = ("arch", "allow_cpu_fallback", "batch_size", "deterministic",
                                                    "scheduling", "warp_graphs", "gpu_deterministic",
-                                                   "queue_order", "min_chunk")
+                                                   "queue_order", "min_chunk", "taichi_p2g")
 
     class Config(PluginConfig):
         """Settings of the orange-peel simulator."""
@@ -96,6 +96,10 @@ class OrangePeelSimulator(Simulator):
                                                            "(None: on for CUDA)")
         gpu_deterministic: bool = Field(False, description="Warp on CUDA: deterministic scatter atomics "
                                                            "(slower; runs repeat bit for bit)")
+        taichi_p2g: Literal["auto", "atomic", "tiled"] = Field(
+            "auto", description="Taichi scatter: atomic (global float atomics), tiled (CUDA only: tiles of "
+                                "particles summed in shared memory first; 1.25x faster runs), auto = tiled on "
+                                "CUDA, atomic on the CPU")
 
         @field_validator("preset")
         @classmethod
@@ -142,9 +146,10 @@ class OrangePeelSimulator(Simulator):
             from invphys_anisompm import Engine
 
             c = self.config
-            warp = {"use_graphs": c.warp_graphs, "gpu_deterministic": c.gpu_deterministic} if c.backend == "warp" else {}
+            opts = ({"use_graphs": c.warp_graphs, "gpu_deterministic": c.gpu_deterministic} if c.backend == "warp"
+                    else {"p2g": c.taichi_p2g})
             self._engine = Engine(self.engine_scene.engine, backend=c.backend, arch=c.arch,
-                                  allow_cpu_fallback=c.allow_cpu_fallback, **warp)
+                                  allow_cpu_fallback=c.allow_cpu_fallback, **opts)
         return self._engine
 
     @property

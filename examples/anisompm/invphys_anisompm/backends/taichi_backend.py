@@ -22,6 +22,11 @@ _init_lock = threading.Lock()
 _initialised_arch: str | None = None
 #: below this volume ratio a particle is treated as inverted: no tensile driving force
 J_MIN = 1e-6
+#: tiled P2G (CUDA): particles per thread block, the most nodes a tile sums in shared memory, and the
+#: channels per node (momentum 3, mass, damage sum, weight sum, grip mass)
+TILE = 256
+TILE_NODES = 1024
+TILE_CH = 7
 
 
 def _cuda_device_present() -> bool:
@@ -146,6 +151,56 @@ def _collider_normal(kind: ti.i32, a: vec3, bb: vec3, p: vec3):
     return inside, n
 
 
+P2GTerms = ti.types.struct(affine=mat3, mv=vec3, mass=ti.f32)
+
+
+@ti.func
+def _p2g_terms(b, p, h, inv_dx, apic, mat: ti.template(), body: ti.template(), fibre: ti.template(),
+               vol: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(), d: ti.template(),
+               dtil: ti.template()) -> P2GTerms:
+    """Particle ``p`` of run ``b``: its APIC affine matrix (stress included), momentum and mass, as both
+    scatters add them to its 27 nodes; writes its crack driving force ``dtil``."""
+    Fp = F[b, p]
+    U, sig, V = ti.svd(Fp)
+    J = sig[0, 0] * sig[1, 1] * sig[2, 2]
+    reg = body[p]
+    dp = d[b, p]
+    mu = mat[b, reg, M_MU]
+    lam = mat[b, reg, M_LAM]
+    res = mat[b, reg, M_RES]
+    g = (1.0 - dp) * (1.0 - dp) * (1.0 - res) + res
+    gvol = g if J >= 1.0 else 1.0
+    tau_d = vec3(0.0)
+    s_pos = vec3(0.0)
+    vol_t = lam * (J - 1.0) * J
+    for a in ti.static(range(3)):
+        dev = 2.0 * mu * (sig[a, a] - 1.0) * sig[a, a]
+        tau_d[a] = g * dev + gvol * vol_t
+        if J > J_MIN:  # an inverted or collapsed particle has no tensile driving force
+            s_pos[a] = ti.max((dev + vol_t) / J, 0.0)
+    tau = U @ ti.Matrix([[tau_d[0], 0.0, 0.0], [0.0, tau_d[1], 0.0], [0.0, 0.0, tau_d[2]]]) @ U.transpose()
+    sigp = U @ ti.Matrix([[s_pos[0], 0.0, 0.0], [0.0, s_pos[1], 0.0], [0.0, 0.0, s_pos[2]]]) @ U.transpose()
+    A = ti.Matrix.identity(ti.f32, 3)
+    a0 = fibre[p]
+    if a0.norm_sqr() > 0.0:
+        kf = mat[b, reg, M_KF]
+        if kf > 0.0:
+            fa = Fp @ a0
+            lf = fa.norm()
+            if lf > 1e-6:
+                tau += kf * (lf - 1.0) / lf * fa.outer_product(fa)
+        ra = (U @ V.transpose()) @ a0
+        A += mat[b, reg, M_ALPHA] * ra.outer_product(ra)
+    M = A @ sigp
+    sc = mat[b, reg, M_SC]
+    phi = (M * M.transpose()).sum() / (sc * sc)
+    dtil[b, p] = ti.max(phi - 1.0, 0.0)
+    vp_ = vol[p]
+    mass = mat[b, reg, M_RHO] * vp_
+    affine = (-h * vp_ * 4.0 * inv_dx * inv_dx) * tau + (mass * apic) * C[b, p]
+    return P2GTerms(affine=affine, mv=mass * v[b, p], mass=mass)
+
+
 def _build_kernels(serial_p2g: bool):
     """Compile-time configured kernels (``serial_p2g`` makes CPU scatter order deterministic)."""
 
@@ -172,63 +227,119 @@ def _build_kernels(serial_p2g: bool):
             ti.loop_config(serialize=True)
         for b, p in ti.ndrange(x.shape[0], x.shape[1]):
             if k < nsub[b]:
-                h = dt[b]
                 Xp = x[b, p] * inv_dx
                 base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
                 fx = Xp - ti.cast(base, ti.f32)
                 w = _weights(fx)
-                Fp = F[b, p]
-                U, sig, V = ti.svd(Fp)
-                J = sig[0, 0] * sig[1, 1] * sig[2, 2]
-                reg = body[p]
+                t = _p2g_terms(b, p, dt[b], inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil)
                 dp = d[b, p]
-                mu = mat[b, reg, M_MU]
-                lam = mat[b, reg, M_LAM]
-                res = mat[b, reg, M_RES]
-                g = (1.0 - dp) * (1.0 - dp) * (1.0 - res) + res
-                gvol = g if J >= 1.0 else 1.0
-                tau_d = vec3(0.0)
-                s_pos = vec3(0.0)
-                vol_t = lam * (J - 1.0) * J
-                for a in ti.static(range(3)):
-                    dev = 2.0 * mu * (sig[a, a] - 1.0) * sig[a, a]
-                    tau_d[a] = g * dev + gvol * vol_t
-                    if J > J_MIN:  # an inverted or collapsed particle has no tensile driving force
-                        s_pos[a] = ti.max((dev + vol_t) / J, 0.0)
-                tau = U @ ti.Matrix([[tau_d[0], 0.0, 0.0], [0.0, tau_d[1], 0.0], [0.0, 0.0, tau_d[2]]]) \
-                    @ U.transpose()
-                sigp = U @ ti.Matrix([[s_pos[0], 0.0, 0.0], [0.0, s_pos[1], 0.0], [0.0, 0.0, s_pos[2]]]) \
-                    @ U.transpose()
-                A = ti.Matrix.identity(ti.f32, 3)
-                a0 = fibre[p]
-                if a0.norm_sqr() > 0.0:
-                    kf = mat[b, reg, M_KF]
-                    if kf > 0.0:
-                        fa = Fp @ a0
-                        lf = fa.norm()
-                        if lf > 1e-6:
-                            tau += kf * (lf - 1.0) / lf * fa.outer_product(fa)
-                    ra = (U @ V.transpose()) @ a0
-                    A += mat[b, reg, M_ALPHA] * ra.outer_product(ra)
-                M = A @ sigp
-                sc = mat[b, reg, M_SC]
-                phi = (M * M.transpose()).sum() / (sc * sc)
-                dtil[b, p] = ti.max(phi - 1.0, 0.0)
-                vp_ = vol[p]
-                mass = mat[b, reg, M_RHO] * vp_
-                affine = (-h * vp_ * 4.0 * inv_dx * inv_dx) * tau + (mass * apic) * C[b, p]
-                vp = v[b, p]
                 gp = grip[p]
                 for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
                     off = ti.Vector([i, j, q])
                     dpos = (ti.cast(off, ti.f32) - fx) * dx
                     weight = w[i][0] * w[j][1] * w[q][2]
                     node = base + off
-                    gv[b, node[0], node[1], node[2]] += weight * (mass * vp + affine @ dpos)
-                    gm[b, node[0], node[1], node[2]] += weight * mass
+                    gv[b, node[0], node[1], node[2]] += weight * (t.mv + t.affine @ dpos)
+                    gm[b, node[0], node[1], node[2]] += weight * t.mass
                     gd[b, node[0], node[1], node[2]] += weight * vec2(dp, 1.0)
                     if gp >= 0:
-                        gg[b * ngrip + gp, node[0], node[1], node[2]] += weight * mass
+                        gg[b * ngrip + gp, node[0], node[1], node[2]] += weight * t.mass
+
+    @ti.kernel
+    def p2g_tiled(k: ti.i32, dx: ti.f32, apic: ti.f32, ngrip: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
+                  mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
+                  grip: ND(ti.i32, 1), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2),
+                  d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
+                  gg: ND(ti.f32, 4)):
+        # CUDA only. One thread block per TILE consecutive particles of a run (spatially coherent when the
+        # particles are in Morton order): their 27-node contributions are summed in shared memory over
+        # the tile's bounding box of nodes, then added to the grid once per node, instead of 6 global
+        # float atomics per particle and node (the L2 atomics bound the plain scatter). A tile whose box
+        # exceeds TILE_NODES nodes (or a scene with more than one grip) scatters globally, as p2g does.
+        inv_dx = 1.0 / dx
+        G = gm.shape[1]
+        N = x.shape[1]
+        ntile = (N + TILE - 1) // TILE
+        ti.loop_config(block_dim=TILE)
+        for t in range(x.shape[0] * ntile * TILE):
+            tid = t % TILE
+            b = t // (ntile * TILE)
+            # lanes of a warp take particles TILE/32 apart, so that they rarely share a base cell: lanes
+            # adding to the same shared address in one instruction would serialise
+            p = (t // TILE) % ntile * TILE + (tid % 32) * (TILE // 32) + tid // 32
+            lo = ti.simt.block.SharedArray((3,), ti.i32)
+            hi = ti.simt.block.SharedArray((3,), ti.i32)
+            acc = ti.simt.block.SharedArray((TILE_NODES * TILE_CH,), ti.f32)
+            if tid < 3:
+                lo[tid] = G
+                hi[tid] = -1
+            ti.simt.block.sync()
+            active = p < N and k < nsub[b]
+            base = ti.Vector([0, 0, 0])
+            fx = vec3(0.0)
+            if active:
+                Xp = x[b, p] * inv_dx
+                base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
+                fx = Xp - ti.cast(base, ti.f32)
+                for a in ti.static(range(3)):
+                    ti.atomic_min(lo[a], base[a])
+                    ti.atomic_max(hi[a], base[a] + 2)
+            ti.simt.block.sync()
+            o0, o1, o2 = lo[0], lo[1], lo[2]
+            sy = hi[1] - o1 + 1
+            sz = hi[2] - o2 + 1
+            n_nodes = (hi[0] - o0 + 1) * sy * sz
+            tiled = hi[0] >= 0 and n_nodes <= TILE_NODES and ngrip <= 1
+            if tiled:
+                c = tid
+                while c < n_nodes * TILE_CH:
+                    acc[c] = 0.0
+                    c += TILE
+            ti.simt.block.sync()
+            if active:
+                w = _weights(fx)
+                tm = _p2g_terms(b, p, dt[b], inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil)
+                dp = d[b, p]
+                gp = grip[p]
+                for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
+                    off = ti.Vector([i, j, q])
+                    dpos = (ti.cast(off, ti.f32) - fx) * dx
+                    weight = w[i][0] * w[j][1] * w[q][2]
+                    node = base + off
+                    mom = weight * (tm.mv + tm.affine @ dpos)
+                    if tiled:
+                        c = (((node[0] - o0) * sy + node[1] - o1) * sz + node[2] - o2) * TILE_CH
+                        ti.atomic_add(acc[c], mom[0])
+                        ti.atomic_add(acc[c + 1], mom[1])
+                        ti.atomic_add(acc[c + 2], mom[2])
+                        ti.atomic_add(acc[c + 3], weight * tm.mass)
+                        ti.atomic_add(acc[c + 4], weight * dp)
+                        ti.atomic_add(acc[c + 5], weight)
+                        if gp >= 0:
+                            ti.atomic_add(acc[c + 6], weight * tm.mass)
+                    else:
+                        gv[b, node[0], node[1], node[2]] += mom
+                        gm[b, node[0], node[1], node[2]] += weight * tm.mass
+                        gd[b, node[0], node[1], node[2]] += weight * vec2(dp, 1.0)
+                        if gp >= 0:
+                            gg[b * ngrip + gp, node[0], node[1], node[2]] += weight * tm.mass
+            ti.simt.block.sync()
+            if tiled:
+                c = tid
+                while c < n_nodes:
+                    e = c * TILE_CH
+                    m = acc[e + 3]
+                    if m != 0.0:  # every node a particle touched has mass
+                        i = c // (sy * sz) + o0
+                        j = (c // sz) % sy + o1
+                        q = c % sz + o2
+                        gv[b, i, j, q] += vec3(acc[e], acc[e + 1], acc[e + 2])
+                        gm[b, i, j, q] += m
+                        gd[b, i, j, q] += vec2(acc[e + 4], acc[e + 5])
+                        if ngrip > 0 and acc[e + 6] != 0.0:
+                            gg[b * ngrip, i, j, q] += acc[e + 6]
+                    c += TILE
+            ti.simt.block.sync()  # the next tile of this thread block (grid-stride loop) reuses the arrays
 
     @ti.kernel
     def grid_update(k: ti.i32, dx: ti.f32, gravity: ti.f32, damp: ND(ti.f32, 1), bc: ti.i32, ngrip: ti.i32, ncol: ti.i32,
@@ -434,10 +545,20 @@ def _build_kernels(serial_p2g: bool):
             xo[i, p] = x[idx[i], p]
             do[i, p] = d[idx[i], p]
 
-    return clear_grid, p2g, grid_update, g2p, frame_stats, reset_slots, gather, frame_end
+    return clear_grid, p2g, grid_update, g2p, frame_stats, reset_slots, gather, frame_end, p2g_tiled
 
 
 _KERNELS: dict[bool, tuple] = {}
+
+
+def morton_order(positions: np.ndarray, dx: float, grid: int) -> np.ndarray:
+    """Particle indices sorted by the Morton (Z-order) code of their P2G base cell (stable)."""
+    base = np.clip((np.asarray(positions) / dx - 0.5).astype(np.int64), 0, grid - 3)
+    code = np.zeros(len(base), np.int64)
+    for bit in range(int(grid).bit_length()):
+        for a in range(3):
+            code |= ((base[:, a] >> bit) & 1) << (3 * bit + a)
+    return np.argsort(code, kind="stable")
 
 
 class TaichiBackend:
@@ -446,8 +567,19 @@ class TaichiBackend:
     name = "taichi"
 
     def __init__(self, scene, batch: int, arch: str = "cpu", allow_cpu_fallback: bool = False,
-                 stats_partials: int | None = None, **_: object):
+                 stats_partials: int | None = None, p2g: str = "atomic", particle_order: str | None = None,
+                 **_: object):
+        if p2g not in ("auto", "atomic", "tiled"):
+            raise InvphysError(f"p2g must be 'auto', 'atomic' or 'tiled', got {p2g!r}")
+        if particle_order not in (None, "scene", "morton"):
+            raise InvphysError(f"particle_order must be 'scene' or 'morton', got {particle_order!r}")
         self.arch = ensure_taichi(arch, allow_cpu_fallback)
+        if p2g == "auto":
+            p2g = "tiled" if self.arch == "cuda" else "atomic"
+        if p2g == "tiled" and self.arch != "cuda":
+            raise InvphysError("p2g='tiled' needs CUDA (it sums tiles in GPU shared memory); use 'atomic' or 'auto'")
+        #: the scatter in use: "atomic" (global float atomics; serialised on the CPU) or "tiled" (CUDA)
+        self.p2g = p2g
         self.device = device_name(self.arch)
         self.scene = scene
         o = scene.options
@@ -457,7 +589,14 @@ class TaichiBackend:
         if serial not in _KERNELS:
             _KERNELS[serial] = _build_kernels(serial)
         (self._clear, self._p2g, self._grid, self._g2p, self._stats, self._reset, self._gather,
-         self._frame_end) = _KERNELS[serial]
+         self._frame_end, p2g_tiled) = _KERNELS[serial]
+        if p2g == "tiled":
+            self._p2g = p2g_tiled
+        #: particle order on the device: Morton order of the initial cells for the tiled scatter (tiles of
+        #: consecutive particles stay compact), else the scene's; every read returns the scene's order
+        morton = (particle_order or ("morton" if p2g == "tiled" else "scene")) == "morton"
+        self._perm = morton_order(scene.positions, o.dx, o.grid) if morton else None
+        self._unperm = None if self._perm is None else np.argsort(self._perm)
         B, N, G = self.batch, scene.n_particles, o.grid
         self.ngrip = len(scene.grips)
         self.ncol = len(scene.colliders)
@@ -486,11 +625,11 @@ class TaichiBackend:
         self.end_out = ti.ndarray(ti.f32, (B, self.nstats + 4 * NK1))
         self.imp = ti.ndarray(vec3, (B, NK1))
         self.work = ti.ndarray(ti.f32, (B, NK1))
-        self.body = self._const(ti.i32, scene.body.astype(np.int32))
-        self.fibre = self._const(vec3, scene.fibres.astype(np.float32))
-        self.vol = self._const(ti.f32, scene.volume.astype(np.float32))
-        self.grip = self._const(ti.i32, scene.grip.astype(np.int32))
-        self.x0 = self._const(vec3, scene.positions.astype(np.float32))
+        self.body = self._const(ti.i32, self._order(scene.body).astype(np.int32))
+        self.fibre = self._const(vec3, self._order(scene.fibres).astype(np.float32))
+        self.vol = self._const(ti.f32, self._order(scene.volume).astype(np.float32))
+        self.grip = self._const(ti.i32, self._order(scene.grip).astype(np.int32))
+        self.x0 = self._const(vec3, self._order(scene.positions).astype(np.float32))
         self.held = self._const(ti.i32, scene.held.astype(np.int32), (G, G, G))
         enc = [c.encode() for c in scene.colliders] or [(0, np.zeros(3), np.array([0.0, 1.0, 0.0]))]
         self.ctype = self._const(ti.i32, np.array([e[0] for e in enc], np.int32))
@@ -507,6 +646,14 @@ class TaichiBackend:
         self._uploaded: dict[str, np.ndarray] = {}
         self._slot_mask = ti.ndarray(ti.i32, (B,))
         self._stats_mask = ti.ndarray(ti.i32, (B,))
+
+    def _order(self, a: np.ndarray) -> np.ndarray:
+        """A per-particle scene array in the device's particle order."""
+        return a if self._perm is None else a[self._perm]
+
+    def _scene_order(self, a: np.ndarray) -> np.ndarray:
+        """Per-particle device values (..., N, ...) on axis 1 back in the scene's order."""
+        return a if self._unperm is None else a[:, self._unperm]
 
     @staticmethod
     def _const(dtype, values: np.ndarray, shape: tuple | None = None):
@@ -525,7 +672,7 @@ class TaichiBackend:
         self.fric.from_numpy(self._fric_host)
         self.imp.fill(0.0)
         self.work.fill(0.0)
-        self.x.from_numpy(np.broadcast_to(self.scene.positions.astype(np.float32), (B, N, 3)).copy())
+        self.x.from_numpy(np.broadcast_to(self._order(self.scene.positions).astype(np.float32), (B, N, 3)).copy())
         self.v.from_numpy(np.zeros((B, N, 3), np.float32))
         self.C.from_numpy(np.zeros((B, N, 3, 3), np.float32))
         self.F.from_numpy(np.broadcast_to(np.eye(3, dtype=np.float32), (B, N, 3, 3)).copy())
@@ -619,7 +766,7 @@ class TaichiBackend:
         idx, xo, do = self._gather_bufs[n]
         idx.from_numpy(slots)
         self._gather(idx, self.x, self.d, xo, do)
-        return xo.to_numpy(), do.to_numpy()
+        return self._scene_order(xo.to_numpy()), self._scene_order(do.to_numpy())
 
     def frame_stats(self, lo: float, hi: float, slots: np.ndarray | None = None) -> np.ndarray:
         """(B, n_stats) statistics of the current state (columns: :mod:`invphys_anisompm.failure`); with
@@ -669,7 +816,7 @@ class TaichiBackend:
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         """Positions (B, N, 3) and damage (B, N), float32."""
-        return self.x.to_numpy(), self.d.to_numpy()
+        return self._scene_order(self.x.to_numpy()), self._scene_order(self.d.to_numpy())
 
     def grid_mass(self) -> np.ndarray:
         """(B,) total grid mass deposited by the last P2G (equals the particle mass: a check)."""

@@ -1,0 +1,152 @@
+"""Tiled against atomic P2G on a GPU (Taichi): same grid, same features, how much faster.
+
+The tiled scatter (``taichi_p2g: tiled``, CUDA only) sums each tile of consecutive (Morton-ordered)
+particles in shared memory before adding it to the grid; the atomic one adds every particle's share to
+every node with global float atomics (``docs/gpu-throughput.md``). This benchmark, on ``--runs`` random
+parameter vectors (seed 0) of the orange peel at ``--preset``:
+
+1. **grid parity**: both backends load the same runs and do one P2G; the grids (momentum, mass, damage
+   sums, grip mass) must agree to float rounding (the order of the sums differs);
+2. **kernel profile**: seconds per launch of each substep stage (``kernel_times``), both ways;
+3. **whole runs**: the same runs simulated atomic, tiled, then atomic again, in lock-step batches of
+   ``--batch``: wall time per run, the ratio to the paper's 156 s, and the features' agreement (median,
+   90th percentile and worst relative difference per feature, and of the feature means) of tiled against
+   atomic, next to atomic against atomic (GPU float atomics alone make two atomic runs differ).
+
+    python benchmarks/bench_tiled_p2g.py --preset paper --runs 64 --batch 64 --out $OUT/tiled_p2g_paper.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+for p in (ROOT, ROOT / "examples" / "orange_peel", ROOT / "examples" / "anisompm"):
+    if str(p) not in sys.path:
+        sys.path.insert(0, str(p))
+
+PAPER_SECONDS_PER_RUN = 156.0
+
+
+def _args(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--preset", default="paper")
+    p.add_argument("--runs", type=int, default=64)
+    p.add_argument("--batch", type=int, default=64)
+    p.add_argument("--frames", type=int, default=None, help="override the preset's frames (shorter runs)")
+    p.add_argument("--skip-runs", action="store_true", help="grid parity and kernel profile only")
+    p.add_argument("--out", type=Path, default=None)
+    return p.parse_args(argv)
+
+
+def _grids(sim, params: np.ndarray) -> dict[str, np.ndarray]:
+    """One clear + P2G of the freshly loaded runs; the grid arrays in float64."""
+    from invphys_orange_peel.engine_scene import model_for
+
+    B = len(params)
+    backend = sim.engine.backend(B)
+    model = model_for(sim.engine_scene, params)
+    backend.load(model.table(), model.friction)
+    nk = max(len(sim.engine_scene.engine.kinematic_names), 1)
+    backend.set_frame(np.full(B, 1e-4), np.full(B, 2), np.zeros((B, 2, nk, 6)), damage_on=True)
+    stages = backend._stages(0)
+    stages["clear"]()
+    stages["p2g"]()
+    backend.sync()
+    return {k: getattr(backend, k).to_numpy().astype(np.float64) for k in ("gv", "gm", "gd", "gg")}
+
+
+def main(argv: list[str] | None = None) -> int:
+    a = _args(argv)
+    from invphys_orange_peel.features import OrangePeelFeatures
+    from invphys_orange_peel.parameters import parameter_space
+    from invphys_orange_peel.simulator import OrangePeelSimulator
+
+    from invphys.core.dataset import RunIdentity
+
+    space = parameter_space()
+    params = space.denormalize(np.random.default_rng(0).uniform(size=(a.runs, space.dim)))
+    cfg = {"backend": "taichi", "preset": a.preset, "arch": "cuda", "batch_size": a.batch}
+    if a.frames:
+        cfg["frames"] = a.frames
+    sims = {mode: OrangePeelSimulator(**cfg, taichi_p2g=mode) for mode in ("atomic", "tiled")}
+    out: dict = {"benchmark": "bench_tiled_p2g", "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+                 "command": "python " + " ".join(shlex.quote(x) for x in [sys.argv[0], *(argv or sys.argv[1:])]),
+                 "simulator_version": RunIdentity.of(sims["atomic"]).version,
+                 "config_hash": RunIdentity.of(sims["atomic"]).config, "preset": a.preset, "runs": a.runs,
+                 "batch": a.batch, "frames": sims["atomic"].frames}
+    out["device"] = sims["atomic"].engine.backend(min(a.batch, a.runs)).device
+
+    g = {m: _grids(s, params[:a.batch]) for m, s in sims.items()}
+    parity = {}
+    for k in ("gv", "gm", "gd", "gg"):
+        ref, new = g["atomic"][k], g["tiled"][k]
+        scale = float(np.abs(ref).max()) or 1.0
+        parity[k] = {"max_abs_diff_over_max": float(np.abs(new - ref).max() / scale),
+                     "sum_rel_diff": float(abs(new.sum() - ref.sum()) / (abs(ref.sum()) or 1.0))}
+    out["grid_parity"] = parity
+    print("grid parity", json.dumps(parity), flush=True)
+
+    out["kernel_seconds_per_substep"] = {}
+    for m, s in sims.items():
+        backend = s.engine.backend(a.batch)
+        backend.kernel_times(3)  # warm
+        out["kernel_seconds_per_substep"][m] = backend.kernel_times(20)
+    kt = out["kernel_seconds_per_substep"]
+    out["p2g_speedup"] = kt["atomic"]["p2g"] / kt["tiled"]["p2g"]
+    out["substep_speedup"] = sum(kt["atomic"].values()) / sum(kt["tiled"].values())
+    print("kernels", json.dumps(kt), f"p2g x{out['p2g_speedup']:.2f}, substep x{out['substep_speedup']:.2f}",
+          flush=True)
+
+    if not a.skip_runs:
+        ex = OrangePeelFeatures()
+        feats, walls = {}, {}
+        # atomic twice: two atomic runs of the same parameters differ too (GPU float atomics, amplified by
+        # fracture); that spread is the yardstick for tiled against atomic
+        for m, s in (("atomic", sims["atomic"]), ("tiled", sims["tiled"]), ("atomic_again", sims["atomic"])):
+            s.simulate(params[: min(2, a.runs)])  # compile the whole path first (not timed)
+            t0 = time.perf_counter()
+            res = s.simulate(params)
+            walls[m] = time.perf_counter() - t0
+            feats[m] = np.array([ex.extract(r.trajectory) if r.ok else np.full(len(ex.feature_names), np.nan)
+                                 for r in res])
+            print(m, f"{walls[m] / a.runs:.3f} s/run", flush=True)
+
+        def agreement(x: np.ndarray, y: np.ndarray) -> dict:
+            ok = np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(y), axis=1)
+            rel = np.abs(y[ok] - x[ok]) / np.maximum(np.abs(x[ok]), 1e-12)
+            names = ex.feature_names
+            return {"runs_compared": int(ok.sum()), "median_rel_diff_all": float(np.median(rel)),
+                    "median_rel_diff": dict(zip(names, np.median(rel, axis=0).tolist(), strict=True)),
+                    "p90_rel_diff": dict(zip(names, np.percentile(rel, 90, axis=0).tolist(), strict=True)),
+                    "max_rel_diff": dict(zip(names, np.max(rel, axis=0).tolist(), strict=True)),
+                    "mean_of_feature_rel_diff": dict(zip(names, (np.abs(y[ok].mean(0) - x[ok].mean(0))
+                                                                 / np.maximum(np.abs(x[ok].mean(0)), 1e-12)).tolist(),
+                                                         strict=True))}
+
+        out["runs_result"] = {
+            m: {"seconds_per_run": walls[m] / a.runs, "speedup_vs_paper_156s": PAPER_SECONDS_PER_RUN * a.runs / walls[m],
+                "failed": int((~np.all(np.isfinite(feats[m]), axis=1)).sum())} for m in walls}
+        out["runs_speedup_tiled_vs_atomic"] = (walls["atomic"] + walls["atomic_again"]) / 2 / walls["tiled"]
+        out["feature_agreement"] = {"tiled_vs_atomic": agreement(feats["atomic"], feats["tiled"]),
+                                    "atomic_vs_atomic": agreement(feats["atomic"], feats["atomic_again"])}
+        fa = out["feature_agreement"]
+        print("runs", json.dumps(out["runs_result"]), "median rel diff tiled/atomic",
+              fa["tiled_vs_atomic"]["median_rel_diff_all"], "atomic/atomic", fa["atomic_vs_atomic"]["median_rel_diff_all"],
+              flush=True)
+    if a.out:
+        a.out.parent.mkdir(parents=True, exist_ok=True)
+        a.out.write_text(json.dumps(out, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
