@@ -201,6 +201,17 @@ def _p2g_terms(b, p, h, inv_dx, apic, mat: ti.template(), body: ti.template(), f
     return P2GTerms(affine=affine, mv=mass * v[b, p], mass=mass)
 
 
+@ti.func
+def _scatter_global(b, node, weight, mom, mass, dp, gp, ngrip, gv: ti.template(), gm: ti.template(),
+                    gd: ti.template(), gg: ti.template()):
+    """Add one particle's share ``weight`` (momentum ``mom`` already weighted) to grid node ``node``."""
+    gv[b, node[0], node[1], node[2]] += mom
+    gm[b, node[0], node[1], node[2]] += weight * mass
+    gd[b, node[0], node[1], node[2]] += weight * vec2(dp, 1.0)
+    if gp >= 0:
+        gg[b * ngrip + gp, node[0], node[1], node[2]] += weight * mass
+
+
 def _build_kernels(serial_p2g: bool):
     """Compile-time configured kernels (``serial_p2g`` makes CPU scatter order deterministic)."""
 
@@ -238,12 +249,8 @@ def _build_kernels(serial_p2g: bool):
                     off = ti.Vector([i, j, q])
                     dpos = (ti.cast(off, ti.f32) - fx) * dx
                     weight = w[i][0] * w[j][1] * w[q][2]
-                    node = base + off
-                    gv[b, node[0], node[1], node[2]] += weight * (t.mv + t.affine @ dpos)
-                    gm[b, node[0], node[1], node[2]] += weight * t.mass
-                    gd[b, node[0], node[1], node[2]] += weight * vec2(dp, 1.0)
-                    if gp >= 0:
-                        gg[b * ngrip + gp, node[0], node[1], node[2]] += weight * t.mass
+                    _scatter_global(b, base + off, weight, weight * (t.mv + t.affine @ dpos), t.mass, dp, gp,
+                                    ngrip, gv, gm, gd, gg)
 
     @ti.kernel
     def p2g_tiled(k: ti.i32, dx: ti.f32, apic: ti.f32, ngrip: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
@@ -318,11 +325,7 @@ def _build_kernels(serial_p2g: bool):
                         if gp >= 0:
                             ti.atomic_add(acc[c + 6], weight * tm.mass)
                     else:
-                        gv[b, node[0], node[1], node[2]] += mom
-                        gm[b, node[0], node[1], node[2]] += weight * tm.mass
-                        gd[b, node[0], node[1], node[2]] += weight * vec2(dp, 1.0)
-                        if gp >= 0:
-                            gg[b * ngrip + gp, node[0], node[1], node[2]] += weight * tm.mass
+                        _scatter_global(b, node, weight, mom, tm.mass, dp, gp, ngrip, gv, gm, gd, gg)
             ti.simt.block.sync()
             if tiled:
                 c = tid
