@@ -4,11 +4,13 @@ Issue 16 asks for a ~3x faster substep. The P2G scatter takes about 70 % of it; 
 float atomics (memory/L2) or by its per-particle arithmetic (SVD, stress, fibre terms) decides the next
 lever (block-local accumulation and fewer atomics, or cheaper arithmetic). This script answers that:
 
-    python benchmarks/bench_kernel_profile.py --preset paper --batch 64 --out $OUT/kernel_profile_paper_h200.json
+    python benchmarks/bench_kernel_profile.py --preset paper --batch 64 [--p2g tiled] --out $OUT/kernel_profile.json
 
 It re-runs itself under ``ncu`` (``--child``): the child builds the warm engine for ``--batch`` random
-parameter vectors (seed 0), advances ``--warm`` substeps, then launches each substep stage once; ``ncu``
-profiles those launches (sections SpeedOfLight, MemoryWorkloadAnalysis, ComputeWorkloadAnalysis,
+parameter vectors (seed 0), advances ``--warm`` substeps, then two more; ``ncu`` skips the warm-up's
+launches and profiles the next substep's (each Taichi kernel is two CUDA kernels: a short serial task,
+then its loop; the committed ``kernel_profile_paper_h200.json`` skipped 4 per substep, so it profiled
+substep 11 of the warm-up: same stages, same state class) (sections SpeedOfLight, MemoryWorkloadAnalysis, ComputeWorkloadAnalysis,
 LaunchStats, Occupancy, WarpStateStats) and the parent writes every metric per kernel to the JSON, with
 the GPU, the simulator's version and config hash and the command. Without ``ncu`` on the PATH it exits 2.
 """
