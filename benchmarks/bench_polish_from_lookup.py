@@ -101,10 +101,10 @@ class _FirstCall:
 
 
 def _recheck(k: int, evaluator, theta: np.ndarray, targets: np.ndarray, scales: np.ndarray, final: np.ndarray,
-             r_lookup: np.ndarray, stats, path: Path) -> dict:
+             r_lookup: np.ndarray, path: Path) -> dict:
     """Re-simulate the final answers ``k`` times (fresh runs, no log): mean R per target and its spread."""
     from invphys.core.objectives import recovery_reward
-    from invphys.evaluation.stats import paired_difference
+    from invphys.evaluation.stats import mean_with_ci, paired_difference
 
     n = len(theta)
     t0 = time.perf_counter()
@@ -118,7 +118,7 @@ def _recheck(k: int, evaluator, theta: np.ndarray, targets: np.ndarray, scales: 
     r_mean = np.nanmean(np.where(ok, r, np.nan), axis=1)
     dif = r - final[:, None]
     return {"k": k, "runs": n * k, "failed": int((~ok).sum()), "seconds": seconds, "features": str(path.name),
-            "r_actual_resimulated": stats(r_mean),
+            "r_actual_resimulated": mean_with_ci(r_mean),
             "resimulated_minus_selected": {"mean": float(np.nanmean(dif)), "median_abs": float(np.nanmedian(np.abs(dif))),
                                            "targets_below_by_0.01": int((np.nanmin(dif, axis=1) < -0.01).sum()),
                                            "worst": float(np.nanmin(dif))},
@@ -130,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     a = _args(argv)
     from invphys.core.dataset import RunIdentity
     from invphys.core.objectives import recovery_reward
-    from invphys.evaluation.stats import bootstrap_mean_ci, paired_difference
+    from invphys.evaluation.stats import mean_with_ci, paired_difference
     from invphys.inverter import load_inverter
     from invphys.plugins.evaluators.polish import BatchLog, polish
     from invphys.plugins.evaluators.simulator_loop import SimulatorEvaluator
@@ -189,10 +189,6 @@ def main(argv: list[str] | None = None) -> int:
     sets = np.array(["farthest_point" if i < len(tg["features"]) // 2 else "random" for i in range(n)])
     sel = tg.get("selection", "")
 
-    def stats(v: np.ndarray) -> dict:
-        m, lo, hi = bootstrap_mean_ci(v)
-        return {"mean": m, "ci95": [lo, hi]}
-
     out = {
         "benchmark": "bench_polish_from_lookup",
         "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
@@ -216,10 +212,10 @@ def main(argv: list[str] | None = None) -> int:
         "simulator_seconds": pol.seconds, "wall_s_this_call": wall,
         "gpu_seconds_per_polished_target": pol.seconds / max(int(pol.polished.sum()), 1),
         # "lookup": the nearest-neighbour baseline; "start": the --start label's validated answers
-        "r_actual": {"lookup": stats(r_lookup), "start": stats(r_given), "start_then_polish": stats(final)},
+        "r_actual": {"lookup": mean_with_ci(r_lookup), "start": mean_with_ci(r_given), "start_then_polish": mean_with_ci(final)},
         "vs_lookup": paired_difference(final, r_lookup),
         "vs_start": paired_difference(final, r_given),
-        "polished_targets": {"before": stats(r_given[pol.polished]), "after": stats(final[pol.polished])},
+        "polished_targets": {"before": mean_with_ci(r_given[pol.polished]), "after": mean_with_ci(final[pol.polished])},
         "by_set": {s: {"lookup": float(r_lookup[sets == s].mean()), "start": float(r_given[sets == s].mean()),
                        "polished": float(final[sets == s].mean())}
                    for s in ("farthest_point", "random") if (sets == s).any()},
@@ -228,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
                         "theta": space.denormalize(pol.theta[i:i + 1])[0].tolist()} for i in range(n)],
     }
     if a.recheck > 0:
-        out["recheck"] = _recheck(a.recheck, evaluator, pol.theta[:n], targets, scales, final, r_lookup, stats,
+        out["recheck"] = _recheck(a.recheck, evaluator, pol.theta[:n], targets, scales, final, r_lookup,
                                   a.out.with_suffix(".recheck.npz"))
     if a.compare is not None:
         other = json.loads(a.compare.read_text())
@@ -239,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
                 rr = {r["target_index"]: r["r_actual"] for r in other["rows"] if r["optimizer"] == lab}
                 if len(rr) >= n:
                     v = np.array([rr[i] for i in range(n)], dtype=np.float64)
-                    comp[lab] = {**stats(v), "polished_minus_this": paired_difference(final, v)}
+                    comp[lab] = {**mean_with_ci(v), "polished_minus_this": paired_difference(final, v)}
             out["compare"] = {"report": str(a.compare), "labels": comp}
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps(out, indent=1) + "\n")

@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     a = _args(argv)
     from invphys.core.dataset import RunIdentity
     from invphys.core.objectives import recovery_reward
-    from invphys.evaluation.stats import bootstrap_mean_ci, paired_difference
+    from invphys.evaluation.stats import mean_with_ci, paired_difference
     from invphys.inverter import load_inverter
     from invphys.plugins.evaluators.simulator_loop import SimulatorEvaluator
 
@@ -134,10 +134,6 @@ def main(argv: list[str] | None = None) -> int:
     est_robust = np.nanmean(fresh, axis=1)
     kept = np.setdiff1d(np.arange(n), flagged)
 
-    def stats(v: np.ndarray) -> dict:
-        m, lo, hi = bootstrap_mean_ci(v)
-        return {"mean": m, "ci95": [lo, hi]}
-
     out = {
         "benchmark": "bench_robust_reselect",
         "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
@@ -148,8 +144,8 @@ def main(argv: list[str] | None = None) -> int:
         "polish": str(a.polish), "settings": {"tol": a.tol, "candidates": a.candidates, "k": a.k},
         "targets": n, "flagged": [int(i) for i in flagged],
         "runs": evaluator.runs, "simulator_seconds": evaluator.wall_time_s, "wall_s": seconds,
-        "r_actual": {"lookup": stats(lookup), "selected_best_of_n": stats(final),
-                     "recheck": stats(est_recheck), "reselected_fresh": stats(est_robust)},
+        "r_actual": {"lookup": mean_with_ci(lookup), "selected_best_of_n": mean_with_ci(final),
+                     "recheck": mean_with_ci(est_recheck), "reselected_fresh": mean_with_ci(est_robust)},
         "vs_lookup": {"recheck": paired_difference(est_recheck, lookup),
                       "reselected_fresh": paired_difference(est_robust, lookup)},
         "fresh_minus_recheck": paired_difference(est_robust, est_recheck),

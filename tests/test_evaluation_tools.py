@@ -10,7 +10,7 @@ from models_data import smooth
 from invphys.core.objectives import RecoveryObjective, recovery_reward
 from invphys.core.spaces import build_problem, raw_space
 from invphys.evaluation.protocol import actual_score, protocol_summary
-from invphys.evaluation.stats import bootstrap_mean_ci, paired_difference, spearman
+from invphys.evaluation.stats import bootstrap_mean_ci, mean_with_ci, paired_difference, spearman
 
 
 def test_bootstrap_interval_covers_the_mean_and_shrinks_with_more_targets() -> None:
@@ -23,6 +23,8 @@ def test_bootstrap_interval_covers_the_mean_and_shrinks_with_more_targets() -> N
     assert lo2 < 0.6 < hi2
     assert bootstrap_mean_ci([np.nan, 0.5]) == (0.5, 0.5, 0.5)
     assert np.isnan(bootstrap_mean_ci([np.nan])[0])
+    m, lo, hi = bootstrap_mean_ci(small)
+    assert mean_with_ci(small) == {"mean": m, "ci95": [lo, hi]}  # the JSON form reports store
 
 
 def test_paired_difference_beats_only_when_the_interval_is_above_zero() -> None:

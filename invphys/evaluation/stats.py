@@ -27,6 +27,13 @@ def bootstrap_mean_ci(values: np.ndarray, n_boot: int = 2000, confidence: float 
     return mean, float(lo), float(hi)
 
 
+def mean_with_ci(values: np.ndarray, n_boot: int = 2000, confidence: float = 0.95,
+                 seed: int = 0) -> dict[str, float | list[float]]:
+    """``{"mean", "ci95": [lo, hi]}`` of :func:`bootstrap_mean_ci`, as reports and benchmark JSONs store it."""
+    mean, lo, hi = bootstrap_mean_ci(values, n_boot, confidence, seed)
+    return {"mean": mean, "ci95": [lo, hi]}
+
+
 def paired_difference(a: np.ndarray, b: np.ndarray, n_boot: int = 2000, confidence: float = 0.95,
                       seed: int = 0) -> dict[str, float | int | bool]:
     """Mean of ``a - b`` over the targets where both are finite, with its bootstrap interval.
