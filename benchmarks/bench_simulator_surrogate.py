@@ -69,11 +69,9 @@ def _models(seed: int, val: float, paper_ensemble: bool) -> dict:
 def _scene_separation(identity: dict) -> float:
     """Centroid distance of skin and flesh in the preset's scene before settling (metres)."""
     from invphys_orange_peel.presets import get_preset
-    from invphys_orange_peel.scene import INTERIOR, SKIN, build_scene
+    from invphys_orange_peel.scene import build_scene
 
-    scene = build_scene(get_preset(identity["preset"]))
-    pos = scene.positions
-    return float(np.linalg.norm(pos[scene.labels == SKIN].mean(axis=0) - pos[scene.labels == INTERIOR].mean(axis=0)))
+    return build_scene(get_preset(identity["preset"])).separation()
 
 
 def parse_transform(spec: str, names: list[str], identity: dict | None) -> tuple[str, dict]:

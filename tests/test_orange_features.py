@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from invphys_orange_peel.features import (
     FEATURE_NAMES,
+    LOG_OFFSETS,
     OrangePeelFeatures,
     TrajectoryError,
     first_crossing,
@@ -40,7 +41,9 @@ def test_twelve_named_features_keep_the_papers_eleven() -> None:
 def test_exact_values_on_a_two_particle_story() -> None:
     """One skin particle lifts 0.01 m per frame for 30 frames at 10 fps; one interior stays put.
 
-    Series every frame: sep(f) = 0.01 f; mean damage 0.001 f; the gripper's work grows to 2 J.
+    Series every frame: sep(f) = 0.01 f; mean damage 0.001 f; the gripper's work grows to 2 J. Four features
+    are log10 of the statistic plus a small guard offset (``LOG_OFFSETS``); without ``scene_separation`` the
+    separation gain counts from sep(0) = 0.
     """
     labels = [0, 1]
     frames = [0, 10, 20, 30]
@@ -51,16 +54,23 @@ def test_exact_values_on_a_two_particle_story() -> None:
               frame_mean_damage=0.001 * f31, frame_work=2.0 * f31 / 30)
     f = _features(t)
     # tail: the last second = frames 20..30 of the series (mean 0.25) and recorded frames 20, 30
-    assert f["final_separation"] == pytest.approx(0.25)
-    assert f["peak_separation_rate"] == pytest.approx(0.1)              # 0.01 m per frame at 10 fps
+    assert f["final_separation"] == pytest.approx(np.log10(0.25 + 1e-4))
+    assert f["peak_separation_rate"] == pytest.approx(np.log10(0.1 + 1e-5))  # 0.01 m per frame at 10 fps
     assert f["fracture_onset_frame"] == pytest.approx(5.0)              # mean damage reaches 0.005 at f = 5
     assert f["separation_half_time"] == pytest.approx(12.5)             # rise reaches 0.125 at f = 12.5
     assert f["skin_dispersion"] == 0.0 and f["interior_dispersion"] == 0.0
     # detachment: tau = 0 + dx/4 = 0.005, width dx/2 = 0.01; distances 0.2 and 0.3 are far past it
     assert f["skin_detachment_fraction"] == 1.0
-    assert f["interior_mean_displacement"] == 0.0 and f["interior_max_displacement"] == 0.0
+    assert f["interior_mean_displacement"] == pytest.approx(-6.0) == f["interior_max_displacement"]  # the guard
     assert f["skin_mean_damage"] == pytest.approx(0.75) and f["interior_mean_damage"] == pytest.approx(0.2)
     assert f["peeling_work"] == pytest.approx(np.log10(2.0))
+    # the simulator's built-scene separation is the baseline of the gain: 0.25 - 0.05 m
+    g = _features(_traj(pos, dmg, labels, frames, fps=10.0, radius=0.15, dx=0.02, frame_separation=0.01 * f31,
+                        frame_mean_damage=0.001 * f31, frame_work=2.0 * f31 / 30, scene_separation=0.05))
+    assert g["final_separation"] == pytest.approx(np.log10(0.20 + 1e-4))
+    assert g["separation_half_time"] == f["separation_half_time"]    # counts from sep(0), not the scene
+    assert set(LOG_OFFSETS) == {n for n, u in zip(FEATURE_NAMES, EX.feature_units, strict=True)
+                                if u.startswith("log10") and n != "peeling_work"}
 
 
 def test_robust_top_statistic_and_gripper_exclusion() -> None:
@@ -78,8 +88,8 @@ def test_robust_top_statistic_and_gripper_exclusion() -> None:
     disp = np.linspace(0.0, 0.2, n)[::-1]
     far = first[1:, 0] > 0.2                               # 2 cells of 0.1 m from the gripped particle
     expect = np.sort(disp[far])[-int(np.ceil(0.01 * far.sum())):].mean()
-    assert f["interior_max_displacement"] == pytest.approx(expect, rel=1e-5)
-    assert f["interior_max_displacement"] < disp.max() - 0.01
+    assert f["interior_max_displacement"] == pytest.approx(np.log10(expect + 1e-6), rel=1e-5)
+    assert 10 ** f["interior_max_displacement"] < disp.max() - 0.01
     assert top_mean(np.arange(200.0), 0.01) == pytest.approx(198.5)
 
 
@@ -108,7 +118,7 @@ def test_degenerate_full_fracture_and_no_motion() -> None:
     f = _features(full)
     assert f["fracture_onset_frame"] == 0              # fractured from the first frame
     assert f["separation_half_time"] == 10             # nothing separates: the last frame
-    assert f["peak_separation_rate"] == 0.0
+    assert f["peak_separation_rate"] == pytest.approx(-5.0)  # no rise: log10 of the 1e-5 m/s guard
     assert f["skin_mean_damage"] == 1.0 == f["interior_mean_damage"]
     assert f["peeling_work"] == -9.0                   # no work: the floor, 1e-9 J
     none = _traj(pos, np.zeros((3, 4)), [0, 0, 1, 1], [0, 5, 10], frame_mean_damage=np.zeros(11), **series)
@@ -119,7 +129,7 @@ def test_recorded_frames_stand_in_for_missing_series_except_work() -> None:
     pos = [[[0, 0.1 * k, 0], [0, 0, 0]] for k in range(3)]
     t = _traj(pos, np.zeros((3, 2)), [0, 1], [0, 10, 20], fps=10.0, frame_work=np.linspace(0, 1, 21))
     f = _features(t)
-    assert f["final_separation"] == pytest.approx(0.15)  # recorded frames 10 and 20 are the last second
+    assert f["final_separation"] == pytest.approx(np.log10(0.15 + 1e-4))  # recorded frames 10, 20: the last second
     assert f["separation_half_time"] == pytest.approx(7.5)
     with pytest.raises(TrajectoryError, match="frame_work"):
         EX.extract(_traj(pos, np.zeros((3, 2)), [0, 1], [0, 10, 20]))
@@ -127,7 +137,7 @@ def test_recorded_frames_stand_in_for_missing_series_except_work() -> None:
 
 def test_single_frame_and_missing_region_are_defined() -> None:
     f = _features(_traj(np.zeros((1, 3, 3)), np.zeros((1, 3)), [0, 0, 0], [0], frame_work=np.zeros(1)))
-    assert f["interior_mean_displacement"] == 0.0 and f["skin_detachment_fraction"] == 0.0
+    assert f["interior_mean_displacement"] == pytest.approx(-6.0) and f["skin_detachment_fraction"] == 0.0
 
 
 def test_non_finite_and_inconsistent_trajectories_are_rejected() -> None:

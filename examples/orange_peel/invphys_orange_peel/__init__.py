@@ -8,6 +8,6 @@ Import-cheap: nothing here imports taichi or warp. Typical use::
     [result] = sim.simulate(sim.parameter_space().center()[None])
 """
 
-__version__ = "0.2.0"
+__version__ = "0.3.0"
 #: recorded with every run; bump when the physics or the scene changes results
-SIMULATOR_VERSION = "0.2.0"
+SIMULATOR_VERSION = "0.3.0"

@@ -21,14 +21,14 @@ from invphys.core.results import Trajectory
 
 #: feature name -> unit (docs/orange-peel/features.md); "" for a fraction or a damage in [0, 1]
 FEATURE_UNITS: dict[str, str] = {
-    "final_separation": "m",
-    "peak_separation_rate": "m/s",
+    "final_separation": "log10 m",         # separation gained over the built scene's (0.3.0)
+    "peak_separation_rate": "log10 m/s",   # (0.3.0)
     "fracture_onset_frame": "frame",       # real-valued frame index
     "separation_half_time": "frame",       # real-valued frame index
     "skin_dispersion": "m",
     "skin_detachment_fraction": "",
-    "interior_mean_displacement": "m",
-    "interior_max_displacement": "m",      # robust top statistic away from the gripper
+    "interior_mean_displacement": "log10 m",   # (0.3.0)
+    "interior_max_displacement": "log10 m",    # robust top statistic away from the gripper (0.3.0)
     "interior_dispersion": "m",
     "skin_mean_damage": "",
     "interior_mean_damage": "",
@@ -38,6 +38,15 @@ FEATURE_NAMES: tuple[str, ...] = tuple(FEATURE_UNITS)
 
 #: the floor of the gripper work before the logarithm (J)
 WORK_FLOOR = 1e-9
+#: the features reported in log10 units since simulator 0.3.0 -> the offset added before the logarithm (a
+#: guard far below every measured value, so that a run that does not move stays finite); final_separation
+#: is the log of the separation *gained* over the built scene's (m), the others of the plain statistic
+LOG_OFFSETS: dict[str, float] = {
+    "final_separation": 1e-4,
+    "peak_separation_rate": 1e-5,
+    "interior_mean_displacement": 1e-6,
+    "interior_max_displacement": 1e-6,
+}
 
 
 class TrajectoryError(InvphysError, ValueError):
@@ -137,6 +146,19 @@ def away_from_gripper(first: np.ndarray, inner: np.ndarray, gripped: np.ndarray 
     return inner & (dist > cells * float(dx))
 
 
+def log_units(linear: np.ndarray, separation_baseline: float) -> np.ndarray:
+    """The reported features from the same statistics in linear units (the units simulator 0.2.0 stored:
+    final_separation and the displacements in m, the rate in m/s; ``peeling_work`` is already log10 J):
+    each feature of :data:`LOG_OFFSETS` becomes ``log10(v + offset)``, with final_separation's ``v`` the
+    separation gained over ``separation_baseline`` (clipped at 0)."""
+    out = np.array(linear, dtype=np.float64, copy=True)
+    for name, offset in LOG_OFFSETS.items():
+        k = FEATURE_NAMES.index(name)
+        v = max(out[k] - separation_baseline, 0.0) if name == "final_separation" else out[k]
+        out[k] = np.log10(v + offset)
+    return out
+
+
 class OrangePeelFeatures(FeatureExtractor):
     """The paper's 11 named features plus the gripper's peeling work, from an orange-peel trajectory.
 
@@ -205,7 +227,8 @@ class OrangePeelFeatures(FeatureExtractor):
                 _mean(d[skin]), _mean(d[inner]),
             ])
         ends = np.mean(np.asarray(rows, np.float64), axis=0)
-        out = np.array([final_sep, peak, onset, half, *ends, np.log10(max(work, WORK_FLOOR))], dtype=np.float64)
+        linear = np.array([final_sep, peak, onset, half, *ends, np.log10(max(work, WORK_FLOOR))], dtype=np.float64)
+        out = log_units(linear, self._baseline(t, sep))
         if not np.isfinite(out).all():  # pragma: no cover - guarded above; never return NaN silently
             raise TrajectoryError(f"non-finite features {dict(zip(FEATURE_NAMES, out, strict=True))}")
         return out
@@ -247,6 +270,18 @@ class OrangePeelFeatures(FeatureExtractor):
         stride = float(steps[0]) if len(steps) else 1.0
         sep = np.array([np.linalg.norm(centroid(p[skin]) - centroid(p[inner])) for p in pos])
         return sep, dmg.mean(axis=1), fps / stride
+
+    @staticmethod
+    def _baseline(t: Trajectory, sep: np.ndarray) -> float:
+        """The separation ``final_separation`` counts from: the built scene's skin-interior centroid distance
+        (``extra['scene_separation']``, the same for every run of a preset), else the first frame's."""
+        base = t.extra.get("scene_separation")
+        if base is None:
+            return float(sep[0])
+        base = float(base)
+        if not np.isfinite(base):
+            raise TrajectoryError(f"non-finite scene_separation {base}")
+        return base
 
     @staticmethod
     def _work(t: Trajectory) -> float:

@@ -85,6 +85,11 @@ class Scene:
     def gripper_position(self, t: np.ndarray | float) -> np.ndarray:
         return self.arc.position(t, self.centre, self.radius)
 
+    def separation(self) -> float:
+        """Distance (m) between the skin's and the interior's centroids as built, before settling."""
+        pos = self.positions
+        return float(np.linalg.norm(pos[self.labels == SKIN].mean(axis=0) - pos[self.labels == INTERIOR].mean(axis=0)))
+
     def held_node_mask(self) -> np.ndarray:
         """(G, G, G) bool: grid nodes of the flesh's core whose velocity is held at zero.
 

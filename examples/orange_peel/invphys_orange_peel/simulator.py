@@ -257,6 +257,8 @@ class OrangePeelSimulator(Simulator):
                 "gripper_path": scene.gripper_position(frames / fps).astype(np.float32),
                 "gripped": scene.gripped.copy(),
                 "dx": scene.dx, "radius": scene.radius, "skin_thickness": scene.skin_thickness,
+                # skin-interior centroid distance of the built scene, before settling (final_separation's baseline)
+                "scene_separation": scene.separation(),
                 "centre": scene.centre.copy(), "domain": scene.domain, "frames": self.frames,
                 "record_every": self.record_every, "preset": self.preset.name,
                 # frames 1..frames, as before the engine (frame 0 is the settled state)
