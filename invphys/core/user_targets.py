@@ -7,9 +7,9 @@ values, unreadable files.
 
 File shapes accepted (JSON and YAML alike)::
 
-    {final_separation: 0.01, ...}                       # one target
-    [{final_separation: 0.01, ...}, {...}]              # several
-    {targets: [{id: firm, final_separation: 0.01, ...}]}  # several, with labels
+    {final_separation: -1.9, ...}                       # one target
+    [{final_separation: -1.9, ...}, {...}]              # several
+    {targets: [{id: firm, final_separation: -1.9, ...}]}  # several, with labels
 
 A CSV file has a header of feature names (and optionally an ``id`` column) and one target per row;
 an empty cell is a missing feature.

@@ -3,7 +3,7 @@
 ::
 
     inv = invphys.load_inverter("inverters/orange_peel_paper")
-    res = inv.invert({"final_separation": 0.012, ...})          # default: the best amortised policy
+    res = inv.invert({"final_separation": -1.9, ...})          # default: the best amortised policy
     res.parameters                                               # {"E": 812.4, "rho": ..., ...}
     res = inv.invert(target, method="cma_es", top_k=3, refine=200)
     inv.validate(res)                                            # re-run the simulator: R_actual, gap
