@@ -11,6 +11,7 @@ from invphys_orange_peel.features import (
     TrajectoryError,
     first_crossing,
     onset_index,
+    soft_detached,
     top_mean,
     windowed_peak_rate,
 )
@@ -91,6 +92,30 @@ def test_robust_top_statistic_and_gripper_exclusion() -> None:
     assert f["interior_max_displacement"] == pytest.approx(np.log10(expect + 1e-6), rel=1e-5)
     assert 10 ** f["interior_max_displacement"] < disp.max() - 0.01
     assert top_mean(np.arange(200.0), 0.01) == pytest.approx(198.5)
+
+
+def test_soft_detachment_matches_a_brute_force_count() -> None:
+    """The bounded KD-tree search gives the brute-force smoothstep count: particles in the band count in
+    part, those past tau + w (the search bound) fully, those near the flesh not at all."""
+    rng = np.random.default_rng(3)
+    g = np.linspace(0.0, 1.0, 11)
+    flesh = np.stack(np.meshgrid(g, g, g[:6], indexing="ij"), -1).reshape(-1, 3)      # a slab up to z = 0.5
+    peel = np.c_[rng.uniform(size=(200, 2)), np.full(200, 0.52)]                     # a skin layer above it
+    first = np.vstack([peel, flesh])
+    skin, inner = np.r_[np.ones(200, bool), np.zeros(len(flesh), bool)], np.r_[np.zeros(200, bool), np.ones(len(flesh), bool)]
+    for dx in (0.05, 0.1, None):
+        final = first + rng.normal(scale=0.003, size=first.shape)
+        final[:200, 2] += rng.uniform(0.0, 0.2, size=200)                             # lifted by 0 to 0.2
+
+        def nearest(x: np.ndarray) -> np.ndarray:
+            return np.sqrt(((x[skin][:, None, :] - x[inner][None, :, :]) ** 2).sum(-1)).min(axis=1)
+
+        d0, d1 = nearest(first), nearest(final)
+        scale = dx if dx is not None else d0.max()
+        tau, width = d0.max() + 0.25 * scale, 0.5 * scale
+        u = np.clip((d1 - tau) / width, 0.0, 1.0)
+        assert (u == 0).any() and (u == 1).any() and ((u > 0) & (u < 1)).any()  # every regime is exercised
+        assert soft_detached(first, final, skin, inner, dx) == pytest.approx(np.mean(u * u * (3 - 2 * u)), rel=1e-12)
 
 
 def test_onset_is_continuous_and_extrapolates_runs_that_never_fracture() -> None:

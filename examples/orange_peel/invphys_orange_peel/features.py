@@ -119,20 +119,37 @@ def half_time(separation: np.ndarray, final: float, radius: float) -> float:
     return float(len(separation) - 1) if hit is None else hit
 
 
+class SoftDetachment:
+    """``soft_detached`` for one run: the threshold comes from the first frame, computed once here and applied
+    to each tail frame by calling the object (the search stops at tau + w: farther particles count 1)."""
+
+    def __init__(self, first: np.ndarray, skin: np.ndarray, inner: np.ndarray, dx: float | None) -> None:
+        self.skin, self.inner = skin, inner
+        self.empty = not skin.any() or not inner.any()
+        if self.empty:
+            return
+        from scipy.spatial import cKDTree
+
+        d0, _ = cKDTree(first[inner], balanced_tree=False, compact_nodes=False).query(first[skin])
+        scale = float(dx) if dx is not None else float(d0.max())
+        self.tau, self.width = float(d0.max()) + 0.25 * scale, max(0.5 * scale, 1e-12)
+
+    def __call__(self, final: np.ndarray) -> float:
+        if self.empty:
+            return 0.0
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(final[self.inner], balanced_tree=False, compact_nodes=False)  # faster to build, same distances
+        d1, _ = tree.query(final[self.skin], distance_upper_bound=self.tau + self.width)  # inf past the bound
+        s = np.clip((d1 - self.tau) / self.width, 0.0, 1.0)
+        return float(np.mean(s * s * (3.0 - 2.0 * s)))
+
+
 def soft_detached(first: np.ndarray, final: np.ndarray, skin: np.ndarray, inner: np.ndarray,
                   dx: float | None) -> float:
     """Soft fraction of skin particles away from all flesh: mean of smoothstep((d1 - tau) / w) with d1
     a skin particle's distance to the nearest interior particle, tau = max initial d + dx/4, w = dx/2."""
-    if not skin.any() or not inner.any():
-        return 0.0
-    from scipy.spatial import cKDTree
-
-    d0, _ = cKDTree(first[inner]).query(first[skin])
-    scale = float(dx) if dx is not None else float(d0.max())
-    tau, width = float(d0.max()) + 0.25 * scale, max(0.5 * scale, 1e-12)
-    d1, _ = cKDTree(final[inner]).query(final[skin])
-    s = np.clip((d1 - tau) / width, 0.0, 1.0)
-    return float(np.mean(s * s * (3.0 - 2.0 * s)))
+    return SoftDetachment(first, skin, inner, dx)(final)
 
 
 def away_from_gripper(first: np.ndarray, inner: np.ndarray, gripped: np.ndarray | None,
@@ -217,12 +234,13 @@ class OrangePeelFeatures(FeatureExtractor):
 
         first = pos[0]
         far = away_from_gripper(first, inner, t.extra.get("gripped"), self.config.gripper_exclusion_cells, dx)
+        detached = SoftDetachment(first, skin, inner, dx)
         rows = []
         for k in np.flatnonzero(tail):
             x, d = pos[k], dmg[k]
             disp = np.linalg.norm(x - first, axis=1)
             rows.append([
-                dispersion(x[skin]), soft_detached(first, x, skin, inner, dx),
+                dispersion(x[skin]), detached(x),
                 _mean(disp[inner]), top_mean(disp[far], self.config.top_fraction), dispersion(x[inner]),
                 _mean(d[skin]), _mean(d[inner]),
             ])
