@@ -3,6 +3,8 @@
     python benchmarks/bench_identifiability.py --preset quick --arch cuda --points 16 \\
         --scales-from datasets/orange_peel_quick --out benchmarks/results/identifiability_quick.json
     python benchmarks/bench_identifiability.py --preset tiny --arch cpu --points 4   # CPU, deterministic
+    python benchmarks/bench_identifiability.py --surrogate inverters/orange_peel_quick --points 256 \\
+        --scales-from datasets/orange_peel_quick --out benchmarks/results/identifiability_quick_surrogate.json
 
 At ``--points`` base points drawn uniformly in [h, 1 - h]^9 (normalised space, seeded), central finite
 differences with step ``--step`` (h) give the Jacobian J (12 x 9) of the features, each feature divided by
@@ -11,12 +13,19 @@ J[k, j] = (y_k(theta + h e_j) - y_k(theta - h e_j)) / (2 h s_k), i.e. the change
 units of its spread, per full range of parameter j. Reported: per parameter the median column norm
 |J[:, j]| (its sensitivity), the largest |cosine| between two parameters' columns (1 = the features cannot
 tell the two apart locally), and the singular values of J (numerical rank at 1e-2 and 1e-3 of the largest).
+
+``--surrogate BUNDLE`` (an inverter bundle directory) runs no simulator: the same base points and stencil
+are evaluated on the bundle's fitted ensemble surrogate (its NumPy predictor, the members' mean) and go
+through the same ``jacobians``/``summarise``. It measures the sensitivity of the fitted surrogate, i.e.
+what the data taught it about the parameters: smooth and cheap (many points on a CPU), but only as good
+as the surrogate's R^2, which is recorded (``surrogate_test_r2``, on the bundle's held-out rows).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import platform
 import sys
 import time
 from pathlib import Path
@@ -73,9 +82,113 @@ def summarise(Js: list[np.ndarray], names: tuple[str, ...]) -> dict:
     }
 
 
+def stencil(base: np.ndarray, h: float) -> np.ndarray:
+    """The central-difference points per base point, laid out as [base, +e_0, -e_0, +e_1, -e_1, ...]."""
+    d = base.shape[1]
+    theta = []
+    for b in base:
+        theta.append(b)
+        for j in range(d):
+            for sgn in (1.0, -1.0):
+                t = b.copy()
+                t[j] += sgn * h
+                theta.append(t)
+    return np.asarray(theta)
+
+
+def base_points(points: int, dim: int, h: float, seed: int) -> np.ndarray:
+    """``points`` base points uniform in [h, 1 - h]^dim (normalised space), seeded."""
+    return h + (1 - 2 * h) * np.random.default_rng(seed).uniform(size=(points, dim))
+
+
+def cpu_name() -> str:
+    """The CPU's model name (from /proc/cpuinfo where there is one), else platform.processor()."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def surrogate_mode(args: argparse.Namespace, argv: list[str] | None) -> dict:
+    """The Jacobians of the bundle's fitted surrogate at the simulator mode's points and stencil."""
+    import os
+
+    import invphys
+    from invphys.core.objectives import percentile_scales
+    from invphys.inverter import BundleError
+    from invphys.models.data import r2_scores
+
+    inv = invphys.load_inverter(args.surrogate)
+    bundle = inv.bundle
+    manifest = bundle.manifest
+    names, fnames = bundle.space.names, bundle.feature_names
+    sim_info = manifest["simulator"]
+    h, d = args.step, bundle.space.dim
+    theta = stencil(base_points(args.points, d, h, args.seed), h)
+    surrogate = bundle.surrogate
+    t0 = time.perf_counter()
+    y = np.asarray(surrogate.predict(theta), dtype=np.float64)
+    wall = time.perf_counter() - t0
+    ok = np.isfinite(y).all(axis=1)
+    if args.scales_from is not None:
+        from invphys.core.dataset import DatasetStore
+
+        store = DatasetStore(args.scales_from)
+        arrays = store.arrays(ok_only=True)
+        if tuple(arrays.feature_names) != tuple(fnames):
+            raise SystemExit(f"--scales-from {args.scales_from} holds other features than the bundle predicts "
+                             f"({list(arrays.feature_names)} vs {list(fnames)})")
+        scales = percentile_scales(arrays.y)
+        scale_source = str(args.scales_from)
+        identity = store.metadata.get("identity") or {}
+        dataset = {"path": scale_source, "simulator": identity.get("simulator"), "version": identity.get("version"),
+                   "preset": identity.get("preset"), "rows": len(arrays)}
+    else:
+        scales = percentile_scales(y[:: 1 + 2 * d][ok[:: 1 + 2 * d]])
+        scale_source = "base points"
+        dataset = None
+    Js = [J for J in jacobians(y, ok, args.points, d, h, scales) if J is not None]
+    try:
+        th_test, y_test = bundle.data("test")
+    except BundleError:  # a bundle shipped without its held-out rows
+        r2 = None
+    else:
+        r2_all, r2_each = r2_scores(y_test, surrogate.predict(th_test))
+        r2 = {"overall": round(float(r2_all), 4), "rows": len(y_test),
+              **dict(zip(fnames, np.round(r2_each, 4).tolist(), strict=True))}
+    members = surrogate.members(theta[:1]).shape[0]
+    out = {
+        "benchmark": "bench_identifiability",
+        "mode": "surrogate",
+        "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "command": "python benchmarks/bench_identifiability.py " + " ".join(sys.argv[1:] if argv is None else argv),
+        "bundle": str(args.surrogate), "bundle_id": str(manifest.get("bundle_id", "")),
+        "bundle_name": manifest.get("name"),
+        "surrogate": {"type": manifest["components"]["surrogate"].get("type"), "members": int(members),
+                      "predictor": "Bundle.surrogate.predict (members' mean, NumPy inference form)"},
+        "simulator": sim_info.get("name"), "simulator_version": sim_info.get("version"),
+        "preset": (sim_info.get("config") or {}).get("preset"),
+        "trained_on": manifest.get("dataset"),
+        "dataset": dataset,
+        "device": "cpu", "machine": {"cpu": cpu_name(), "cpu_count": os.cpu_count(),
+                                     "platform": platform.platform(terse=True)},
+        "points": args.points, "step": h, "seed": args.seed,
+        "evaluations": len(theta), "failed": int((~ok).sum()), "wall_s": wall, "scales_from": scale_source,
+        "feature_names": list(fnames), "param_names": list(names),
+        "scales": scales.tolist(),
+        "surrogate_test_r2": r2,
+        **summarise(Js, names),
+        "jacobians": [J.round(5).tolist() for J in Js],
+    }
+    return out
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--preset", default="tiny")
+    ap.add_argument("--preset", default=None, help="simulator preset (default tiny; --surrogate: the bundle's)")
     ap.add_argument("--backend", default="taichi", choices=["taichi", "warp"])
     ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"])
     ap.add_argument("--points", type=int, default=4)
@@ -84,7 +197,20 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--batch", type=int, default=64)
     ap.add_argument("--scales-from", type=Path, default=None, help="a dataset whose feature spread scales J")
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--surrogate", type=Path, default=None, metavar="BUNDLE",
+                    help="an inverter bundle: differentiate its fitted surrogate instead of the simulator")
     args = ap.parse_args(argv)
+    if args.surrogate is not None:
+        out = surrogate_mode(args, argv)
+        if args.preset is not None and args.preset != out["preset"]:
+            raise SystemExit(f"--preset {args.preset}: the bundle {args.surrogate} was trained on the "
+                             f"{out['preset']} preset (leave --preset out with --surrogate)")
+        path = args.out or ROOT / "benchmarks" / "results" / f"identifiability_{out['preset']}_surrogate.json"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(out, indent=2))
+        print(json.dumps({k: v for k, v in out.items() if k != "jacobians"}, indent=2))
+        return out
+    args.preset = args.preset or "tiny"
 
     from invphys_orange_peel.features import OrangePeelFeatures
     from invphys_orange_peel.simulator import OrangePeelSimulator
@@ -95,16 +221,7 @@ def main(argv: list[str] | None = None) -> dict:
     sim = OrangePeelSimulator(preset=args.preset, backend=args.backend, arch=args.arch, batch_size=args.batch)
     space = sim.parameter_space()
     d = space.dim
-    base = h + (1 - 2 * h) * np.random.default_rng(args.seed).uniform(size=(args.points, d))
-    theta = []
-    for b in base:
-        theta.append(b)
-        for j in range(d):
-            for sgn in (1.0, -1.0):
-                t = b.copy()
-                t[j] += sgn * h
-                theta.append(t)
-    theta = np.asarray(theta)
+    theta = stencil(base_points(args.points, d, h, args.seed), h)
     t0 = time.perf_counter()
     results = sim.simulate(space.denormalize(theta))
     wall = time.perf_counter() - t0
@@ -122,6 +239,7 @@ def main(argv: list[str] | None = None) -> dict:
     Js = [J for J in jacobians(y, ok, args.points, d, h, scales) if J is not None]
     out = {
         "benchmark": "bench_identifiability",
+        "mode": "simulator",
         "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "command": "python benchmarks/bench_identifiability.py " + " ".join(sys.argv[1:] if argv is None else argv),
         "simulator_version": sim.version, "preset": args.preset, "backend": args.backend,
