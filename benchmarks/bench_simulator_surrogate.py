@@ -30,6 +30,10 @@ back-transformed predictions' R^2 in raw units (``r2_raw_units``, ...) and a ``t
   which the stored data do not hold.
 
 Without ``--transform`` nothing changes (same training targets, same JSON).
+
+``--ensemble-option KEY=VALUE`` (repeatable) changes a setting of ``ensemble`` (e.g. ``members=10``,
+``hidden=[512,512,256]``, ``max_epochs=400``); the JSON records them under ``ensemble_options`` and in the
+model's ``config``. An unknown key or a bad value fails as the plugin's config does.
 """
 
 from __future__ import annotations
@@ -50,7 +54,7 @@ PAPER = {"activation": "relu", "batch_norm": True, "dropout": 0.1, "optimizer": 
          "lr": 1e-3, "max_epochs": 1000, "patience": 50}
 
 
-def _models(seed: int, val: float, paper_ensemble: bool) -> dict:
+def _models(seed: int, val: float, paper_ensemble: bool, ensemble_options: dict | None = None) -> dict:
     from invphys.plugins.surrogates.ensemble import EnsembleSurrogate
     from invphys.plugins.surrogates.mlp import MLPSurrogate
 
@@ -59,7 +63,7 @@ def _models(seed: int, val: float, paper_ensemble: bool) -> dict:
     out = {
         "mlp_paper": lambda: MLPSurrogate(seed=seed, val_fraction=val),
         "mlp_new": lambda: MLPSurrogate(seed=seed, val_fraction=val, **new),
-        "ensemble": lambda: EnsembleSurrogate(seed=seed, val_fraction=val),
+        "ensemble": lambda: EnsembleSurrogate(seed=seed, val_fraction=val, **(ensemble_options or {})),
     }
     if paper_ensemble:
         out["ensemble_paper"] = lambda: EnsembleSurrogate(seed=seed, val_fraction=val, **PAPER)
@@ -72,6 +76,19 @@ def _scene_separation(identity: dict) -> float:
     from invphys_orange_peel.scene import build_scene
 
     return build_scene(get_preset(identity["preset"])).separation()
+
+
+def parse_options(items: list[str]) -> dict:
+    """``KEY=VALUE`` strings -> a dict of YAML-parsed values (validated by the ensemble's own config)."""
+    import yaml
+
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise SystemExit(f"--ensemble-option {item!r}: expected KEY=VALUE")
+        out[key] = yaml.safe_load(value)
+    return out
 
 
 def parse_transform(spec: str, names: list[str], identity: dict | None) -> tuple[str, dict]:
@@ -122,8 +139,11 @@ def main(argv: list[str] | None = None) -> dict:
                     help="another store whose rows join the training rows only (repeatable)")
     ap.add_argument("--transform", action="append", default=[], metavar="NAME=KIND",
                     help="train and score feature NAME as log10 or log10_gain[:C] (repeatable; see above)")
+    ap.add_argument("--ensemble-option", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a setting of the ensemble (YAML value, e.g. members=10, hidden=[512,512,256])")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
+    ensemble_options = parse_options(args.ensemble_option)
 
     import torch
 
@@ -171,7 +191,9 @@ def main(argv: list[str] | None = None) -> dict:
         out["transforms"] = transforms
         out["r2_units"] = ("r2, r2_min_feature, r2_per_feature: transformed units for the transformed features "
                            "(raw for the rest); *_raw_units: predictions back-transformed, all raw units")
-    factories = _models(args.seed, args.val_fraction, args.paper_ensemble)
+    if ensemble_options:
+        out["ensemble_options"] = ensemble_options
+    factories = _models(args.seed, args.val_fraction, args.paper_ensemble, ensemble_options)
     chosen = [m for m in args.models.split(",") if m] or list(factories)
 
     def save() -> None:
