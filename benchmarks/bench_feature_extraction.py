@@ -89,6 +89,8 @@ def main(argv: list[str] | None = None) -> dict:
     from invphys_orange_peel import SIMULATOR_VERSION
     from invphys_orange_peel.features import OrangePeelFeatures
 
+    from benchmarks._machine import cpu_name
+
     trajs = trajectories(args.preset, args.seed)
     now, feats = time_extract(OrangePeelFeatures(), trajs, args.repeat)
     out: dict = {
@@ -96,7 +98,7 @@ def main(argv: list[str] | None = None) -> dict:
         "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "preset": args.preset,
         "simulator_version": SIMULATOR_VERSION, "particles": int(trajs[0].positions.shape[1]),
         "recorded_frames": int(trajs[0].positions.shape[0]), "runs_per_pass": len(trajs), "repeat": args.repeat,
-        "device": {"cpu": platform.processor() or platform.machine(), "python": platform.python_version(),
+        "device": {"cpu": cpu_name(), "python": platform.python_version(),
                    "numpy": np.__version__},
         "git": subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                               text=True).stdout.strip(),

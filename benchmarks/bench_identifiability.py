@@ -101,22 +101,12 @@ def base_points(points: int, dim: int, h: float, seed: int) -> np.ndarray:
     return h + (1 - 2 * h) * np.random.default_rng(seed).uniform(size=(points, dim))
 
 
-def cpu_name() -> str:
-    """The CPU's model name (from /proc/cpuinfo where there is one), else platform.processor()."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def surrogate_mode(args: argparse.Namespace, argv: list[str] | None) -> dict:
     """The Jacobians of the bundle's fitted surrogate at the simulator mode's points and stencil."""
     import os
 
     import invphys
+    from benchmarks._machine import cpu_name
     from invphys.core.objectives import percentile_scales
     from invphys.inverter import BundleError
     from invphys.models.data import r2_scores

@@ -29,17 +29,9 @@ import sys
 import time
 from pathlib import Path
 
+from _machine import cpu_name
+
 HEAVY = ("torch", "stable_baselines3", "taichi", "warp", "zuko", "cma")
-
-
-def _cpu() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def _git() -> str:
@@ -162,7 +154,7 @@ def main() -> None:
                        "batched_targets_per_s": {str(n): round(v, 1) for n, v in r["batched_targets_per_s"].items()}}
                       for r in rounds],
         "goals": {"load_s": 3.0, "amortised_ms_per_target": 5.0, "batched_targets_per_s": 10000},
-        "device": {"cpu": _cpu(), "cores": os.cpu_count(), "loadavg_at_start": load_start,
+        "device": {"cpu": cpu_name(), "cores": os.cpu_count(), "loadavg_at_start": load_start,
                    "loadavg_at_end": list(os.getloadavg()), "single_and_amortised_blas_threads": 1,
                    "python": platform.python_version(), "numpy": np.__version__},
         "git": _git(),

@@ -4,10 +4,10 @@ code, and that code reports two identical parameter columns as rank-deficient.""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
+import benchmark_modules
 import numpy as np
 import pytest
 
@@ -21,11 +21,7 @@ pytestmark = pytest.mark.skipif(not (BUNDLE / "manifest.yaml").is_file() or not 
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("bench_identifiability",
-                                                  ROOT / "benchmarks" / "bench_identifiability.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return benchmark_modules.load("bench_identifiability")
 
 
 @pytest.fixture(scope="module")

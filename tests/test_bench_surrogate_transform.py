@@ -3,10 +3,10 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
+import benchmark_modules
 import numpy as np
 import pytest
 
@@ -19,11 +19,7 @@ IDENT = RunIdentity("toy_oscillator", "tiny", "numpy", "1")
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("bench_simulator_surrogate",
-                                                  ROOT / "benchmarks" / "bench_simulator_surrogate.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return benchmark_modules.load("bench_simulator_surrogate")
 
 
 def _store(path: Path, n: int = 40) -> DatasetStore:
