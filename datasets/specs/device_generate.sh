@@ -1,12 +1,10 @@
 #!/usr/bin/env bash
 # Device run: (re)generate the committed datasets with the working tree's simulator, resumable.
-# Usage on the device: STEPS="quick paper noise" LIMIT=560 bash .gpu/lead/gen.sh
-# Carry: .gpu/tix, .gpu/h5, .gpu/lead. The stores come back under $OUT/datasets/.
+# Usage on the device: STEPS="quick paper noise" LIMIT=560 bash datasets/specs/device_generate.sh
+# Staging: `bash benchmarks/device/split_taichi_wheels.sh` here; on the device one call `bash .gpu/ti/stage.sh`
+# (carry .gpu/ti), then this script with carry .gpu/tb. The stores come back under $OUT/datasets/.
 T_START=$(date +%s)
-if [ ! -d /tmp/gpusite/taichi ]; then
-  mkdir -p /tmp/gpusite && tar -C /tmp/gpusite -xJf .gpu/tix/taichi.tar.xz || exit 1
-  python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/gpusite .gpu/h5/*.whl || exit 1
-fi
+bash .gpu/tb/stage.sh || exit 1
 export PYTHONPATH=/tmp/gpusite:$PWD:$PWD/examples/anisompm:$PWD/examples/orange_peel PYTHONUNBUFFERED=1
 python3 -m pip install -q --no-deps --no-build-isolation --no-index -e . -e examples/anisompm -e examples/orange_peel > $OUT/pip.txt 2>&1 || { echo "pip -e failed"; tail -5 $OUT/pip.txt; }
 nvidia-smi --query-gpu=name,memory.used --format=csv,noheader
