@@ -1,4 +1,4 @@
-"""The validate stage is resumable: rows are appended to disk as batches finish, a run killed with
+"""The validate stage is resumable: each run is appended to disk as it finishes, a run killed with
 SIGKILL mid-validate and started again simulates only what is missing and changes no finished row;
 and user targets without ground truth (targets.values) validate and report with render and the
 noise floor left on."""
@@ -170,3 +170,47 @@ def test_memo_survives_a_new_batch_size_but_not_another_simulator(tmp_path) -> N
     assert calls == [2, 2, 1] and np.array_equal(a.features, b.features, equal_nan=True)
     memo(ToyOscillator(substeps=3), 4)  # another simulator config: simulated again
     assert calls == [2, 2, 1, 4, 1]
+
+
+def test_runs_finished_before_a_stop_inside_a_batch_are_kept(tmp_path) -> None:
+    """A call stopped in the middle of a validator batch keeps the runs that finished (each is appended as
+    the simulator reports it); the next call simulates only the rest and gives the uninterrupted result."""
+    from test_dataset_toy import ToyFeatures, ToyOscillator
+
+    from invphys.core.dataset import RunIdentity
+    from invphys.pipeline.runner import fingerprint
+    from invphys.pipeline.sim_checkpoint import SimCheckpoint
+    from invphys.plugins.validators.simulator import SimulatorValidator
+
+    theta = np.random.default_rng(1).uniform(size=(6, 3))
+    sim, v = ToyOscillator(), SimulatorValidator(batch_size=6)
+    ident = fingerprint(RunIdentity.of(sim).to_dict())
+
+    class Stop(Exception):
+        pass
+
+    def stop_after_two(th, on_run=None, **kw):
+        def run(i):
+            if on_run is not None:
+                on_run(i)
+            if i == 1:
+                raise Stop  # a kill after the second run of the only batch finished
+        return v.simulate_features(th, sim, ToyFeatures(), on_run=run, **kw)
+
+    path = tmp_path / "memo.jsonl"
+    with pytest.raises(Stop):
+        SimCheckpoint(path, ident).simulate(theta, stop_after_two, 6, 5)
+    assert len(_lines(path)) == 2                  # both finished runs are on disk, nothing else
+    kept = _lines(path)
+    calls = []
+
+    def simulate(th, **kw):
+        calls.append(len(th))
+        return v.simulate_features(th, sim, ToyFeatures(), **kw)
+
+    again = SimCheckpoint(path, ident)
+    resumed = again.simulate(theta, simulate, 6, 5)
+    assert calls == [4] and again.reused == 2     # only the four missing runs
+    assert _lines(path)[:2] == kept                # finished rows unchanged
+    whole = SimCheckpoint(tmp_path / "whole.jsonl", ident).simulate(theta, simulate, 6, 5)
+    np.testing.assert_array_equal(resumed.features, whole.features)

@@ -69,13 +69,20 @@ class SimCheckpoint:
         for r in records:
             self.done[r["key"]] = r
 
+    @staticmethod
+    def _record(key: str, theta: np.ndarray, features: Any, failure: str | None, stats: Any) -> dict[str, Any]:
+        return {"key": key, "theta": np.asarray(theta).tolist(),
+                "features": None if features is None else np.asarray(features).tolist(), "failure": failure,
+                "stats": None if stats is None else stats.to_dict()}
+
     def simulate(self, theta: np.ndarray, simulate: Callable[..., Any], batch_size: int, n_features: int,
                  keep_trajectories: bool | Collection[int] = False, on_run: Callable[[int], None] | None = None
                  ) -> Any:
-        """Like ``simulate(theta, keep_trajectories=..., on_run=...)`` (a validator's ``simulate_features``
-        bound to simulator and extractor), simulating only rows not in the memo, ``batch_size`` at a time,
-        each batch appended before the next starts. Returns a ``SimulatedFeatures`` for all rows;
-        trajectories exist only for rows simulated in this call."""
+        """Like ``simulate(theta, keep_trajectories=..., on_run=..., on_record=...)`` (a validator's
+        ``simulate_features`` bound to simulator and extractor), simulating only rows not in the memo,
+        ``batch_size`` at a time. Each run is appended as its ``on_record`` reports it (as it finishes), and
+        whatever a batch did not report when the batch returns, so a killed call loses no finished run.
+        Returns a ``SimulatedFeatures`` for all rows; trajectories exist only for rows simulated in this call."""
         from invphys.plugins.validators.simulator import SimulatedFeatures
 
         theta = np.atleast_2d(np.asarray(theta, dtype=np.float64))
@@ -88,16 +95,20 @@ class SimCheckpoint:
             rows = todo[start:start + max(1, batch_size)]
             keep: bool | set[int] = keep_trajectories is True or {
                 j for j, r in enumerate(rows) if keep_trajectories and r in keep_trajectories}
-            sim = simulate(theta[rows], keep_trajectories=keep,
+            stored: set[int] = set()
+
+            def store(j: int, features: Any, failure: str | None, stats: Any, rows: list[int] = rows,
+                      stored: set[int] = stored) -> None:
+                self.append([self._record(keys[rows[j]], theta[rows[j]], features, failure, stats)])
+                stored.add(j)
+
+            sim = simulate(theta[rows], keep_trajectories=keep, on_record=store,
                            on_run=None if on_run is None else (lambda j, rows=rows: on_run(rows[j])))
-            recs = []
+            self.append([self._record(keys[r], theta[r], sim.features[j] if sim.failures[j] is None else None,
+                                      sim.failures[j], sim.stats[j])
+                         for j, r in enumerate(rows) if j not in stored])
             for j, r in enumerate(rows):
-                ok = sim.failures[j] is None
-                recs.append({"key": keys[r], "theta": theta[r].tolist(),
-                             "features": sim.features[j].tolist() if ok else None, "failure": sim.failures[j],
-                             "stats": None if sim.stats[j] is None else sim.stats[j].to_dict()})
                 trajs[r] = sim.trajectories[j]
-            self.append(recs)
             self.simulated += len(rows)
         m = n_features
         feats, failures, stats = [], [], []

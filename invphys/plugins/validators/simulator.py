@@ -54,12 +54,16 @@ class SimulatorValidator(Validator):
 
     def simulate_features(self, theta: np.ndarray, simulator: Simulator, extractor: FeatureExtractor,
                           keep_trajectories: bool | Collection[int] = False,
-                          on_run: Callable[[int], None] | None = None) -> SimulatedFeatures:
+                          on_run: Callable[[int], None] | None = None,
+                          on_record: Callable[[int, np.ndarray | None, str | None, RunStats | None], None] | None = None
+                          ) -> SimulatedFeatures:
         """Simulate rows of ``theta`` (B, d) in [0, 1]^d and extract their features (NaN rows on failure).
 
         ``keep_trajectories``: True keeps every successful run's trajectory, a collection of row indices
         keeps only those (trajectories can be large), False none. ``on_run(row)`` is called as each
-        run finishes (progress bars).
+        run finishes (progress bars). ``on_record(row, features or None, failure, stats)`` is called once
+        per row as soon as its outcome is known: as the run finishes when the simulator reports runs one by
+        one (``on_result``), else when its batch returns (a caller that stores rows loses no finished run).
         """
         sim = self.simulator_for(simulator)
         theta = np.atleast_2d(np.asarray(theta, dtype=np.float64))
@@ -69,40 +73,62 @@ class SimulatorValidator(Validator):
         failures: list[str | None] = [None] * len(theta)
         stats: list[RunStats | None] = [None] * len(theta)
         trajs: list[Any] = [None] * len(theta)
+        settled: set[int] = set()
+
+        def settle(r: int, res: Any) -> None:
+            """Row ``r``'s features, failure, stats (and trajectory) from its result, recorded once."""
+            if r in settled:
+                return
+            settled.add(r)
+            failures[r] = self._outcome(r, res, extractor, m, out, stats)
+            if failures[r] is None and (keep_trajectories is True or (keep_trajectories and r in keep_trajectories)):
+                trajs[r] = res.trajectory
+            if on_record is not None:
+                on_record(r, out[r].copy() if failures[r] is None else None, failures[r], stats[r])
+
+        def finished(rows: list[int], i: int, res: Any) -> None:
+            settle(rows[i], res)
+            if on_run is not None:
+                on_run(rows[i])
+
         bs = self.config.batch_size
         for start in range(0, len(theta), bs):
             rows = list(range(start, min(start + bs, len(theta))))
             try:
-                results = sim.simulate(params[rows], on_result=None if on_run is None else
-                                       lambda i, _res, rows=rows: on_run(rows[i]))
+                results = sim.simulate(params[rows], on_result=lambda i, res, rows=rows: finished(rows, i, res))
             except SimulationFailed:
                 results = []
-                for r in rows:  # isolate the failing row(s)
+                for r in rows:  # isolate the failing row(s); rows already reported keep their outcome
+                    if r in settled:
+                        results.append(None)
+                        continue
                     try:
                         results += sim.simulate(params[r:r + 1])
                     except SimulationFailed as exc:
                         results.append(exc)
             for r, res in zip(rows, results, strict=True):
-                if isinstance(res, SimulationFailed):
-                    failures[r] = res.reason
-                    continue
-                stats[r] = res.stats
-                if not res.ok:
-                    failures[r] = res.failure or "simulation failed"
-                    continue
-                try:
-                    feats = res.features if res.features is not None else extractor.extract(res.trajectory)
-                except SimulationFailed as exc:
-                    failures[r] = exc.reason
-                    continue
-                feats = np.asarray(feats, dtype=np.float64).reshape(-1)
-                if feats.shape != (m,) or not np.all(np.isfinite(feats)):
-                    failures[r] = f"feature extraction gave {feats.shape} / non-finite features"
-                    continue
-                out[r] = feats
-                if keep_trajectories is True or (keep_trajectories and r in keep_trajectories):
-                    trajs[r] = res.trajectory
+                if res is not None:
+                    settle(r, res)
         return SimulatedFeatures(out, failures, stats, trajs)
+
+    @staticmethod
+    def _outcome(r: int, res: Any, extractor: FeatureExtractor, m: int, out: np.ndarray,
+                 stats: list[RunStats | None]) -> str | None:
+        """Fill ``out[r]`` and ``stats[r]`` from one result; the failure reason, or None for a good row."""
+        if isinstance(res, SimulationFailed):
+            return res.reason
+        stats[r] = res.stats
+        if not res.ok:
+            return res.failure or "simulation failed"
+        try:
+            feats = res.features if res.features is not None else extractor.extract(res.trajectory)
+        except SimulationFailed as exc:
+            return exc.reason
+        feats = np.asarray(feats, dtype=np.float64).reshape(-1)
+        if feats.shape != (m,) or not np.all(np.isfinite(feats)):
+            return f"feature extraction gave {feats.shape} / non-finite features"
+        out[r] = feats
+        return None
 
     def validate(self, theta: np.ndarray, targets: np.ndarray, predicted: np.ndarray,
                  simulator: Simulator, extractor: FeatureExtractor,
