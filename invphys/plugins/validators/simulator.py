@@ -80,7 +80,9 @@ class SimulatorValidator(Validator):
             if r in settled:
                 return
             settled.add(r)
-            failures[r] = self._outcome(r, res, extractor, m, out, stats)
+            feats, failures[r], stats[r] = self._outcome(res, extractor, m)
+            if feats is not None:
+                out[r] = feats
             if failures[r] is None and (keep_trajectories is True or (keep_trajectories and r in keep_trajectories)):
                 trajs[r] = res.trajectory
             if on_record is not None:
@@ -112,23 +114,21 @@ class SimulatorValidator(Validator):
         return SimulatedFeatures(out, failures, stats, trajs)
 
     @staticmethod
-    def _outcome(r: int, res: Any, extractor: FeatureExtractor, m: int, out: np.ndarray,
-                 stats: list[RunStats | None]) -> str | None:
-        """Fill ``out[r]`` and ``stats[r]`` from one result; the failure reason, or None for a good row."""
+    def _outcome(res: Any, extractor: FeatureExtractor, m: int
+                 ) -> tuple[np.ndarray | None, str | None, RunStats | None]:
+        """One result's (features or None, failure reason or None, stats)."""
         if isinstance(res, SimulationFailed):
-            return res.reason
-        stats[r] = res.stats
+            return None, res.reason, None
         if not res.ok:
-            return res.failure or "simulation failed"
+            return None, res.failure or "simulation failed", res.stats
         try:
             feats = res.features if res.features is not None else extractor.extract(res.trajectory)
         except SimulationFailed as exc:
-            return exc.reason
+            return None, exc.reason, res.stats
         feats = np.asarray(feats, dtype=np.float64).reshape(-1)
         if feats.shape != (m,) or not np.all(np.isfinite(feats)):
-            return f"feature extraction gave {feats.shape} / non-finite features"
-        out[r] = feats
-        return None
+            return None, f"feature extraction gave {feats.shape} / non-finite features", res.stats
+        return feats, None, res.stats
 
     def validate(self, theta: np.ndarray, targets: np.ndarray, predicted: np.ndarray,
                  simulator: Simulator, extractor: FeatureExtractor,
