@@ -3,7 +3,7 @@
 # machine in TWO carried folders, because the working tree (~33 MB with the committed datasets, bundles and
 # results) plus the whole taichi wheel (56 MB) exceeds the 64 MiB a `run` call carries.
 #   .gpu/ti: part a of taichi's files as tar.xz (~19 MB)
-#   .gpu/tb: part b (~18 MB) + pydantic, pydantic-core, annotated-types, typing-inspection, cma, dill wheels
+#   .gpu/tb: part b (~18 MB) + pydantic, pydantic-core, annotated-types, typing-inspection, cma, zuko, dill wheels
 # Usage (from the project's root):  bash benchmarks/device/split_taichi_wheels.sh
 # then two `run` calls back to back (the machine is released after ~30 s idle):
 #   1. bash .gpu/ti/stage.sh                      carry [".gpu/ti"]
@@ -19,7 +19,7 @@ plat=(--only-binary=:all: --python-version 3.12 --implementation cp --platform m
       --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64)
 python3 -m pip download -q --no-deps "${plat[@]}" -d "$tmp/whl" "taichi==$TI"
 python3 -m pip download -q --no-deps "${plat[@]}" -d .gpu/tb dill pydantic pydantic-core annotated-types \
-  typing-inspection cma
+  typing-inspection cma zuko
 mkdir -p "$tmp/t" && (cd "$tmp/t" && unzip -q "$tmp"/whl/taichi-*.whl)
 echo "compressing taichi (a few minutes)..."
 tar -C "$tmp/t" -cJf "$tmp/taichi.tar.xz" .
