@@ -207,6 +207,35 @@ def test_active_learning_resumes_and_extends_its_rounds(run_dir, tmp_path) -> No
     assert other["resumed_after_round"] is None
 
 
+def test_active_rounds_resume_when_only_the_batching_changes(run_dir, tmp_path) -> None:
+    """The rounds' checkpoint keys the simulator and features by their identity, the validator without its
+    batch size: a call on another machine with other batching (as a GPU call with continuous slots)
+    resumes instead of starting over; a changed validator setting that matters does not."""
+    import shutil
+
+    from rich.console import Console
+
+    from invphys.core.spec import parse_spec
+    from invphys.pipeline.runner import run_spec
+
+    out, _ = run_dir
+    copy = tmp_path / "run"
+    shutil.copytree(out, copy)
+    shutil.rmtree(copy / "active")
+
+    def active(text: str, validator: str = "validator: {type: simulator, batch_size: 64}") -> dict:
+        spec = SPEC.replace("active: {rounds: 2,", text).replace("validator: {type: simulator, batch_size: 64}",
+                                                                   validator)
+        return run_spec(parse_spec(spec), copy, stages=["active"], progress=False,
+                        console=Console(file=io.StringIO()))["active"]
+
+    assert active("active: {rounds: 1,")["resumed_after_round"] is None
+    two = active("active: {rounds: 2,", "validator: {type: simulator, batch_size: 3}")
+    assert two["resumed_after_round"] == 1 and len(two["rounds"]) == 3
+    other = active("active: {rounds: 2,", "validator: {type: simulator, batch_size: 3, overrides: {sleep_s: 0.0}}")
+    assert other["resumed_after_round"] is None
+
+
 class _QuadSim:
     """A deterministic stand-in for the simulator evaluator: features = theta (counts runs and calls)."""
 

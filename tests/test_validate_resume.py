@@ -214,3 +214,48 @@ def test_runs_finished_before_a_stop_inside_a_batch_are_kept(tmp_path) -> None:
     assert _lines(path)[:2] == kept                # finished rows unchanged
     whole = SimCheckpoint(tmp_path / "whole.jsonl", ident).simulate(theta, simulate, 6, 5)
     np.testing.assert_array_equal(resumed.features, whole.features)
+
+
+def test_memo_is_found_whatever_the_spec_calls_the_feature_extractor(tmp_path) -> None:
+    """The memo keys runs by the resolved extractor, not the spec's wording: a run folder validated with
+    the simulator's default extractor replays every run when the spec names the same extractor by its
+    module path (as GPU-machine specs do without installed entry points); a changed extractor config
+    does not replay."""
+    spec_text = SPEC.replace("SLEEP", "0.0")
+    out = tmp_path / "run"
+    _run(spec_text, out, ["dataset", "train", "invert", "validate"])
+    memo = out / "validate" / "simulated.jsonl"
+    before = _lines(memo)
+    assert len(before) > 6
+    named = spec_text.replace("dataset: {", 'features: {type: "test_dataset_toy:ToyFeatures"}\ndataset: {', 1)
+    summary = _run(named, out, ["validate"])
+    assert _lines(memo) == before  # nothing simulated, nothing appended
+    assert summary["validate"]["failed"] == 0
+
+
+def test_checkpoint_finds_records_of_a_legacy_identity(tmp_path) -> None:
+    """Records written under an earlier identity are replayed when it is given as ``legacy``; runs it lacks
+    are simulated and appended under the current identity."""
+    from invphys.pipeline.sim_checkpoint import SimCheckpoint
+    from invphys.plugins.validators.simulator import SimulatedFeatures
+
+    calls: list[int] = []
+
+    def simulate(theta, keep_trajectories=False, on_record=None, on_run=None):
+        calls.append(len(theta))
+        feats = np.column_stack([theta.sum(axis=1), theta[:, 0]])
+        return SimulatedFeatures(feats, [None] * len(theta), [None] * len(theta), [None] * len(theta))
+
+    theta = np.random.default_rng(0).random((5, 3))
+    path = tmp_path / "memo.jsonl"
+    old = SimCheckpoint(path, "identity-v1")
+    first = old.simulate(theta[:3], simulate, 2, 2)
+    assert calls == [2, 1]
+    new = SimCheckpoint(path, "identity-v2", legacy=["identity-v1"])
+    got = new.simulate(theta, simulate, 8, 2)
+    assert calls == [2, 1, 2]  # only the two rows the old memo lacks
+    np.testing.assert_array_equal(got.features[:3], first.features)
+    assert new.reused == 3 and new.simulated == 2
+    again = SimCheckpoint(path, "identity-v2")  # without the legacy identity the old rows are not found
+    again.simulate(theta, simulate, 8, 2)
+    assert calls[-1] == 3

@@ -94,6 +94,16 @@ class RunIdentity:
                 "version": self.version, "config": self.config}
 
 
+def extractor_identity(extractor: Any) -> dict[str, Any]:
+    """What makes a feature extractor's output the same: its registered name, version, feature names
+    and config hash - not how a spec named it (``orange_peel`` or a ``module:Class`` path), so memos of
+    features made on one machine are found on another."""
+    return {"extractor": str(getattr(extractor, "name", type(extractor).__name__)),
+            "version": str(getattr(extractor, "version", "") or ""),
+            "features": list(extractor.feature_names),
+            "config": config_hash(getattr(extractor, "config", None))}
+
+
 def config_hash(config: Any, ignore: Sequence[str] = ()) -> str:
     """A stable 16-hex-digit hash of a pydantic config's JSON dump (minus ``ignore``); ``""`` for None."""
     if config is None:

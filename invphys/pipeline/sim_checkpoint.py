@@ -5,7 +5,8 @@ fsynced): its key, features (None for a failed run), failure reason and run stat
 killed and started again, reads the file, simulates only the vectors it lacks and gets the finished
 ones back bit for bit (JSON keeps float64 exactly). A torn last line (a kill mid-write) is cut off on
 load. Keys hash the rounded vector together with an ``identity`` (simulator, features and validator
-settings), so a changed simulator never reuses old runs.
+settings), so a changed simulator never reuses old runs. Records written under an earlier form of the
+same identity (``legacy``) are still found; new records use ``identity``.
 """
 
 from __future__ import annotations
@@ -25,9 +26,10 @@ from invphys.core.results import RunStats
 class SimCheckpoint:
     """Append-only memo ``key -> (features, failure, stats)`` backed by ``path`` (JSON lines)."""
 
-    def __init__(self, path: Path, identity: str) -> None:
+    def __init__(self, path: Path, identity: str, legacy: Collection[str] = ()) -> None:
         self.path = Path(path)
         self.identity = identity
+        self.legacy = tuple(x for x in legacy if x != identity)
         self.done: dict[str, dict[str, Any]] = {}
         self.reused = 0
         self.simulated = 0
@@ -53,9 +55,20 @@ class SimCheckpoint:
                 fh.flush()
                 os.fsync(fh.fileno())
 
-    def key(self, theta: np.ndarray) -> str:
-        blob = self.identity.encode() + np.round(np.asarray(theta, dtype=np.float64), 12).tobytes()
+    def key(self, theta: np.ndarray, identity: str | None = None) -> str:
+        blob = (identity or self.identity).encode() + np.round(np.asarray(theta, dtype=np.float64), 12).tobytes()
         return hashlib.sha256(blob).hexdigest()[:24]
+
+    def _find(self, theta: np.ndarray) -> str:
+        """The key under which ``theta`` is memoised (a legacy identity's if only that one has it), else
+        its key under the current identity."""
+        key = self.key(theta)
+        if key not in self.done:
+            for old in self.legacy:
+                k = self.key(theta, old)
+                if k in self.done:
+                    return k
+        return key
 
     def append(self, records: list[dict[str, Any]]) -> None:
         """Append ``records`` durably (one fsync per batch)."""
@@ -86,7 +99,7 @@ class SimCheckpoint:
         from invphys.plugins.validators.simulator import SimulatedFeatures
 
         theta = np.atleast_2d(np.asarray(theta, dtype=np.float64))
-        keys = [self.key(t) for t in theta]
+        keys = [self._find(t) for t in theta]
         first = {k: i for i, k in reversed(list(enumerate(keys)))}
         todo = sorted(i for k, i in first.items() if k not in self.done)
         trajs: list[Any] = [None] * len(theta)

@@ -138,7 +138,9 @@ def run(ctx: StageContext) -> dict[str, Any]:
     rounds: list[dict[str, Any]] = []
     key = _checkpoint_key(ctx, n, feats)
     first = 0
-    saved = _load_checkpoint(ctx, key)
+    saved = _load_checkpoint(ctx, (key, _checkpoint_key(ctx, n, feats, legacy=True)))
+    if saved is not None:
+        key = saved["key"]  # a legacy key stays in use: the polish logs are keyed by it
     if saved is not None:  # resume after the last round that finished (also when `rounds` grew)
         rounds, best_theta, best_r, best_y = saved["rounds"], saved["best_theta"], saved["best_r"], saved["best_y"]
         added_theta, added_y = saved["added_theta"], saved["added_y"]
@@ -380,16 +382,28 @@ def _surrogate_for(ctx: StageContext, r: int, theta_tr: np.ndarray, y_tr: np.nda
 CHECKPOINT_FILE = "progress.npz"
 
 
-def _checkpoint_key(ctx: StageContext, n: int, feats: np.ndarray) -> str:
-    """What a saved round must match to be resumed: everything but ``active.rounds``."""
+def _checkpoint_key(ctx: StageContext, n: int, feats: np.ndarray, legacy: bool = False) -> str:
+    """What a saved round must match to be resumed: everything but ``active.rounds`` and the polish.
+
+    The simulator and features count by their resolved identity (as the dataset store and the validate
+    memo key runs: not device, batching or how the spec named the plugin), the validator without its
+    ``batch_size``. ``legacy``: the key as first written (the spec's simulator and validator sections
+    verbatim), so rounds saved by earlier versions still resume.
+    """
+    from invphys.core.dataset import RunIdentity, extractor_identity
     from invphys.pipeline.cache import digest
 
     sec = ctx.spec.active.model_dump(mode="json") if ctx.spec.active else {}
     sec.pop("rounds", None)
     sec.pop("polish", None)  # the polish comes after the rounds: its settings do not invalidate them
-    return digest({"active": sec, "n": n, "targets": np.round(feats, 12).tolist(), "seed": ctx.seed,
-                   "surrogate": ctx.spec.surrogate, "validator": ctx.spec.validator, "simulator": ctx.spec.simulator,
-                   "data": ctx.dataset().fingerprint})
+    common = {"active": sec, "n": n, "targets": np.round(feats, 12).tolist(), "seed": ctx.seed,
+              "surrogate": ctx.spec.surrogate}
+    if legacy:
+        return digest({**common, "validator": ctx.spec.validator, "simulator": ctx.spec.simulator,
+                       "data": ctx.dataset().fingerprint})
+    validator = {k: v for k, v in dict(ctx.spec.validator or {}).items() if k != "batch_size"}
+    return digest({**common, "validator": validator, "simulator": RunIdentity.of(ctx.simulator()).to_dict(),
+                   "features": extractor_identity(ctx.extractor()), "data": ctx.dataset().fingerprint})
 
 
 def _save_checkpoint(ctx: StageContext, key: str, rounds: list[dict[str, Any]],
@@ -409,8 +423,9 @@ def _save_checkpoint(ctx: StageContext, key: str, rounds: list[dict[str, Any]],
     atomic_write_bytes(ctx.stage_dir / CHECKPOINT_FILE, buf.getvalue())
 
 
-def _load_checkpoint(ctx: StageContext, key: str) -> dict[str, Any] | None:
-    """The saved rounds when they were made with the same settings (else None: start afresh)."""
+def _load_checkpoint(ctx: StageContext, keys: tuple[str, ...]) -> dict[str, Any] | None:
+    """The saved rounds when they were made with the same settings, i.e. under one of ``keys`` (else
+    None: start afresh); ``"key"`` says which."""
     import json
 
     path = ctx.stage_dir / CHECKPOINT_FILE
@@ -418,11 +433,11 @@ def _load_checkpoint(ctx: StageContext, key: str) -> dict[str, Any] | None:
         return None
     try:
         with np.load(path) as z:
-            if str(z["key"]) != key:
+            if str(z["key"]) not in keys:
                 ctx.log(f"{CHECKPOINT_FILE} was made with other settings; starting from round 0")
                 return None
             cuts = np.cumsum(z["added_sizes"])[:-1]
-            return {"rounds": json.loads(str(z["rounds"])), "best_theta": z["best_theta"], "best_r": z["best_r"],
+            return {"key": str(z["key"]), "rounds": json.loads(str(z["rounds"])), "best_theta": z["best_theta"], "best_r": z["best_r"],
                     "best_y": z["best_y"], "added_theta": list(np.split(z["added_theta"], cuts)),
                     "added_y": list(np.split(z["added_y"], cuts))}
     except (OSError, ValueError, KeyError) as exc:

@@ -162,14 +162,17 @@ def _checkpoint(ctx: StageContext, validator: Any, simulator: Any, extractor: An
     """The stage's crash-safe memo of simulated vectors (None for a validator without simulate_features)."""
     if not hasattr(validator, "simulate_features"):
         return None
-    from invphys.core.dataset import RunIdentity
+    from invphys.core.dataset import RunIdentity, extractor_identity
     from invphys.pipeline.runner import fingerprint
     from invphys.pipeline.sim_checkpoint import SimCheckpoint
 
-    # the runs' identity as a dataset store keys them (device and batching do not count) and the features
+    # the runs' identity as a dataset store keys them (device and batching do not count) and the resolved
+    # extractor's (not the spec's wording of it); memos keyed by the spec's features section still replay
     sim = validator.simulator_for(simulator) if hasattr(validator, "simulator_for") else simulator
-    identity = fingerprint({"run": RunIdentity.of(sim).to_dict(), **ctx.spec.section_dump(["features"])})
-    return SimCheckpoint(ctx.stage_dir / SIMULATED_FILE, identity)
+    run = RunIdentity.of(sim).to_dict()
+    identity = fingerprint({"run": run, "features": extractor_identity(extractor)})
+    legacy = fingerprint({"run": run, **ctx.spec.section_dump(["features"])})
+    return SimCheckpoint(ctx.stage_dir / SIMULATED_FILE, identity, legacy=[legacy])
 
 
 def _to_params(ctx: StageContext) -> Any:
