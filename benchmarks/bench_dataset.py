@@ -6,6 +6,13 @@ and writes the measurements as JSON::
     .venv/bin/python benchmarks/bench_dataset.py --preset tiny --n 8 --workers 2
     # -> benchmarks/results/dataset_tiny_<hostname>.json
 
+On a GPU machine, the ``local`` executor with feature extraction in worker processes against extraction
+in the simulator's thread (``--extract-workers``: one ``local`` variant per value; 0 = in process), same
+design, features checked equal::
+
+    python benchmarks/bench_dataset.py --preset paper --arch cuda --n 256 --batch-size 64 \
+        --scheduling continuous --executors local --extract-workers 0,4 --out benchmarks/results/dataset_paper_h100.json
+
 ``runs_per_hour`` is end to end (start-up and kernel compilation included: what a user waits for);
 ``sim_s_per_run`` is the simulator's own time per run (the store's ``wall_time_s`` column), which excludes
 start-up and, with several workers, overlaps.
@@ -26,31 +33,48 @@ import numpy as np
 
 
 def bench(preset: str, n: int, batch_size: int, executors: list[str], workers: int, frames: int | None,
-          backend: str, seed: int) -> dict:
+          backend: str, seed: int, arch: str = "cpu", scheduling: str | None = None,
+          extract_workers: list[int] | None = None) -> dict:
     import pandas as pd
 
     from invphys.core.generate import generate_dataset
 
-    sim = {"type": "orange_peel", "preset": preset, "arch": "cpu", "backend": backend,
+    sim = {"type": "orange_peel", "preset": preset, "arch": arch, "backend": backend,
            "batch_size": batch_size}
     if frames:
         sim["frames"] = frames
+    if scheduling:
+        sim["scheduling"] = scheduling
     out: dict = {"benchmark": "dataset_generation", "preset": preset, "n": n, "batch_size": batch_size,
-                 "frames": frames, "backend": backend, "host": platform.node(), "cpu_count": os.cpu_count(),
+                 "frames": frames, "backend": backend, "arch": arch, "scheduling": scheduling,
+                 "command": " ".join(sys.argv), "host": platform.node(), "cpu_count": os.cpu_count(),
                  "python": sys.version.split()[0], "started_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                  "results": {}}
+    variants: list[tuple[str, dict]] = []
     for name in executors:
-        block = {"type": name} if name == "local" else {"type": name, "workers": workers}
+        if name == "local" and extract_workers:
+            variants += [(f"local_extract{w}" if w else "local", {"type": "local", "extract_workers": w})
+                         for w in extract_workers]
+        else:
+            variants.append((name, {"type": name} if name == "local" else {"type": name, "workers": workers}))
+    features: dict[str, np.ndarray] = {}
+    for name, block in variants:
         with tempfile.TemporaryDirectory() as tmp:
             t0 = time.perf_counter()
             summary = generate_dataset(Path(tmp) / "ds", sim, n=n, batch_size=batch_size, seed=seed,
                                        executor=block, progress=False)
             wall = time.perf_counter() - t0
             df = pd.read_parquet(Path(tmp) / "ds")
+            from invphys.core.dataset import DatasetStore
+
+            features[name] = np.asarray(DatasetStore(Path(tmp) / "ds").arrays(ok_only=False).y, dtype=np.float64)
         res = {"executor": block, "wall_s": round(wall, 2), "ok": summary.ok, "failed": summary.failed,
                "runs_per_hour": round(3600 * n / wall, 1),
                "sim_s_per_run": round(float(np.mean(df["wall_time_s"])), 3),
                "substeps_mean": round(float(np.mean(df["substeps"])), 1)}
+        if name != variants[0][0] and features[name].shape == features[variants[0][0]].shape:
+            res["features_equal_to_" + variants[0][0]] = bool(np.array_equal(features[name], features[variants[0][0]],
+                                                                              equal_nan=True))
         out["results"][name] = res
         print(json.dumps(res), flush=True)
     return out
@@ -66,10 +90,15 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=None, help="override the preset's frame count")
     ap.add_argument("--backend", default="taichi")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"])
+    ap.add_argument("--scheduling", default=None, choices=["lockstep", "continuous"])
+    ap.add_argument("--extract-workers", default=None,
+                    help="comma list: one local-executor variant per value (feature-extraction processes; 0 = none)")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
+    ew = [int(x) for x in args.extract_workers.split(",")] if args.extract_workers else None
     data = bench(args.preset, args.n, args.batch_size, args.executors.split(","), args.workers, args.frames,
-                 args.backend, args.seed)
+                 args.backend, args.seed, args.arch, args.scheduling, ew)
     path = args.out or Path(__file__).parent / "results" / f"dataset_{args.preset}_{platform.node()}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(data, indent=2) + "\n")

@@ -67,29 +67,49 @@ def _finish(res: SimulationResult, extractor: Any) -> None:
 
 
 def simulate_batch(simulator: Any, extractor: Any, params: np.ndarray,
-                   isolate_failures: bool = True) -> list[SimulationResult]:
+                   isolate_failures: bool = True, pool: Any = None) -> list[SimulationResult]:
     """Simulate ``params`` (B, d) in one simulator call and extract features.
 
     Features are extracted as the simulator reports each run (``on_result``), so trajectories are
-    dropped as soon as possible and a large call holds few of them at once. An exception from the
-    simulator (other than an :class:`InvphysError`, which is the user's to fix and propagates) becomes
-    failed results: with ``isolate_failures`` the rows of a multi-row batch are re-run one by one so
-    that one bad row does not fail its neighbours. Results carry ``features``, never a trajectory.
+    dropped as soon as possible and a large call holds few of them at once; with an
+    :class:`~invphys.plugins.executors._extract_pool.ExtractionPool` the run is handed to a worker
+    process instead and the simulator goes on at once. An exception from the simulator (other than an
+    :class:`InvphysError`, which is the user's to fix and propagates) becomes failed results: with
+    ``isolate_failures`` the rows of a multi-row batch are re-run one by one so that one bad row does
+    not fail its neighbours. Results carry ``features``, never a trajectory.
     """
     params = np.atleast_2d(np.asarray(params, dtype=np.float64))
+    pending: dict[int, Any] = {}
+
+    def on_result(i: int, res: SimulationResult) -> None:
+        if pool is None or extractor is None:
+            _finish(res, extractor)
+        elif int(i) not in pending:
+            pending[int(i)] = pool.submit(res)
+
     t0 = time.perf_counter()
     try:
-        results = list(simulator.simulate(params, on_result=lambda i, res: _finish(res, extractor)))
+        results = list(simulator.simulate(params, on_result=on_result))
         if len(results) != len(params):
             raise RuntimeError(f"simulator returned {len(results)} results for {len(params)} rows")
     except InvphysError:
         raise
     except Exception as exc:
+        for fut in pending.values():  # runs already handed over are re-run with the rest
+            if fut is not None:
+                fut.cancel()
+        pending.clear()
         if isolate_failures and len(params) > 1:
-            results = [simulate_batch(simulator, extractor, row[None], False)[0] for row in params]
+            results = [simulate_batch(simulator, extractor, row[None], False, pool)[0] for row in params]
         else:
             wall = (time.perf_counter() - t0) / len(params)
             results = [failed_result(simulator, row, _reason(exc), wall) for row in params]
+    if pool is not None and extractor is not None:
+        for i, res in enumerate(results):  # runs the simulator did not report one by one
+            if i not in pending:
+                pending[i] = pool.submit(res)
+        for i, res in enumerate(results):
+            pool.resolve(res, pending.get(i))
     for res in results:
         _finish(res, extractor)
         res.trajectory = None
@@ -97,25 +117,40 @@ def simulate_batch(simulator: Any, extractor: Any, params: np.ndarray,
 
 
 def stream_rows(simulator: Any, extractor: Any, params: np.ndarray, batch_size: int | None = None,
-                isolate_failures: bool = True) -> Iterator[tuple[int, SimulationResult]]:
+                isolate_failures: bool = True, pool: Any = None) -> Iterator[tuple[int, SimulationResult]]:
     """Yield ``(row, result)`` through :meth:`Simulator.simulate_stream` (continuous batching on a warm
-    simulator), features extracted and trajectories dropped as runs finish. If the stream raises
-    (other than an :class:`InvphysError`), the rows it has not returned go through
+    simulator), features extracted and trajectories dropped as runs finish (with a ``pool``: in worker
+    processes, each row yielded once its features are back, so rows may come out of finishing order).
+    If the stream raises (other than an :class:`InvphysError`), the rows it has not returned go through
     :func:`simulate_batch` instead, so one bad row fails alone as on the batch path."""
     params = np.atleast_2d(np.asarray(params, dtype=np.float64))
     seen: set[int] = set()
+    pending: dict[int, tuple[SimulationResult, Any]] = {}
+
+    def ready(wait: bool) -> Iterator[tuple[int, SimulationResult]]:
+        for j in [j for j, (_, fut) in pending.items() if wait or fut is None or fut.done()]:
+            res, fut = pending.pop(j)
+            yield j, pool.resolve(res, fut)
+
     try:
         for i, res in simulator.simulate_stream(params, batch_size):
-            _finish(res, extractor)
             seen.add(int(i))
-            yield int(i), res
+            if pool is None or extractor is None:
+                _finish(res, extractor)
+                yield int(i), res
+            else:
+                pending[int(i)] = (res, pool.submit(res))
+                yield from ready(False)
     except InvphysError:
         raise
     except Exception:
+        yield from ready(True)
         rest = np.array([i for i in range(len(params)) if i not in seen], dtype=np.int64)
         if len(rest):
-            yield from zip(rest.tolist(), simulate_batch(simulator, extractor, params[rest], isolate_failures),
+            yield from zip(rest.tolist(), simulate_batch(simulator, extractor, params[rest], isolate_failures, pool),
                            strict=True)
+        return
+    yield from ready(True)
 
 
 def run_batch(simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None, params: np.ndarray,

@@ -22,6 +22,9 @@ class LocalExecutor(Executor):
     class Config(PluginConfig):
         isolate_failures: bool = Field(
             True, description="when a batch raises, re-run its rows one by one so only the bad row fails")
+        extract_workers: int = Field(
+            0, ge=0, le=256, description="extract features in this many worker processes while the simulator "
+                                         "goes on (0: in this process, between launches)")
 
     def run(self, simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None,
             params: np.ndarray, batch_size: int) -> Iterator[tuple[int, SimulationResult]]:
@@ -29,10 +32,19 @@ class LocalExecutor(Executor):
         ``native_stream`` (continuous batching), every row in one stream, in completion order."""
         simulator, extractor = build_plugins(simulator_spec, extractor_spec)
         params = np.atleast_2d(np.asarray(params, dtype=np.float64))
-        if getattr(simulator, "native_stream", False):
-            # one stream over every row: the simulator keeps its slots full across batch boundaries
-            yield from stream_rows(simulator, extractor, params, None, self.config.isolate_failures)
-            return
-        for idx in batches(len(params), batch_size):
-            results = simulate_batch(simulator, extractor, params[idx], self.config.isolate_failures)
-            yield from zip(idx.tolist(), results, strict=True)
+        pool = None
+        if self.config.extract_workers and extractor_spec:
+            from invphys.plugins.executors._extract_pool import ExtractionPool
+
+            pool = ExtractionPool(extractor_spec, self.config.extract_workers)
+        try:
+            if getattr(simulator, "native_stream", False):
+                # one stream over every row: the simulator keeps its slots full across batch boundaries
+                yield from stream_rows(simulator, extractor, params, None, self.config.isolate_failures, pool)
+                return
+            for idx in batches(len(params), batch_size):
+                results = simulate_batch(simulator, extractor, params[idx], self.config.isolate_failures, pool)
+                yield from zip(idx.tolist(), results, strict=True)
+        finally:
+            if pool is not None:
+                pool.close()

@@ -1,0 +1,102 @@
+"""Feature extraction in worker processes (``executor: {type: local, extract_workers: N}``): the same
+features and failures as extraction in this process, on the batch and the streaming path, and an
+extractor that raises in a worker becomes that run's recorded failure."""
+
+from __future__ import annotations
+
+import numpy as np
+from test_dataset_toy import FEATURES, SIM, ToyFeatures, ToyOscillator
+
+from invphys.core.interfaces import PluginConfig
+
+
+class PickyFeatures(ToyFeatures):
+    """The toy's features, raising for runs whose first particle starts its last frame above ``limit``."""
+
+    name = "picky_toy_features"
+
+    class Config(PluginConfig):
+        limit: float = 0.2
+
+    def extract(self, trajectory):
+        if abs(float(trajectory.positions[-1, 0, 0])) > self.config.limit:
+            raise ValueError("picky: amplitude too large")
+        return super().extract(trajectory)
+
+
+class PidFeatures(ToyFeatures):
+    """The id of the process that extracted the run (to see where extraction happens)."""
+
+    name = "pid_toy_features"
+
+    @property
+    def feature_names(self) -> tuple[str, ...]:
+        return ("pid",)
+
+    def extract(self, trajectory):
+        import os
+
+        return np.array([float(os.getpid())])
+
+
+def _params(n: int) -> np.ndarray:
+    space = ToyOscillator().parameter_space()
+    unit = np.random.default_rng(4).random((n, 3))
+    unit[3, 0], unit[3, 2] = 0.99, 0.0  # a stiff light oscillator blows up (omega dt > 2)
+    return space.denormalize(unit)
+
+
+def _run(workers: int, features: dict, batch_size: int = 5) -> list:
+    from invphys.plugins.executors.local import LocalExecutor
+
+    ex = LocalExecutor(extract_workers=workers)
+    return sorted(ex.run({"type": SIM, "substeps": 1}, features, _params(12), batch_size), key=lambda t: t[0])
+
+
+def test_worker_extraction_equals_in_process_extraction() -> None:
+    inline = _run(0, {"type": FEATURES})
+    pooled = _run(2, {"type": FEATURES})
+    assert [i for i, _ in pooled] == list(range(12))
+    assert [r.ok for _, r in pooled] == [r.ok for _, r in inline]
+    assert not pooled[3][1].ok and "blow-up" in pooled[3][1].failure
+    for (_, a), (_, b) in zip(inline, pooled, strict=True):
+        assert b.trajectory is None
+        if a.ok:
+            np.testing.assert_array_equal(a.features, b.features)
+
+
+def test_extraction_happens_in_the_worker_processes() -> None:
+    import os
+
+    inline = {r.features[0] for _, r in _run(0, {"type": "test_extract_pool:PidFeatures"}) if r.ok}
+    pooled = {r.features[0] for _, r in _run(2, {"type": "test_extract_pool:PidFeatures"}) if r.ok}
+    assert inline == {float(os.getpid())}
+    assert float(os.getpid()) not in pooled and 1 <= len(pooled) <= 2
+
+
+def test_an_extractor_error_in_a_worker_is_that_runs_failure() -> None:
+    block = {"type": "test_extract_pool:PickyFeatures", "limit": 0.05}
+    inline = _run(0, block)
+    pooled = _run(2, block)
+    failed = [i for i, r in inline if not r.ok and "picky" in r.failure]
+    assert 0 < len(failed) < 11  # some rows fail in extraction, others do not
+    assert [r.failure for _, r in pooled] == [r.failure for _, r in inline]
+    for (_, a), (_, b) in zip(inline, pooled, strict=True):
+        if a.ok:
+            np.testing.assert_array_equal(a.features, b.features)
+
+
+def test_streaming_rows_through_a_pool_yields_each_row_once_with_its_features() -> None:
+    from invphys.plugins.executors._batch import stream_rows
+    from invphys.plugins.executors._extract_pool import ExtractionPool
+
+    sim, ext = ToyOscillator(substeps=1), ToyFeatures()
+    params = _params(12)
+    with ExtractionPool({"type": FEATURES}, 2) as pool:
+        got = dict(stream_rows(sim, ext, params, 4, pool=pool))
+    assert sorted(got) == list(range(12))
+    for i, res in got.items():
+        direct = sim.simulate(params[i][None])[0]
+        assert res.ok == direct.ok
+        if res.ok:
+            np.testing.assert_array_equal(res.features, ext.extract(direct.trajectory))
