@@ -100,3 +100,59 @@ def test_streaming_rows_through_a_pool_yields_each_row_once_with_its_features() 
         assert res.ok == direct.ok
         if res.ok:
             np.testing.assert_array_equal(res.features, ext.extract(direct.trajectory))
+
+
+def _validate(workers: int, extractor, keep=frozenset({0, 1})):
+    from invphys.plugins.validators.simulator import SimulatorValidator
+
+    sim = ToyOscillator(substeps=1)
+    unit = sim.parameter_space().normalize(_params(12))
+    records: dict[int, tuple] = {}
+
+    def on_record(r, feats, failure, stats):
+        assert r not in records  # once per row
+        records[r] = (None if feats is None else feats.copy(), failure)
+
+    val = SimulatorValidator(batch_size=5, extract_workers=workers)
+    got = val.simulate_features(unit, sim, extractor, keep_trajectories=set(keep), on_record=on_record)
+    return got, records
+
+
+def test_validator_extraction_in_workers_equals_in_thread_extraction() -> None:
+    inline, rec_inline = _validate(0, ToyFeatures())
+    pooled, rec_pooled = _validate(2, ToyFeatures())
+    np.testing.assert_array_equal(inline.features, pooled.features)
+    assert inline.failures == pooled.failures and 1 <= sum(f is not None for f in pooled.failures) < 12
+    assert sorted(rec_pooled) == list(range(12))
+    for r in range(12):
+        assert rec_pooled[r][1] == rec_inline[r][1]
+        if rec_inline[r][0] is not None:
+            np.testing.assert_array_equal(rec_pooled[r][0], rec_inline[r][0])
+    for r in (0, 1):  # kept rows: their trajectories, as in the thread
+        assert (pooled.trajectories[r] is None) == (pooled.failures[r] is not None)
+        if pooled.trajectories[r] is not None:
+            np.testing.assert_array_equal(pooled.trajectories[r].positions, inline.trajectories[r].positions)
+    assert any(t is not None for t in pooled.trajectories[:2])
+    assert all(t is None for t in pooled.trajectories[2:])
+
+
+def test_validator_extracts_in_its_worker_processes_and_reuses_them() -> None:
+    import os
+
+    from invphys.plugins.validators.simulator import SimulatorValidator
+
+    sim = ToyOscillator(substeps=1)
+    unit = sim.parameter_space().normalize(_params(12))
+    val = SimulatorValidator(batch_size=4, extract_workers=2)
+    first = val.simulate_features(unit, sim, PidFeatures())
+    second = val.simulate_features(unit, sim, PidFeatures())
+    pids = {p for p in np.concatenate([first.features[:, 0], second.features[:, 0]]) if np.isfinite(p)}
+    assert float(os.getpid()) not in pids and 1 <= len(pids) <= 2  # one pool for both calls
+
+
+def test_an_extractor_error_in_a_validator_worker_is_raised_as_in_thread() -> None:
+    import pytest
+
+    for workers in (0, 2):
+        with pytest.raises(ValueError, match="picky"):
+            _validate(workers, PickyFeatures(limit=0.05), keep=frozenset())

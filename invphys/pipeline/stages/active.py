@@ -387,7 +387,7 @@ def _checkpoint_key(ctx: StageContext, n: int, feats: np.ndarray, legacy: bool =
 
     The simulator and features count by their resolved identity (as the dataset store and the validate
     memo key runs: not device, batching or how the spec named the plugin), the validator without its
-    ``batch_size``. ``legacy``: the key as first written (the spec's simulator and validator sections
+    ``batch_size`` and ``extract_workers``. ``legacy``: the key as first written (the spec's simulator and validator sections
     verbatim), so rounds saved by earlier versions still resume.
     """
     from invphys.core.dataset import RunIdentity, extractor_identity
@@ -401,7 +401,7 @@ def _checkpoint_key(ctx: StageContext, n: int, feats: np.ndarray, legacy: bool =
     if legacy:
         return digest({**common, "validator": ctx.spec.validator, "simulator": ctx.spec.simulator,
                        "data": ctx.dataset().fingerprint})
-    validator = {k: v for k, v in dict(ctx.spec.validator or {}).items() if k != "batch_size"}
+    validator = {k: v for k, v in dict(ctx.spec.validator or {}).items() if k not in ("batch_size", "extract_workers")}
     return digest({**common, "validator": validator, "simulator": RunIdentity.of(ctx.simulator()).to_dict(),
                    "features": extractor_identity(ctx.extractor()), "data": ctx.dataset().fingerprint})
 

@@ -5,7 +5,8 @@ A GPU simulator hands each finished run to the host between launches; extracting
 and threads do not help (the extractor's KD-trees hold the GIL). :class:`ExtractionPool` sends each
 trajectory to one of ``workers`` processes (started with ``spawn``, so a CUDA context or a Taichi
 runtime of the parent is never forked) and returns at once; the caller collects the features later.
-Each worker builds the extractor once from its ``{"type": ..., **config}`` block through the registry.
+Each worker builds the extractor once: from its ``{"type": ..., **config}`` block through the registry,
+or unpickles the extractor instance it was given.
 """
 
 from __future__ import annotations
@@ -21,11 +22,13 @@ from invphys.core.results import SimulationResult
 _WORKER_EXTRACTOR: Any = None
 
 
-def _init_worker(extractor_spec: dict[str, Any]) -> None:
+def _init_worker(extractor: Any) -> None:
     global _WORKER_EXTRACTOR
-    from invphys import registry
+    if isinstance(extractor, dict):
+        from invphys import registry
 
-    _WORKER_EXTRACTOR = registry.create("feature_extractor", dict(extractor_spec))
+        extractor = registry.create("feature_extractor", dict(extractor))
+    _WORKER_EXTRACTOR = extractor
 
 
 def _extract(trajectory: Any) -> np.ndarray:
@@ -33,29 +36,36 @@ def _extract(trajectory: Any) -> np.ndarray:
 
 
 class ExtractionPool:
-    """``workers`` processes extracting features of the extractor block ``extractor_spec``."""
+    """``workers`` processes extracting features with ``extractor`` (a plugin block or an instance)."""
 
-    def __init__(self, extractor_spec: dict[str, Any], workers: int) -> None:
+    def __init__(self, extractor: Any, workers: int) -> None:
         import multiprocessing
 
         if workers < 1:
             raise InvphysError(f"extract_workers must be >= 1 for a pool, got {workers}")
         self.workers = int(workers)
         self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                         initializer=_init_worker, initargs=(dict(extractor_spec),))
+                                         initializer=_init_worker,
+                                         initargs=(dict(extractor) if isinstance(extractor, dict) else extractor,))
 
-    def submit(self, res: SimulationResult) -> Future | None:
-        """Start extracting an ok result's features (its trajectory is dropped here); None when there is
-        nothing to extract (a failed run, or features already set)."""
+    def submit(self, res: SimulationResult, keep_trajectory: bool = False) -> Future | None:
+        """Start extracting an ok result's features (its trajectory is dropped here unless
+        ``keep_trajectory``); None when there is nothing to extract (a failed run, or features already set)."""
         if not res.ok or res.features is not None:
-            res.trajectory = None
+            if not keep_trajectory:
+                res.trajectory = None
             return None
         if res.trajectory is None:
             res.ok, res.failure = False, "feature extraction: the simulator returned no trajectory"
             return None
         fut = self._pool.submit(_extract, res.trajectory)
-        res.trajectory = None
+        if not keep_trajectory:
+            res.trajectory = None
         return fut
+
+    def extract(self, trajectory: Any) -> Future:
+        """Extract one trajectory's features in a worker (the future raises what the extractor raised)."""
+        return self._pool.submit(_extract, trajectory)
 
     @staticmethod
     def resolve(res: SimulationResult, fut: Future | None) -> SimulationResult:

@@ -12,7 +12,7 @@ from pydantic import Field
 from invphys.core.errors import InvphysError, SimulationFailed
 from invphys.core.interfaces import FeatureExtractor, PluginConfig, Simulator, Validator
 from invphys.core.objectives import recovery_reward
-from invphys.core.results import RunStats, ValidationRecord
+from invphys.core.results import RunStats, SimulationResult, ValidationRecord
 
 
 @dataclass
@@ -41,6 +41,9 @@ class SimulatorValidator(Validator):
                                           description="simulator config keys to change for validation")
         kappa: float = Field(3.0, gt=0, description="sharpness of R_gt")
         batch_size: int = Field(16, ge=1, description="parameter vectors per simulator call")
+        extract_workers: int = Field(0, ge=0, le=256,
+                                     description="extract features in this many worker processes while the "
+                                                 "simulator goes on (0: in the simulator's thread)")
 
     def simulator_for(self, simulator: Simulator) -> Simulator:
         """``simulator`` itself, or a copy with ``overrides`` applied (validated by its Config)."""
@@ -74,24 +77,42 @@ class SimulatorValidator(Validator):
         stats: list[RunStats | None] = [None] * len(theta)
         trajs: list[Any] = [None] * len(theta)
         settled: set[int] = set()
+        pool = self._pool(extractor)
+        pending: dict[int, tuple[Any, Any]] = {}  # row -> (result, future of its features): in a worker
 
-        def settle(r: int, res: Any) -> None:
+        def keep(r: int) -> bool:
+            return keep_trajectories is True or bool(keep_trajectories and r in keep_trajectories)
+
+        def settle(r: int, res: Any, fut: Any = None) -> None:
             """Row ``r``'s features, failure, stats (and trajectory) from its result, recorded once."""
             if r in settled:
                 return
             settled.add(r)
-            feats, failures[r], stats[r] = self._outcome(res, extractor, m)
+            feats, failures[r], stats[r] = self._outcome(res, extractor, m, fut)
             if feats is not None:
                 out[r] = feats
-            if failures[r] is None and (keep_trajectories is True or (keep_trajectories and r in keep_trajectories)):
+            if failures[r] is None and keep(r):
                 trajs[r] = res.trajectory
             if on_record is not None:
                 on_record(r, out[r].copy() if failures[r] is None else None, failures[r], stats[r])
 
+        def collect(wait: bool) -> None:
+            for r in [r for r, (_, fut) in pending.items() if wait or fut.done()]:
+                res, fut = pending.pop(r)
+                settle(r, res, fut)
+
         def finished(rows: list[int], i: int, res: Any) -> None:
-            settle(rows[i], res)
+            r = rows[i]
+            if pool is not None and r not in settled and r not in pending and isinstance(res, SimulationResult) \
+                    and res.ok and res.features is None and res.trajectory is not None:
+                pending[r] = (res, pool.extract(res.trajectory))
+                if not keep(r):
+                    res.trajectory = None
+                collect(False)
+            else:
+                settle(r, res)
             if on_run is not None:
-                on_run(rows[i])
+                on_run(r)
 
         bs = self.config.batch_size
         for start in range(0, len(theta), bs):
@@ -101,28 +122,47 @@ class SimulatorValidator(Validator):
             except SimulationFailed:
                 results = []
                 for r in rows:  # isolate the failing row(s); rows already reported keep their outcome
-                    if r in settled:
+                    if r in settled or r in pending:
                         results.append(None)
                         continue
                     try:
                         results += sim.simulate(params[r:r + 1])
                     except SimulationFailed as exc:
                         results.append(exc)
+            collect(True)
             for r, res in zip(rows, results, strict=True):
                 if res is not None:
                     settle(r, res)
         return SimulatedFeatures(out, failures, stats, trajs)
 
+    def _pool(self, extractor: FeatureExtractor) -> Any:
+        """The worker processes of ``extract_workers`` (None: extract in this thread), kept for later calls
+        with the same extractor."""
+        if not self.config.extract_workers:
+            return None
+        from invphys.plugins.executors._extract_pool import ExtractionPool
+
+        key = (type(extractor).__module__, type(extractor).__qualname__,
+               extractor.config.model_dump_json() if getattr(extractor, "config", None) is not None else "")
+        pools = self.__dict__.setdefault("_pools", {})
+        if key not in pools:
+            pools[key] = ExtractionPool(extractor, self.config.extract_workers)
+        return pools[key]
+
     @staticmethod
-    def _outcome(res: Any, extractor: FeatureExtractor, m: int
+    def _outcome(res: Any, extractor: FeatureExtractor, m: int, fut: Any = None
                  ) -> tuple[np.ndarray | None, str | None, RunStats | None]:
-        """One result's (features or None, failure reason or None, stats)."""
+        """One result's (features or None, failure reason or None, stats); ``fut``: its features are being
+        extracted in a worker process (what the extractor raised there is raised here)."""
         if isinstance(res, SimulationFailed):
             return None, res.reason, None
         if not res.ok:
             return None, res.failure or "simulation failed", res.stats
         try:
-            feats = res.features if res.features is not None else extractor.extract(res.trajectory)
+            if fut is not None:
+                feats = fut.result()
+            else:
+                feats = res.features if res.features is not None else extractor.extract(res.trajectory)
         except SimulationFailed as exc:
             return None, exc.reason, res.stats
         feats = np.asarray(feats, dtype=np.float64).reshape(-1)
