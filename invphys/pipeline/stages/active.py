@@ -139,9 +139,8 @@ def run(ctx: StageContext) -> dict[str, Any]:
     key = _checkpoint_key(ctx, n, feats)
     first = 0
     saved = _load_checkpoint(ctx, (key, _checkpoint_key(ctx, n, feats, legacy=True)))
-    if saved is not None:
-        key = saved["key"]  # a legacy key stays in use: the polish logs are keyed by it
     if saved is not None:  # resume after the last round that finished (also when `rounds` grew)
+        key = saved["key"]  # a legacy key stays in use: the polish logs are keyed by it
         rounds, best_theta, best_r, best_y = saved["rounds"], saved["best_theta"], saved["best_r"], saved["best_y"]
         added_theta, added_y = saved["added_theta"], saved["added_y"]
         first = len(rounds)
@@ -387,8 +386,8 @@ def _checkpoint_key(ctx: StageContext, n: int, feats: np.ndarray, legacy: bool =
 
     The simulator and features count by their resolved identity (as the dataset store and the validate
     memo key runs: not device, batching or how the spec named the plugin), the validator without its
-    ``batch_size`` and ``extract_workers``. ``legacy``: the key as first written (the spec's simulator and validator sections
-    verbatim), so rounds saved by earlier versions still resume.
+    ``batch_size`` and ``extract_workers``. ``legacy``: the key as first written (the spec's simulator
+    and validator sections verbatim), so rounds saved by earlier versions still resume.
     """
     from invphys.core.dataset import RunIdentity, extractor_identity
     from invphys.pipeline.cache import digest
@@ -401,7 +400,8 @@ def _checkpoint_key(ctx: StageContext, n: int, feats: np.ndarray, legacy: bool =
     if legacy:
         return digest({**common, "validator": ctx.spec.validator, "simulator": ctx.spec.simulator,
                        "data": ctx.dataset().fingerprint})
-    validator = {k: v for k, v in dict(ctx.spec.validator or {}).items() if k not in ("batch_size", "extract_workers")}
+    speed_only = ("batch_size", "extract_workers")
+    validator = {k: v for k, v in dict(ctx.spec.validator or {}).items() if k not in speed_only}
     return digest({**common, "validator": validator, "simulator": RunIdentity.of(ctx.simulator()).to_dict(),
                    "features": extractor_identity(ctx.extractor()), "data": ctx.dataset().fingerprint})
 
@@ -437,8 +437,8 @@ def _load_checkpoint(ctx: StageContext, keys: tuple[str, ...]) -> dict[str, Any]
                 ctx.log(f"{CHECKPOINT_FILE} was made with other settings; starting from round 0")
                 return None
             cuts = np.cumsum(z["added_sizes"])[:-1]
-            return {"key": str(z["key"]), "rounds": json.loads(str(z["rounds"])), "best_theta": z["best_theta"], "best_r": z["best_r"],
-                    "best_y": z["best_y"], "added_theta": list(np.split(z["added_theta"], cuts)),
+            return {"key": str(z["key"]), "rounds": json.loads(str(z["rounds"])), "best_theta": z["best_theta"],
+                    "best_r": z["best_r"], "best_y": z["best_y"], "added_theta": list(np.split(z["added_theta"], cuts)),
                     "added_y": list(np.split(z["added_y"], cuts))}
     except (OSError, ValueError, KeyError) as exc:
         ctx.log(f"{CHECKPOINT_FILE} is unreadable ({exc}); starting from round 0")

@@ -48,19 +48,17 @@ class ExtractionPool:
                                          initializer=_init_worker,
                                          initargs=(dict(extractor) if isinstance(extractor, dict) else extractor,))
 
-    def submit(self, res: SimulationResult, keep_trajectory: bool = False) -> Future | None:
-        """Start extracting an ok result's features (its trajectory is dropped here unless
-        ``keep_trajectory``); None when there is nothing to extract (a failed run, or features already set)."""
+    def submit(self, res: SimulationResult) -> Future | None:
+        """Start extracting an ok result's features (its trajectory is dropped here); None when there is
+        nothing to extract (a failed run, or features already set)."""
         if not res.ok or res.features is not None:
-            if not keep_trajectory:
-                res.trajectory = None
+            res.trajectory = None
             return None
         if res.trajectory is None:
             res.ok, res.failure = False, "feature extraction: the simulator returned no trajectory"
             return None
-        fut = self._pool.submit(_extract, res.trajectory)
-        if not keep_trajectory:
-            res.trajectory = None
+        fut = self.extract(res.trajectory)
+        res.trajectory = None
         return fut
 
     def extract(self, trajectory: Any) -> Future:
