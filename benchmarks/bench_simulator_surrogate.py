@@ -70,6 +70,12 @@ def _models(seed: int, val: float, paper_ensemble: bool, ensemble_options: dict 
     return out
 
 
+def split_rows(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(training, held-out) row indices: the seeded 80/20 split every model of this benchmark is scored on."""
+    perm = np.random.default_rng(seed).permutation(n)
+    return np.sort(perm[round(0.2 * n):]), np.sort(perm[: round(0.2 * n)])
+
+
 def _scene_separation(identity: dict) -> float:
     """Centroid distance of skin and flesh in the preset's scene before settling (metres)."""
     from invphys_orange_peel.presets import get_preset
@@ -154,8 +160,7 @@ def main(argv: list[str] | None = None) -> dict:
     data = store.arrays(ok_only=True)
     names = list(data.feature_names)
     n = len(data.theta)
-    perm = np.random.default_rng(args.seed).permutation(n)
-    te, tr = np.sort(perm[: round(0.2 * n)]), np.sort(perm[round(0.2 * n):])
+    tr, te = split_rows(n, args.seed)
     tt, yt, tv, yv = data.theta[tr], data.y[tr], data.theta[te], data.y[te]
     extra_info = []
     for path in args.extra:
