@@ -57,6 +57,15 @@ def fit_gp(x: np.ndarray, z: np.ndarray, seed: int) -> dict:
             "time_s": time.time() - t}
 
 
+def load_split(seed: int) -> tuple[list[str], np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Feature names and (x, y, xt, yt): the benchmark's training and held-out rows of split ``seed``."""
+    from invphys.core.dataset import DatasetStore
+
+    data = DatasetStore(ROOT / "datasets" / "orange_peel_paper").arrays(ok_only=True)
+    tr, te = bench().split_rows(len(data.theta), seed)
+    return list(data.feature_names), data.theta[tr], data.y[tr], data.theta[te], data.y[te]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seed", type=int, default=0)
@@ -64,17 +73,13 @@ def main() -> None:
     args = ap.parse_args()
     from joblib import Parallel, delayed
 
-    from invphys.core.dataset import DatasetStore
     from invphys.models.data import r2_scores, split_indices
     from invphys.plugins.surrogates.ensemble import EnsembleSurrogate
 
-    data = DatasetStore(ROOT / "datasets" / "orange_peel_paper").arrays(ok_only=True)
-    names = list(data.feature_names)
-    tr, te = bench().split_rows(len(data.theta), args.seed)
-    x, y, xt, yt = data.theta[tr], data.y[tr], data.theta[te], data.y[te]
+    names, x, y, xt, yt = load_split(args.seed)
     mu, sd = y.mean(0), y.std(0)
     z = (y - mu) / sd
-    out: dict = {"seed": args.seed, "n_train": len(tr), "n_test": len(te), "feature_names": names, "models": {}}
+    out: dict = {"seed": args.seed, "n_train": len(x), "n_test": len(xt), "feature_names": names, "models": {}}
 
     t = time.time()
     ens = EnsembleSurrogate(seed=args.seed, val_fraction=0.1)

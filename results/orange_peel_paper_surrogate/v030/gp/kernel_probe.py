@@ -12,7 +12,7 @@ import json
 import time
 
 import numpy as np
-from gp_study import HERE, ROOT, bench
+from gp_study import HERE, load_split
 
 FEATURES = ["interior_dispersion", "skin_detachment_fraction"]
 
@@ -31,13 +31,9 @@ def fit(x, z, xt, nu):
 def main() -> None:
     from joblib import Parallel, delayed
 
-    from invphys.core.dataset import DatasetStore
     from invphys.models.data import r2_scores
 
-    data = DatasetStore(ROOT / "datasets" / "orange_peel_paper").arrays(ok_only=True)
-    names = list(data.feature_names)
-    tr, te = bench().split_rows(len(data.theta), 0)
-    x, y, xt, yt = data.theta[tr], data.y[tr], data.theta[te], data.y[te]
+    names, x, y, xt, yt = load_split(0)
     jobs = [(f, nu) for nu in (1.5,) for f in FEATURES]
     cols = [names.index(f) for f, _ in jobs]
     res = Parallel(n_jobs=1)(delayed(fit)(x, (y[:, j] - y[:, j].mean()) / y[:, j].std(), xt, nu)

@@ -23,7 +23,7 @@ import json
 import time
 
 import numpy as np
-from gp_study import HERE, ROOT, bench, fit_gp
+from gp_study import HERE, fit_gp, load_split
 
 
 def fold_fit(x, y, xt, tr, va, seed):
@@ -41,14 +41,10 @@ def main() -> None:
     args = ap.parse_args()
     from joblib import Parallel, delayed
 
-    from invphys.core.dataset import DatasetStore
     from invphys.models.data import r2_scores
     from invphys.plugins.surrogates.ensemble import EnsembleSurrogate
 
-    data = DatasetStore(ROOT / "datasets" / "orange_peel_paper").arrays(ok_only=True)
-    names = list(data.feature_names)
-    tr, te = bench().split_rows(len(data.theta), args.seed)
-    x, y, xt, yt = data.theta[tr], data.y[tr], data.theta[te], data.y[te]
+    names, x, y, xt, yt = load_split(args.seed)
     sd = y.std(0)
     t = time.time()
     ens = EnsembleSurrogate(seed=args.seed, val_fraction=0.1)
@@ -72,7 +68,7 @@ def main() -> None:
     explained = 1 - ((resid - loo) ** 2).sum(0) / (resid ** 2).sum(0)
     preds = {"ensemble": p_ens, "ensemble_plus_gp": p_ens + corr,
              "bagged": (p_ens + sum(p for _, p in res)) / 6}
-    out: dict = {"seed": args.seed, "n_train": len(tr), "n_test": len(te), "feature_names": names,
+    out: dict = {"seed": args.seed, "n_train": len(x), "n_test": len(xt), "feature_names": names,
                  "oof_r2_per_feature": dict(zip(names, r2_scores(y, oof)[1], strict=True)),
                  "ensembles_time_s": ens_time, "models": {}}
     for label, p in preds.items():
