@@ -34,12 +34,13 @@ import numpy as np
 
 def bench(preset: str, n: int, batch_size: int, executors: list[str], workers: int, frames: int | None,
           backend: str, seed: int, arch: str = "cpu", scheduling: str | None = None,
-          extract_workers: list[int] | None = None) -> dict:
+          extract_workers: list[int] | None = None, simulator_type: str = "orange_peel",
+          features_type: str | None = None, warmup: int = 0) -> dict:
     import pandas as pd
 
     from invphys.core.generate import generate_dataset
 
-    sim = {"type": "orange_peel", "preset": preset, "arch": arch, "backend": backend,
+    sim = {"type": simulator_type, "preset": preset, "arch": arch, "backend": backend,
            "batch_size": batch_size}
     if frames:
         sim["frames"] = frames
@@ -57,24 +58,37 @@ def bench(preset: str, n: int, batch_size: int, executors: list[str], workers: i
                          for w in extract_workers]
         else:
             variants.append((name, {"type": name} if name == "local" else {"type": name, "workers": workers}))
+    feat_block = {"type": features_type} if features_type else None
+    if warmup:  # compile the kernels (and fill caches) before any variant is timed
+        with tempfile.TemporaryDirectory() as tmp:
+            t0 = time.perf_counter()
+            generate_dataset(Path(tmp) / "ds", sim, features=feat_block, n=warmup, batch_size=batch_size,
+                             seed=seed + 1, progress=False)
+            out["warmup"] = {"n": warmup, "wall_s": round(time.perf_counter() - t0, 2)}
     features: dict[str, np.ndarray] = {}
     for name, block in variants:
         with tempfile.TemporaryDirectory() as tmp:
             t0 = time.perf_counter()
-            summary = generate_dataset(Path(tmp) / "ds", sim, n=n, batch_size=batch_size, seed=seed,
+            summary = generate_dataset(Path(tmp) / "ds", sim, features=feat_block, n=n, batch_size=batch_size, seed=seed,
                                        executor=block, progress=False)
             wall = time.perf_counter() - t0
             df = pd.read_parquet(Path(tmp) / "ds")
             from invphys.core.dataset import DatasetStore
 
-            features[name] = np.asarray(DatasetStore(Path(tmp) / "ds").arrays(ok_only=False).y, dtype=np.float64)
+            store = DatasetStore(Path(tmp) / "ds")
+            features[name] = np.asarray(store.arrays(ok_only=False).y, dtype=np.float64)
+            out.setdefault("simulator_identity", store.metadata().get("identity"))
         res = {"executor": block, "wall_s": round(wall, 2), "ok": summary.ok, "failed": summary.failed,
                "runs_per_hour": round(3600 * n / wall, 1),
                "sim_s_per_run": round(float(np.mean(df["wall_time_s"])), 3),
-               "substeps_mean": round(float(np.mean(df["substeps"])), 1)}
+               "substeps_mean": round(float(np.mean(df["substeps"])), 1), "devices": summary.devices}
         if name != variants[0][0] and features[name].shape == features[variants[0][0]].shape:
-            res["features_equal_to_" + variants[0][0]] = bool(np.array_equal(features[name], features[variants[0][0]],
-                                                                              equal_nan=True))
+            a, b = features[name], features[variants[0][0]]
+            res["features_equal_to_" + variants[0][0]] = bool(np.array_equal(a, b, equal_nan=True))
+            rel = np.abs(a - b) / np.maximum(np.abs(b), 1e-12)  # GPU float atomics: compare the statistics
+            res["features_median_rel_diff_to_" + variants[0][0]] = float(np.nanmedian(rel))
+            res["features_max_rel_diff_of_means"] = float(np.nanmax(np.abs(np.nanmean(a, 0) - np.nanmean(b, 0))
+                                                                      / np.maximum(np.abs(np.nanmean(b, 0)), 1e-12)))
         out["results"][name] = res
         print(json.dumps(res), flush=True)
     return out
@@ -94,11 +108,16 @@ def main() -> None:
     ap.add_argument("--scheduling", default=None, choices=["lockstep", "continuous"])
     ap.add_argument("--extract-workers", default=None,
                     help="comma list: one local-executor variant per value (feature-extraction processes; 0 = none)")
+    ap.add_argument("--simulator-type", default="orange_peel",
+                    help="simulator plugin: entry-point name or module:Class (machines without entry points)")
+    ap.add_argument("--features-type", default=None, help="extractor plugin (default: the simulator's)")
+    ap.add_argument("--warmup", type=int, default=0, help="untimed runs first (kernel compilation)")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     ew = [int(x) for x in args.extract_workers.split(",")] if args.extract_workers else None
     data = bench(args.preset, args.n, args.batch_size, args.executors.split(","), args.workers, args.frames,
-                 args.backend, args.seed, args.arch, args.scheduling, ew)
+                 args.backend, args.seed, args.arch, args.scheduling, ew, args.simulator_type, args.features_type,
+                 args.warmup)
     path = args.out or Path(__file__).parent / "results" / f"dataset_{args.preset}_{platform.node()}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(data, indent=2) + "\n")
