@@ -11,7 +11,7 @@ REPO=$PWD
 STORE=datasets/orange_peel_paper_seed1_v030
 bash .gpu/tb/stage.sh >/dev/null || exit 1
 export PYTHONPATH=/tmp/gpusite:$REPO:$REPO/examples/anisompm:$REPO/examples/orange_peel PYTHONUNBUFFERED=1 INVPHYS_DISABLE_PLUGIN_AUTOLOAD=1
-sed -e "s/^executor: {type: local}/executor: {type: local, extract_workers: $EW}/" \
+sed -e "s/^executor: {type: local.*}/executor: {type: local, extract_workers: $EW}/" \
     datasets/specs/orange_peel_paper_seed1.yaml > /tmp/seed1_gpu.yaml
 grep -q "extract_workers: $EW" /tmp/seed1_gpu.yaml || { echo "spec edit failed"; exit 1; }
 T0=$(date +%s)
