@@ -63,6 +63,10 @@ def test_extra_rows_join_training_only_and_the_held_out_split_is_unchanged(store
     assert np.array_equal(d0.keys[te0], d1.keys[te1])  # the same held-out rows (so the same targets)
     assert set(d1.keys[tr1]) == set(d0.keys[tr0]) | set(d1.keys[len(d0):])
     assert not set(d1.keys[tr1]) & set(d1.keys[te1])
+    # the yardstick too: the scales (farthest-point targets, every R) ignore the extra rows
+    assert np.array_equal(alone.scales(), joined.scales())
+    from invphys.core.objectives import percentile_scales
+    assert not np.allclose(percentile_scales(d1.y[tr1]), joined.scales())  # the extras would have moved them
 
     s = run_spec(spec, tmp_path / "joined", progress=False)["train"]
     assert s["n_train"] == len(tr0) + n_b and s["n_test"] == len(te0)

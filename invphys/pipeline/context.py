@@ -127,11 +127,16 @@ class StageContext:
         return "+".join([own, *extras])
 
     def scales(self) -> np.ndarray:
-        """The paper's per-feature scales s_k = p95 - p5 over the training split."""
+        """The paper's per-feature scales s_k = p95 - p5 over the training split of ``dataset.path``.
+
+        Rows of ``dataset.extra_train`` stores do not count: the scales pick the farthest-point targets and
+        score every answer, so a data-scale comparison keeps the same targets and the same yardstick.
+        """
         from invphys.core.objectives import percentile_scales
 
-        train, _ = self.split()
-        return percentile_scales(self.dataset().y[train])
+        train, _ = self.split()  # reads the dataset, which records the primary store's row count
+        primary = self._cache.get("dataset_primary_rows", len(self.dataset().theta))
+        return percentile_scales(self.dataset().y[train[train < primary]])
 
     def surrogate(self) -> Any:
         if "surrogate" not in self._cache:

@@ -2,25 +2,29 @@
 # Device run: the validate + report stages of amortised_vs_lookup_paper.yaml on one GPU (simulator 0.3.0).
 # Staging: taichi split in two carried folders (.gpu/ti, then .gpu/tb with the pydantic and cma wheels), made
 # by benchmarks/device/split_taichi_wheels.sh (first call: `bash .gpu/ti/stage.sh`), and
-# runs/protocol_paper_amortised (train + first report made on the CPU; report/baselines.json copied into
+# RUN (train + first report made on the CPU; report/baselines.json copied into
 # validate/) as carried paths. Resumable: a call stopped by LIMIT keeps validate/simulated.jsonl.
-# usage (second call, carry [".gpu/tb", "runs/protocol_paper_amortised"]): bash results/orange_peel_paper_protocol_amortised/device_validate.sh SECONDS
+# usage (second call, carry [".gpu/tb", RUN]): bash results/orange_peel_paper_protocol_amortised/device_validate.sh SECONDS [SPEC RUN]
+# (defaults: amortised_vs_lookup_paper.yaml, runs/protocol_paper_amortised; the extra-data spec is
+# amortised_vs_lookup_paper_extra.yaml with runs/protocol_paper_amortised_extra)
 REPO=$PWD
 LIMIT=${1:-420}
+SPEC=${2:-examples/orange_peel/invphys_orange_peel/specs/amortised_vs_lookup_paper.yaml}
+RUN=${3:-runs/protocol_paper_amortised}
 bash .gpu/tb/stage.sh || exit 1
 export PYTHONPATH=/tmp/gpusite:$REPO:$REPO/examples/anisompm:$REPO/examples/orange_peel PYTHONUNBUFFERED=1 INVPHYS_DISABLE_PLUGIN_AUTOLOAD=1
 nvidia-smi --query-gpu=name,memory.used --format=csv
 sed -e 's/^simulator: {type: orange_peel,/simulator: {type: "invphys_orange_peel.simulator:OrangePeelSimulator",/' \
     -e 's/^executor: {type: local}/executor: {type: local}\nfeatures: {type: "invphys_orange_peel.features:OrangePeelFeatures"}/' \
-    examples/orange_peel/invphys_orange_peel/specs/amortised_vs_lookup_paper.yaml > /tmp/amortised_gpu.yaml && echo "tracker: none" >> /tmp/amortised_gpu.yaml
-wc -l runs/protocol_paper_amortised/validate/simulated.jsonl 2>/dev/null
+    $SPEC > /tmp/amortised_gpu.yaml && echo "tracker: none" >> /tmp/amortised_gpu.yaml
+wc -l $RUN/validate/simulated.jsonl 2>/dev/null
 T0=$(date +%s)
-timeout $LIMIT python3 -m invphys.cli run /tmp/amortised_gpu.yaml --out runs/protocol_paper_amortised --stage validate --no-progress \
+timeout $LIMIT python3 -m invphys.cli run /tmp/amortised_gpu.yaml --out $RUN --stage validate --no-progress \
   > $OUT/validate_stdout.txt 2> $OUT/validate_stderr.txt
 echo "validate rc=$? in $(( $(date +%s) - T0 )) s"
 tail -c 2500 $OUT/validate_stderr.txt; tail -c 1500 $OUT/validate_stdout.txt
-timeout 60 python3 -m invphys.cli run /tmp/amortised_gpu.yaml --out runs/protocol_paper_amortised --stage report --no-progress > $OUT/report_stdout.txt 2>&1
+timeout 60 python3 -m invphys.cli run /tmp/amortised_gpu.yaml --out $RUN --stage report --no-progress > $OUT/report_stdout.txt 2>&1
 echo "report rc=$?"; tail -c 800 $OUT/report_stdout.txt
-wc -l runs/protocol_paper_amortised/validate/simulated.jsonl
-tar -C runs/protocol_paper_amortised -czf $OUT/run.tgz validate report
+wc -l $RUN/validate/simulated.jsonl
+tar -C $RUN -czf $OUT/run.tgz validate report
 ls -la $OUT
