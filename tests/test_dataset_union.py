@@ -67,6 +67,17 @@ def test_extra_rows_join_training_only_and_the_held_out_split_is_unchanged(store
     assert np.array_equal(alone.scales(), joined.scales())
     from invphys.core.objectives import percentile_scales
     assert not np.allclose(percentile_scales(d1.y[tr1]), joined.scales())  # the extras would have moved them
+    from invphys.core.targets import select_targets
+    from invphys.pipeline.stages.invert import select
+
+    targets = "targets: {n: 6, selection: farthest_point}\n"
+    _, alone_t = context(train_spec(stores["a"]) + targets, tmp_path / "alone_t")
+    _, joined_t = context(train_spec(stores["a"], [stores["b"]]) + targets, tmp_path / "joined_t")
+    far = joined_t.dataset().y
+    far[joined_t.primary_rows():] = far[joined_t.primary_rows():] * np.linspace(50.0, 0.02, far.shape[1])  # extra rows, another spread
+    rows = select(joined_t)["rows"]
+    assert len(rows) == 6 and rows == select(alone_t)["rows"]  # farthest-point targets: the same rows
+    assert rows != select_targets(far, te1, 6, "farthest_point").tolist()  # standardised by all rows: others
 
     s = run_spec(spec, tmp_path / "joined", progress=False)["train"]
     assert s["n_train"] == len(tr0) + n_b and s["n_test"] == len(te0)

@@ -104,14 +104,18 @@ class StageContext:
                                                                  for e in extras])
         return self._cache["dataset"]
 
+    def primary_rows(self) -> int:
+        """How many of :meth:`dataset`'s rows are ``dataset.path``'s (the ``extra_train`` rows follow them)."""
+        n_all = len(self.dataset().theta)
+        return int(self._cache.get("dataset_primary_rows", n_all))
+
     def split(self) -> tuple[np.ndarray, np.ndarray]:
         """(train_idx, test_idx) of the dataset's ok rows, deterministic by seed and test_fraction.
 
         The split is drawn over the primary store's rows only; rows of ``dataset.extra_train`` stores
         (after them in :meth:`dataset`) all join the training split.
         """
-        n_all = len(self.dataset().theta)
-        n = self._cache.get("dataset_primary_rows", n_all)
+        n_all, n = len(self.dataset().theta), self.primary_rows()
         rng = np.random.default_rng(self.spec.seed)
         perm = rng.permutation(n)
         n_test = max(1, round(n * self.spec.dataset.test_fraction))
@@ -134,9 +138,8 @@ class StageContext:
         """
         from invphys.core.objectives import percentile_scales
 
-        train, _ = self.split()  # reads the dataset, which records the primary store's row count
-        primary = self._cache.get("dataset_primary_rows", len(self.dataset().theta))
-        return percentile_scales(self.dataset().y[train[train < primary]])
+        train, _ = self.split()
+        return percentile_scales(self.dataset().y[train[train < self.primary_rows()]])
 
     def surrogate(self) -> Any:
         if "surrogate" not in self._cache:

@@ -57,7 +57,9 @@ def select(ctx: StageContext) -> dict[str, Any]:
                 "param_names": list(data.param_names), "scales": ctx.scales().tolist(),
                 "selection": "file" if spec_t.file is not None else "values", "validate": spec_t.validate_n}
     _, test_idx = ctx.split()
-    rows = select_targets(data.y, test_idx, ctx.spec.targets.n, ctx.spec.targets.selection, ctx.seed)
+    # farthest-point sampling standardises by dataset.path's rows alone: extra_train rows never move the targets
+    rows = select_targets(data.y[:ctx.primary_rows()], test_idx, ctx.spec.targets.n, ctx.spec.targets.selection,
+                          ctx.seed)
     return {"rows": rows.tolist(), "features": data.y[rows].tolist(), "theta": data.theta[rows].tolist(),
             "params": data.params[rows].tolist(), "feature_names": list(data.feature_names),
             "param_names": list(data.param_names), "scales": ctx.scales().tolist(),
