@@ -106,7 +106,8 @@ def markdown(ctx_name: str, merged: list[dict[str, Any]], targets: dict[str, Any
     n_v = len({r["target_index"] for r in merged if r["problem"] == "target" and r["validated"]})
     lines += [f"{n_t} held-out targets ({targets['selection']} selection from the test partition), "
               f"{n_v} of them re-run through the simulator. R = R_gt (paper eq. 1); R_surr on the "
-              f"optimiser's evaluator, R_actual from the simulator, Delta = R_surr - R_actual "
+              f"optimiser's evaluator (for baselines, the shared surrogate's score of the answer, even where "
+              f"the lookup chose it by a stored row), R_actual from the simulator, Delta = R_surr - R_actual "
               f"(over validated targets).", ""]
     summ = summary_table(merged, "target")
     if summ:
