@@ -85,11 +85,14 @@ def test_simulator_in_the_loop_never_loses_to_its_start_and_batches_generations(
     by = {(r["optimizer"], r["target_index"]): r for r in rows if r["problem"] == "target"}
     for k in range(8):
         sil, nn = by[("sil", k)], by[("nearest_neighbour", k)]
-        assert sil["simulator_runs"] == 9
+        assert sil["simulator_runs"] == 9 and sil["simulator_time_s"] > 0
         assert sil["r_actual"] >= nn["r_actual"] - 1e-12  # its start was simulated too
     ev = {(r["optimizer"], r["target_index"]): r for r in json.loads((out / "validate" / "evaluation_rows.json").read_text())}
     # the loop's own score is the validated R_actual (no reality gap by construction)
     assert all(abs(ev[("sil", k)]["in_loop_score"] - by[("sil", k)]["r_actual"]) < 1e-9 for k in range(8))
+    # the report's cost column counts the simulator's own time per target (a replayed memo too)
+    proto = json.loads((out / "report" / "report.json").read_text())["optimizers"]
+    assert proto["sil"]["simulator_time_s"] == pytest.approx(info["simulator_time_s"] / 8)
 
 
 def test_recovered_parameters_in_order_with_units_and_errors(run_dir) -> None:

@@ -50,7 +50,7 @@ def test_protocol_summary_scores_failed_runs_as_zero_and_pairs_by_target() -> No
         rows.append({"optimizer": "m", "problem": "target", "target_index": k, "validated": k < 3,
                      "r_actual": float("nan") if k == 2 else 0.8, "r_surrogate": 0.9, "gap": None,
                      "failure": "nan: blew up" if k == 2 else None, "evaluations": 100, "wall_time_s": 0.5,
-                     "simulator_runs": 10})
+                     "simulator_runs": 10, "simulator_time_s": 4.0 + k})
     assert actual_score(rows[5]) == 0.0 and np.isnan(actual_score(rows[7]))
     s = protocol_summary(rows, ["farthest_point", "farthest_point", "random", "random"], n_boot=200)
     m = s["m"]
@@ -59,6 +59,7 @@ def test_protocol_summary_scores_failed_runs_as_zero_and_pairs_by_target() -> No
     assert m["vs_nearest_neighbour"]["n"] == 3
     assert m["vs_nearest_neighbour"]["mean_diff"] == pytest.approx((0.3 + 0.3 - 0.5) / 3)
     assert m["simulator_runs"] == 10 and m["evaluations"] == 100
+    assert m["simulator_time_s"] == pytest.approx(5.5) and s["nearest_neighbour"]["simulator_time_s"] is None
     assert m["by_set"]["random"]["n_validated"] == 1 and s["nearest_neighbour"]["vs_nearest_neighbour"] is None
 
 

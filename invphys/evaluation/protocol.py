@@ -2,7 +2,7 @@
 
 Input rows are the report's merged rows (one per method and problem) with at least ``optimizer``,
 ``problem``, ``target_index``, ``validated``, ``r_actual``, ``r_surrogate``, ``gap``, ``failure``,
-``evaluations``, ``wall_time_s`` and optionally ``simulator_runs``, ``device`` and ``role``.
+``evaluations``, ``wall_time_s`` and optionally ``simulator_runs``, ``simulator_time_s``, ``device`` and ``role``.
 A validation run that failed scores R_actual = 0 (the method's answer broke the simulator).
 """
 
@@ -58,6 +58,7 @@ def method_summary(rows: list[dict[str, Any]], label: str, reference: dict[int, 
         "evaluations": _mean(_num(sel, "evaluations")),
         "simulator_runs": _mean(_num(sel, "simulator_runs")) or 0.0,
         "wall_time_s": _mean(_num(sel, "wall_time_s")),
+        "simulator_time_s": _mean(_num(sel, "simulator_time_s")),  # from the runs' own stats (replays too)
     }
     key = f"vs_{reference_label}"
     if reference is not None and label != reference_label:

@@ -63,7 +63,7 @@ def _merge(rows: list[dict[str, Any]], validation: list[dict[str, Any]] | None) 
             "failure": v["failure"] if v else None, "sim_time_s": v.get("sim_time_s") if v else None,
             "validated": v is not None, "params": r["params"], "history": r["history"],
             "role": r.get("role", "optimizer"), "simulator_runs": r.get("simulator_runs", 0),
-            "device": r.get("device"), "theta": r.get("theta"), "spread": r.get("spread")})
+            "simulator_time_s": r.get("simulator_time_s"), "device": r.get("device"), "theta": r.get("theta"), "spread": r.get("spread")})
     return merged
 
 
@@ -390,7 +390,8 @@ def protocol_markdown(protocol: dict[str, Any], plot: str | None) -> list[str]:
              f"`targets.validate` = {st['validated']} (the n column counts the targets actually validated). Intervals: {st['bootstrap']} bootstrap resamples "
              f"over targets, {100 * st['confidence']:.0f} %. A failed validation run scores 0. A method beats "
              f"`{ref}` only when the paired interval's lower end is above 0. Cost per target: surrogate "
-             f"evaluations, simulator runs and wall time.", ""]
+             f"evaluations, simulator runs, wall time, and the simulator's own time per target (GPU s, from the runs' "
+             f"stats: a resumed run that replays memoised runs still counts them).", ""]
     table = []
     for lab, s in sorted(protocol["optimizers"].items(), key=lambda x: -(x[1]["r_actual_mean"] or -1)):
         d = s.get(key) or {}
@@ -398,9 +399,10 @@ def protocol_markdown(protocol: dict[str, Any], plot: str | None) -> list[str]:
                       s["r_surrogate_mean"], s["gap_mean"], d.get("mean_diff"), _ci(d.get("ci95")),
                       "yes" if d.get("beats") else ("-" if d.get("mean_diff") is None else "no"),
                       _count(s["evaluations"]), _count(s["simulator_runs"]),
-                      s["wall_time_s"], s["device"] or "-"])
+                      s["wall_time_s"], s.get("simulator_time_s"), s["device"] or "-"])
     lines += _md_table(["method", "role", "n", "R_actual", "95 % CI", "R_surr", "Delta", f"diff vs {ref}",
-                        "95 % CI", "beats", "evals/target", "sim runs/target", "time/target (s)", "device"], table)
+                        "95 % CI", "beats", "evals/target", "sim runs/target", "time/target (s)", "GPU s/target",
+                        "device"], table)
     by_set = {lab: s["by_set"] for lab, s in protocol["optimizers"].items()
               if s.get("by_set") and s["n_validated"]}
     for name in sorted({n for v in by_set.values() for n in v}):

@@ -116,7 +116,7 @@ def run(ctx: StageContext) -> dict[str, Any]:
     for i, r in enumerate(chosen):
         base = {k: r[k] for k in ("optimizer", "type", "space", "evaluator", "problem", "problem_id",
                                   "target_index", "dataset_row", "evaluations", "wall_time_s", "theta")}
-        base.update({k: r[k] for k in ("role", "simulator_runs", "device") if k in r})
+        base.update({k: r[k] for k in ("role", "simulator_runs", "simulator_time_s", "device") if k in r})
         if i in by_row:
             rec = by_row[i]
             base.update(r_surrogate=rec.r_surrogate, r_actual=rec.r_actual, gap=rec.gap, failure=rec.failure,
