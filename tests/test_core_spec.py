@@ -60,6 +60,18 @@ def test_default_stages_follow_the_sections_present():
     assert spec.stages == ["dataset", "train", "invert", "report"]
 
 
+def test_stages_that_read_targets_need_invert_and_invert_needs_answers():
+    text = GOOD.replace("stages: [train, dataset, invert]", "stages: [dataset, train, report]")
+    with pytest.raises(SpecError, match=r"stage 'report' reads the targets that 'invert' picks: add 'invert' to stages"):
+        parse(text)
+    no_optimizers = "\n".join(GOOD.splitlines()[:5]) + "\nstages: [dataset, train, invert, report]\n"
+    with pytest.raises(SpecError, match=r"stage 'invert' needs an 'optimizers' section or evaluation.baselines"):
+        parse(no_optimizers + "evaluation: {baselines: {}}\n")
+    spec = parse(no_optimizers)  # the default baselines answer the targets that invert picks
+    assert spec.stages == ["dataset", "train", "invert", "report"] and not spec.optimizers
+    assert "nearest_neighbour" in spec.evaluation.baselines
+
+
 def test_misspelled_plugin_did_you_mean_with_line():
     text = GOOD.replace("type: test_random_search", "type: test_random_serch")
     with pytest.raises(SpecError) as err:

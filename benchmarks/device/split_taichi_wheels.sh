@@ -8,6 +8,8 @@
 # then two `run` calls back to back (the machine is released after ~30 s idle):
 #   1. bash .gpu/ti/stage.sh                      carry [".gpu/ti"]
 #   2. bash .gpu/tb/stage.sh && YOUR_COMMAND      carry [".gpu/tb", ...]  (PYTHONPATH=/tmp/gpusite:$PWD:...)
+# or, when run directories need the carry's room: 2. `bash .gpu/tb/stage.sh` alone, then work calls that
+# carry only run data and call benchmarks/device/ensure_staged.sh (the staged site stays while warm).
 # results/orange_peel_paper_protocol_amortised/device_validate.sh is an example of call 2.
 set -euo pipefail
 TI=${1:-1.7.4}
@@ -31,6 +33,6 @@ S
 cat > .gpu/tb/stage.sh <<'S'
 set -e; if [ ! -d /tmp/gpusite/taichi ]; then cp .gpu/tb/part.* /tmp/gpuparts/ && mkdir -p /tmp/gpusite && cat /tmp/gpuparts/part.* | tar -C /tmp/gpusite -xJf - ; fi
 python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/gpusite .gpu/tb/*.whl
-echo "taichi + wheels staged in /tmp/gpusite"
+touch /tmp/gpusite/.staged; echo "taichi + wheels staged in /tmp/gpusite"
 S
 du -sh .gpu/ti .gpu/tb

@@ -11,7 +11,7 @@
 MIN=$1; EW=$2; shift 2
 [ -n "$MIN" ] && [ -n "$EW" ] && [ $# -ge 1 ] || { echo "usage: grow.sh MINUTES EW SPEC [SPEC ...]"; exit 2; }
 REPO=$PWD
-if command -v nvidia-smi >/dev/null && [ -f .gpu/tb/stage.sh ]; then bash .gpu/tb/stage.sh >/dev/null || exit 1; fi
+if command -v nvidia-smi >/dev/null; then bash benchmarks/device/ensure_staged.sh >/dev/null || exit 1; fi
 export PYTHONPATH=/tmp/gpusite:$REPO:$REPO/examples/anisompm:$REPO/examples/orange_peel:$PYTHONPATH
 export PYTHONUNBUFFERED=1 INVPHYS_DISABLE_PLUGIN_AUTOLOAD=1
 OUTDIR=${OUT:-/tmp/grow_out}; mkdir -p "$OUTDIR"

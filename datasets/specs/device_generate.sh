@@ -4,7 +4,7 @@
 # Staging: `bash benchmarks/device/split_taichi_wheels.sh` here; on the device one call `bash .gpu/ti/stage.sh`
 # (carry .gpu/ti), then this script with carry .gpu/tb. The stores come back under $OUT/datasets/.
 T_START=$(date +%s)
-bash .gpu/tb/stage.sh || exit 1
+bash benchmarks/device/ensure_staged.sh || exit 1
 export PYTHONPATH=/tmp/gpusite:$PWD:$PWD/examples/anisompm:$PWD/examples/orange_peel PYTHONUNBUFFERED=1
 python3 -m pip install -q --no-deps --no-build-isolation --no-index -e . -e examples/anisompm -e examples/orange_peel > $OUT/pip.txt 2>&1 || { echo "pip -e failed"; tail -5 $OUT/pip.txt; }
 nvidia-smi --query-gpu=name,memory.used --format=csv,noheader

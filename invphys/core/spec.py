@@ -290,12 +290,17 @@ class ExperimentSpec(_Section):
                        "validate": self.validator is not None, "active": self.active is not None,
                        "report": bool(self.optimizers)}
             self.stages = [s for s in STAGES if present[s]]
-        needs = {"train": ("surrogate",), "invert": ("surrogate", "optimizers"), "validate": ("validator",),
+        needs = {"train": ("surrogate",), "invert": ("surrogate",), "validate": ("validator",),
                  "active": ("active", "surrogate", "validator")}
         for stage, sections in needs.items():
             for section in sections:
                 if stage in self.stages and not getattr(self, section):
                     raise ValueError(f"stage {stage!r} needs a {section!r} section")
+        if "invert" in self.stages and not (self.optimizers or self.evaluation.baselines):  # baselines: targets only
+            raise ValueError("stage 'invert' needs an 'optimizers' section or evaluation.baselines")
+        for stage in ("validate", "active", "report"):
+            if stage in self.stages and "invert" not in self.stages:
+                raise ValueError(f"stage {stage!r} reads the targets that 'invert' picks: add 'invert' to stages")
         for label, block in self.optimizers.items():
             space = block.get("space", "raw")
             if space != "raw" and space not in self.latent_models:

@@ -10,7 +10,7 @@ LIMIT=${1:-540}
 RUN=runs/protocol_paper_active030
 SPEC=examples/orange_peel/invphys_orange_peel/specs/active_from_amortised_paper.yaml
 T0=$(date +%s)
-bash .gpu/tb/stage.sh || exit 1
+bash benchmarks/device/ensure_staged.sh || exit 1
 export PYTHONPATH=/tmp/gpusite:$REPO:$REPO/examples/anisompm:$REPO/examples/orange_peel PYTHONUNBUFFERED=1 INVPHYS_DISABLE_PLUGIN_AUTOLOAD=1
 nvidia-smi --query-gpu=name,memory.used --format=csv,noheader
 sed -e 's/^simulator: {type: orange_peel,/simulator: {type: "invphys_orange_peel.simulator:OrangePeelSimulator",/' \
