@@ -128,6 +128,50 @@ def test_npe_best_of_k_by_surrogate_and_save_load(npe_fitted, tmp_path) -> None:
         NPEBaseline.load(tmp_path / "missing")
 
 
+class _StdGrowsWithHiddenParameter:
+    """A surrogate that predicts the true map but doubts itself in proportion to theta_1 (which the features
+    hardly see: a 1e-6 trace keeps predictions of different draws apart, as the penalty looks stds up by them)."""
+
+    def predict(self, th):
+        th = np.atleast_2d(th)
+        return np.c_[th[:, 0] + 1e-6 * th[:, 1], th[:, 0] ** 2]
+
+    def predict_with_uncertainty(self, th):
+        th = np.atleast_2d(th)
+        return self.predict(th), np.repeat(th[:, 1:2], 2, axis=1)
+
+
+def test_npe_penalised_pick_prefers_draws_the_ensemble_agrees_on(npe_fitted) -> None:
+    from invphys.evaluation.answers import baseline_rows
+    from invphys.plugins.evaluators.uncertainty import UncertaintyPenalty
+
+    theta, y = _hidden_parameter_problem(10, seed=7)
+    surrogate, scales = _StdGrowsWithHiddenParameter(), npe_fitted._scales
+    plain = NPEBaseline(npe_fitted.config.model_copy(update={"answer": "best_surrogate"})).adopt(npe_fitted)
+    cfg = npe_fitted.config.model_copy(update={"answer": "best_surrogate", "uncertainty_penalty": 100.0})
+    pen_npe = NPEBaseline(cfg).adopt(npe_fitted)
+    assert pen_npe.fit_key() == plain.fit_key()  # the penalty is an answer option: one fit serves both
+    pen = UncertaintyPenalty(surrogate, scales, 100.0)
+    a, b = plain.answer(y, surrogate.predict), pen_npe.answer(y, pen.predict, pen.penalty)
+    np.testing.assert_allclose(a.candidates, b.candidates)
+    # with a large lambda the pick is the draw with the smallest theta_1 (the least doubted one)
+    np.testing.assert_allclose(b.theta[:, 1], b.candidates[:, :, 1].min(axis=1))
+    assert b.theta[:, 1].mean() < a.theta[:, 1].mean()
+    # through the evaluation's baseline rows: the ensemble's std is used, and a surrogate without it is refused
+    targets = {"features": y.tolist(), "rows": list(range(10)), "theta": theta.tolist(),
+               "selection": ["random"] * 10, "param_names": ["a", "b"]}
+    to_params = lambda th: list(map(float, th))  # noqa: E731
+    fitted = NPEBaseline(cfg).adopt(npe_fitted)
+    fitted.fit = lambda *a, **k: fitted.metrics  # keep the module's fit (baseline_rows fits on the rows given)
+    rows, metrics = baseline_rows({"npe_pen": fitted}, theta, y, scales, targets,
+                                  surrogate.predict, to_params, log=lambda m: None, surrogate=surrogate)
+    np.testing.assert_allclose([r["theta"] for r in rows], b.theta)
+    assert metrics["npe_pen"]["uncertainty_penalty"] == 100.0
+    with pytest.raises(InvphysError, match="uncertainty_penalty needs a surrogate with uncertainty"):
+        baseline_rows({"npe_pen": fitted}, theta, y, scales, targets, surrogate.predict, to_params,
+                      log=lambda m: None)
+
+
 def test_npe_writes_nothing_into_the_working_directory(tmp_path, monkeypatch) -> None:
     theta, y = _hidden_parameter_problem(100)
     monkeypatch.chdir(tmp_path)

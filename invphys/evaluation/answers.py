@@ -35,14 +35,18 @@ def _row(label: str, kind: str, role: str, k: int, targets: dict[str, Any], thet
 def baseline_rows(plugins: dict[str, Any], theta_train: np.ndarray, y_train: np.ndarray, scales: np.ndarray,
                   targets: dict[str, Any], predict_theta: Callable[[np.ndarray], np.ndarray],
                   to_params: Callable[[np.ndarray], list[float]], progress: bool = False,
-                  log: Callable[[str], None] = print) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+                  log: Callable[[str], None] = print,
+                  surrogate: Any = None) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Fit each baseline plugin on the training rows and answer every target.
 
     Baselines whose ``fit_key()`` agree share one fit. A baseline whose library is missing (npe
     without sbi) is skipped with a logged warning and listed under ``metrics[label]["skipped"]``.
+    A baseline with ``uncertainty_penalty`` > 0 chooses among its candidates by R minus lambda x the
+    ``surrogate``'s normalised std (an ensemble's ``predict_with_uncertainty``).
     Returns (rows, metrics per label).
     """
     from invphys.core.errors import InvphysError
+    from invphys.plugins.evaluators.uncertainty import UncertaintyPenalty
 
     feats = np.asarray(targets["features"], dtype=np.float64)
     rows: list[dict[str, Any]] = []
@@ -63,7 +67,15 @@ def baseline_rows(plugins: dict[str, Any], theta_train: np.ndarray, y_train: np.
                 metrics[label] = {"skipped": str(exc)}
                 continue
             raise
-        ans = plugin.answer(feats, predict_theta)
+        lam = float(getattr(plugin.config, "uncertainty_penalty", 0.0) or 0.0)
+        if lam > 0:
+            if surrogate is None or not hasattr(surrogate, "predict_with_uncertainty"):
+                raise InvphysError(f"evaluation.baselines.{label}.uncertainty_penalty needs a surrogate with "
+                                   f"uncertainty (the ensemble)")
+            pen = UncertaintyPenalty(surrogate, scales, lam)
+            ans = plugin.answer(feats, pen.predict, pen.penalty)
+        else:
+            ans = plugin.answer(feats, predict_theta)
         predicted = np.asarray(predict_theta(ans.theta), dtype=np.float64)
         per = ans.wall_time_s / max(len(feats), 1)
         for k in range(len(feats)):
@@ -72,7 +84,7 @@ def baseline_rows(plugins: dict[str, Any], theta_train: np.ndarray, y_train: np.
                              evaluator="dataset" if plugin.name == "nearest_neighbour" else "posterior",
                              spread=None if not np.all(np.isfinite(ans.spread[k])) else ans.spread[k].tolist()))
         metrics[label] = {**plugin.metrics, "answer_time_s": ans.wall_time_s,
-                          **{k: v for k, v in ans.info.items() if k in ("leakage", "answer", "samples")}}
+                          **{k: v for k, v in ans.info.items() if k in ("leakage", "answer", "samples", "uncertainty_penalty")}}
         log(f"baseline {label}: mean R_surr {np.mean([r['r_surrogate'] for r in rows if r['optimizer'] == label]):.3f}"
             f" ({ans.wall_time_s * 1e3 / max(len(feats), 1):.2f} ms per target)")
     return rows, metrics

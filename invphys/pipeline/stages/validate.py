@@ -207,7 +207,8 @@ def baselines(ctx: StageContext, targets: dict[str, Any]) -> tuple[list[dict[str
     train_idx, _ = ctx.split()
     plugins = {label: ctx.registry.create("optimizer", block) for label, block in blocks.items()}
     rows, metrics = baseline_rows(plugins, data.theta[train_idx], data.y[train_idx], ctx.scales(), targets,
-                                  ctx.surrogate().predict, _to_params(ctx), progress=False, log=ctx.log)
+                                  ctx.surrogate().predict, _to_params(ctx), progress=False, log=ctx.log,
+                                  surrogate=ctx.surrogate())
     write_json(cache, {"key": key, "rows": rows, "metrics": metrics})
     return rows, metrics
 

@@ -53,6 +53,7 @@ class DatasetBaseline(BuiltinOptimizer):
 
     def __init__(self, config: Any = None, **settings: Any) -> None:
         super().__init__(config, **settings)
+        self.penalty_fn: Any = None  # set by answer() for the candidates' choice
         self.fitted = False
         self.metrics: dict[str, Any] = {}
 
@@ -85,13 +86,23 @@ class DatasetBaseline(BuiltinOptimizer):
         self.fitted = True
         return self.metrics
 
-    def answer(self, targets: np.ndarray, predict_theta: Any = None) -> BaselineAnswers:
-        """Answers for targets (B, M) (see :class:`BaselineAnswers`)."""
+    def answer(self, targets: np.ndarray, predict_theta: Any = None, penalty: Any = None) -> BaselineAnswers:
+        """Answers for targets (B, M) (see :class:`BaselineAnswers`).
+
+        ``penalty(features (N, M)) -> (N,)`` is subtracted from R_gt where an option chooses among
+        candidates by the surrogate (e.g. :meth:`UncertaintyPenalty.penalty
+        <invphys.plugins.evaluators.uncertainty.UncertaintyPenalty.penalty>` with ``predict_theta`` its
+        ``predict``).
+        """
         if not self.fitted:
             raise InvphysError(f"{self.name}: call fit() with training rows before answering")
         targets = np.atleast_2d(np.asarray(targets, dtype=np.float64))
         t0 = time.perf_counter()
-        ans = self._answer(targets, predict_theta)
+        self.penalty_fn = penalty
+        try:
+            ans = self._answer(targets, predict_theta)
+        finally:
+            self.penalty_fn = None
         ans.wall_time_s = time.perf_counter() - t0
         return ans
 
@@ -99,7 +110,8 @@ class DatasetBaseline(BuiltinOptimizer):
         if problem.target is None:
             raise InvphysError(f"{self.name} answers recovery problems only (the problem has no target)")
         counted = problem.info.get("theta_predict")
-        ans = self.answer(problem.target[None, :], counted)
+        unc = problem.info.get("uncertainty")  # a penalised problem (optimizers.<label>.uncertainty_penalty)
+        ans = self.answer(problem.target[None, :], counted, None if unc is None else unc.penalty)
         theta = ans.theta[0]
         space = problem.space
         point = theta if space.from_theta is None else np.asarray(space.from_theta(theta[None, :]))[0]
@@ -120,13 +132,18 @@ class DatasetBaseline(BuiltinOptimizer):
 
 
 def best_by_surrogate(candidates: np.ndarray, targets: np.ndarray, scales: np.ndarray,
-                      predict_theta: Any) -> tuple[np.ndarray, np.ndarray]:
-    """Index (B,) of the candidate (B, K, d) whose surrogate prediction scores best R_gt, and the scores (B, K)."""
+                      predict_theta: Any, penalty: Any = None) -> tuple[np.ndarray, np.ndarray]:
+    """Index (B,) of the candidate (B, K, d) whose surrogate prediction scores best, and the scores (B, K).
+
+    The score is R_gt, minus ``penalty(features (B*K, M)) -> (B*K,)`` when given.
+    """
     from invphys.core.objectives import recovery_reward
 
     if predict_theta is None:
         raise InvphysError("choosing among candidates by the surrogate needs a surrogate (predict_theta)")
     b, k, d = candidates.shape
-    y = np.asarray(predict_theta(candidates.reshape(b * k, d)), dtype=np.float64).reshape(b, k, -1)
-    scores = recovery_reward(y, targets[:, None, :], scales)
+    flat = np.asarray(predict_theta(candidates.reshape(b * k, d)), dtype=np.float64)
+    scores = recovery_reward(flat.reshape(b, k, -1), targets[:, None, :], scales)
+    if penalty is not None:
+        scores = scores - np.asarray(penalty(flat), dtype=np.float64).reshape(b, k)
     return np.argmax(scores, axis=1), scores

@@ -71,7 +71,7 @@ class NearestNeighbour(DatasetBaseline):
         b = len(targets)
         evals = np.zeros(b, dtype=np.int64)
         if self.config.select == "surrogate" and cands.shape[1] > 1:
-            best, _ = best_by_surrogate(cands, targets, self._scales, predict_theta)
+            best, _ = best_by_surrogate(cands, targets, self._scales, predict_theta, self.penalty_fn)
             theta = cands[np.arange(b), best]
             evals[:] = cands.shape[1]
         elif self.config.select == "mean":

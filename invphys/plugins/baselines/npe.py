@@ -31,7 +31,7 @@ class NPEBaseline(DatasetBaseline):
     name: ClassVar[str] = "npe"
     extra: ClassVar[str] = "sbi"
     #: config keys that change answers but not the trained estimator
-    answer_keys: ClassVar[tuple[str, ...]] = ("samples", "answer")
+    answer_keys: ClassVar[tuple[str, ...]] = ("samples", "answer", "uncertainty_penalty")
 
     class Config(PluginConfig):
         estimator: Literal["maf", "nsf", "mdn"] = Field("maf", description="sbi density estimator")
@@ -43,6 +43,8 @@ class NPEBaseline(DatasetBaseline):
         stop_after_epochs: int = Field(20, ge=1, description="early-stopping patience on sbi's validation split")
         samples: int = Field(64, ge=1, description="posterior draws per target")
         answer: Literal["mean", "best_log_prob", "best_surrogate"] = Field("best_log_prob")
+        uncertainty_penalty: float = Field(
+            0.0, ge=0, description="best_surrogate: score = R - lambda x the ensemble's normalised std (0: plain R)")
         transform: Literal["none", "logit"] = Field(
             "none", description="logit: learn logit(theta), so samples stay in the box (on the tiny fixture: "
                                 "no leakage but a larger error)")
@@ -153,13 +155,14 @@ class NPEBaseline(DatasetBaseline):
         elif self.config.answer == "best_log_prob":
             theta = samples[np.arange(b), np.argmax(logp, axis=1)]
         else:
-            best, _ = best_by_surrogate(samples, targets, self._scales, predict_theta)
+            best, _ = best_by_surrogate(samples, targets, self._scales, predict_theta, self.penalty_fn)
             theta = samples[np.arange(b), best]
             evals[:] = samples.shape[1]
         return BaselineAnswers(theta=np.clip(theta, 0.0, 1.0), candidates=samples,
                                spread=samples.std(axis=1) / PRIOR_STD, evaluations=evals, wall_time_s=0.0,
                                info={"answer": self.config.answer, "samples": self.config.samples,
-                                     "leakage": self.last_leakage})
+                                     "leakage": self.last_leakage,
+                                     "uncertainty_penalty": self.config.uncertainty_penalty})
 
     def save(self, directory: str | Path) -> Path:
         """Pickle the trained posterior and the config under ``directory``."""
