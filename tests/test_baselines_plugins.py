@@ -84,6 +84,32 @@ def test_a_baseline_is_an_optimiser_over_a_problem_and_says_when_it_was_not_fitt
         nn.optimize(build_problem(raw_space(9), RecoveryObjective(ye[0], scales), 5, predict=predict))
 
 
+def test_a_baseline_as_a_penalised_optimiser_chooses_by_the_penalised_score() -> None:
+    from invphys.plugins.evaluators.uncertainty import penalised_problem
+
+    tt, yt, _te, ye = orange_split()
+    scales = percentile_scales(yt)
+    predict = _linear(tt, yt)
+
+    class Doubtful:  # doubts every parameter vector but the lookup's first candidate's
+        first: np.ndarray | None = None
+
+        def predict_with_uncertainty(self, th):
+            th = np.atleast_2d(th)
+            if self.first is None:
+                self.first = th[0].copy()
+            std = np.where(np.all(np.isclose(th, self.first), axis=1)[:, None], 0.0, 10.0)
+            return predict(th), np.broadcast_to(std, (len(th), yt.shape[1]))
+
+    nn = NearestNeighbour(k=4, select="surrogate")
+    nn.fit(tt, yt, scales)
+    base = build_problem(raw_space(9), RecoveryObjective(ye[1], scales), budget=10, predict=predict, target=ye[1],
+                         info={"theta_predict": predict})
+    doubtful = Doubtful()
+    res = nn.optimize(penalised_problem(base, doubtful, scales, lam=5.0))
+    np.testing.assert_allclose(res.theta, doubtful.first)  # the only candidate without a penalty
+
+
 def _hidden_parameter_problem(n: int = 600, seed: int = 0):
     """theta in [0,1]^2; the features see theta_0 only (theta_1 cannot be pinned down)."""
     rng = np.random.default_rng(seed)
