@@ -89,6 +89,24 @@ def test_train_reruns_when_its_dataset_changes_and_says_why(tmp_path):
     assert json.loads((out / "train" / "DONE.json").read_text())["run_id"] != done["run_id"]
 
 
+def test_a_stage_run_alone_warns_when_an_earlier_stage_no_longer_matches(tmp_path):
+    """Running one stage (--stage) over an earlier stage that the spec or data has moved past says so."""
+    from rich.console import Console
+
+    text = SPEC.replace("n: 6", "n: 12").replace(
+        "stages: [dataset]", "surrogate: {type: mlp, max_epochs: 2, hidden: [4, 4, 4], batch_size: 4}\n"
+        "stages: [dataset, train]")
+    out = tmp_path / "run"
+    events_of(text, out)
+    console = Console(record=True, width=300)
+    run_spec(parse_spec(text.replace("n: 12", "n: 14")), out, stages=["train"], progress=False, console=console)
+    said = console.export_text()
+    assert "warning: train: reads results that no longer match the spec or data: dataset (spec sections changed)" in said
+    console = Console(record=True, width=300)  # all current: no warning
+    run_spec(parse_spec(text), out, stages=["train"], force=["train"], progress=False, console=console)
+    assert "warning" not in console.export_text()
+
+
 def test_run_refuses_bad_out_and_stage_names_and_survives_a_broken_marker(tmp_path):
     import pytest
 

@@ -96,6 +96,7 @@ def _run_stages(spec: ExperimentSpec, out: Path, selected: list[str], force: Seq
 
     spec_stages = spec.stages or []
     upstream: dict[str, Any] = {}
+    stale: list[str] = []  # earlier stages not run now whose results no longer match the spec or data: why
     for stage in STAGES:
         if stage not in spec_stages and stage not in selected:
             continue
@@ -114,7 +115,13 @@ def _run_stages(spec: ExperimentSpec, out: Path, selected: list[str], force: Seq
         upstream = {**upstream, stage: [fp, (done or {}).get("run_id") if (done or {}).get("fingerprint") == fp
                                         else None]}
         if stage not in selected:
+            if done is not None and done.get("fingerprint") != fp:
+                stale.append(f"{stage} ({cache.stale_reason(done, components)})")
             continue
+        if stale:  # cached or not, this stage's result rests on them
+            console.print(f"[yellow]warning:[/] {stage}: reads results that no longer match the spec or data: "
+                          f"{', '.join(stale)}; re-run {'them' if len(stale) > 1 else 'it'} (--stage) for a "
+                          f"current {stage}")
         if stage not in force and done is not None and done.get("fingerprint") == fp:
             summary = cache.read_done(out / stage / SUMMARY_FILE)
             if summary is not None:
