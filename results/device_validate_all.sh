@@ -1,8 +1,7 @@
 #!/usr/bin/env bash
 # Device run: the validate + report stages of several prepared runs in ONE call, in order, within SECONDS.
 # BUNDLE is a tarball of the runs' files the validate stage reads (made on the CPU by
-# `tar -czf runs/next_gpu.tgz runs/A/train runs/A/invert/*.json runs/A/validate ...`, carried as one path,
-# unpacked here); each run's validate/ + report/ come back as $OUT/<run name>.tgz (unpack with
+# `bash results/pack_for_gpu.sh runs/next_gpu.tgz RUN ...`, carried as one path, unpacked here); each run's validate/ + report/ come back as $OUT/<run name>.tgz (unpack with
 # `tar -C runs/<run name> -xzf`). A run cut short by the time limit resumes in the next call on the same warm
 # machine (device_validate.sh keeps the memo in /tmp/keep). Stage taichi first (ensure_staged.sh).
 # usage: bash results/device_validate_all.sh SECONDS BUNDLE SPEC RUN [SPEC RUN ...]
