@@ -427,9 +427,18 @@ class DatasetStore:
         self._keys.update(keys)
         return self.path / name
 
-    def content_fingerprint(self) -> str:
+    def content_fingerprint(self, first_ok: int | None = None) -> str:
         """A cheap hash of what the store holds now: its manifest's checksums (or, for a store without
-        a manifest, each part's name, size and modification time). Changes when rows are added or lost."""
+        a manifest, each part's name, size and modification time). Changes when rows are added or lost.
+
+        With ``first_ok``, the hash of the store's first ``first_ok`` ok rows in store order (the rows
+        :meth:`arrays` gives with the same ``first_ok``): of the parts up to the one holding the last of
+        them (plus the count when that part holds more ok rows), so parts appended later leave it
+        unchanged. Finding that part reads the ``status`` column of the parts before it, nothing else.
+        When those parts hold exactly ``first_ok`` ok rows it equals the fingerprint the store had when
+        they were all it held. Raises :class:`DatasetError` when the store holds fewer ok rows.
+        """
+        _check_first_ok(first_ok)
         if not self.exists:
             return "absent"
         try:
@@ -437,10 +446,35 @@ class DatasetStore:
         except DatasetError:
             manifest = None
         if manifest is not None:
-            items = sorted(f"{p['name']}:{p['sha256']}" for p in manifest["parts"])
+            entries = [(str(p["name"]), f"{p['name']}:{p['sha256']}") for p in manifest["parts"]]
         else:
-            items = sorted(f"{p.name}:{p.stat().st_size}:{p.stat().st_mtime_ns}" for p in self.parts())
+            entries = [(p.name, f"{p.name}:{p.stat().st_size}:{p.stat().st_mtime_ns}") for p in self.parts()]
+        extra: list[str] = []
+        if first_ok is not None:
+            held = 0
+            for i, (name, _) in enumerate(entries):
+                held += self._part_ok_rows(name)
+                if held >= first_ok:
+                    entries = entries[:i + 1]
+                    break
+            else:
+                raise DatasetError(_too_few_message(self.path, held, first_ok))
+            extra = [] if held == first_ok else [f"first {first_ok} ok rows"]
+        items = sorted(item for _, item in entries) + extra
         return hashlib.sha256("\n".join(items).encode()).hexdigest()[:16]
+
+    def _part_ok_rows(self, name: str) -> int:
+        """How many ok rows the part file ``name`` holds (its ``status`` column alone is read)."""
+        import pyarrow.compute as pc
+        import pyarrow.parquet as pq
+
+        try:
+            status = pq.read_table(self.path / name, columns=["status"], use_threads=False,
+                                   pre_buffer=False).column("status")
+        except Exception as exc:  # missing or corrupt: the reader names it (and how to repair it)
+            raise DatasetError(f"dataset {str(self.path)!r}: cannot read part {name}: {_short(exc)}; "
+                               f"`invphys dataset verify {self.path}` checks the store") from None
+        return int(pc.sum(pc.equal(status, "ok")).as_py() or 0)
 
     # -- integrity -----------------------------------------------------------------------------
     def verify(self) -> VerifyReport:
@@ -573,21 +607,39 @@ class DatasetStore:
         """Keys of every stored row (ok and failed)."""
         return set(self._table().column("key").to_pylist())
 
-    def frame(self, ok_only: bool = False) -> Any:
-        """All rows as a pandas DataFrame sorted by key (the store is checked first)."""
+    def ok_count(self) -> int:
+        """How many ok rows the store holds (the store is checked first)."""
+        import pyarrow.compute as pc
+
+        return int(pc.sum(pc.equal(self._table().column("status"), "ok")).as_py() or 0)
+
+    def frame(self, ok_only: bool = False, first_ok: int | None = None) -> Any:
+        """All rows as a pandas DataFrame sorted by key (the store is checked first).
+
+        ``first_ok``: only the rows stored up to the ``first_ok``-th ok row, in store order (parts in
+        write order, rows in each part in order): the rows the store held when it held ``first_ok``
+        ok rows, since stores only append. Raises :class:`DatasetError` when it holds fewer.
+        """
         import pandas as pd
 
+        _check_first_ok(first_ok)
         df: pd.DataFrame = self._table().to_pandas(use_threads=False)
+        if first_ok is not None:
+            ok_at = np.flatnonzero((df["status"] == "ok").to_numpy(dtype=bool))
+            if len(ok_at) < first_ok:
+                raise DatasetError(_too_few_message(self.path, len(ok_at), first_ok))
+            df = df.iloc[:int(ok_at[first_ok - 1]) + 1]
         df = df.sort_values("key", kind="stable").reset_index(drop=True)
         if ok_only:
             df = df[df["status"] == "ok"].reset_index(drop=True)
         return df
 
-    def arrays(self, ok_only: bool = True) -> DatasetArrays:
-        """The rows as :class:`DatasetArrays` (only successful runs unless ``ok_only=False``)."""
+    def arrays(self, ok_only: bool = True, first_ok: int | None = None) -> DatasetArrays:
+        """The rows as :class:`DatasetArrays` (only successful runs unless ``ok_only=False``; only the
+        store's first ``first_ok`` ok rows when given, see :meth:`frame`)."""
         meta = self.metadata
         pnames, fnames = tuple(meta["param_names"]), tuple(meta["feature_names"])
-        df = self.frame(ok_only=ok_only)
+        df = self.frame(ok_only=ok_only, first_ok=first_ok)
         keys = df["key"].to_numpy(dtype=object)
 
         def block(prefix: str, names: tuple[str, ...]) -> np.ndarray:
@@ -727,6 +779,15 @@ def _problems_message(path: Path, problems: list[PartProblem]) -> str:
     more = f" and {len(problems) - 3} more" if len(problems) > 3 else ""
     return (f"dataset {str(path)!r} has {len(problems)} bad part(s): {shown}{more}. "
             f"`invphys dataset verify {path}` lists them; `--repair` quarantines them")
+
+
+def _check_first_ok(first_ok: int | None) -> None:
+    if first_ok is not None and (isinstance(first_ok, bool) or not isinstance(first_ok, int) or first_ok < 1):
+        raise ValueError(f"first_ok must be a positive int or None, not {first_ok!r}")
+
+
+def _too_few_message(path: Path, held: int, wanted: int) -> str:
+    return f"dataset {str(path)!r} holds {held} ok rows, fewer than the {wanted} asked for"
 
 
 def _short(exc: BaseException) -> str:

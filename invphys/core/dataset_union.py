@@ -1,8 +1,9 @@
 """Training on several stores: a primary store plus extra stores whose rows join the training split only.
 
 The primary store fixes the held-out split and the targets (its rows, its seed, its ``test_fraction``);
-each extra store (``dataset.extra_train`` in a spec) adds its successful rows to the training rows, so a
-model trained on more data is compared with the same held-out rows. Stores are joined only when they
+each extra store (``dataset.extra_train`` in a spec) adds its successful rows to the training rows (or,
+for an entry ``{path, rows: N}``, its first N ok rows in store order), so a model trained on more data is
+compared with the same held-out rows. Stores are joined only when they
 hold the same problem: the same parameter space, parameter and feature names, and the same simulator
 name, version and preset (and the same config hash where both stores record one). A row already in
 the primary store (same key: same parameters, same simulator identity) is not added twice.

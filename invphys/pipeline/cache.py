@@ -48,11 +48,12 @@ def plugin_versions(spec: Any, sections: tuple[str, ...], registry: Any) -> dict
     return out
 
 
-def data_fingerprint(path: Path) -> str:
-    """The dataset's content fingerprint at ``path`` ("absent" when there is no store yet)."""
+def data_fingerprint(path: Path, first_ok: int | None = None) -> str:
+    """The dataset's content fingerprint at ``path`` ("absent" when there is no store yet); with
+    ``first_ok``, that of its first ``first_ok`` ok rows only (rows appended later leave it unchanged)."""
     from invphys.core.dataset import DatasetStore
 
-    return DatasetStore(path).content_fingerprint() if path.is_dir() else "absent"
+    return DatasetStore(path).content_fingerprint(first_ok) if path.is_dir() else "absent"
 
 
 def read_done(done_path: Path) -> dict[str, Any] | None:

@@ -98,10 +98,10 @@ class StageContext:
             primary = DatasetStore(path).arrays(ok_only=True)
             extras = self.spec.dataset.extra_train
             if extras:
-                check_extra_stores(path, extras)
+                check_extra_stores(path, [e.path for e in extras])
             self._cache["dataset_primary_rows"] = len(primary)
-            self._cache["dataset"] = join_for_training(primary, [DatasetStore(e).arrays(ok_only=True)
-                                                                 for e in extras])
+            self._cache["dataset"] = join_for_training(
+                primary, [DatasetStore(e.path).arrays(ok_only=True, first_ok=e.rows) for e in extras])
         return self._cache["dataset"]
 
     def primary_rows(self) -> int:
@@ -113,7 +113,8 @@ class StageContext:
         """(train_idx, test_idx) of the dataset's ok rows, deterministic by seed and test_fraction.
 
         The split is drawn over the primary store's rows only; rows of ``dataset.extra_train`` stores
-        (after them in :meth:`dataset`) all join the training split.
+        (after them in :meth:`dataset`; an entry's first ``rows`` ok rows where it caps them) all join the
+        training split.
         """
         n_all, n = len(self.dataset().theta), self.primary_rows()
         rng = np.random.default_rng(self.spec.seed)
@@ -123,11 +124,12 @@ class StageContext:
         return train, np.sort(perm[:n_test])
 
     def data_fingerprint(self) -> str:
-        """The content fingerprint of the data the stages read: the store's, plus each extra store's."""
+        """The content fingerprint of the data the stages read: the store's, plus each extra store's (of
+        its first ``rows`` ok rows alone where the entry caps them: growing that store changes nothing)."""
         from invphys.pipeline.cache import data_fingerprint
 
         own = data_fingerprint(self.dataset_path())
-        extras = [data_fingerprint(Path(e)) for e in self.spec.dataset.extra_train]
+        extras = [data_fingerprint(Path(e.path), e.rows) for e in self.spec.dataset.extra_train]
         return "+".join([own, *extras])
 
     def scales(self) -> np.ndarray:
