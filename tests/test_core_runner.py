@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+from test_dataset_toy import ToyOscillator
+
 from invphys.core.spec import parse_spec
 from invphys.pipeline.runner import run_spec
 
@@ -123,3 +125,55 @@ def test_run_refuses_bad_out_and_stage_names_and_survives_a_broken_marker(tmp_pa
     events_of(SPEC, out)
     (out / "dataset" / "DONE.json").write_text("{not json")
     assert events_of(SPEC, out) == [("dataset", "start"), ("dataset", "done")]
+
+
+class SlowToy(ToyOscillator):
+    """The toy oscillator with a setting that changes only its speed (``sleep_s``) declared as such."""
+
+    identity_ignores = ("sleep_s",)
+
+
+TWO_STAGES = SPEC.replace('"test_dataset_toy:ToyOscillator", n_frames: 10', '"test_core_runner:SlowToy", n_frames: 10, sleep_s: 0.0').replace("n: 6", "n: 12").replace(
+    "stages: [dataset]", "surrogate: {type: mlp, max_epochs: 2, hidden: [4, 4, 4], batch_size: 4}\n"
+    "validator: {type: simulator, batch_size: 4}\nstages: [dataset, train]")
+
+
+def test_settings_that_change_only_speed_keep_stages_cached(tmp_path):
+    """A simulator's identity_ignores fields, the validator's batch size and dataset.batch_size say how fast
+    work goes, not what it computes: changing them (a run moved to a GPU with bigger batches) keeps every
+    stage cached; a setting that changes results still re-runs its stage."""
+    out = tmp_path / "run"
+    assert events_of(TWO_STAGES, out) == [("dataset", "start"), ("dataset", "done"), ("train", "start"), ("train", "done")]
+    faster = (TWO_STAGES.replace("sleep_s: 0.0", "sleep_s: 0.001").replace("batch_size: 3", "batch_size: 2")
+              .replace("validator: {type: simulator, batch_size: 4}",
+                       "validator: {type: simulator, batch_size: 64, extract_workers: 2}"))
+    assert events_of(faster, out) == [("dataset", "cached"), ("train", "cached")]
+    other_training = faster.replace("max_epochs: 2", "max_epochs: 3")  # a setting that changes results
+    assert events_of(other_training, out) == [("dataset", "cached"), ("train", "start"), ("train", "done")]
+
+
+def test_run_directories_keyed_before_execution_settings_left_the_keys_stay_cached(tmp_path):
+    """Stage markers written when keys still hashed the execution settings (before 2026-11-26) are
+    recognised: upgrading invphys does not re-run finished stages."""
+    from invphys import registry
+    from invphys.pipeline import cache
+    from invphys.pipeline.runner import stage_module
+
+    out = tmp_path / "run"
+    events_of(TWO_STAGES, out)
+    spec, reg = parse_spec(TWO_STAGES), registry.default_registry()
+    upstream: dict = {}
+    for stage in ("dataset", "train"):  # rewrite both markers with the old key (execution settings in it)
+        done_path = out / stage / "DONE.json"
+        done = json.loads(done_path.read_text())
+        sections = tuple(stage_module(stage).DEPENDS_ON)
+        components = {"spec": cache.digest(cache.key_inputs(spec, sections, reg, execution=True)),
+                      "plugins": done["components"]["plugins"], "data": done["components"]["data"],
+                      "upstream": cache.digest(upstream)}
+        done["fingerprint"] = cache.digest({"components": components, "stage": stage})
+        assert done["fingerprint"] != json.loads(done_path.read_text())["fingerprint"]  # the keys do differ
+        done_path.write_text(json.dumps(done))
+        upstream[stage] = [done["fingerprint"], done["run_id"]]
+    assert events_of(TWO_STAGES, out) == [("dataset", "cached"), ("train", "cached")]
+    # an old marker whose inputs did change still re-runs
+    assert events_of(TWO_STAGES.replace("n: 12", "n: 13"), out)[0] == ("dataset", "start")

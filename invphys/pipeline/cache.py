@@ -2,7 +2,8 @@
 
 A stage's key has four parts, each recorded in its ``DONE.json``:
 
-* ``spec``: the spec sections the stage names in ``DEPENDS_ON`` (plus the seed);
+* ``spec``: the spec sections the stage names in ``DEPENDS_ON`` (plus the seed), without the settings
+  that only change where or how fast work runs (:func:`key_inputs`);
 * ``plugins``: the name, distribution and version of every plugin those sections use;
 * ``data``: the dataset's content fingerprint (:meth:`DatasetStore.content_fingerprint`: its
   manifest's checksums), for every stage that reads the dataset;
@@ -27,6 +28,49 @@ def digest(obj: Any) -> str:
     """A short stable hash of a JSON-able object."""
     blob = json.dumps(obj, sort_keys=True, default=str, separators=(",", ":")).encode()
     return hashlib.sha256(blob).hexdigest()[:16]
+
+
+#: non-plugin spec fields that say how fast work goes, not what it computes (left out of stage keys)
+EXECUTION_FIELDS: dict[str, tuple[str, ...]] = {"dataset": ("batch_size", "limit_minutes")}
+
+
+def key_inputs(spec: Any, sections: tuple[str, ...], registry: Any, execution: bool = False) -> dict[str, Any]:
+    """The spec content a stage's key hashes: its ``sections`` and the seed.
+
+    Settings that change where or how fast work runs but not its results are left out (``execution``
+    True keeps them: the keys of runs made before 2026-11-26 hashed them, and are still recognised):
+    the fields each plugin class lists in ``identity_ignores`` (a simulator's device, batch size and
+    scheduling; the validator's batch size and extraction workers) and :data:`EXECUTION_FIELDS`. So a
+    run moved to a GPU, or given bigger batches, keeps its cached stages.
+    """
+    inputs = spec.section_dump(sections)
+    inputs["seed"] = spec.seed
+    if execution:
+        return inputs
+    for section, names in EXECUTION_FIELDS.items():
+        block = inputs.get(section)
+        if isinstance(block, dict):
+            for name in names:
+                block.pop(name, None)
+    for path, kind, _ in spec.plugin_blocks():
+        block = _at(inputs, path)
+        if not isinstance(block, dict):
+            continue
+        try:
+            ignores = getattr(registry.info(kind, str(block.get("type"))).cls, "identity_ignores", ())
+        except Exception:  # reported by validation; a key must not fail
+            ignores = ()
+        for name in ignores:
+            block.pop(name, None)
+    return inputs
+
+
+def _at(tree: dict[str, Any], path: str) -> Any:
+    """``tree["a"]["b"]`` for ``path`` "a.b" (None where absent)."""
+    node: Any = tree
+    for part in path.split("."):
+        node = node.get(part) if isinstance(node, dict) else None
+    return node
 
 
 def plugin_versions(spec: Any, sections: tuple[str, ...], registry: Any) -> dict[str, str]:

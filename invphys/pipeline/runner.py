@@ -96,33 +96,38 @@ def _run_stages(spec: ExperimentSpec, out: Path, selected: list[str], force: Seq
 
     spec_stages = spec.stages or []
     upstream: dict[str, Any] = {}
+    legacy_upstream: dict[str, Any] = {}  # the same chain with execution settings in the keys (older runs)
     stale: list[str] = []  # earlier stages not run now whose results no longer match the spec or data: why
     for stage in STAGES:
         if stage not in spec_stages and stage not in selected:
             continue
         module = stage_module(stage)
         sections = tuple(getattr(module, "DEPENDS_ON", ()))
-        inputs = spec.section_dump(sections)
-        inputs["seed"] = spec.seed
         ctx = StageContext(spec=spec, out=out, stage=stage, registry=reg, console=console, progress=progress,
                            tracker=tracker)
         done_path = out / stage / DONE_FILE
         done = cache.read_done(done_path)
-        components = {"spec": cache.digest(inputs), "plugins": cache.plugin_versions(spec, sections, reg),
-                      "data": ctx.data_fingerprint() if stage in cache.DATA_STAGES else "",
+        shared = {"plugins": cache.plugin_versions(spec, sections, reg),
+                  "data": ctx.data_fingerprint() if stage in cache.DATA_STAGES else ""}
+        components = {"spec": cache.digest(cache.key_inputs(spec, sections, reg)), **shared,
                       "upstream": cache.digest(upstream)}
+        legacy = {"spec": cache.digest(cache.key_inputs(spec, sections, reg, execution=True)), **shared,
+                  "upstream": cache.digest(legacy_upstream)}
         fp = cache.digest({"components": components, "stage": stage})
-        upstream = {**upstream, stage: [fp, (done or {}).get("run_id") if (done or {}).get("fingerprint") == fp
-                                        else None]}
+        legacy_fp = cache.digest({"components": legacy, "stage": stage})
+        current = done is not None and done.get("fingerprint") in (fp, legacy_fp)
+        run_id = done.get("run_id") if current and done is not None else None
+        upstream = {**upstream, stage: [fp, run_id]}
+        legacy_upstream = {**legacy_upstream, stage: [legacy_fp, run_id]}
         if stage not in selected:
-            if done is not None and done.get("fingerprint") != fp:
+            if done is not None and not current:
                 stale.append(f"{stage} ({cache.stale_reason(done, components)})")
             continue
         if stale:  # cached or not, this stage's result rests on them
             console.print(f"[yellow]warning:[/] {stage}: reads results that no longer match the spec or data: "
                           f"{', '.join(stale)}; re-run {'them' if len(stale) > 1 else 'it'} (--stage) for a "
                           f"current {stage}")
-        if stage not in force and done is not None and done.get("fingerprint") == fp:
+        if stage not in force and current:
             summary = cache.read_done(out / stage / SUMMARY_FILE)
             if summary is not None:
                 summaries[stage] = summary
@@ -145,6 +150,7 @@ def _run_stages(spec: ExperimentSpec, out: Path, selected: list[str], force: Seq
         write_json(done_path, {"fingerprint": fp, "components": components, "run_id": run_id,
                                "finished_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())})
         upstream[stage] = [fp, run_id]
+        legacy_upstream[stage] = [None, run_id]  # a re-run stage has no legacy key: later stages re-run too
         summaries[stage] = summary
         _track_stage(tracker, stage, out / stage, summary)
         if on_stage:

@@ -35,6 +35,8 @@ class SimulatorValidator(Validator):
     """
 
     name: ClassVar[str] = "simulator"
+    #: settings that change how fast validation goes, not its results: left out of the stage keys
+    identity_ignores: ClassVar[tuple[str, ...]] = ("batch_size", "extract_workers")
 
     class Config(PluginConfig):
         overrides: dict[str, Any] = Field(default_factory=dict,
