@@ -186,12 +186,13 @@ class Inverter:
             entry = {**entry, "space": self.bundle.methods[policy]["space"],
                      "evaluator": self.bundle.methods[policy].get("evaluator", "shared")}
         elif getattr(plugin, "goal_conditioned", False) and not getattr(plugin, "prepared", True):
-            import inspect
+            from invphys.plugins.baselines import learns_from_rows
 
-            theta, y = self.bundle.data("train")
-            fit = getattr(plugin, "fit", None)
-            if fit is not None and {"theta", "y", "scales"} <= set(inspect.signature(fit).parameters):
-                fit(theta, y, self.bundle.scales)  # a dataset baseline learns from the training rows
+            if entry.get("path") and hasattr(type(plugin), "load"):
+                plugin = self.bundle._plugin_load("optimizer", entry)  # fitted when the bundle was made
+            elif learns_from_rows(plugin):
+                theta, y = self.bundle.data("train")
+                plugin.fit(theta, y, self.bundle.scales)  # a dataset baseline learns from the training rows
             else:
                 trained = ", ".join(self._policy_labels()) or "none"
                 raise InvphysError(f"method {label!r} is a goal-conditioned policy that needs training first "

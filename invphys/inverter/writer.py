@@ -71,6 +71,7 @@ def _units(extractor: Any, names: list[str]) -> list[str]:
 def parts_from_context(ctx: Any, with_policies: bool) -> BundleParts:
     """Gather a run's parts through its stage context (``with_policies`` after the invert stage)."""
     from invphys.core.spec import optimizer_plugin_block
+    from invphys.plugins.baselines import learns_from_rows
 
     spec, reg = ctx.spec, ctx.registry
     data = ctx.dataset()
@@ -99,9 +100,10 @@ def parts_from_context(ctx: Any, with_policies: bool) -> BundleParts:
             entry["heldout"] = heldout[label]
         if entry["kind"] == "policy":
             saved = ctx.stage_dir_of("invert") / "policies" / label
-            if not with_policies or not saved.is_dir() or not hasattr(cls, "load"):
-                continue  # not trained yet (train stage) or not persistable
-            policies[label] = (cls.load(saved), saved)
+            if with_policies and saved.is_dir() and hasattr(cls, "load"):
+                policies[label] = (cls.load(saved), saved)  # trained policies and fitted dataset baselines
+            elif not (with_policies and learns_from_rows(cls)):
+                continue  # not trained yet (train stage) or not persistable; a baseline refits from the bundle's rows
         methods[label] = entry
     return BundleParts(
         name=spec.name, description=spec.description, simulator_block=dict(spec.simulator),

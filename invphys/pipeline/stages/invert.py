@@ -137,9 +137,19 @@ class _Entries:
         return plugin
 
     def _prepare(self, label: str) -> None:
+        from invphys.plugins.baselines import learns_from_rows
+
         plugin = self.plugins[label]
-        space, predict, _, _ = self.space(label)
         cache = self.ctx.stage_dir / "policies" / label
+        if learns_from_rows(plugin):  # a dataset baseline (npe, ...): fitted on the training rows, kept for the bundle
+            data, (train_idx, _) = self.ctx.dataset(), self.ctx.split()
+            self.ctx.log(f"{label}: fitting {plugin.name} on {len(train_idx)} training rows")
+            self.prepare_metrics[label] = plugin.fit(data.theta[train_idx], data.y[train_idx], self.scales,
+                                                     progress=self.ctx.progress)
+            if hasattr(plugin, "save"):
+                plugin.save(cache)
+            return
+        space, predict, _, _ = self.space(label)
         if getattr(plugin.config, "seed", 0) is None:
             plugin.config.seed = self.ctx.seed
         lam = penalty_of(self.blocks[label])

@@ -12,12 +12,13 @@
 
 All are optimiser plugins (usable wherever an optimiser name is, e.g. ``invphys invert --method``)
 that must first be fitted on training rows with :meth:`DatasetBaseline.fit`; the validate stage does so
-for the spec's ``evaluation.baselines``. Listing them is import-cheap (sbi and torch load on use).
+for the spec's ``evaluation.baselines``, the invert stage for one listed under ``optimizers`` (which then
+travels fitted in the run's inverter bundle). Listing them is import-cheap (sbi and torch load on use).
 """
 
 from __future__ import annotations
 
-from invphys.plugins.baselines._base import BaselineAnswers, DatasetBaseline
+from invphys.plugins.baselines._base import BaselineAnswers, DatasetBaseline, learns_from_rows
 from invphys.plugins.baselines.corrected_search import CorrectedSearch
 from invphys.plugins.baselines.local_linear import LocalLinear
 from invphys.plugins.baselines.nearest_neighbour import NearestNeighbour
@@ -26,4 +27,4 @@ from invphys.plugins.baselines.npe import NPEBaseline
 BASELINES: list[type] = [NearestNeighbour, NPEBaseline, LocalLinear, CorrectedSearch]
 
 __all__ = ["BASELINES", "BaselineAnswers", "CorrectedSearch", "DatasetBaseline", "LocalLinear", "NPEBaseline",
-           "NearestNeighbour"]
+           "NearestNeighbour", "learns_from_rows"]

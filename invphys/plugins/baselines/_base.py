@@ -36,6 +36,15 @@ class BaselineAnswers:
     info: dict[str, Any] = field(default_factory=dict)
 
 
+def learns_from_rows(plugin: Any) -> bool:
+    """True for an optimiser (class or instance) answered from training rows: it has
+    ``fit(theta, y, scales)`` (every :class:`DatasetBaseline`, and third-party ones shaped alike)."""
+    import inspect
+
+    fit = getattr(plugin, "fit", None)
+    return fit is not None and {"theta", "y", "scales"} <= set(inspect.signature(fit).parameters)
+
+
 class DatasetBaseline(BuiltinOptimizer):
     """An optimiser plugin answered from the training rows rather than by search.
 

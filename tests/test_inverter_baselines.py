@@ -1,0 +1,67 @@
+"""Dataset baselines listed as optimisers: fitted by the invert stage, carried fitted in the bundle."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+import yaml
+from test_inverter_support import toy_run
+
+pytest.importorskip("sbi")
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A train + invert run on the shared toy run's data with an npe and a lookup among the optimisers."""
+    from rich.console import Console
+
+    from invphys.core.spec import validate_spec
+    from invphys.pipeline.runner import run_spec
+
+    base = tmp_path_factory.getbasetemp()
+    store = toy_run(base) / "dataset" / "store"
+    spec = {"name": "inverter-baselines", "seed": 3, "simulator": {"type": "test_dataset_toy:ToyOscillator"},
+            "dataset": {"path": str(store)},
+            "surrogate": {"type": "ensemble", "members": 2, "hidden": [16, 16, 8], "max_epochs": 30, "dropout": 0.0},
+            "optimizers": {"npe_best": {"type": "npe", "estimator": "mdn", "hidden_features": 16,
+                                        "max_num_epochs": 20, "samples": 16, "answer": "best_surrogate"},
+                           "lookup": {"type": "nearest_neighbour"},
+                           "cma": {"type": "cma_es", "budget": 100}},
+            "targets": {"n": 4}, "stages": ["train", "invert"]}
+    out = base / "inverter_baselines_run"
+    run_spec(validate_spec(spec), out, progress=False, console=Console(file=io.StringIO()))
+    return out
+
+
+def test_a_fitted_npe_travels_in_the_bundle_and_answers_like_the_invert_stage(run, monkeypatch) -> None:
+    from invphys.inverter import load_inverter
+    from invphys.plugins.baselines import NPEBaseline
+
+    root = run / "inverter"
+    m = yaml.safe_load((root / "manifest.yaml").read_text())
+    assert m["methods"]["npe_best"]["path"] == "policies/npe_best" and (root / "policies/npe_best/npe.pt").is_file()
+    assert m["methods"]["npe_best"]["heldout"]["targets"] == 4
+    assert (root / m["methods"]["lookup"]["path"]).is_dir()  # the lookup saves its rows' index too
+    assert m["default_method"] in ("npe_best", "lookup")  # the best amortised answer on held-out targets
+
+    monkeypatch.setattr(NPEBaseline, "fit", lambda *a, **k: pytest.fail("the bundle's npe was refitted"))
+    inv = load_inverter(root)
+    rows = [r for r in json.loads((run / "invert" / "results.json").read_text()) if r["optimizer"] == "npe_best"]
+    targets = np.array(json.loads((run / "invert" / "targets.json").read_text())["features"])
+    for r in rows:
+        res = inv.invert(targets[r["target_index"]], method="npe_best")
+        assert res.evaluations == r["evaluations"]
+        assert res.r_surrogate == pytest.approx(r["r_surrogate"], abs=1e-4)
+        np.testing.assert_allclose(res.theta, r["theta"], atol=1e-5)
+
+
+def test_a_lookup_in_the_bundle_answers_with_a_training_row(run) -> None:
+    from invphys.inverter import load_inverter
+
+    inv = load_inverter(run / "inverter")
+    theta_train, y_train = inv.bundle.data("train")
+    res = inv.invert(y_train[5], method="lookup")
+    np.testing.assert_allclose(res.theta, theta_train[5], atol=1e-6)
