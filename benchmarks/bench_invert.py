@@ -42,12 +42,12 @@ def _git() -> str:
         return ""
 
 
-def load_times(bundle: str, repeat: int) -> dict:
+def load_times(bundle: str, repeat: int, method: str | None = None) -> dict:
     probe = ("import time, sys, json; t0 = time.perf_counter()\n"
              "import invphys, numpy as np\n"
              f"inv = invphys.load_inverter({bundle!r}); t1 = time.perf_counter()\n"
              "_, y = inv.bundle.data('test')\n"
-             "inv.invert(dict(zip(inv.feature_names, map(float, y[0])))); t2 = time.perf_counter()\n"
+             f"inv.invert(dict(zip(inv.feature_names, map(float, y[0]))), method={method!r}); t2 = time.perf_counter()\n"
              f"print(json.dumps({{'load': t1 - t0, 'first': t2 - t0, 'heavy': [m for m in {HEAVY!r} "
              "if m in sys.modules]}))")
     runs = []
@@ -115,7 +115,7 @@ def main() -> None:
     import invphys
 
     load_start = list(os.getloadavg())
-    load = load_times(args.bundle, args.repeat)
+    load = load_times(args.bundle, args.repeat, args.method)
     inv = invphys.load_inverter(args.bundle)
     method = args.method or inv.default_method
     _, y = inv.bundle.data("test")

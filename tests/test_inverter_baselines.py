@@ -65,3 +65,16 @@ def test_a_lookup_in_the_bundle_answers_with_a_training_row(run) -> None:
     theta_train, y_train = inv.bundle.data("train")
     res = inv.invert(y_train[5], method="lookup")
     np.testing.assert_allclose(res.theta, theta_train[5], atol=1e-6)
+
+
+def test_the_three_answer_paths_agree_for_a_bundled_npe(run) -> None:
+    """invert (one target), invert_many and the batched invert_array give the same answers."""
+    from invphys.inverter import load_inverter
+
+    inv = load_inverter(run / "inverter")
+    _, y_test = inv.bundle.data("test")
+    many = inv.invert_many(y_test[:6], method="npe_best")
+    np.testing.assert_allclose([r.theta for r in many], inv.invert_array(y_test[:6], method="npe_best"), atol=1e-9)
+    assert all(r.evaluations == 17 for r in many)  # 16 draws scored + the answer
+    top = inv.invert(y_test[0], method="npe_best", top_k=3)
+    assert len(top.candidates) == 3 and top.candidates[0].r_surrogate >= top.candidates[-1].r_surrogate

@@ -158,7 +158,7 @@ def test_answering_imports_no_torch(run) -> None:
     probe = ("import sys, invphys\n"
              f"inv = invphys.load_inverter({str(run / 'inverter')!r})\n"
              "_, y = inv.bundle.data('test')\n"
-             "inv.invert(y[0]); inv.invert_many(y[:40])\n"
+             "inv.invert(y[0]); inv.invert_many(y[:40]); inv.invert_array(y[:40])\n"
              "print(sorted(m for m in ('torch', 'stable_baselines3', 'zuko') if m in sys.modules))")
     tests = os.path.dirname(os.path.abspath(__file__))
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")])}

@@ -231,6 +231,8 @@ class Inverter:
         t0 = time.perf_counter()
         if "rollout" in entry:
             pools = self._policy_pools(label, t, top_k, seed)
+        elif self._is_baseline(entry):
+            pools = self._baseline_pools(label, entry, t, top_k)
         else:
             pools = self._optimizer_pools(label, entry, t, top_k, seed)
         elapsed = (time.perf_counter() - t0) / len(t)
@@ -251,8 +253,13 @@ class Inverter:
         return results
 
     def invert_array(self, values: np.ndarray, method: str | None = None) -> np.ndarray:
-        """The fast path: normalised parameters (N, d) for complete targets (N, M) by a bundle policy."""
+        """The fast path: normalised parameters (N, d) for complete targets (N, M) by a bundle policy or
+        dataset baseline (one batched answer)."""
         label, entry = self._entry(method)
+        if "rollout" not in entry and self._is_baseline(entry):  # a policy answers without torch
+            t = from_array(values, self.feature_names)
+            with blas_threads(self.threads if len(t) >= BLAS_LIMIT_ROWS else None):
+                return self._baseline_answers(label, entry, t.values).theta
         if "rollout" not in entry:
             raise InvphysError(f"invert_array needs a trained policy; {label!r} is a {entry['type']} optimiser")
         t = from_array(values, self.feature_names)
@@ -286,6 +293,36 @@ class Inverter:
                 pools[i] = (np.concatenate([pools[i][0], th[i]]), pools[i][1] + [other] * th.shape[1],
                             pools[i][2] + r2.horizon)
         return pools
+
+    def _is_baseline(self, entry: dict[str, Any]) -> bool:
+        from invphys.plugins.baselines import learns_from_rows
+
+        return learns_from_rows(self.bundle.registry.get("optimizer", entry["type"]))
+
+    def _baseline_answers(self, label: str, entry: dict[str, Any], goals: np.ndarray) -> Any:
+        """A dataset baseline's answers for all ``goals`` (B, M) in one batch (its seeded draws are
+        then the same whichever path asks), choosing among candidates on the bundle's surrogate."""
+        plugin, _ = self._plugin(label, entry)
+        predict = self.bundle.surrogate.predict
+        lam = float(getattr(plugin.config, "uncertainty_penalty", 0.0) or 0.0)
+        penalty = None
+        if lam > 0:
+            from invphys.plugins.evaluators.uncertainty import UncertaintyPenalty
+
+            pen = UncertaintyPenalty(self.bundle.surrogate, self.bundle.scales, lam)
+            predict, penalty = pen.predict, pen.penalty
+        return plugin.answer(np.asarray(goals, dtype=np.float64), predict, penalty)
+
+    def _baseline_pools(self, label: str, entry: dict[str, Any], t: UserTargets, top_k: int) -> list[Pool]:
+        """Per target: a dataset baseline's answer (top_k 1), or all its candidates (posterior draws)."""
+        m = self.bundle.manifest["features"]
+        ans = self._baseline_answers(label, entry, np.where(t.mask, t.values, np.asarray(m["mean"])[None, :]))
+        spent = ans.evaluations + 1  # as DatasetBaseline.optimize counts: the candidates and the answer
+        if top_k == 1:
+            return [(ans.theta[i:i + 1], [label], int(spent[i])) for i in range(len(t))]
+        k = ans.candidates.shape[1]
+        return [(np.concatenate([ans.theta[i:i + 1], ans.candidates[i]]), [label] * (k + 1), int(spent[i]))
+                for i in range(len(t))]
 
     def _optimizer_pools(self, label: str, entry: dict[str, Any], t: UserTargets, top_k: int, seed: int
                          ) -> list[Pool]:
