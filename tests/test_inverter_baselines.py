@@ -78,3 +78,29 @@ def test_the_three_answer_paths_agree_for_a_bundled_npe(run) -> None:
     assert all(r.evaluations == 17 for r in many)  # 16 draws scored + the answer
     top = inv.invert(y_test[0], method="npe_best", top_k=3)
     assert len(top.candidates) == 3 and top.candidates[0].r_surrogate >= top.candidates[-1].r_surrogate
+
+
+def test_a_partial_target_picks_the_draw_that_best_fits_the_given_features(run, monkeypatch) -> None:
+    """Missing features enter a baseline as the training mean, so for a partial target the inverter chooses
+    among the baseline's candidates by R over the given features only; a complete target keeps the
+    baseline's own answer."""
+    from invphys.inverter import load_inverter
+    from invphys.inverter.objective import masked_recovery
+    from invphys.plugins.baselines import BaselineAnswers
+
+    inv = load_inverter(run / "inverter")
+    _, y_test = inv.bundle.data("test")
+    given = {inv.feature_names[0]: float(y_test[1][0]), inv.feature_names[3]: float(y_test[1][3])}
+    t = inv.targets(given, True)
+    draws = np.random.default_rng(0).random((1, 16, 3))
+    r = masked_recovery(inv.bundle.surrogate.predict(draws[0]), t.values[0], inv.bundle.scales, t.mask[0],
+                        inv.bundle.kappa)
+    worst = int(np.argmin(r))  # the baseline "answers" with the draw that fits the given features worst
+    plugin, _ = inv._plugin("npe_best", inv.bundle.methods["npe_best"])
+    monkeypatch.setattr(plugin, "answer", lambda goals, predict=None, penalty=None: BaselineAnswers(
+        theta=np.repeat(draws[:, worst], len(goals), 0), candidates=np.repeat(draws, len(goals), 0),
+        spread=np.ones((len(goals), 3)), evaluations=np.full(len(goals), 16), wall_time_s=0.0))
+    res = inv.invert(given, method="npe_best", partial=True)
+    assert res.r_surrogate == pytest.approx(float(r.max()), abs=1e-9) and r.max() > r[worst]
+    complete = inv.invert(y_test[1], method="npe_best")
+    np.testing.assert_allclose(complete.theta, draws[0, worst])

@@ -314,15 +314,21 @@ class Inverter:
         return plugin.answer(np.asarray(goals, dtype=np.float64), predict, penalty)
 
     def _baseline_pools(self, label: str, entry: dict[str, Any], t: UserTargets, top_k: int) -> list[Pool]:
-        """Per target: a dataset baseline's answer (top_k 1), or all its candidates (posterior draws)."""
+        """Per target: a dataset baseline's answer, or with it all its candidates (posterior draws) for
+        top_k > 1 and for a partial target, whose missing features the baseline saw as the training
+        mean: the candidates are then chosen by R over the given features only."""
         m = self.bundle.manifest["features"]
         ans = self._baseline_answers(label, entry, np.where(t.mask, t.values, np.asarray(m["mean"])[None, :]))
         spent = ans.evaluations + 1  # as DatasetBaseline.optimize counts: the candidates and the answer
-        if top_k == 1:
-            return [(ans.theta[i:i + 1], [label], int(spent[i])) for i in range(len(t))]
-        k = ans.candidates.shape[1]
-        return [(np.concatenate([ans.theta[i:i + 1], ans.candidates[i]]), [label] * (k + 1), int(spent[i]))
-                for i in range(len(t))]
+        pools: list[Pool] = []
+        for i in range(len(t)):
+            if top_k == 1 and t.mask[i].all():
+                pools.append((ans.theta[i:i + 1], [label], int(spent[i])))
+            else:
+                k = ans.candidates.shape[1]
+                pools.append((np.concatenate([ans.theta[i:i + 1], ans.candidates[i]]), [label] * (k + 1),
+                              int(spent[i])))
+        return pools
 
     def _optimizer_pools(self, label: str, entry: dict[str, Any], t: UserTargets, top_k: int, seed: int
                          ) -> list[Pool]:
