@@ -4,7 +4,7 @@ Every run below answers the same 100 held-out targets of `datasets/orange_peel_p
 scales (checked: the script stops if a run's targets or scales differ); every answer was re-simulated on a
 GPU. Paired bootstrap intervals (2,000 resamples over targets) compare each answer with the lookup in the
 same run, and each answer across runs that differ only in training rows (same ensemble size).
-usage: python results/orange_peel_paper_protocol_amortised/data_scale.py   ->  data_scale.json beside it
+usage: python results/orange_peel_paper_protocol_amortised/data_scale.py   ->  data_scale.json, data_scale.png
 """
 from __future__ import annotations
 
@@ -40,6 +40,42 @@ def paired(a: np.ndarray, b: np.ndarray, rng: np.random.Generator, n: int = 2000
             round(float(np.percentile(boots, 97.5)), 4)]
 
 
+def mean_ci(a: np.ndarray, rng: np.random.Generator, n: int = 2000) -> list[float]:
+    """[mean, 2.5 %, 97.5 %] of the bootstrap mean of ``a`` over targets."""
+    boots = a[rng.integers(0, len(a), size=(n, len(a)))].mean(1)
+    return [round(float(a.mean()), 4), round(float(np.percentile(boots, 2.5)), 4),
+            round(float(np.percentile(boots, 97.5)), 4)]
+
+
+def plot(out: dict, path: Path) -> None:
+    """R_actual (mean, 95 % interval) against training rows, one line per answer and ensemble size."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    for members, style in ((3, "--"), (5, "-")):
+        runs = sorted((v["training_rows"], k) for k, v in out["runs"].items() if v["ensemble_members"] == members)
+        for answer, colour in (("nearest_neighbour", "tab:gray"), ("npe_surrogate", "tab:blue"),
+                               ("npe_penalised", "tab:green"), ("corrected_search", "tab:orange")):
+            pts = [(rows, out["mean_R_actual_ci"][k][answer]) for rows, k in runs if answer in out["mean_R_actual_ci"][k]]
+            if len(pts) < 2:
+                continue
+            x = np.array([p[0] for p in pts])
+            m, lo, hi = (np.array([p[1][j] for p in pts]) for j in range(3))
+            ax.errorbar(x, m, yerr=[m - lo, hi - m], fmt="o" + style, color=colour, capsize=3,
+                        label=f"{answer} ({members}-member ensemble)")
+    ax.set_xlabel("training rows (same 100 held-out targets)")
+    ax.set_ylabel("mean R_actual (simulator), 95 % interval")
+    ax.set_title("Amortised answers against the lookup as data grows")
+    ax.legend(fontsize=7, loc="lower right")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def r_actual(tgz: Path, n: int) -> dict[str, np.ndarray]:
     """Per-target R_actual of every answer in ANSWERS that the run validated (a failed run scores 0)."""
     by: dict[str, dict[int, float]] = {}
@@ -63,6 +99,7 @@ def main() -> None:
         "runs": {k: {"archive": str(p.relative_to(HERE.parent)), "training_rows": rows, "ensemble_members": m}
                  for k, (p, rows, m) in RUNS.items()},
         "mean_R_actual": {k: {m: round(float(v.mean()), 4) for m, v in r[k].items()} for k in RUNS},
+        "mean_R_actual_ci": {k: {m: mean_ci(v, np.random.default_rng(1)) for m, v in r[k].items()} for k in RUNS},
         "vs_nearest_neighbour": {k: {m: paired(v, r[k][LOOKUP], rng) for m, v in r[k].items() if m != LOOKUP}
                                  for k in RUNS},
         "more_rows_minus_fewer": {f"{a}-{b}": {m: paired(r[a][m], r[b][m], rng) for m in r[a] if m in r[b]}
@@ -70,6 +107,7 @@ def main() -> None:
         "note": "[mean, 2.5 %, 97.5 %] of paired differences over targets; a failed run scores 0",
     }
     (HERE / "data_scale.json").write_text(json.dumps(out, indent=2) + "\n")
+    plot(out, HERE / "data_scale.png")
     print(json.dumps(out, indent=2))
 
 
