@@ -46,7 +46,7 @@ def baseline_rows(plugins: dict[str, Any], theta_train: np.ndarray, y_train: np.
     Returns (rows, metrics per label).
     """
     from invphys.core.errors import InvphysError
-    from invphys.plugins.evaluators.uncertainty import UncertaintyPenalty
+    from invphys.plugins.baselines import answer_with_penalty
 
     feats = np.asarray(targets["features"], dtype=np.float64)
     rows: list[dict[str, Any]] = []
@@ -67,15 +67,7 @@ def baseline_rows(plugins: dict[str, Any], theta_train: np.ndarray, y_train: np.
                 metrics[label] = {"skipped": str(exc)}
                 continue
             raise
-        lam = float(getattr(plugin.config, "uncertainty_penalty", 0.0) or 0.0)
-        if lam > 0:
-            if surrogate is None or not hasattr(surrogate, "predict_with_uncertainty"):
-                raise InvphysError(f"evaluation.baselines.{label}.uncertainty_penalty needs a surrogate with "
-                                   f"uncertainty (the ensemble)")
-            pen = UncertaintyPenalty(surrogate, scales, lam)
-            ans = plugin.answer(feats, pen.predict, pen.penalty)
-        else:
-            ans = plugin.answer(feats, predict_theta)
+        ans = answer_with_penalty(plugin, feats, predict_theta, surrogate, scales, f"evaluation.baselines.{label}")
         predicted = np.asarray(predict_theta(ans.theta), dtype=np.float64)
         per = ans.wall_time_s / max(len(feats), 1)
         for k in range(len(feats)):

@@ -302,16 +302,12 @@ class Inverter:
     def _baseline_answers(self, label: str, entry: dict[str, Any], goals: np.ndarray) -> Any:
         """A dataset baseline's answers for all ``goals`` (B, M) in one batch (its seeded draws are
         then the same whichever path asks), choosing among candidates on the bundle's surrogate."""
-        plugin, _ = self._plugin(label, entry)
-        predict = self.bundle.surrogate.predict
-        lam = float(getattr(plugin.config, "uncertainty_penalty", 0.0) or 0.0)
-        penalty = None
-        if lam > 0:
-            from invphys.plugins.evaluators.uncertainty import UncertaintyPenalty
+        from invphys.plugins.baselines import answer_with_penalty
 
-            pen = UncertaintyPenalty(self.bundle.surrogate, self.bundle.scales, lam)
-            predict, penalty = pen.predict, pen.penalty
-        return plugin.answer(np.asarray(goals, dtype=np.float64), predict, penalty)
+        plugin, _ = self._plugin(label, entry)
+        sur = self.bundle.surrogate
+        return answer_with_penalty(plugin, np.asarray(goals, dtype=np.float64), sur.predict, sur, self.bundle.scales,
+                                   f"method {label!r}")
 
     def _baseline_pools(self, label: str, entry: dict[str, Any], t: UserTargets, top_k: int) -> list[Pool]:
         """Per target: a dataset baseline's answer, or with it all its candidates (posterior draws) for

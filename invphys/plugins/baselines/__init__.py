@@ -18,7 +18,12 @@ travels fitted in the run's inverter bundle). Listing them is import-cheap (sbi 
 
 from __future__ import annotations
 
-from invphys.plugins.baselines._base import BaselineAnswers, DatasetBaseline, learns_from_rows
+from invphys.plugins.baselines._base import (
+    BaselineAnswers,
+    DatasetBaseline,
+    answer_with_penalty,
+    learns_from_rows,
+)
 from invphys.plugins.baselines.corrected_search import CorrectedSearch
 from invphys.plugins.baselines.local_linear import LocalLinear
 from invphys.plugins.baselines.nearest_neighbour import NearestNeighbour
@@ -27,4 +32,5 @@ from invphys.plugins.baselines.npe import NPEBaseline
 BASELINES: list[type] = [NearestNeighbour, NPEBaseline, LocalLinear, CorrectedSearch]
 
 __all__ = ["BASELINES", "BaselineAnswers", "CorrectedSearch", "DatasetBaseline", "LocalLinear", "NPEBaseline",
-           "NearestNeighbour", "learns_from_rows"]
+           "NearestNeighbour", "answer_with_penalty",
+           "learns_from_rows"]

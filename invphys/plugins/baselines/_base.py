@@ -45,6 +45,22 @@ def learns_from_rows(plugin: Any) -> bool:
     return fit is not None and {"theta", "y", "scales"} <= set(inspect.signature(fit).parameters)
 
 
+def answer_with_penalty(plugin: Any, targets: np.ndarray, predict_theta: Any, surrogate: Any, scales: np.ndarray,
+                        where: str) -> BaselineAnswers:
+    """``plugin.answer(targets, predict_theta)``; where the plugin's config sets ``uncertainty_penalty`` > 0,
+    its candidates are chosen by R minus lambda x ``surrogate``'s normalised std instead (an ensemble's
+    ``predict_with_uncertainty``). ``where`` names the plugin's block in errors."""
+    lam = float(getattr(plugin.config, "uncertainty_penalty", 0.0) or 0.0)
+    if lam <= 0:
+        return plugin.answer(targets, predict_theta)
+    if surrogate is None or not hasattr(surrogate, "predict_with_uncertainty"):
+        raise InvphysError(f"{where}.uncertainty_penalty needs a surrogate with uncertainty (the ensemble)")
+    from invphys.plugins.evaluators.uncertainty import UncertaintyPenalty
+
+    pen = UncertaintyPenalty(surrogate, scales, lam)
+    return plugin.answer(targets, pen.predict, pen.penalty)
+
+
 class DatasetBaseline(BuiltinOptimizer):
     """An optimiser plugin answered from the training rows rather than by search.
 
