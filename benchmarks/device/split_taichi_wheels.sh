@@ -1,38 +1,48 @@
 #!/usr/bin/env bash
-# Prepares taichi (and the pure-Python wheels a pipeline stage needs: pydantic, cma) to travel to the GPU
-# machine in TWO carried folders, because the working tree (~33 MB with the committed datasets, bundles and
-# results) plus the whole taichi wheel (56 MB) exceeds the 64 MiB a `run` call carries.
-#   .gpu/ti: part a of taichi's files as tar.xz (~19 MB)
-#   .gpu/tb: part b (~18 MB) + pydantic, pydantic-core, annotated-types, typing-inspection, cma, zuko, dill wheels
-# Usage (from the project's root):  bash benchmarks/device/split_taichi_wheels.sh
-# then two `run` calls back to back (the machine is released after ~30 s idle):
-#   1. bash .gpu/ti/stage.sh                      carry [".gpu/ti"]
-#   2. bash .gpu/tb/stage.sh && YOUR_COMMAND      carry [".gpu/tb", ...]  (PYTHONPATH=/tmp/gpusite:$PWD:...)
-# or, when run directories need the carry's room: 2. `bash .gpu/tb/stage.sh` alone, then work calls that
-# carry only run data and call benchmarks/device/ensure_staged.sh (the staged site stays while warm).
-# results/orange_peel_paper_protocol_amortised/device_validate.sh is an example of call 2.
+# Prepares taichi (and the pure-Python wheels a pipeline stage needs: pydantic, cma, zuko, dill) to travel to
+# the GPU machine in several carried folders: a `run` call carries at most 64 MiB, counted on disk (du -k), and
+# the tracked tree (committed datasets, bundles and results) takes most of it, so taichi's compressed files
+# (~37 MB) are cut into pieces that fit beside it.
+#   .gpu/c1 .. .gpu/cN: taichi's files as pieces of one tar.xz (piece size = the room the tracked tree leaves)
+#   .gpu/wb: the wheels, and the stage script that joins the pieces into /tmp/gpusite
+# Usage (from the project's root):  bash benchmarks/device/split_taichi_wheels.sh   (prints the N calls to make)
+# then `run` calls back to back (the machine is released after ~30 s idle):
+#   bash .gpu/c1/stage.sh  carry [".gpu/c1"];  ...;  bash .gpu/cN/stage.sh  carry [".gpu/cN"]
+#   bash .gpu/wb/stage.sh  carry [".gpu/wb"]
+# then work calls that carry only run data and call benchmarks/device/ensure_staged.sh (the staged site stays
+# while the machine is warm). Re-run this script when the tracked tree has grown (pieces must still fit).
+# results/orange_peel_paper_protocol_amortised/device_validate.sh is an example of a work call.
 set -euo pipefail
 TI=${1:-1.7.4}
 root=$(git rev-parse --show-toplevel); cd "$root"
 grep -qxF '/.gpu/' .git/info/exclude 2>/dev/null || echo '/.gpu/' >> .git/info/exclude
-rm -rf .gpu/ti .gpu/tb && mkdir -p .gpu/ti .gpu/tb
+tracked_kib=$(git ls-files -z | xargs -0 du -ck 2>/dev/null | tail -1 | cut -f1)
+room_kib=$(( 64 * 1024 - tracked_kib - 512 ))   # 512 KiB for the stage scripts and files a call adds
+[ "$room_kib" -gt 2048 ] || { echo "error: the tracked tree ($tracked_kib KiB) leaves no room under 64 MiB" >&2; exit 1; }
+rm -rf .gpu/ti .gpu/tb .gpu/wb .gpu/c[0-9]* && mkdir -p .gpu/wb
 tmp=$(mktemp -d); trap 'rm -rf "$tmp"' EXIT
 plat=(--only-binary=:all: --python-version 3.12 --implementation cp --platform manylinux_2_28_x86_64
       --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64)
 python3 -m pip download -q --no-deps "${plat[@]}" -d "$tmp/whl" "taichi==$TI"
-python3 -m pip download -q --no-deps "${plat[@]}" -d .gpu/tb dill pydantic pydantic-core annotated-types \
+python3 -m pip download -q --no-deps "${plat[@]}" -d .gpu/wb dill pydantic pydantic-core annotated-types \
   typing-inspection cma zuko
 mkdir -p "$tmp/t" && (cd "$tmp/t" && unzip -q "$tmp"/whl/taichi-*.whl)
 echo "compressing taichi (a few minutes)..."
 tar -C "$tmp/t" -cJf "$tmp/taichi.tar.xz" .
-(cd "$tmp" && split -b 19000000 taichi.tar.xz part.)
-mv "$tmp/part.aa" .gpu/ti/ && mv "$tmp"/part.a[b-z] .gpu/tb/
-cat > .gpu/ti/stage.sh <<'S'
-set -e; mkdir -p /tmp/gpuparts && cp .gpu/ti/part.* /tmp/gpuparts/ && echo "taichi part a staged"
-S
-cat > .gpu/tb/stage.sh <<'S'
-set -e; if [ ! -d /tmp/gpusite/taichi ]; then cp .gpu/tb/part.* /tmp/gpuparts/ && mkdir -p /tmp/gpusite && cat /tmp/gpuparts/part.* | tar -C /tmp/gpusite -xJf - ; fi
-python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/gpusite .gpu/tb/*.whl
+(cd "$tmp" && split -d -a 2 -b "$(( room_kib * 1024 ))" taichi.tar.xz part.p)
+n=0
+for piece in "$tmp"/part.p*; do
+  n=$((n + 1)); mkdir -p ".gpu/c$n"; mv "$piece" ".gpu/c$n/"
+  echo "set -e; mkdir -p /tmp/gpuparts && cp .gpu/c$n/part.p* /tmp/gpuparts/ && ls /tmp/gpuparts" > ".gpu/c$n/stage.sh"
+done
+cat > .gpu/wb/stage.sh <<S
+set -e
+if [ ! -d /tmp/gpusite/taichi ]; then
+  [ \$(ls /tmp/gpuparts/part.p* | wc -l) -eq $n ] || { echo "error: not all $n taichi pieces staged (.gpu/c1 .. c$n)" >&2; exit 1; }
+  mkdir -p /tmp/gpusite && cat /tmp/gpuparts/part.p* | tar -C /tmp/gpusite -xJf -
+fi
+python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/gpusite .gpu/wb/*.whl
 touch /tmp/gpusite/.staged; echo "taichi + wheels staged in /tmp/gpusite"
 S
-du -sh .gpu/ti .gpu/tb
+du -sh .gpu/c* .gpu/wb
+echo "tracked tree $tracked_kib KiB; $n staging calls (.gpu/c1 .. .gpu/c$n), then .gpu/wb"

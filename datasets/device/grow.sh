@@ -2,8 +2,8 @@
 # Device run: grow dataset stores for MINUTES, one spec per GPU (CUDA_VISIBLE_DEVICES), feature extraction in
 # EW worker processes each, then pack every store into one file, $OUT/stores.tgz (a device call returns
 # only a few files, and a later call replaces the device tree's untracked files with this machine's).
-# Staging: benchmarks/device/split_taichi_wheels.sh's folders (first call `bash .gpu/ti/stage.sh`, carry
-# [".gpu/ti"]); this call carries [".gpu/tb"]; the stores travel as files of the tree. Resumable: run
+# Staging: benchmarks/device/split_taichi_wheels.sh's folders (`bash .gpu/cN/stage.sh` carry [".gpu/cN"] for
+# each piece, then `bash .gpu/wb/stage.sh` carry [".gpu/wb"]); the stores travel as files of the tree. Resumable: run
 # `tar -xzf stores.tgz` in the repository root here before the next call (generation skips stored rows).
 # usage: bash datasets/device/grow.sh MINUTES EW SPEC [SPEC ...]   (SPEC i runs on GPU i)
 #   one H100:  bash datasets/device/grow.sh 8 4 datasets/specs/orange_peel_paper_seed1.yaml
