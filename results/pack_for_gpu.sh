@@ -16,5 +16,5 @@ for run in "$@"; do
   [ -f "$run/spec.yaml" ] && paths+=("$run/spec.yaml")
 done
 tar -czf "$out" --exclude='*.png' --exclude='validate/renders' "${paths[@]}"
-tracked=$(git ls-files -z | xargs -0 du -cb 2>/dev/null | tail -1 | cut -f1)
-echo "$out: $(du -b "$out" | cut -f1) bytes; tracked tree $tracked bytes; limit $((64 * 1024 * 1024))"
+tracked=$(git ls-files -z | xargs -0 du -ck 2>/dev/null | tail -1 | cut -f1)   # the carry counts disk use
+echo "$out: $(du -k "$out" | cut -f1) KiB; tracked tree $tracked KiB; limit $((64 * 1024)) KiB"

@@ -21,8 +21,12 @@ RUNS = {
     "2624_m3": (HERE / "v030_extra2" / "run.tgz", 2624, 3),
     "1600_m5": (HERE.parent / "orange_peel_paper_protocol_v030" / "validate.tgz", 1600, 5),
     "3776_m5": (HERE / "v030_extra3" / "run.tgz", 3776, 5),
+    "8256_m5": (HERE / "v030_8k" / "run.tgz", 8256, 5),
+    "9600_m5": (HERE / "v030_10k" / "run.tgz", 9600, 5),   # 10,000 runs with the 400 held-out rows
 }
-PAIRS = [("2624_m3", "1600_m3"), ("3776_m5", "1600_m5")]   # more rows, same ensemble size
+#: more rows against fewer, same ensemble size; "9600_m5-1600_m5" is issue 17's 10,000 against 2,000 runs
+PAIRS = [("2624_m3", "1600_m3"), ("3776_m5", "1600_m5"), ("8256_m5", "3776_m5"), ("9600_m5", "8256_m5"),
+         ("9600_m5", "1600_m5")]
 ANSWERS = ["nearest_neighbour", "npe_surrogate", "npe_penalised", "corrected_search", "cma_penalised_nn_64"]
 LOOKUP = "nearest_neighbour"
 
@@ -66,6 +70,7 @@ def plot(out: dict, path: Path) -> None:
             m, lo, hi = (np.array([p[1][j] for p in pts]) for j in range(3))
             ax.errorbar(x, m, yerr=[m - lo, hi - m], fmt="o" + style, color=colour, capsize=3,
                         label=f"{answer} ({members}-member ensemble)")
+    ax.set_xticks([1600, 2624, 3776, 8256, 9600], ["1,600", "2,624", "3,776", "8,256", "9,600"])
     ax.set_xlabel("training rows (same 100 held-out targets)")
     ax.set_ylabel("mean R_actual (simulator), 95 % interval")
     ax.set_title("Amortised answers against the lookup as data grows")
