@@ -23,9 +23,11 @@ def atomic_write_bytes(path: Path, data: bytes, tmp_name: str | None = None) -> 
     _fsync_dir(path.parent)
 
 
-def write_json(path: Path, data: Any, sort_keys: bool = True) -> None:
-    """Write ``data`` as indented JSON, atomically; NumPy arrays and scalars and paths are converted."""
-    blob = json.dumps(data, indent=2, sort_keys=sort_keys, default=json_default).encode()
+def write_json(path: Path, data: Any, sort_keys: bool = True, indent: int | None = 2) -> None:
+    """Write ``data`` as JSON (indented; ``indent=None``: compact), atomically; NumPy arrays and scalars and
+    paths are converted."""
+    separators = None if indent is not None else (",", ":")
+    blob = json.dumps(data, indent=indent, separators=separators, sort_keys=sort_keys, default=json_default).encode()
     atomic_write_bytes(Path(path), blob)
 
 
