@@ -1,19 +1,21 @@
 """One GPU against two in the same call: the ``ray_actors`` executor (one warm simulator actor per GPU)
-running the cheese-cut simulator with continuous batching over ``--runs`` random parameter vectors.
+running a simulator with continuous batching over ``--runs`` random parameter vectors: the cheese cut
+(``--scene cheese_cut``, default) or the orange peel (``--scene orange_peel``, its ``--preset``, e.g. paper).
 
 Both actors are started and warmed up first (kernels compiled at the measured slot count, untimed);
 then all rows run on 2 actors (2 GPUs) and again on the first actor alone (1 GPU), each through
 ``RayActorsExecutor.run`` with chunks of ``--chunk`` rows pulled by idle actors and features extracted
 on the actors, as dataset generation does. Records runs/s, the speed-up, and per actor its GPU, rows,
 chunks, busy time and slot efficiency (useful slot-substeps / launched ones), with the simulator's
-version and config hash and the command. The scene is the cheese ``full`` preset at ``--dx`` (0.002:
-~48k particles, the orange peel paper preset's size, as in ``bench_gpu_throughput.py``).
+version and config hash and the command. The cheese scene is its ``full`` preset at ``--dx`` (0.002:
+~48k particles, the orange peel paper preset's size, as in ``bench_gpu_throughput.py``); the orange peel
+runs its preset unchanged (``--dx`` ignored), warmed up by one stream of ``slots + 8`` runs.
 
     PYTHONPATH=$PWD/benchmarks:... python benchmarks/bench_multi_gpu.py --gpus 2 --runs 256 \\
         --out benchmarks/results/multi_gpu_h200x2.json
 
 On a CPU (a check of the whole path): ``--arch cpu --gpus 0 --preset tiny --dx 0 --runs 8 --slots 2
---chunk 4``.
+--chunk 4`` (add ``--scene orange_peel`` for the orange peel).
 """
 
 from __future__ import annotations
@@ -34,6 +36,8 @@ from pydantic import Field
 
 SIM = "bench_multi_gpu:SizedCheeseCut"
 FEATURES = "invphys_cheese_cut.features:CheeseCutFeatures"
+ORANGE_SIM = "invphys_orange_peel.simulator:OrangePeelSimulator"
+ORANGE_FEATURES = "invphys_orange_peel.features:OrangePeelFeatures"
 
 
 class SizedCheeseCut(CheeseCutSimulator):
@@ -61,17 +65,23 @@ class SizedCheeseCut(CheeseCutSimulator):
 
 
 def warm_up(simulator, extractor) -> dict:
-    """On an actor: compile every kernel at the configured slot count (one frame of ``2 x batch_size``
-    runs through the stream, so finished slots are also re-loaded), then zero the slot counters."""
+    """On an actor: compile every kernel at the configured slot count (the cheese cut: one frame of
+    ``2 x batch_size`` runs through the stream, so finished slots are also re-loaded; a simulator without
+    a one-frame stream, the orange peel: ``batch_size + 8`` whole runs), then zero the slot counters."""
     import ray
     from invphys_anisompm.streaming import SlotCounters
-    from invphys_cheese_cut.scene import model_for
 
     t0 = time.perf_counter()
     space = simulator.parameter_space()
-    x = space.denormalize(np.random.default_rng(123).random((2 * simulator.config.batch_size, space.dim)))
-    list(simulator.engine.stream(model_for(simulator.scene, x), 1, 1, simulator.config.batch_size,
-                                 min_chunk=simulator.config.min_chunk))
+    b = simulator.config.batch_size
+    rng = np.random.default_rng(123)
+    if simulator.name == "cheese_cut":
+        from invphys_cheese_cut.scene import model_for
+
+        x = space.denormalize(rng.random((2 * b, space.dim)))
+        list(simulator.engine.stream(model_for(simulator.scene, x), 1, 1, b, min_chunk=simulator.config.min_chunk))
+    else:
+        list(simulator.simulate_stream(space.denormalize(rng.random((b + 8, space.dim))), b))
     simulator.engine.counters = SlotCounters()
     ids = [str(g) for g in ray.get_gpu_ids()]
     return {"warmup_s": time.perf_counter() - t0, "device": simulator.engine.device, "gpu_ids": ids,
@@ -99,13 +109,13 @@ def gpu_names(index: str | None = None) -> list[str]:
         return []
 
 
-def measure(ex, spec: dict, params: np.ndarray, chunk: int, actors: int) -> dict:
+def measure(ex, spec: dict, features: str, params: np.ndarray, chunk: int, actors: int) -> dict:
     ex.config.actors = actors
     before = {d["pid"]: d for d in ex.actor_info()}
     t0 = time.perf_counter()
-    rows = list(ex.run(spec, {"type": FEATURES}, params, chunk))
+    rows = list(ex.run(spec, {"type": features}, params, chunk))
     wall = time.perf_counter() - t0
-    counters = ex.apply(take_counters, spec, {"type": FEATURES})
+    counters = ex.apply(take_counters, spec, {"type": features})
     per_actor = []
     for k, (d, c) in enumerate(zip(ex.actor_info(), counters, strict=True)):
         b = before[d["pid"]]
@@ -120,14 +130,15 @@ def measure(ex, spec: dict, params: np.ndarray, chunk: int, actors: int) -> dict
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scene", choices=("cheese_cut", "orange_peel"), default="cheese_cut")
     ap.add_argument("--arch", default="cuda")
     ap.add_argument("--gpus", type=int, default=2, help="GPUs (actors); 0: CPU actors (a check)")
     ap.add_argument("--runs", type=int, default=256)
     ap.add_argument("--slots", type=int, default=64, help="continuous-batching slots per actor")
     ap.add_argument("--chunk", type=int, default=128, help="rows an idle actor pulls at a time")
     ap.add_argument("--min-chunk", type=int, default=8)
-    ap.add_argument("--preset", default="full")
-    ap.add_argument("--dx", type=float, default=0.002, help="grid spacing (0: the preset's)")
+    ap.add_argument("--preset", default=None, help="the scene's preset (default: full / paper)")
+    ap.add_argument("--dx", type=float, default=0.002, help="cheese: grid spacing (0: the preset's)")
     ap.add_argument("--backend", default="taichi")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="benchmarks/results/multi_gpu.json")
@@ -135,18 +146,31 @@ def main(argv: list[str] | None = None) -> int:
     t_start = time.perf_counter()
 
     import ray
-    from invphys_cheese_cut.presets import get_preset
 
     from invphys.core.dataset import config_hash
     from invphys.plugins.executors import RayActorsExecutor
 
-    base = get_preset(a.preset)
-    dx = a.dx or None
-    grid = round(base.grid * base.dx / a.dx) if dx else None
-    spec = {"type": SIM, "preset": a.preset, "backend": a.backend, "arch": a.arch, "batch_size": a.slots,
-            "scheduling": "continuous", "dx": dx, "grid": grid, "min_chunk": a.min_chunk}
-    ref = CheeseCutSimulator(preset=a.preset, backend=a.backend, batch_size=a.slots, scheduling="continuous")
-    sized = SizedCheeseCut(**{k: v for k, v in spec.items() if k != "type"})
+    if a.scene == "orange_peel":
+        from invphys_orange_peel.simulator import OrangePeelSimulator
+
+        a.preset = a.preset or "paper"
+        spec = {"type": ORANGE_SIM, "preset": a.preset, "backend": a.backend, "arch": a.arch,
+                "batch_size": a.slots, "scheduling": "continuous", "min_chunk": a.min_chunk}
+        ref = OrangePeelSimulator(**{k: v for k, v in spec.items() if k not in ("type", "arch")})
+        features, preset_record, hash_note = ORANGE_FEATURES, dataclasses.asdict(ref.preset), "the run identity"
+    else:
+        from invphys_cheese_cut.presets import get_preset
+
+        a.preset = a.preset or "full"
+        base = get_preset(a.preset)
+        dx = a.dx or None
+        grid = round(base.grid * base.dx / a.dx) if dx else None
+        spec = {"type": SIM, "preset": a.preset, "backend": a.backend, "arch": a.arch, "batch_size": a.slots,
+                "scheduling": "continuous", "dx": dx, "grid": grid, "min_chunk": a.min_chunk}
+        ref = CheeseCutSimulator(preset=a.preset, backend=a.backend, batch_size=a.slots, scheduling="continuous")
+        sized = SizedCheeseCut(**{k: v for k, v in spec.items() if k != "type"})
+        features, preset_record = FEATURES, dataclasses.asdict(sized.preset)
+        hash_note = f"the {a.preset!r} preset's (the run identity); dx/grid replaced as in 'preset'"
     space = ref.parameter_space()
     params = space.denormalize(np.random.default_rng(a.seed).random((a.runs, space.dim)))
     out: dict = {
@@ -154,10 +178,10 @@ def main(argv: list[str] | None = None) -> int:
         "python": platform.python_version(), "ray": ray.__version__, "gpus": gpu_names(),
         "simulator": ref.name, "simulator_version": ref.version,
         "config_hash": config_hash(ref.config, ref.identity_ignores),
-        "config_hash_note": f"the {a.preset!r} preset's (the run identity); dx/grid replaced as in 'preset'",
-        "preset": dataclasses.asdict(sized.preset), "backend": a.backend, "arch": a.arch,
+        "config_hash_note": hash_note, "scene": a.scene,
+        "preset": preset_record, "backend": a.backend, "arch": a.arch,
         "runs": a.runs, "slots_per_actor": a.slots, "chunk": a.chunk, "min_chunk": a.min_chunk,
-        "seed": a.seed, "features": FEATURES, "results": []}
+        "seed": a.seed, "features": features, "results": []}
 
     def save() -> None:
         Path(a.out).parent.mkdir(parents=True, exist_ok=True)
@@ -169,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
                            keep_actors=True)
     try:
         t0 = time.perf_counter()
-        out["warmup"] = ex.apply(warm_up, spec, {"type": FEATURES})
+        out["warmup"] = ex.apply(warm_up, spec, {"type": features})
         out["warmup_wall_s"] = time.perf_counter() - t0
         out["actors_info"] = ex.actor_info()
         try:
@@ -180,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({"warmup": out["warmup"], "wall_s": out["warmup_wall_s"]}), flush=True)
         save()
         for actors in (n_actors, 1):
-            row = measure(ex, spec, params, a.chunk, actors)
+            row = measure(ex, spec, features, params, a.chunk, actors)
             out["results"].append(row)
             print(json.dumps({k: row[k] for k in ("actors", "ok", "wall_s", "runs_per_s")}), flush=True)
             for d in row["per_actor"]:

@@ -1,0 +1,48 @@
+#!/usr/bin/env bash
+# Prepares Ray (for the `ray_actors` executor and benchmarks/bench_multi_gpu.py) to travel to the GPU machine
+# in pieces that fit beside the tracked tree under the 64 MiB a `run` call carries, like
+# split_taichi_wheels.sh does for taichi. Ray's wheel (~80 MB) is stripped to what actors need: no jars,
+# rllib, data, serve, tune, train, llm or dashboard UI; its binaries without symbols (~25 MB as tar.xz).
+#   .gpu/r1 .. .gpu/rK: pieces of ray.tar.xz
+#   .gpu/rw: Ray's dependency wheels and the stage script that joins the pieces into /tmp/gpusite
+# Usage (from the project's root):  bash benchmarks/device/split_ray.sh [VERSION]
+# then, on the machine that will run the work (after or before taichi's staging, back to back):
+#   bash .gpu/r1/stage.sh carry [".gpu/r1"]; ...; bash .gpu/rK/stage.sh; bash .gpu/rw/stage.sh carry [".gpu/rw"]
+set -euo pipefail
+RAY=${1:-2.60.0}
+root=$(git rev-parse --show-toplevel); cd "$root"
+grep -qxF '/.gpu/' .git/info/exclude 2>/dev/null || echo '/.gpu/' >> .git/info/exclude
+tracked_kib=$(git ls-files -z | xargs -0 du -ck 2>/dev/null | tail -1 | cut -f1)
+room_kib=$(( 64 * 1024 - tracked_kib - 512 ))
+[ "$room_kib" -gt 2048 ] || { echo "error: the tracked tree ($tracked_kib KiB) leaves no room under 64 MiB" >&2; exit 1; }
+rm -rf .gpu/rw .gpu/r[0-9]* && mkdir -p .gpu/rw
+tmp=$(mktemp -d); trap 'rm -rf "$tmp"' EXIT
+plat=(--only-binary=:all: --python-version 3.12 --implementation cp --platform manylinux_2_28_x86_64
+      --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64)
+python3 -m pip download -q --no-deps "${plat[@]}" -d "$tmp/whl" "ray==$RAY"
+python3 -m pip download -q --no-deps "${plat[@]}" -d .gpu/rw click filelock jsonschema attrs referencing \
+  rpds-py jsonschema-specifications msgpack packaging protobuf pyyaml requests urllib3 idna certifi \
+  charset-normalizer
+mkdir -p "$tmp/r" && (cd "$tmp/r" && unzip -q "$tmp"/whl/ray-*.whl)
+(cd "$tmp/r/ray" && rm -rf jars rllib data serve tune train llm dashboard/client)
+strip --strip-unneeded "$tmp/r/ray/_raylet.so" "$tmp/r/ray/core/src/ray/gcs/gcs_server" \
+  "$tmp/r/ray/core/src/ray/raylet/raylet" 2>/dev/null || echo "warning: strip failed; pieces are larger"
+echo "compressing ray (a minute)..."
+tar -C "$tmp/r" -cJf "$tmp/ray.tar.xz" .
+(cd "$tmp" && split -d -a 2 -b "$(( room_kib * 1024 ))" ray.tar.xz part.q)
+n=0
+for piece in "$tmp"/part.q*; do
+  n=$((n + 1)); mkdir -p ".gpu/r$n"; mv "$piece" ".gpu/r$n/"
+  echo "set -e; mkdir -p /tmp/rayparts && cp .gpu/r$n/part.q* /tmp/rayparts/ && ls /tmp/rayparts" > ".gpu/r$n/stage.sh"
+done
+cat > .gpu/rw/stage.sh <<S
+set -e
+if [ ! -d /tmp/gpusite/ray ]; then
+  [ \$(ls /tmp/rayparts/part.q* | wc -l) -eq $n ] || { echo "error: not all $n ray pieces staged (.gpu/r1 .. r$n)" >&2; exit 1; }
+  mkdir -p /tmp/gpusite && cat /tmp/rayparts/part.q* | tar -C /tmp/gpusite -xJf -
+fi
+python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/gpusite .gpu/rw/*.whl
+PYTHONPATH=/tmp/gpusite python3 -c "import ray; print('ray', ray.__version__, 'staged in /tmp/gpusite')"
+S
+du -sh .gpu/r[0-9]* .gpu/rw
+echo "tracked tree $tracked_kib KiB; $n staging calls (.gpu/r1 .. .gpu/r$n), then .gpu/rw"
