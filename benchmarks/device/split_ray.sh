@@ -12,9 +12,8 @@ set -euo pipefail
 RAY=${1:-2.60.0}
 root=$(git rev-parse --show-toplevel); cd "$root"
 grep -qxF '/.gpu/' .git/info/exclude 2>/dev/null || echo '/.gpu/' >> .git/info/exclude
-tracked_kib=$(git ls-files -z | xargs -0 du -ck 2>/dev/null | tail -1 | cut -f1)
-room_kib=$(( 64 * 1024 - tracked_kib - 512 ))
-[ "$room_kib" -gt 2048 ] || { echo "error: the tracked tree ($tracked_kib KiB) leaves no room under 64 MiB" >&2; exit 1; }
+source benchmarks/device/pieces.sh
+room_kib=$(carry_room_kib)
 rm -rf .gpu/rw .gpu/r[0-9]* && mkdir -p .gpu/rw
 tmp=$(mktemp -d); trap 'rm -rf "$tmp"' EXIT
 plat=(--only-binary=:all: --python-version 3.12 --implementation cp --platform manylinux_2_28_x86_64
@@ -29,20 +28,14 @@ strip --strip-unneeded "$tmp/r/ray/_raylet.so" "$tmp/r/ray/core/src/ray/gcs/gcs_
   "$tmp/r/ray/core/src/ray/raylet/raylet" 2>/dev/null || echo "warning: strip failed; pieces are larger"
 echo "compressing ray (a minute)..."
 tar -C "$tmp/r" -cJf "$tmp/ray.tar.xz" .
-(cd "$tmp" && split -d -a 2 -b "$(( room_kib * 1024 ))" ray.tar.xz part.q)
-n=0
-for piece in "$tmp"/part.q*; do
-  n=$((n + 1)); mkdir -p ".gpu/r$n"; mv "$piece" ".gpu/r$n/"
-  echo "set -e; mkdir -p /tmp/rayparts && cp .gpu/r$n/part.q* /tmp/rayparts/ && ls /tmp/rayparts" > ".gpu/r$n/stage.sh"
-done
+n=$(cut_into_pieces "$tmp/ray.tar.xz" r "$room_kib")
 cat > .gpu/rw/stage.sh <<S
 set -e
 if [ ! -d /tmp/gpusite/ray ]; then
-  [ \$(ls /tmp/rayparts/part.q* | wc -l) -eq $n ] || { echo "error: not all $n ray pieces staged (.gpu/r1 .. r$n)" >&2; exit 1; }
-  mkdir -p /tmp/gpusite && cat /tmp/rayparts/part.q* | tar -C /tmp/gpusite -xJf -
+$(join_pieces_lines r "$n")
 fi
 python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/gpusite .gpu/rw/*.whl
 PYTHONPATH=/tmp/gpusite python3 -c "import ray; print('ray', ray.__version__, 'staged in /tmp/gpusite')"
 S
 du -sh .gpu/r[0-9]* .gpu/rw
-echo "tracked tree $tracked_kib KiB; $n staging calls (.gpu/r1 .. .gpu/r$n), then .gpu/rw"
+echo "$room_kib KiB of room per call; $n staging calls (.gpu/r1 .. .gpu/r$n), then .gpu/rw"

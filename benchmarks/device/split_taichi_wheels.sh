@@ -16,9 +16,8 @@ set -euo pipefail
 TI=${1:-1.7.4}
 root=$(git rev-parse --show-toplevel); cd "$root"
 grep -qxF '/.gpu/' .git/info/exclude 2>/dev/null || echo '/.gpu/' >> .git/info/exclude
-tracked_kib=$(git ls-files -z | xargs -0 du -ck 2>/dev/null | tail -1 | cut -f1)
-room_kib=$(( 64 * 1024 - tracked_kib - 512 ))   # 512 KiB for the stage scripts and files a call adds
-[ "$room_kib" -gt 2048 ] || { echo "error: the tracked tree ($tracked_kib KiB) leaves no room under 64 MiB" >&2; exit 1; }
+source benchmarks/device/pieces.sh
+room_kib=$(carry_room_kib)
 rm -rf .gpu/ti .gpu/tb .gpu/wb .gpu/c[0-9]* && mkdir -p .gpu/wb
 tmp=$(mktemp -d); trap 'rm -rf "$tmp"' EXIT
 plat=(--only-binary=:all: --python-version 3.12 --implementation cp --platform manylinux_2_28_x86_64
@@ -29,20 +28,14 @@ python3 -m pip download -q --no-deps "${plat[@]}" -d .gpu/wb dill pydantic pydan
 mkdir -p "$tmp/t" && (cd "$tmp/t" && unzip -q "$tmp"/whl/taichi-*.whl)
 echo "compressing taichi (a few minutes)..."
 tar -C "$tmp/t" -cJf "$tmp/taichi.tar.xz" .
-(cd "$tmp" && split -d -a 2 -b "$(( room_kib * 1024 ))" taichi.tar.xz part.p)
-n=0
-for piece in "$tmp"/part.p*; do
-  n=$((n + 1)); mkdir -p ".gpu/c$n"; mv "$piece" ".gpu/c$n/"
-  echo "set -e; mkdir -p /tmp/gpuparts && cp .gpu/c$n/part.p* /tmp/gpuparts/ && ls /tmp/gpuparts" > ".gpu/c$n/stage.sh"
-done
+n=$(cut_into_pieces "$tmp/taichi.tar.xz" c "$room_kib")
 cat > .gpu/wb/stage.sh <<S
 set -e
 if [ ! -d /tmp/gpusite/taichi ]; then
-  [ \$(ls /tmp/gpuparts/part.p* | wc -l) -eq $n ] || { echo "error: not all $n taichi pieces staged (.gpu/c1 .. c$n)" >&2; exit 1; }
-  mkdir -p /tmp/gpusite && cat /tmp/gpuparts/part.p* | tar -C /tmp/gpusite -xJf -
+$(join_pieces_lines c "$n")
 fi
 python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/gpusite .gpu/wb/*.whl
 touch /tmp/gpusite/.staged; echo "taichi + wheels staged in /tmp/gpusite"
 S
 du -sh .gpu/c* .gpu/wb
-echo "tracked tree $tracked_kib KiB; $n staging calls (.gpu/c1 .. .gpu/c$n), then .gpu/wb"
+echo "$room_kib KiB of room per call; $n staging calls (.gpu/c1 .. .gpu/c$n), then .gpu/wb"
