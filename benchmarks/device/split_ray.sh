@@ -16,10 +16,8 @@ source benchmarks/device/pieces.sh
 room_kib=$(carry_room_kib)
 rm -rf .gpu/rw .gpu/r[0-9]* && mkdir -p .gpu/rw
 tmp=$(mktemp -d); trap 'rm -rf "$tmp"' EXIT
-plat=(--only-binary=:all: --python-version 3.12 --implementation cp --platform manylinux_2_28_x86_64
-      --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64)
-python3 -m pip download -q --no-deps "${plat[@]}" -d "$tmp/whl" "ray==$RAY"
-python3 -m pip download -q --no-deps "${plat[@]}" -d .gpu/rw click filelock jsonschema attrs referencing \
+python3 -m pip download -q --no-deps "${GPU_PLATFORM[@]}" -d "$tmp/whl" "ray==$RAY"
+python3 -m pip download -q --no-deps "${GPU_PLATFORM[@]}" -d .gpu/rw click filelock jsonschema attrs referencing \
   rpds-py jsonschema-specifications msgpack packaging protobuf pyyaml requests urllib3 idna certifi \
   charset-normalizer
 mkdir -p "$tmp/r" && (cd "$tmp/r" && unzip -q "$tmp"/whl/ray-*.whl)
@@ -29,13 +27,6 @@ strip --strip-unneeded "$tmp/r/ray/_raylet.so" "$tmp/r/ray/core/src/ray/gcs/gcs_
 echo "compressing ray (a minute)..."
 tar -C "$tmp/r" -cJf "$tmp/ray.tar.xz" .
 n=$(cut_into_pieces "$tmp/ray.tar.xz" r "$room_kib")
-cat > .gpu/rw/stage.sh <<S
-set -e
-if [ ! -d /tmp/gpusite/ray ]; then
-$(join_pieces_lines r "$n")
-fi
-python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/gpusite .gpu/rw/*.whl
-PYTHONPATH=/tmp/gpusite python3 -c "import ray; print('ray', ray.__version__, 'staged in /tmp/gpusite')"
-S
+write_join_stage r "$n" ray .gpu/rw 'PYTHONPATH=/tmp/gpusite python3 -c "import ray" && echo "ray staged in /tmp/gpusite"'
 du -sh .gpu/r[0-9]* .gpu/rw
 echo "$room_kib KiB of room per call; $n staging calls (.gpu/r1 .. .gpu/r$n), then .gpu/rw"

@@ -20,22 +20,13 @@ source benchmarks/device/pieces.sh
 room_kib=$(carry_room_kib)
 rm -rf .gpu/ti .gpu/tb .gpu/wb .gpu/c[0-9]* && mkdir -p .gpu/wb
 tmp=$(mktemp -d); trap 'rm -rf "$tmp"' EXIT
-plat=(--only-binary=:all: --python-version 3.12 --implementation cp --platform manylinux_2_28_x86_64
-      --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64)
-python3 -m pip download -q --no-deps "${plat[@]}" -d "$tmp/whl" "taichi==$TI"
-python3 -m pip download -q --no-deps "${plat[@]}" -d .gpu/wb dill pydantic pydantic-core annotated-types \
+python3 -m pip download -q --no-deps "${GPU_PLATFORM[@]}" -d "$tmp/whl" "taichi==$TI"
+python3 -m pip download -q --no-deps "${GPU_PLATFORM[@]}" -d .gpu/wb dill pydantic pydantic-core annotated-types \
   typing-inspection cma zuko
 mkdir -p "$tmp/t" && (cd "$tmp/t" && unzip -q "$tmp"/whl/taichi-*.whl)
 echo "compressing taichi (a few minutes)..."
 tar -C "$tmp/t" -cJf "$tmp/taichi.tar.xz" .
 n=$(cut_into_pieces "$tmp/taichi.tar.xz" c "$room_kib")
-cat > .gpu/wb/stage.sh <<S
-set -e
-if [ ! -d /tmp/gpusite/taichi ]; then
-$(join_pieces_lines c "$n")
-fi
-python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/gpusite .gpu/wb/*.whl
-touch /tmp/gpusite/.staged; echo "taichi + wheels staged in /tmp/gpusite"
-S
+write_join_stage c "$n" taichi .gpu/wb 'touch /tmp/gpusite/.staged; echo "taichi + wheels staged in /tmp/gpusite"'
 du -sh .gpu/c* .gpu/wb
 echo "$room_kib KiB of room per call; $n staging calls (.gpu/c1 .. .gpu/c$n), then .gpu/wb"
