@@ -137,6 +137,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--slots", type=int, default=64, help="continuous-batching slots per actor")
     ap.add_argument("--chunk", type=int, default=128, help="rows an idle actor pulls at a time")
     ap.add_argument("--min-chunk", type=int, default=8)
+    ap.add_argument("--extract-workers", type=int, default=0,
+                    help="processes per actor extracting features while its GPU goes on (0: in the actor)")
     ap.add_argument("--preset", default=None, help="the scene's preset (default: full / paper)")
     ap.add_argument("--dx", type=float, default=0.002, help="cheese: grid spacing (0: the preset's)")
     ap.add_argument("--backend", default="taichi")
@@ -181,6 +183,7 @@ def main(argv: list[str] | None = None) -> int:
         "config_hash_note": hash_note, "scene": a.scene,
         "preset": preset_record, "backend": a.backend, "arch": a.arch,
         "runs": a.runs, "slots_per_actor": a.slots, "chunk": a.chunk, "min_chunk": a.min_chunk,
+        "extract_workers_per_actor": a.extract_workers,
         "seed": a.seed, "features": features, "results": []}
 
     def save() -> None:
@@ -190,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
     ray.init(num_gpus=a.gpus, include_dashboard=False, log_to_driver=True, configure_logging=False)
     n_actors = max(a.gpus, 2)
     ex = RayActorsExecutor(num_gpus=1 if a.gpus else 0, actors=n_actors, num_cpus_per_actor=1,
-                           keep_actors=True)
+                           extract_workers=a.extract_workers, keep_actors=True)
     try:
         t0 = time.perf_counter()
         out["warmup"] = ex.apply(warm_up, spec, {"type": features})

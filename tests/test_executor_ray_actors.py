@@ -165,3 +165,27 @@ def test_cheese_cut_tiny_continuous_on_two_actors_matches_local(ray_instance) ->
         assert got[i].ok == local[i].ok and got[i].failure == local[i].failure
         if local[i].ok:
             np.testing.assert_allclose(got[i].features, local[i].features, rtol=1e-4, atol=1e-6)
+
+
+def test_actors_extract_in_worker_processes_with_the_same_features(ray_instance) -> None:
+    """``extract_workers``: each actor extracts in its own warm processes (one pool per extractor spec, kept
+    across chunks) while its simulator streams on; features equal the in-actor extraction's."""
+    pytest.importorskip("taichi")
+    from invphys_cheese_cut.parameters import parameter_space
+
+    space = parameter_space()
+    params = space.denormalize(np.random.default_rng(2).random((4, space.dim)))
+    sim = {"type": "cheese_cut", "preset": "tiny", "arch": "cpu", "batch_size": 2, "scheduling": "continuous"}
+    feats = {"type": "cheese_cut_features"}
+    local = dict(LocalExecutor().run(sim, feats, params, batch_size=4))
+    ex = RayActorsExecutor(num_gpus=0, actors=1, chunk_size=2, extract_workers=1, keep_actors=True)
+    try:
+        got = _collect(ex, sim, feats, params, batch_size=4)
+        info = ex.actor_info()
+    finally:
+        ex.close()
+    assert info[0]["chunks"] == 2 and info[0]["extract_workers"] == 1 and info[0]["extraction_pools"] == 1
+    for i in range(4):
+        assert got[i].ok == local[i].ok and got[i].trajectory is None
+        if local[i].ok:
+            np.testing.assert_allclose(got[i].features, local[i].features, rtol=1e-4, atol=1e-6)

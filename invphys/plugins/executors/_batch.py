@@ -154,15 +154,16 @@ def stream_rows(simulator: Any, extractor: Any, params: np.ndarray, batch_size: 
 
 
 def run_batch(simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None, params: np.ndarray,
-              isolate_failures: bool = True) -> list[SimulationResult]:
-    """Build (or reuse) the plugins and simulate one batch: the function workers execute."""
+              isolate_failures: bool = True, pool: Any = None) -> list[SimulationResult]:
+    """Build (or reuse) the plugins and simulate one batch: the function workers execute (features
+    extracted in ``pool``'s processes while the simulator goes on, where one is given)."""
     simulator, extractor = build_plugins(simulator_spec, extractor_spec)
     if getattr(simulator, "native_stream", False):   # continuous batching inside the task
         out: list[SimulationResult | None] = [None] * len(np.atleast_2d(params))
-        for i, res in stream_rows(simulator, extractor, params, None, isolate_failures):
+        for i, res in stream_rows(simulator, extractor, params, None, isolate_failures, pool):
             out[i] = res
         return [r for r in out if r is not None]
-    return simulate_batch(simulator, extractor, params, isolate_failures)
+    return simulate_batch(simulator, extractor, params, isolate_failures, pool)
 
 
 def batches(n: int, batch_size: int) -> list[np.ndarray]:

@@ -3,6 +3,7 @@ node or cluster; idle actors pull the next chunk of rows."""
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import time
@@ -25,18 +26,32 @@ class SimulatorActor:
     spec blocks, :func:`~invphys.plugins.executors._batch.build_plugins`) and keeps them, with their
     compiled kernels and allocated fields, for every chunk it runs."""
 
-    def __init__(self, env: dict[str, str]) -> None:
+    def __init__(self, env: dict[str, str], extract_workers: int = 0) -> None:
         os.environ.update(env)
         self.chunks = 0
         self.rows = 0
         self.busy_s = 0.0
+        self.extract_workers = int(extract_workers)
+        self._pools: dict[str, Any] = {}
+
+    def _extraction_pool(self, extractor_spec: dict[str, Any] | None) -> Any:
+        """The actor's warm extraction processes for ``extractor_spec`` (None without ``extract_workers``)."""
+        if not self.extract_workers or not extractor_spec:
+            return None
+        key = json.dumps(extractor_spec, sort_keys=True, default=str)
+        if key not in self._pools:
+            from invphys.plugins.executors._extract_pool import ExtractionPool
+
+            self._pools[key] = ExtractionPool(extractor_spec, self.extract_workers)
+        return self._pools[key]
 
     def run(self, simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None, params: np.ndarray,
             isolate_failures: bool) -> list[SimulationResult]:
         """Simulate one chunk on the warm simulator (continuous batching for a ``native_stream`` one)."""
         t0 = time.perf_counter()
         try:
-            return _batch.run_batch(simulator_spec, extractor_spec, params, isolate_failures)
+            return _batch.run_batch(simulator_spec, extractor_spec, params, isolate_failures,
+                                    self._extraction_pool(extractor_spec))
         finally:
             self.chunks += 1
             self.rows += len(np.atleast_2d(params))
@@ -60,6 +75,7 @@ class SimulatorActor:
         return {"pid": os.getpid(), "host": platform.node(), "gpu_ids": [str(g) for g in ray.get_gpu_ids()],
                 "cuda_visible_devices": os.environ.get("CUDA_VISIBLE_DEVICES"), "chunks": self.chunks,
                 "rows": self.rows, "busy_s": self.busy_s, "builds": _batch.BUILDS,
+                "extract_workers": self.extract_workers, "extraction_pools": len(self._pools),
                 "useful_slot_substeps": useful, "launched_slot_substeps": launched}
 
 
@@ -105,6 +121,9 @@ class RayActorsExecutor(Executor):
         max_restarts: int = Field(8, ge=0, description="restarts of an actor whose process died")
         isolate_failures: bool = Field(
             True, description="when a chunk raises, re-run its rows one by one so only the bad row fails")
+        extract_workers: int = Field(
+            0, ge=0, le=64, description="processes per actor extracting features while its simulator goes on "
+                                        "(0: in the actor, between launches); CPUs beyond num_cpus_per_actor")
         runtime_env: dict[str, Any] | None = Field(None, description="Ray runtime_env of the actors")
         keep_actors: bool = Field(
             False, description="keep the warm actors (and a Ray instance started here) after run for the "
@@ -159,7 +178,7 @@ class RayActorsExecutor(Executor):
             if cfg.runtime_env:
                 options["runtime_env"] = cfg.runtime_env
             actor_cls = ray.remote(SimulatorActor).options(**options)
-            self._actors = [actor_cls.remote(env) for _ in range(self._size(ray))]
+            self._actors = [actor_cls.remote(env, cfg.extract_workers) for _ in range(self._size(ray))]
         return self._actors
 
     def warm(self, simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None,
