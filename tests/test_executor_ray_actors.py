@@ -144,14 +144,19 @@ def test_an_actor_that_dies_fails_only_its_row_and_generation_stores(ray_instanc
     assert len(DatasetStore(tmp_path / "ds").frame()) == 8
 
 
-def test_cheese_cut_tiny_continuous_on_two_actors_matches_local(ray_instance) -> None:
+def _cheese_tiny(n: int, seed: int) -> tuple[np.ndarray, dict, dict]:
+    """``n`` random cheese-cut parameter vectors and the tiny preset's continuous-batching blocks."""
     pytest.importorskip("taichi")
     from invphys_cheese_cut.parameters import parameter_space
 
     space = parameter_space()
-    params = space.denormalize(np.random.default_rng(1).random((6, space.dim)))
+    params = space.denormalize(np.random.default_rng(seed).random((n, space.dim)))
     sim = {"type": "cheese_cut", "preset": "tiny", "arch": "cpu", "batch_size": 2, "scheduling": "continuous"}
-    feats = {"type": "cheese_cut_features"}
+    return params, sim, {"type": "cheese_cut_features"}
+
+
+def test_cheese_cut_tiny_continuous_on_two_actors_matches_local(ray_instance) -> None:
+    params, sim, feats = _cheese_tiny(6, seed=1)
     local = dict(LocalExecutor().run(sim, feats, params, batch_size=3))
     ex = RayActorsExecutor(num_gpus=0, actors=2, chunk_size=3, keep_actors=True)
     try:
@@ -170,13 +175,7 @@ def test_cheese_cut_tiny_continuous_on_two_actors_matches_local(ray_instance) ->
 def test_actors_extract_in_worker_processes_with_the_same_features(ray_instance) -> None:
     """``extract_workers``: each actor extracts in its own warm processes (one pool per extractor spec, kept
     across chunks) while its simulator streams on; features equal the in-actor extraction's."""
-    pytest.importorskip("taichi")
-    from invphys_cheese_cut.parameters import parameter_space
-
-    space = parameter_space()
-    params = space.denormalize(np.random.default_rng(2).random((4, space.dim)))
-    sim = {"type": "cheese_cut", "preset": "tiny", "arch": "cpu", "batch_size": 2, "scheduling": "continuous"}
-    feats = {"type": "cheese_cut_features"}
+    params, sim, feats = _cheese_tiny(4, seed=2)
     local = dict(LocalExecutor().run(sim, feats, params, batch_size=4))
     ex = RayActorsExecutor(num_gpus=0, actors=1, chunk_size=2, extract_workers=1, keep_actors=True)
     try:
