@@ -28,5 +28,5 @@ for spec in "$@"; do
 done
 wait
 echo "generated in $(( $(date +%s) - T0 )) s"
-for spec in "$@"; do grep -v Warning "$OUTDIR/$(basename "$spec" .yaml).txt" | grep -E "this run|store " ; done
+for spec in "$@"; do grep -v Warning "$OUTDIR/$(basename "$spec" .yaml).txt" | grep -E "this run|store |adaptive round" ; done
 tar --exclude=.lock -czf "$OUTDIR/stores.tgz" "${stores[@]}"

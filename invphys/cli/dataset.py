@@ -70,6 +70,12 @@ def _render_summary(d: dict[str, Any]) -> None:
                   f"{d['total_failed']} failed")
     table.add_row("devices", ", ".join(d["devices"]) or "-")
     table.add_row("backends", ", ".join(d["backends"]) or "-")
+    design = d.get("design") or {}
+    for r in design.get("rounds", []):
+        r2 = f", surrogate R^2 {r['surrogate_r2']:.3f}" if r.get("surrogate_r2") is not None else ""
+        table.add_row(f"adaptive round {r['round'] + 1}",
+                      f"trained on {r['training_rows']} rows{r2}; chosen points' disagreement "
+                      f"{r['score_mean_chosen']:.3g} (candidates' median {r['score_median_candidates']:.3g})")
     out_console.print(table)
     if not d["complete"]:
         out_console.print("re-run the same command to resume")

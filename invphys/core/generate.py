@@ -52,6 +52,8 @@ class GenerationSummary:
     total_failed: int = 0
     devices: list[str] = field(default_factory=list)
     backends: list[str] = field(default_factory=list)
+    #: an adaptive design's settings and its rounds' records (None for a sampler's design)
+    design: dict[str, Any] | None = None
 
     @property
     def runs_per_hour(self) -> float:
@@ -144,6 +146,10 @@ def generate_dataset(
     console: Any = None,
     registry: Any = None,
     flush_every_s: float = 30.0,
+    adaptive: Any = None,
+    points: np.ndarray | None = None,
+    index_offset: int = 0,
+    design: dict[str, Any] | None = None,
 ) -> GenerationSummary:
     """Generate (or resume) the dataset of ``n`` runs in the store at ``path``.
 
@@ -153,8 +159,22 @@ def generate_dataset(
     run stops before starting a batch it expects to finish after the limit (summary ``stop_reason``
     ``"time_limit"``); SIGTERM and Ctrl-C also stop cleanly. ``spec`` (the experiment spec as a dict)
     is recorded in the metadata.
+
+    ``adaptive`` (a ``dataset.adaptive`` block) generates the first ``adaptive.initial`` runs by the
+    sampler and the rest in rounds where a surrogate is least sure (:mod:`invphys.core.adaptive`).
+    ``points`` (unit-cube rows) replaces the sampler's design by these points, stored with sample
+    indices from ``index_offset``; ``design`` is recorded in the session (both are what the adaptive
+    rounds use).
     """
     from invphys import registry as registry_module
+
+    if adaptive is not None:
+        from invphys.core.adaptive import generate_adaptive
+
+        return generate_adaptive(path, n=n, sampler=sampler, seed=seed, adaptive=adaptive,
+                                 limit_minutes=limit_minutes, progress=progress, console=console,
+                                 registry=registry, simulator=simulator, features=features, executor=executor,
+                                 batch_size=batch_size, spec=spec, flush_every_s=flush_every_s)
 
     reg = registry or registry_module.default_registry()
     from invphys.core.spec import MAX_DATASET_N
@@ -179,7 +199,13 @@ def generate_dataset(
     n_features = len(extractor.feature_names)
     identity = RunIdentity.of(sim)
 
-    theta = round_theta(sample_unit(n, space.dim, sampler, seed))
+    if points is None:
+        theta = round_theta(sample_unit(n, space.dim, sampler, seed))
+    else:
+        theta = round_theta(np.asarray(points, dtype=np.float64))
+        if theta.ndim != 2 or theta.shape[1] != space.dim or not ((theta >= 0) & (theta <= 1)).all():
+            raise InvphysError(f"design points must be an (n, {space.dim}) array in [0, 1]")
+        n = len(theta)
     params = space.denormalize(theta)
     keys = row_keys(theta, identity)
     if len(set(keys)) != len(keys):
@@ -203,7 +229,7 @@ def generate_dataset(
         todo = np.array([i for i, k in enumerate(keys) if k not in present], dtype=np.int64)
         summary = GenerationSummary(path=str(store.path), requested=n, already_present=n - len(todo),
                                     other_rows=len(present - set(keys)))
-        if summary.other_rows and progress:
+        if summary.other_rows and progress and design is None:
             from rich.console import Console
 
             (console or Console(stderr=True)).print(
@@ -213,6 +239,7 @@ def generate_dataset(
             "started_at": _utcnow(), "n": n, "sampler": sampler, "seed": seed, "batch_size": batch_size,
             "executor": exec_block, "limit_minutes": limit_minutes, "host": host_info(),
             "simulator_config": sim.describe().get("config"),
+            **({"design": design} if design is not None else {}),
         }
         meta["sessions"] = [*meta.get("sessions", []), session]
         if spec is not None:
@@ -263,7 +290,7 @@ def generate_dataset(
                         with stopper.critical():
                             i = int(todo[local_i])
                             check_features(result, n_features)
-                            buffer.append(Row(key=keys[i], sample_index=i, theta=theta[i], params=params[i],
+                            buffer.append(Row(key=keys[i], sample_index=index_offset + i, theta=theta[i], params=params[i],
                                               result=result))
                             summary.ran += 1
                             summary.ok += bool(result.ok)
@@ -364,5 +391,5 @@ def generate_from_spec(spec: Any, out: str | os.PathLike[str] | None = None, pro
         sampler=ds.sampler, batch_size=ds.batch_size, seed=ds.seed if ds.seed is not None else spec.seed,
         limit_minutes=limit_minutes if limit_minutes is not None else ds.limit_minutes,
         spec=spec.model_dump(mode="json", by_alias=True), progress=progress, console=console,
-        registry=registry,
+        registry=registry, adaptive=ds.adaptive,
     )

@@ -41,7 +41,7 @@ def run(ctx: StageContext) -> dict[str, Any]:
         path, simulator=spec.simulator, features=spec.features, executor=spec.executor, n=ds.n,
         sampler=ds.sampler, batch_size=ds.batch_size, seed=ds.seed if ds.seed is not None else spec.seed,
         limit_minutes=ds.limit_minutes, spec=spec.model_dump(mode="json", by_alias=True),
-        progress=ctx.progress, console=ctx.console, registry=ctx.registry,
+        progress=ctx.progress, console=ctx.console, registry=ctx.registry, adaptive=ds.adaptive,
     )
     if not summary.complete:
         raise DatasetIncomplete(

@@ -1,0 +1,207 @@
+"""Adaptive design: spend a simulation budget where a surrogate is unsure (``dataset.adaptive``).
+
+A dataset of ``n`` runs is generated in rounds. The first ``initial`` runs are the sampler's design
+(``dataset.sampler``, e.g. uniform); the remaining ``n - initial`` are split evenly over ``rounds``. Before
+each round a surrogate with member uncertainty (the ``ensemble`` plugin by default) is trained on every
+successful row stored so far, scores ``candidates x m`` uniform candidate points by its members'
+disagreement (the sum over features of the members' standard deviation over the feature's standard
+deviation in the training rows), and the round simulates the ``m`` best candidates that lie at least
+``min_gap`` apart in the unit cube (so a round does not pile onto one spot; if too few do, the best of
+the rest fill the round).
+
+Each round's points are written to ``_design.json`` in the store before they are simulated, so a killed
+or time-limited generation resumes the same points (no refit); a store grown with other adaptive
+settings is refused. Rows are stored as any generation's (a session per round in the metadata, with its
+round number), so the store reads, verifies and joins like any other.
+
+Why: on the orange peel's paper preset, 1,600 rows picked this way from a pool of 9,600 random runs gave
+the shipped surrogate a held-out R^2 of 0.952 against 0.90-0.91 for 1,600 random ones
+(``results/orange_peel_paper_surrogate/v030/design/``).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from invphys.core.atomic import write_json
+from invphys.core.errors import InvphysError
+
+PLAN_FILE = "_design.json"
+PLAN_FORMAT = 1
+
+
+@dataclass(frozen=True)
+class AdaptiveSettings:
+    """The ``dataset.adaptive`` block (see the module docstring)."""
+
+    initial: int
+    rounds: int = 4
+    surrogate: dict[str, Any] = field(default_factory=lambda: {"type": "ensemble"})
+    candidates: int = 20
+    min_gap: float = 0.15
+
+    @classmethod
+    def of(cls, block: Any, n: int) -> AdaptiveSettings:
+        data = block.model_dump() if hasattr(block, "model_dump") else dict(block)
+        if data.get("initial") is None:
+            data["initial"] = n // 2
+        out = cls(**data)
+        if not 0 < out.initial < n:
+            raise InvphysError(f"dataset.adaptive.initial must be in [1, n - 1] = [1, {n - 1}], got {out.initial}")
+        if n - out.initial < out.rounds:
+            raise InvphysError(f"dataset.adaptive: {n - out.initial} adaptive rows cannot fill {out.rounds} rounds")
+        return out
+
+    def round_sizes(self, n: int) -> list[int]:
+        base, extra = divmod(n - self.initial, self.rounds)
+        return [base + (k < extra) for k in range(self.rounds)]
+
+    def key(self, n: int, sampler: str, seed: int) -> dict[str, Any]:
+        """What fixes the design's points (a stored plan made with another key is refused)."""
+        return {"n": n, "sampler": sampler, "seed": seed, "initial": self.initial, "rounds": self.rounds,
+                "surrogate": self.surrogate, "candidates": self.candidates, "min_gap": self.min_gap}
+
+
+def disagreement(std: np.ndarray, y_train: np.ndarray) -> np.ndarray:
+    """Per candidate: the sum over features of the members' std over the feature's training std."""
+    scale = y_train.std(axis=0)
+    scale = np.where(scale > 0, scale, 1.0)
+    return (std / scale).sum(axis=1)
+
+
+def pick_spread(points: np.ndarray, score: np.ndarray, m: int, min_gap: float) -> np.ndarray:
+    """Indices of the ``m`` highest-scoring points, greedily, each >= ``min_gap`` from those picked
+    before it; if fewer qualify, the best of the others fill up to ``m``."""
+    order = np.argsort(-score, kind="stable")
+    picked: list[int] = []
+    for i in order:
+        if len(picked) == m:
+            break
+        if picked and np.sqrt(((points[picked] - points[i]) ** 2).sum(axis=1)).min() < min_gap:
+            continue
+        picked.append(int(i))
+    if len(picked) < m:
+        chosen = set(picked)
+        picked += [int(i) for i in order if int(i) not in chosen][: m - len(picked)]
+    return np.asarray(picked, dtype=np.int64)
+
+
+def propose_round(theta: np.ndarray, y: np.ndarray, m: int, settings: AdaptiveSettings, seed: int,
+                  round_index: int, registry: Any) -> tuple[np.ndarray, dict[str, Any]]:
+    """Train the surrogate on ``(theta, y)`` (unit-cube parameters, features) and return ``m`` new
+    unit-cube points with a record of the fit and the scores."""
+    surrogate = registry.create("surrogate", dict(settings.surrogate))
+    if not hasattr(surrogate, "predict_with_uncertainty"):
+        raise InvphysError(f"dataset.adaptive needs a surrogate with member uncertainty (predict_with_uncertainty, "
+                           f"e.g. 'ensemble'); {surrogate.name!r} has none")
+    metrics = surrogate.fit(theta, y)
+    rng = np.random.default_rng([seed, 104729, round_index])
+    candidates = rng.random((settings.candidates * m, theta.shape[1]))
+    _, std = surrogate.predict_with_uncertainty(candidates)
+    score = disagreement(np.asarray(std, dtype=np.float64), y)
+    chosen = pick_spread(candidates, score, m, settings.min_gap)
+    record = {"round": round_index, "training_rows": int(len(theta)),
+              "surrogate_r2": _maybe_float(metrics.get("r2")) if isinstance(metrics, dict) else None,
+              "candidates": int(len(candidates)), "score_median_candidates": float(np.median(score)),
+              "score_mean_chosen": float(score[chosen].mean())}
+    return candidates[chosen], record
+
+
+def _maybe_float(v: Any) -> float | None:
+    return float(v) if isinstance(v, int | float) else None
+
+
+def _read_plan(path: Path, key: dict[str, Any]) -> dict[str, Any]:
+    import json
+
+    plan_path = path / PLAN_FILE
+    if not plan_path.exists():
+        return {"format": PLAN_FORMAT, "key": key, "rounds": []}
+    try:
+        plan = json.loads(plan_path.read_text())
+        rounds = plan["rounds"]
+        assert isinstance(rounds, list)
+    except Exception:
+        raise InvphysError(f"{plan_path} is unreadable; move it away to plan the adaptive rounds afresh "
+                           "(rows already stored are kept)") from None
+    if plan.get("key") != json.loads(json.dumps(key)):
+        raise InvphysError(f"the dataset at {str(path)!r} was grown with other adaptive settings "
+                           f"({plan.get('key')}); generate into a new directory or use the same settings")
+    return plan
+
+
+def generate_adaptive(path: str | os.PathLike[str], *, n: int, sampler: str, seed: int, adaptive: Any,
+                      limit_minutes: float | None, progress: bool, console: Any, registry: Any,
+                      **common: Any) -> Any:
+    """Generate the adaptive design of ``n`` runs into ``path`` (the arguments of
+    :func:`~invphys.core.generate.generate_dataset`); returns its :class:`GenerationSummary` summed over
+    the initial design and the rounds, with ``design`` holding the rounds' records."""
+    import time
+
+    from invphys import registry as registry_module
+    from invphys.core.dataset import DatasetStore
+    from invphys.core.generate import generate_dataset
+
+    reg = registry or registry_module.default_registry()
+    settings = AdaptiveSettings.of(adaptive, n)
+    store_path = Path(path)
+    t0 = time.monotonic()
+
+    def remaining() -> float | None:
+        return None if limit_minutes is None else max(limit_minutes - (time.monotonic() - t0) / 60.0, 0.01)
+
+    total = generate_dataset(store_path, n=settings.initial, sampler=sampler, seed=seed, limit_minutes=remaining(),
+                             progress=progress, console=console, registry=reg,
+                             design={"adaptive": "initial"}, **common)
+    total.requested = n
+    plan = _read_plan(store_path, settings.key(n, sampler, seed))
+    total.design = {"adaptive": settings.key(n, sampler, seed), "rounds": [r["record"] for r in plan["rounds"]]}
+    offset = settings.initial
+    for k, m in enumerate(settings.round_sizes(n)):
+        if total.stop_reason not in ("complete",):
+            break
+        if k < len(plan["rounds"]):
+            points = np.asarray(plan["rounds"][k]["points"], dtype=np.float64)
+        else:
+            data = DatasetStore(store_path).arrays(ok_only=True)
+            if len(data.theta) < 2:
+                raise InvphysError(f"dataset.adaptive: only {len(data.theta)} successful rows to train the "
+                                   "surrogate on; the initial design failed")
+            if progress:
+                from rich.console import Console
+
+                (console or Console(stderr=True)).print(
+                    f"adaptive round {k + 1}/{settings.rounds}: training {settings.surrogate.get('type')!r} "
+                    f"on {len(data.theta)} rows, choosing {m} points")
+            points, record = propose_round(data.theta, data.y, m, settings, seed, k, reg)
+            from invphys.core.dataset import round_theta
+
+            points = round_theta(points)
+            plan["rounds"].append({"record": record, "points": points.tolist()})
+            write_json(store_path / PLAN_FILE, plan, indent=None)
+            total.design["rounds"].append(record)
+        part = generate_dataset(store_path, n=m, sampler=sampler, seed=seed, points=points, index_offset=offset,
+                                limit_minutes=remaining(), progress=progress, console=console, registry=reg,
+                                design={"adaptive": "round", "round": k}, **common)
+        offset += m
+        _accumulate(total, part)
+    total.wall_s = time.monotonic() - t0
+    if total.stop_reason == "complete" and not total.complete:
+        total.stop_reason = "incomplete"
+    return total
+
+
+def _accumulate(total: Any, part: Any) -> None:
+    total.already_present += part.already_present
+    total.ran += part.ran
+    total.ok += part.ok
+    total.failed += part.failed
+    total.stop_reason = part.stop_reason
+    total.total_rows, total.total_ok, total.total_failed = part.total_rows, part.total_ok, part.total_failed
+    total.devices = sorted(set(total.devices) | set(part.devices))
+    total.backends = sorted(set(total.backends) | set(part.backends))

@@ -1,0 +1,192 @@
+"""Adaptive design (``dataset.adaptive``): rounds of runs where a surrogate ensemble is least sure.
+
+``FrontSim`` is a two-parameter model whose response is flat for most of the square and grows steeply
+and wavily as ``a`` nears 1 (like features whose heavy tails sit at extreme parameters), so a surrogate
+learnt from uniform points is unsure there. The adaptive rounds must put their runs there, give a better
+surrogate than as many uniform runs, resume the same points after a kill, and refuse other settings.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from invphys.core.adaptive import PLAN_FILE, pick_spread
+from invphys.core.dataset import DatasetStore
+from invphys.core.errors import InvphysError
+from invphys.core.generate import generate_dataset
+from invphys.core.interfaces import FeatureExtractor, PluginConfig, Simulator
+from invphys.core.params import Parameter, ParameterSpace
+from invphys.core.results import RunStats, SimulationResult, TimeSeries, Trajectory
+from invphys.core.sampling import sample_unit
+from invphys.core.spec import validate_spec
+
+TESTS = str(Path(__file__).resolve().parent)
+SIM = "test_dataset_adaptive:FrontSim"
+FEATURES = "test_dataset_adaptive:FrontFeatures"
+SURROGATE = {"type": "ensemble", "members": 3, "hidden": [32, 32, 32], "max_epochs": 300, "patience": 300}
+ADAPTIVE = {"initial": 40, "rounds": 2, "surrogate": SURROGATE, "candidates": 30, "min_gap": 0.02}
+
+
+class FrontSim(Simulator):
+    """``y(t) = t exp(10 (a - 1)) cos(6 b) + 0.1 b`` over a few frames (a, b in [0, 1])."""
+
+    name = "front_sim"
+    version = "1"
+
+    class Config(PluginConfig):
+        sleep_s: float = 0.0
+
+    def parameter_space(self) -> ParameterSpace:
+        return ParameterSpace((Parameter("a", 0.0, 1.0), Parameter("b", 0.0, 1.0)))
+
+    def default_feature_extractor(self) -> str | None:
+        return FEATURES
+
+    def simulate(self, params, on_result=None):
+        p = np.atleast_2d(self.parameter_space().check(params))
+        out = []
+        for i, (a, b) in enumerate(p):
+            time.sleep(self.config.sleep_s)
+            t = np.linspace(0.0, 1.0, 5)
+            v = t * np.exp(10.0 * (a - 1.0)) * np.cos(6.0 * b) + 0.1 * b
+            res = SimulationResult(params=p[i], ok=True, stats=RunStats(backend="numpy", device="cpu"),
+                                   trajectory=Trajectory(series={"y": TimeSeries(t, v)}))
+            if on_result is not None:
+                on_result(i, res)
+            out.append(res)
+        return out
+
+
+class FrontFeatures(FeatureExtractor):
+    name = "front_features"
+
+    class Config(PluginConfig):
+        pass
+
+    @property
+    def feature_names(self) -> tuple[str, ...]:
+        return ("y_end", "y_mean")
+
+    def extract(self, trajectory: Trajectory) -> np.ndarray:
+        v = trajectory.series["y"].values
+        return np.array([v[-1], v.mean()])
+
+
+def _generate(path: Path, n: int = 80, **kw):
+    return generate_dataset(path, simulator={"type": SIM}, n=n, batch_size=10, seed=1, progress=False,
+                            adaptive=ADAPTIVE, **kw)
+
+
+def _response(theta: np.ndarray) -> np.ndarray:
+    t = np.linspace(0.0, 1.0, 5)
+    v = t * (np.exp(10.0 * (theta[:, :1] - 1.0)) * np.cos(6.0 * theta[:, 1:])) + 0.1 * theta[:, 1:]
+    return np.stack([v[:, -1], v.mean(axis=1)], axis=1)
+
+
+def test_adaptive_rounds_put_their_runs_where_the_response_is_steep(tmp_path) -> None:
+    summary = _generate(tmp_path / "ds")
+    assert summary.complete and summary.stop_reason == "complete"
+    assert (summary.ran, summary.ok, summary.total_rows) == (80, 80, 80)
+    store = DatasetStore(tmp_path / "ds")
+    index = store.frame()["sample_index"].to_numpy()  # both sorted by key
+    assert sorted(index) == list(range(80))
+    theta = store.arrays().theta[np.argsort(index)]
+    # the first 40 are the sampler's uniform design, unchanged
+    np.testing.assert_allclose(theta[:40], sample_unit(40, 2, "uniform", 1), atol=1e-6)
+    steep = lambda x: (x[:, 0] > 0.8).mean()  # noqa: E731 - 20 % of the square
+    assert steep(theta[:40]) < 0.4
+    assert steep(theta[40:]) > 0.6, steep(theta[40:])
+    np.testing.assert_allclose(store.arrays().y[np.argsort(index)], _response(theta), atol=1e-5)
+
+    # a better surrogate than 80 uniform runs (same plugin, same settings), on 2,000 fresh points
+    from invphys.models.data import r2_scores
+    from invphys.registry import create
+
+    test = np.random.default_rng(5).random((2000, 2))
+    scores = []
+    for rows in (theta, sample_unit(80, 2, "uniform", 1)):
+        model = create("surrogate", SURROGATE)
+        model.fit(rows, _response(rows))
+        scores.append(r2_scores(_response(test), model.predict(test))[0])
+    assert scores[0] > scores[1] + 0.05, scores
+    plan = json.loads((tmp_path / "ds" / PLAN_FILE).read_text())
+    assert [len(r["points"]) for r in plan["rounds"]] == [20, 20]
+    assert [r["record"]["training_rows"] for r in plan["rounds"]] == [40, 60]
+    rounds = [s.get("design") for s in DatasetStore(tmp_path / "ds").metadata["sessions"]]
+    assert rounds == [{"adaptive": "initial"}, {"adaptive": "round", "round": 0}, {"adaptive": "round", "round": 1}]
+    assert [r["round"] for r in summary.design["rounds"]] == [0, 1]
+
+    again = _generate(tmp_path / "ds")  # a re-run finds everything stored and trains nothing
+    assert (again.ran, again.already_present, again.complete) == (0, 80, True)
+
+
+def test_other_adaptive_settings_are_refused_and_rows_kept(tmp_path) -> None:
+    _generate(tmp_path / "ds")
+    before = DatasetStore(tmp_path / "ds").content_fingerprint()
+    with pytest.raises(InvphysError, match="other adaptive settings"):
+        generate_dataset(tmp_path / "ds", simulator={"type": SIM}, n=80, batch_size=10, seed=1, progress=False,
+                         adaptive={**ADAPTIVE, "min_gap": 0.1})
+    assert DatasetStore(tmp_path / "ds").content_fingerprint() == before
+
+
+def test_pick_spread_keeps_the_gap_then_fills_with_the_best() -> None:
+    pts = np.array([[0.0, 0.0], [0.01, 0.0], [0.5, 0.5], [0.02, 0.0]])
+    score = np.array([4.0, 3.0, 1.0, 2.0])
+    assert pick_spread(pts, score, 2, 0.1).tolist() == [0, 2]
+    assert pick_spread(pts, score, 3, 0.1).tolist() == [0, 2, 1]  # too few far apart: the best of the rest
+
+
+def test_spec_checks_the_adaptive_block() -> None:
+    base = {"name": "a", "simulator": {"type": SIM}, "dataset": {"n": 10}}
+    ok = validate_spec({**base, "dataset": {"n": 10, "adaptive": {"rounds": 2}}}, references=False)
+    assert ok.dataset.adaptive.surrogate == {"type": "ensemble"}
+    for bad, match in [({"initial": 10}, "initial"), ({"rounds": 9}, "rounds"), ({"surrogate": {}}, "type"),
+                       ({"roundz": 2}, "roundz")]:
+        with pytest.raises(InvphysError, match=match):
+            validate_spec({**base, "dataset": {"n": 10, "adaptive": bad}}, references=False)
+
+
+def _env() -> dict[str, str]:
+    return {**os.environ, "PYTHONPATH": os.pathsep.join([TESTS, os.environ.get("PYTHONPATH", "")]),
+            "INVPHYS_DISABLE_PLUGIN_AUTOLOAD": "1"}
+
+
+def test_killed_in_a_round_resumes_the_same_points(tmp_path) -> None:
+    spec, out = tmp_path / "spec.yaml", tmp_path / "ds"
+    spec.write_text(yaml.safe_dump({
+        "name": "adaptive-kill", "seed": 1, "stages": ["dataset"],
+        "simulator": {"type": SIM, "sleep_s": 0.05}, "executor": {"type": "local"},
+        "dataset": {"n": 80, "batch_size": 5, "adaptive": ADAPTIVE}}))
+    cmd = [sys.executable, "-m", "invphys.cli", "dataset", "generate", str(spec), "--out", str(out),
+           "--no-progress", "--json"]
+    proc = subprocess.Popen(cmd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not (out / PLAN_FILE).exists() or DatasetStore(out).info()["rows"] < 45:
+        assert proc.poll() is None, proc.stderr.read()
+        assert time.monotonic() < deadline, "the first round never started"
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=10)
+    planned = json.loads((out / PLAN_FILE).read_text())["rounds"][0]["points"]
+    stored = DatasetStore(out).info()["rows"]
+    assert 45 <= stored < 80
+
+    done = subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(done.stdout)
+    assert summary["complete"] and summary["total_rows"] == 80 and summary["already_present"] >= stored
+    plan = json.loads((out / PLAN_FILE).read_text())
+    assert plan["rounds"][0]["points"] == planned  # the killed round's points, not a refit's
+    data = DatasetStore(out).arrays()
+    keys = {tuple(np.round(t, 6)) for t in data.theta}
+    assert all(tuple(np.round(p, 6)) in keys for r in plan["rounds"] for p in r["points"])
