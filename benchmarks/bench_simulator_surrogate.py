@@ -31,6 +31,11 @@ back-transformed predictions' R^2 in raw units (``r2_raw_units``, ...) and a ``t
 
 Without ``--transform`` nothing changes (same training targets, same JSON).
 
+``--train-store STORE`` trains on the ok rows of STORE **instead of** the main store's training rows (e.g. an
+adaptive design, ``dataset.adaptive``); the held-out rows stay the main store's split ``--seed`` (with
+``--test-all``: every ok row of the main store, none of which was trained on). Learning curves then take
+STORE's rows in generation order (``sample_index``: an adaptive design's initial rows, then its rounds).
+
 ``--ensemble-option KEY=VALUE`` (repeatable) changes a setting of ``ensemble`` (e.g. ``members=10``,
 ``hidden=[512,512,256]``, ``max_epochs=400``); the JSON records them under ``ensemble_options`` and in the
 model's ``config``. An unknown key or a bad value fails as the plugin's config does.
@@ -147,8 +152,16 @@ def main(argv: list[str] | None = None) -> dict:
                     help="train and score feature NAME as log10 or log10_gain[:C] (repeatable; see above)")
     ap.add_argument("--ensemble-option", action="append", default=[], metavar="KEY=VALUE",
                     help="override a setting of the ensemble (YAML value, e.g. members=10, hidden=[512,512,256])")
+    ap.add_argument("--train-store", type=Path, default=None,
+                    help="train on this store's rows instead of the main store's training split")
+    ap.add_argument("--train-first", type=int, default=None,
+                    help="with --train-store: only its first N rows in generation order (sample_index)")
+    ap.add_argument("--test-all", action="store_true",
+                    help="with --train-store: score on every ok row of the main store")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
+    if args.test_all and args.train_store is None:
+        raise SystemExit("--test-all needs --train-store (else the main store's rows are trained on)")
     ensemble_options = parse_options(args.ensemble_option)
 
     import torch
@@ -162,6 +175,25 @@ def main(argv: list[str] | None = None) -> dict:
     n = len(data.theta)
     tr, te = split_rows(n, args.seed)
     tt, yt, tv, yv = data.theta[tr], data.y[tr], data.theta[te], data.y[te]
+    curve_order = None
+    train_store_info = None
+    if args.train_store is not None:
+        other = DatasetStore(args.train_store)
+        if other.metadata.get("identity", {}).get("version") != store.metadata.get("identity", {}).get("version") \
+                or list(other.metadata.get("feature_names", [])) != names:
+            raise SystemExit(f"--train-store {args.train_store}: another simulator version or other features")
+        own = other.arrays(ok_only=True)
+        tt, yt = own.theta, own.y
+        curve_order = np.argsort(other.frame(ok_only=True)["sample_index"].to_numpy(), kind="stable")
+        if args.train_first is not None:
+            keep = curve_order[:args.train_first]
+            tt, yt = tt[keep], yt[keep]
+            curve_order = np.arange(len(keep))  # the kept rows are in generation order
+        if args.test_all:
+            tv, yv = data.theta, data.y
+        train_store_info = {"dataset": str(args.train_store), "rows": len(tt), "first": args.train_first,
+                            "fingerprint": own.fingerprint,
+                            "test": "all main-store rows" if args.test_all else f"main-store split {args.seed}"}
     extra_info = []
     for path in args.extra:
         more = DatasetStore(path)
@@ -187,6 +219,7 @@ def main(argv: list[str] | None = None) -> dict:
         "dataset": str(args.dataset), "identity": store.metadata.get("identity"), "fingerprint": data.fingerprint,
         "n_train": len(tt), "n_test": len(tv), "val_fraction_of_train": args.val_fraction,
         "extra_training_stores": extra_info,
+        **({"train_store": train_store_info} if train_store_info else {}),
         "feature_names": names,
         "machine": {"platform": platform.platform(), "device": "cpu", "torch": torch.__version__,
                     "threads_per_model": 1},
@@ -238,7 +271,8 @@ def main(argv: list[str] | None = None) -> dict:
             if size == len(tt):
                 res = out["models"][label]
             else:
-                res = run(label, np.sort(np.random.default_rng(100).permutation(len(tt))[:size]))
+                order = curve_order if curve_order is not None else np.random.default_rng(100).permutation(len(tt))
+                res = run(label, np.sort(order[:size]))
             curve.append({"n_train": size, "r2": res["r2"], "r2_min_feature": res["r2_min_feature"],
                           "r2_per_feature": res["r2_per_feature"]})
             print(f"curve {label} {size}: R^2 {res['r2']:.4f}", flush=True)

@@ -165,3 +165,16 @@ def test_conformance_checks_pass(fitted_mlp, orange, tmp_path) -> None:
 
     for model in (fitted_mlp, ens):  # e.g. to ship to Ray or process-pool workers
         assert np.array_equal(pickle.loads(pickle.dumps(model)).predict(tv), model.predict(tv))
+
+
+def test_one_cycle_schedule_trains_with_very_few_steps() -> None:
+    """A handful of optimiser steps (few rows, few epochs) used to divide by zero inside torch's one-cycle
+    schedule; now it trains (a short warm-up, or a constant rate below 6 steps) and predicts finite values."""
+    from invphys.plugins.surrogates.ensemble import EnsembleSurrogate
+
+    rng = np.random.default_rng(0)
+    x, y = rng.random((10, 3)), rng.random((10, 2))
+    for epochs in (1, 5, 20, 40):
+        model = EnsembleSurrogate(members=2, max_epochs=epochs, patience=epochs)
+        model.fit(x, y)
+        assert np.isfinite(model.predict(x)).all()

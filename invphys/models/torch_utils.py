@@ -106,8 +106,11 @@ def fit_loop(module: nn.Module, loss_fn: LossFn, train: tuple[torch.Tensor, ...]
     sched = None
     if schedule == "one_cycle":
         steps = max_epochs * max(1, -(-n // batch_size))
-        sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=steps, pct_start=0.05,
-                                                    anneal_strategy="cos", div_factor=10, final_div_factor=1e3)
+        # 5 % warm-up; at least 2.5 steps of it, else torch's phase boundaries coincide (division by zero)
+        warmup = min(0.5, max(0.05, 2.5 / steps))
+        if steps >= 6:
+            sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=steps, pct_start=warmup,
+                                                        anneal_strategy="cos", div_factor=10, final_div_factor=1e3)
     gen = torch.Generator().manual_seed(seed)
     hist = History()
     best_state = copy.deepcopy(module.state_dict())

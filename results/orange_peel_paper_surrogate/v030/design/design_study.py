@@ -67,7 +67,7 @@ def score(s, xt, yt, names):
     from invphys.models.data import r2_scores
 
     r2, per = r2_scores(yt, s.predict(xt))
-    return {"r2": float(r2), "r2_per_feature": dict(zip(names, map(float, per))),
+    return {"r2": float(r2), "r2_per_feature": dict(zip(names, map(float, per), strict=True)),
             "worst": float(min(per)), "worst_feature": names[int(np.argmin(per))]}
 
 
@@ -126,6 +126,8 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--designs", default="random,sobol,active")
+    ap.add_argument("--initial", type=int, default=800, help="active: random rows first")
+    ap.add_argument("--rounds", type=int, default=4, help="active: rounds for the other rows")
     args = ap.parse_args()
     names, pool_x, pool_y, xt, yt = load(args.seed)
     out_path = HERE / f"split_{args.seed}.json"
@@ -139,7 +141,9 @@ def main() -> None:
         elif name == "sobol":
             rows = design_sobol(pool_x, args.seed)
         elif name == "active":
-            rows = design_active(pool_x, pool_y, args.seed)
+            rows = design_active(pool_x, pool_y, args.seed, rounds=args.rounds, start=args.initial)
+            if (args.initial, args.rounds) != (800, 4):
+                name = f"active_{args.initial}_{args.rounds}"
         else:
             raise SystemExit(f"unknown design {name!r}")
         assert len(set(rows.tolist())) == N_TRAIN
