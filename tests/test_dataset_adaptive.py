@@ -190,3 +190,19 @@ def test_killed_in_a_round_resumes_the_same_points(tmp_path) -> None:
     data = DatasetStore(out).arrays()
     keys = {tuple(np.round(t, 6)) for t in data.theta}
     assert all(tuple(np.round(p, 6)) in keys for r in plan["rounds"] for p in r["points"])
+
+
+def test_the_dataset_stage_generates_an_adaptive_design_and_keys_it(tmp_path) -> None:
+    from invphys.core.spec import parse_spec
+    from invphys.pipeline.runner import run_spec
+
+    base = {"name": "adaptive-stage", "seed": 1, "stages": ["dataset"], "simulator": {"type": SIM}}
+    spec = parse_spec(yaml.safe_dump({**base, "dataset": {"n": 60, "batch_size": 10,
+                                                          "adaptive": {**ADAPTIVE, "initial": 30}}}))
+    first = run_spec(spec, tmp_path / "run", progress=False)
+    assert first["dataset"]["total_rows"] == 60 and len(first["dataset"]["design"]["rounds"]) == 2
+    assert (tmp_path / "run" / "dataset" / "store" / PLAN_FILE).exists()
+    # the adaptive block is part of the stage's key; a spec without it keeps the keys it always had
+    assert "adaptive" in spec.section_dump(["dataset"])["dataset"]
+    plain = parse_spec(yaml.safe_dump({**base, "dataset": {"n": 60, "batch_size": 10}}))
+    assert plain.dataset.adaptive is None and "adaptive" not in plain.section_dump(["dataset"])["dataset"]
