@@ -127,7 +127,7 @@ def test_adaptive_rounds_put_their_runs_where_the_response_is_steep(tmp_path) ->
     assert [r["round"] for r in summary.design["rounds"]] == [0, 1]
 
     again = _generate(tmp_path / "ds")  # a re-run finds everything stored and trains nothing
-    assert (again.ran, again.already_present, again.complete) == (0, 80, True)
+    assert (again.ran, again.already_present, again.other_rows, again.complete) == (0, 80, 0, True)
 
 
 def test_other_adaptive_settings_are_refused_and_rows_kept(tmp_path) -> None:

@@ -105,9 +105,9 @@ def propose_round(theta: np.ndarray, y: np.ndarray, m: int, settings: AdaptiveSe
     _, std = surrogate.predict_with_uncertainty(candidates)
     score = disagreement(np.asarray(std, dtype=np.float64), y)
     chosen = pick_spread(candidates, score, m, settings.min_gap)
-    record = {"round": round_index, "training_rows": int(len(theta)),
+    record = {"round": round_index, "training_rows": len(theta),
               "surrogate_r2": _maybe_float(metrics.get("r2")) if isinstance(metrics, dict) else None,
-              "candidates": int(len(candidates)), "score_median_candidates": float(np.median(score)),
+              "candidates": len(candidates), "score_median_candidates": float(np.median(score)),
               "score_mean_chosen": float(score[chosen].mean())}
     return candidates[chosen], record
 
@@ -163,7 +163,7 @@ def generate_adaptive(path: str | os.PathLike[str], *, n: int, sampler: str, see
     total.design = {"adaptive": settings.key(n, sampler, seed), "rounds": [r["record"] for r in plan["rounds"]]}
     offset = settings.initial
     for k, m in enumerate(settings.round_sizes(n)):
-        if total.stop_reason not in ("complete",):
+        if total.stop_reason != "complete":
             break
         if k < len(plan["rounds"]):
             points = np.asarray(plan["rounds"][k]["points"], dtype=np.float64)
@@ -191,6 +191,7 @@ def generate_adaptive(path: str | os.PathLike[str], *, n: int, sampler: str, see
         offset += m
         _accumulate(total, part)
     total.wall_s = time.monotonic() - t0
+    total.other_rows = max(total.total_rows - total.already_present - total.ran, 0)  # rows of no round
     if total.stop_reason == "complete" and not total.complete:
         total.stop_reason = "incomplete"
     return total
