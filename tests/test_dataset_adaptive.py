@@ -206,3 +206,19 @@ def test_the_dataset_stage_generates_an_adaptive_design_and_keys_it(tmp_path) ->
     assert "adaptive" in spec.section_dump(["dataset"])["dataset"]
     plain = parse_spec(yaml.safe_dump({**base, "dataset": {"n": 60, "batch_size": 10}}))
     assert plain.dataset.adaptive is None and "adaptive" not in plain.section_dump(["dataset"])["dataset"]
+
+
+def test_bad_adaptive_input_fails_before_simulating_and_keeps_rows(tmp_path) -> None:
+    with pytest.raises(InvphysError, match="member uncertainty"):
+        generate_dataset(tmp_path / "a", simulator={"type": SIM}, n=20, seed=1, progress=False,
+                         adaptive={**ADAPTIVE, "initial": 10, "surrogate": {"type": "mlp"}})
+    assert not (tmp_path / "a").exists() or not list((tmp_path / "a").glob("part-*"))
+    with pytest.raises(InvphysError, match="surrogate"):
+        generate_dataset(tmp_path / "b", simulator={"type": SIM}, n=20, seed=1, progress=False,
+                         adaptive={**ADAPTIVE, "initial": 10, "surrogate": {"type": "no_such_model"}})
+    _generate(tmp_path / "ds")
+    before = DatasetStore(tmp_path / "ds").content_fingerprint()
+    (tmp_path / "ds" / PLAN_FILE).write_text("{not json")
+    with pytest.raises(InvphysError, match="unreadable"):
+        _generate(tmp_path / "ds")
+    assert DatasetStore(tmp_path / "ds").content_fingerprint() == before

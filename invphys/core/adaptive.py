@@ -91,14 +91,23 @@ def pick_spread(points: np.ndarray, score: np.ndarray, m: int, min_gap: float) -
     return np.asarray(picked, dtype=np.int64)
 
 
+def uncertain_surrogate(settings: AdaptiveSettings, registry: Any) -> Any:
+    """A fresh surrogate of ``settings.surrogate``; refused unless it reports member uncertainty."""
+    from invphys.core.interfaces import Surrogate
+
+    surrogate = registry.create("surrogate", dict(settings.surrogate))
+    own = getattr(type(surrogate), "predict_with_uncertainty", None)
+    if own is None or own is Surrogate.predict_with_uncertainty:  # the interface's default: a zero std
+        raise InvphysError(f"dataset.adaptive needs a surrogate with member uncertainty (predict_with_uncertainty, "
+                           f"e.g. 'ensemble'); {surrogate.name!r} has none")
+    return surrogate
+
+
 def propose_round(theta: np.ndarray, y: np.ndarray, m: int, settings: AdaptiveSettings, seed: int,
                   round_index: int, registry: Any) -> tuple[np.ndarray, dict[str, Any]]:
     """Train the surrogate on ``(theta, y)`` (unit-cube parameters, features) and return ``m`` new
     unit-cube points with a record of the fit and the scores."""
-    surrogate = registry.create("surrogate", dict(settings.surrogate))
-    if not hasattr(surrogate, "predict_with_uncertainty"):
-        raise InvphysError(f"dataset.adaptive needs a surrogate with member uncertainty (predict_with_uncertainty, "
-                           f"e.g. 'ensemble'); {surrogate.name!r} has none")
+    surrogate = uncertain_surrogate(settings, registry)
     metrics = surrogate.fit(theta, y)
     rng = np.random.default_rng([seed, 104729, round_index])
     candidates = rng.random((settings.candidates * m, theta.shape[1]))
@@ -149,7 +158,10 @@ def generate_adaptive(path: str | os.PathLike[str], *, n: int, sampler: str, see
 
     reg = registry or registry_module.default_registry()
     settings = AdaptiveSettings.of(adaptive, n)
+    uncertain_surrogate(settings, reg)  # a bad surrogate block fails before anything is simulated
     store_path = Path(path)
+    plan_key = settings.key(n, sampler, seed)
+    _read_plan(store_path, plan_key)  # so do other settings than a stored plan's
     t0 = time.monotonic()
 
     def remaining() -> float | None:
@@ -159,8 +171,8 @@ def generate_adaptive(path: str | os.PathLike[str], *, n: int, sampler: str, see
                              progress=progress, console=console, registry=reg,
                              design={"adaptive": "initial"}, **common)
     total.requested = n
-    plan = _read_plan(store_path, settings.key(n, sampler, seed))
-    total.design = {"adaptive": settings.key(n, sampler, seed), "rounds": [r["record"] for r in plan["rounds"]]}
+    plan = _read_plan(store_path, plan_key)
+    total.design = {"adaptive": plan_key, "rounds": [r["record"] for r in plan["rounds"]]}
     offset = settings.initial
     for k, m in enumerate(settings.round_sizes(n)):
         if total.stop_reason != "complete":
