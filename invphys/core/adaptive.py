@@ -153,7 +153,7 @@ def generate_adaptive(path: str | os.PathLike[str], *, n: int, sampler: str, see
     import time
 
     from invphys import registry as registry_module
-    from invphys.core.dataset import DatasetStore
+    from invphys.core.dataset import DatasetStore, round_theta
     from invphys.core.generate import generate_dataset
 
     reg = registry or registry_module.default_registry()
@@ -161,7 +161,7 @@ def generate_adaptive(path: str | os.PathLike[str], *, n: int, sampler: str, see
     uncertain_surrogate(settings, reg)  # a bad surrogate block fails before anything is simulated
     store_path = Path(path)
     plan_key = settings.key(n, sampler, seed)
-    _read_plan(store_path, plan_key)  # so do other settings than a stored plan's
+    plan = _read_plan(store_path, plan_key)  # other settings than a stored plan's fail here too
     t0 = time.monotonic()
 
     def remaining() -> float | None:
@@ -171,7 +171,6 @@ def generate_adaptive(path: str | os.PathLike[str], *, n: int, sampler: str, see
                              progress=progress, console=console, registry=reg,
                              design={"adaptive": "initial"}, **common)
     total.requested = n
-    plan = _read_plan(store_path, plan_key)
     total.design = {"adaptive": plan_key, "rounds": [r["record"] for r in plan["rounds"]]}
     offset = settings.initial
     for k, m in enumerate(settings.round_sizes(n)):
@@ -191,8 +190,6 @@ def generate_adaptive(path: str | os.PathLike[str], *, n: int, sampler: str, see
                     f"adaptive round {k + 1}/{settings.rounds}: training {settings.surrogate.get('type')!r} "
                     f"on {len(data.theta)} rows, choosing {m} points")
             points, record = propose_round(data.theta, data.y, m, settings, seed, k, reg)
-            from invphys.core.dataset import round_theta
-
             points = round_theta(points)
             plan["rounds"].append({"record": record, "points": points.tolist()})
             write_json(store_path / PLAN_FILE, plan, indent=None)
