@@ -30,7 +30,7 @@ def main() -> dict:
     devices = sorted({run["stats"]["device"] for run in runs if run.get("stats", {}).get("device")})
     out = {"source": "results/orange_peel_paper_protocol_v030/validate.tgz", "simulator": "orange_peel 0.3.0, paper preset",
            "stored_features": "datasets/orange_peel_paper (generated on one NVIDIA H100)", "rerun_devices": devices,
-           "rows": int(len(r)), "r_gt": {"median": float(np.median(r)), "mean": float(r.mean()), "min": float(r.min()),
+           "rows": len(r), "r_gt": {"median": float(np.median(r)), "mean": float(r.mean()), "min": float(r.min()),
                                           "p10": float(np.percentile(r, 10)), "below_0.95": int((r < 0.95).sum()),
                                           "at_least_0.995": int((r >= 0.995).sum())}}
     (HERE / "noise_floor.json").write_text(json.dumps(out, indent=1) + "\n")
