@@ -125,6 +125,8 @@ def test_adaptive_rounds_put_their_runs_where_the_response_is_steep(tmp_path) ->
     rounds = [s.get("design") for s in DatasetStore(tmp_path / "ds").metadata["sessions"]]
     assert rounds == [{"adaptive": "initial"}, {"adaptive": "round", "round": 0}, {"adaptive": "round", "round": 1}]
     assert [r["round"] for r in summary.design["rounds"]] == [0, 1]
+    info = store.info()["design"]  # what `invphys dataset info` shows
+    assert info["adaptive"]["initial"] == 40 and [r["training_rows"] for r in info["rounds"]] == [40, 60]
 
     again = _generate(tmp_path / "ds")  # a re-run finds everything stored and trains nothing
     assert (again.ran, again.already_present, again.other_rows, again.complete) == (0, 80, 0, True)

@@ -104,6 +104,14 @@ def _render_info(d: dict[str, Any]) -> None:
         f"simulator {escape(str(ident.get('simulator')))} v{escape(str(ident.get('version')))}, "
         f"preset {escape(str(ident.get('preset') or '-'))}, backend {escape(', '.join(d['backends']) or '-')}, "
         f"device {escape(', '.join(d['devices']) or '-')}; fingerprint {d['fingerprint']}")
+    design = d.get("design")
+    if design:
+        a = design.get("adaptive") or {}
+        out_console.print(
+            f"adaptive design: {a.get('initial')} {escape(str(a.get('sampler')))} runs, then "
+            f"{len(design.get('rounds', []))} of {a.get('rounds')} rounds planned "
+            f"(surrogate {escape(str((a.get('surrogate') or {}).get('type')))})"
+            if a else f"adaptive design: {escape(str(design.get('problem')))}")
     if d["failures_by_reason"]:
         failures = Table("failures", "reason", title="failures by reason")
         for reason, count in d["failures_by_reason"].items():

@@ -144,6 +144,20 @@ def _read_plan(path: Path, key: dict[str, Any]) -> dict[str, Any]:
     return plan
 
 
+def describe_design(path: str | os.PathLike[str]) -> dict[str, Any] | None:
+    """The adaptive plan stored in a dataset (its settings and each planned round's record), or None."""
+    import json
+
+    plan_path = Path(path) / PLAN_FILE
+    if not plan_path.exists():
+        return None
+    try:
+        plan = json.loads(plan_path.read_text())
+        return {"adaptive": plan["key"], "rounds": [r["record"] for r in plan["rounds"]]}
+    except Exception:
+        return {"adaptive": None, "problem": f"{PLAN_FILE} is unreadable"}
+
+
 def generate_adaptive(path: str | os.PathLike[str], *, n: int, sampler: str, seed: int, adaptive: Any,
                       limit_minutes: float | None, progress: bool, console: Any, registry: Any,
                       **common: Any) -> Any:

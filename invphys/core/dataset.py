@@ -652,7 +652,10 @@ class DatasetStore:
                              ok=(df["status"] == "ok").to_numpy(dtype=bool))
 
     def info(self) -> dict[str, Any]:
-        """A JSON-ready summary: counts, failures by reason, provenance, feature percentiles."""
+        """A JSON-ready summary: counts, failures by reason, provenance, feature percentiles and, for an
+        adaptive design, its settings and rounds (``design``; None otherwise)."""
+        from invphys.core.adaptive import describe_design
+
         meta = self.metadata
         df = self.frame()
         manifest = self.manifest
@@ -688,6 +691,7 @@ class DatasetStore:
             "fingerprint": keys_fingerprint(list(ok["key"])),
             "features": features,
             "created_at": meta.get("created_at"), "updated_at": meta.get("updated_at"),
+            "design": describe_design(self.path),
         }
 
 
