@@ -224,3 +224,13 @@ def test_bad_adaptive_input_fails_before_simulating_and_keeps_rows(tmp_path) -> 
     with pytest.raises(InvphysError, match="unreadable"):
         _generate(tmp_path / "ds")
     assert DatasetStore(tmp_path / "ds").content_fingerprint() == before
+
+
+def test_a_time_limit_stops_the_design_and_a_rerun_finishes_it(tmp_path) -> None:
+    path = tmp_path / "ds"
+    kw = {"simulator": {"type": SIM, "sleep_s": 0.02}, "n": 80, "batch_size": 10, "seed": 1, "progress": False,
+          "adaptive": ADAPTIVE}
+    first = generate_dataset(path, limit_minutes=0.01, **kw)
+    assert first.stop_reason == "time_limit" and not first.complete and 0 < first.total_rows < 80
+    done = generate_dataset(path, **kw)
+    assert done.complete and done.total_rows == 80 and done.already_present == first.total_rows
