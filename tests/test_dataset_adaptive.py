@@ -234,3 +234,19 @@ def test_a_time_limit_stops_the_design_and_a_rerun_finishes_it(tmp_path) -> None
     assert first.stop_reason == "time_limit" and not first.complete and 0 < first.total_rows < 80
     done = generate_dataset(path, **kw)
     assert done.complete and done.total_rows == 80 and done.already_present == first.total_rows
+
+
+def test_raising_n_and_rounds_adds_rounds_and_keeps_the_planned_points(tmp_path) -> None:
+    _generate(tmp_path / "ds")
+    planned = json.loads((tmp_path / "ds" / PLAN_FILE).read_text())["rounds"]
+    before = DatasetStore(tmp_path / "ds").content_fingerprint()
+    with pytest.raises(InvphysError, match="raise `rounds`"):  # more runs, no more rounds
+        _generate(tmp_path / "ds", n=100)
+    assert DatasetStore(tmp_path / "ds").content_fingerprint() == before
+    grown = generate_dataset(tmp_path / "ds", simulator={"type": SIM}, n=100, batch_size=10, seed=1, progress=False,
+                             adaptive={**ADAPTIVE, "rounds": 3})
+    assert grown.complete and (grown.ran, grown.already_present, grown.total_rows) == (20, 80, 100)
+    plan = json.loads((tmp_path / "ds" / PLAN_FILE).read_text())
+    assert plan["rounds"][:2] == planned and len(plan["rounds"][2]["points"]) == 20
+    assert (plan["key"]["n"], plan["key"]["rounds"]) == (100, 3)
+    assert plan["rounds"][2]["record"]["training_rows"] == 80

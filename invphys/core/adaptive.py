@@ -10,8 +10,9 @@ deviation in the training rows), and the round simulates the ``m`` best candidat
 the rest fill the round).
 
 Each round's points are written to ``_design.json`` in the store before they are simulated, so a killed
-or time-limited generation resumes the same points (no refit); a store grown with other adaptive
-settings is refused. Rows are stored as any generation's (a session per round in the metadata, with its
+or time-limited generation resumes the same points (no refit). Raising ``n`` and ``rounds`` together adds
+rounds to a finished design (the planned ones keep their points); other settings than the stored plan's
+are refused. Rows are stored as any generation's (a session per round in the metadata, with its
 round number), so the store reads, verifies and joins like any other.
 
 Why: on the orange peel's paper preset, two adaptive designs of 1,600 runs (800 uniform + 4 rounds of 200)
@@ -33,6 +34,8 @@ from invphys.core.errors import InvphysError
 
 PLAN_FILE = "_design.json"
 PLAN_FORMAT = 1
+#: settings that fix the points already planned; ``n`` and ``rounds`` may grow to add rounds
+FIXED: tuple[str, ...] = ("sampler", "seed", "initial", "surrogate", "candidates", "min_gap")
 
 
 @dataclass(frozen=True)
@@ -57,12 +60,20 @@ class AdaptiveSettings:
             raise InvphysError(f"dataset.adaptive: {n - out.initial} adaptive rows cannot fill {out.rounds} rounds")
         return out
 
-    def round_sizes(self, n: int) -> list[int]:
-        base, extra = divmod(n - self.initial, self.rounds)
-        return [base + (k < extra) for k in range(self.rounds)]
+    def round_sizes(self, n: int, planned: list[int] | None = None) -> list[int]:
+        """Runs per round: the ``planned`` rounds keep their sizes, the others share the rest evenly."""
+        planned = list(planned or [])
+        left, rounds_left = n - self.initial - sum(planned), self.rounds - len(planned)
+        if rounds_left < 0 or left < rounds_left or (rounds_left == 0 and left > 0):
+            raise InvphysError(
+                f"dataset.adaptive: {len(planned)} rounds of {sum(planned)} runs are already planned after the "
+                f"{self.initial} initial ones; n = {n} and rounds = {self.rounds} cannot extend them (raise "
+                "`rounds` with `n` to add rounds)")
+        base, extra = divmod(left, rounds_left) if rounds_left else (0, 0)
+        return planned + [base + (k < extra) for k in range(rounds_left)]
 
     def key(self, n: int, sampler: str, seed: int) -> dict[str, Any]:
-        """What fixes the design's points (a stored plan made with another key is refused)."""
+        """The design's settings; all but ``n`` and ``rounds`` (:data:`FIXED`) must match a stored plan's."""
         return {"n": n, "sampler": sampler, "seed": seed, "initial": self.initial, "rounds": self.rounds,
                 "surrogate": self.surrogate, "candidates": self.candidates, "min_gap": self.min_gap}
 
@@ -138,9 +149,13 @@ def _read_plan(path: Path, key: dict[str, Any]) -> dict[str, Any]:
     except Exception:
         raise InvphysError(f"{plan_path} is unreadable; move it away to plan the adaptive rounds afresh "
                            "(rows already stored are kept)") from None
-    if plan.get("key") != json.loads(json.dumps(key)):
+    have, want = plan.get("key") or {}, json.loads(json.dumps(key))
+    if any(have.get(k) != want[k] for k in FIXED):
         raise InvphysError(f"the dataset at {str(path)!r} was grown with other adaptive settings "
-                           f"({plan.get('key')}); generate into a new directory or use the same settings")
+                           f"({ {k: have.get(k) for k in FIXED} }); generate into a new directory or use the same "
+                           "settings (only n and rounds may grow)")
+    plan["grown"] = have != want  # n or rounds raised: the plan's record of them is rewritten
+    plan["key"] = want
     return plan
 
 
@@ -176,6 +191,7 @@ def generate_adaptive(path: str | os.PathLike[str], *, n: int, sampler: str, see
     store_path = Path(path)
     plan_key = settings.key(n, sampler, seed)
     plan = _read_plan(store_path, plan_key)  # other settings than a stored plan's fail here too
+    sizes = settings.round_sizes(n, [len(r["points"]) for r in plan["rounds"]])  # so does a bad extension
     t0 = time.monotonic()
 
     def remaining() -> float | None:
@@ -187,7 +203,9 @@ def generate_adaptive(path: str | os.PathLike[str], *, n: int, sampler: str, see
     total.requested = n
     total.design = {"adaptive": plan_key, "rounds": [r["record"] for r in plan["rounds"]]}
     offset = settings.initial
-    for k, m in enumerate(settings.round_sizes(n)):
+    if plan.pop("grown", False):
+        write_json(store_path / PLAN_FILE, plan, indent=None)
+    for k, m in enumerate(sizes):
         if total.stop_reason != "complete":
             break
         if k < len(plan["rounds"]):
