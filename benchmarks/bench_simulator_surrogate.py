@@ -49,6 +49,7 @@ import platform
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -87,6 +88,17 @@ def _scene_separation(identity: dict) -> float:
     from invphys_orange_peel.scene import build_scene
 
     return build_scene(get_preset(identity["preset"])).separation()
+
+
+def same_kind_store(path: Path, main: Any, flag: str) -> Any:
+    """The store at ``path``, refused unless its simulator version and features are ``main``'s."""
+    from invphys.core.dataset import DatasetStore
+
+    other = DatasetStore(path)
+    if other.metadata.get("identity", {}).get("version") != main.metadata.get("identity", {}).get("version") \
+            or list(other.metadata.get("feature_names", [])) != list(main.metadata.get("feature_names", [])):
+        raise SystemExit(f"{flag} {path}: another simulator version or other features than {main.path}")
+    return other
 
 
 def parse_options(items: list[str]) -> dict:
@@ -178,10 +190,7 @@ def main(argv: list[str] | None = None) -> dict:
     curve_order = None
     train_store_info = None
     if args.train_store is not None:
-        other = DatasetStore(args.train_store)
-        if other.metadata.get("identity", {}).get("version") != store.metadata.get("identity", {}).get("version") \
-                or list(other.metadata.get("feature_names", [])) != names:
-            raise SystemExit(f"--train-store {args.train_store}: another simulator version or other features")
+        other = same_kind_store(args.train_store, store, "--train-store")
         own = other.arrays(ok_only=True)
         tt, yt = own.theta, own.y
         curve_order = np.argsort(other.frame(ok_only=True)["sample_index"].to_numpy(), kind="stable")
@@ -196,10 +205,7 @@ def main(argv: list[str] | None = None) -> dict:
                             "test": "all main-store rows" if args.test_all else f"main-store split {args.seed}"}
     extra_info = []
     for path in args.extra:
-        more = DatasetStore(path)
-        if more.metadata.get("identity", {}).get("version") != store.metadata.get("identity", {}).get("version") \
-                or list(more.metadata.get("feature_names", [])) != names:
-            raise SystemExit(f"--extra {path}: another simulator version or other features than {args.dataset}")
+        more = same_kind_store(path, store, "--extra")
         extra = more.arrays(ok_only=True)
         tt, yt = np.concatenate([tt, extra.theta]), np.concatenate([yt, extra.y])
         extra_info.append({"dataset": str(path), "rows": len(extra.theta), "fingerprint": extra.fingerprint,
