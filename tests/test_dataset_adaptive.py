@@ -218,6 +218,10 @@ def test_bad_adaptive_input_fails_before_simulating_and_keeps_rows(tmp_path) -> 
     with pytest.raises(InvphysError, match="surrogate"):
         generate_dataset(tmp_path / "b", simulator={"type": SIM}, n=20, seed=1, progress=False,
                          adaptive={**ADAPTIVE, "initial": 10, "surrogate": {"type": "no_such_model"}})
+    with pytest.raises(InvphysError, match="roundz"):  # from Python too, checked like a spec's block
+        generate_dataset(tmp_path / "c", simulator={"type": SIM}, n=20, seed=1, progress=False,
+                         adaptive={"roundz": 2})
+    assert not (tmp_path / "c").exists()
     _generate(tmp_path / "ds")
     before = DatasetStore(tmp_path / "ds").content_fingerprint()
     (tmp_path / "ds" / PLAN_FILE).write_text("{not json")

@@ -23,7 +23,7 @@ designs of 1,600 runs (``results/orange_peel_paper_surrogate/v030/design/``).
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -40,20 +40,30 @@ FIXED: tuple[str, ...] = ("sampler", "seed", "initial", "surrogate", "candidates
 
 @dataclass(frozen=True)
 class AdaptiveSettings:
-    """The ``dataset.adaptive`` block (see the module docstring)."""
+    """A ``dataset.adaptive`` block (:class:`~invphys.core.spec.AdaptiveSection`, which holds the defaults)
+    with ``initial`` resolved for ``n`` runs."""
 
     initial: int
-    rounds: int = 4
-    surrogate: dict[str, Any] = field(default_factory=lambda: {"type": "ensemble"})
-    candidates: int = 20
-    min_gap: float = 0.15
+    rounds: int
+    surrogate: dict[str, Any]
+    candidates: int
+    min_gap: float
 
     @classmethod
     def of(cls, block: Any, n: int) -> AdaptiveSettings:
-        data = block.model_dump() if hasattr(block, "model_dump") else dict(block)
-        if data.get("initial") is None:
-            data["initial"] = n // 2
-        out = cls(**data)
+        """Validate ``block`` (an :class:`AdaptiveSection` or a mapping) for ``n`` runs; bad input raises
+        :class:`InvphysError`."""
+        from pydantic import ValidationError
+
+        from invphys.core.spec import AdaptiveSection
+
+        try:
+            section = block if isinstance(block, AdaptiveSection) else AdaptiveSection.model_validate(block)
+        except ValidationError as exc:
+            problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'block'}: {e['msg']}" for e in exc.errors())
+            raise InvphysError(f"dataset.adaptive: {problems}") from None
+        out = cls(initial=section.initial if section.initial is not None else n // 2, rounds=section.rounds,
+                  surrogate=dict(section.surrogate), candidates=section.candidates, min_gap=section.min_gap)
         if not 0 < out.initial < n:
             raise InvphysError(f"dataset.adaptive.initial must be in [1, n - 1] = [1, {n - 1}], got {out.initial}")
         if n - out.initial < out.rounds:
@@ -136,19 +146,31 @@ def _maybe_float(v: Any) -> float | None:
     return float(v) if isinstance(v, int | float) else None
 
 
-def _read_plan(path: Path, key: dict[str, Any]) -> dict[str, Any]:
+def _load_plan(path: Path) -> dict[str, Any] | None:
+    """The parsed ``_design.json`` of the store at ``path`` (None when absent); unreadable raises."""
     import json
 
     plan_path = path / PLAN_FILE
     if not plan_path.exists():
-        return {"format": PLAN_FORMAT, "key": key, "rounds": []}
+        return None
     try:
         plan = json.loads(plan_path.read_text())
-        rounds = plan["rounds"]
-        assert isinstance(rounds, list)
+        if not (isinstance(plan.get("key"), dict) and isinstance(plan["rounds"], list)
+                and all("points" in r and "record" in r for r in plan["rounds"])):
+            raise ValueError
     except Exception:
         raise InvphysError(f"{plan_path} is unreadable; move it away to plan the adaptive rounds afresh "
                            "(rows already stored are kept)") from None
+    return plan
+
+
+def _read_plan(path: Path, key: dict[str, Any]) -> dict[str, Any]:
+    """The stored plan (or a new one) for a design with settings ``key``; other fixed settings raise."""
+    import json
+
+    plan = _load_plan(path)
+    if plan is None:
+        return {"format": PLAN_FORMAT, "key": key, "rounds": []}
     have, want = plan.get("key") or {}, json.loads(json.dumps(key))
     if any(have.get(k) != want[k] for k in FIXED):
         raise InvphysError(f"the dataset at {str(path)!r} was grown with other adaptive settings "
@@ -161,16 +183,11 @@ def _read_plan(path: Path, key: dict[str, Any]) -> dict[str, Any]:
 
 def describe_design(path: str | os.PathLike[str]) -> dict[str, Any] | None:
     """The adaptive plan stored in a dataset (its settings and each planned round's record), or None."""
-    import json
-
-    plan_path = Path(path) / PLAN_FILE
-    if not plan_path.exists():
-        return None
     try:
-        plan = json.loads(plan_path.read_text())
-        return {"adaptive": plan["key"], "rounds": [r["record"] for r in plan["rounds"]]}
-    except Exception:
+        plan = _load_plan(Path(path))
+    except InvphysError:
         return {"adaptive": None, "problem": f"{PLAN_FILE} is unreadable"}
+    return None if plan is None else {"adaptive": plan["key"], "rounds": [r["record"] for r in plan["rounds"]]}
 
 
 def generate_adaptive(path: str | os.PathLike[str], *, n: int, sampler: str, seed: int, adaptive: Any,

@@ -144,12 +144,13 @@ class DatasetSection(_Section):
 
     @model_validator(mode="after")
     def _adaptive_fits(self) -> DatasetSection:
-        a = self.adaptive
-        if a is not None:
-            initial = a.initial if a.initial is not None else self.n // 2
-            if not 0 < initial < self.n or self.n - initial < a.rounds:
-                raise ValueError(f"adaptive: initial ({initial}) must leave at least rounds ({a.rounds}) of "
-                                 f"the n = {self.n} runs")
+        if self.adaptive is not None:
+            from invphys.core.adaptive import AdaptiveSettings
+
+            try:
+                AdaptiveSettings.of(self.adaptive, self.n)  # the check generation makes, at spec time
+            except InvphysError as exc:
+                raise ValueError(str(exc)) from None
         return self
 
 
