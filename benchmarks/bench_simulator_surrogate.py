@@ -91,14 +91,24 @@ def _scene_separation(identity: dict) -> float:
 
 
 def same_kind_store(path: Path, main: Any, flag: str) -> Any:
-    """The store at ``path``, refused unless its simulator version and features are ``main``'s."""
+    """The store at ``path``, refused unless its simulator, version, preset, config hash and features are
+    ``main``'s (the backend may differ: the same physics)."""
     from invphys.core.dataset import DatasetStore
 
     other = DatasetStore(path)
-    if other.metadata.get("identity", {}).get("version") != main.metadata.get("identity", {}).get("version") \
-            or list(other.metadata.get("feature_names", [])) != list(main.metadata.get("feature_names", [])):
-        raise SystemExit(f"{flag} {path}: another simulator version or other features than {main.path}")
+    mine, theirs = (s.metadata.get("identity", {}) for s in (main, other))
+    differ = [k for k in SAME_KIND if theirs.get(k) != mine.get(k)]
+    if list(other.metadata.get("feature_names", [])) != list(main.metadata.get("feature_names", [])):
+        differ.append("features")
+    if differ:
+        what = ", ".join(f"{k} {theirs.get(k)!r} (not {mine.get(k)!r})" if k != "features" else "other features"
+                         for k in differ)
+        raise SystemExit(f"{flag} {path}: not the same kind of runs as {main.path}: {what}")
     return other
+
+
+#: identity fields two stores must share for rows of one to train a surrogate tested on the other
+SAME_KIND = ("simulator", "version", "preset", "config")
 
 
 def parse_options(items: list[str]) -> dict:

@@ -1,5 +1,6 @@
 """bench_simulator_surrogate --transform: the transforms round-trip, R^2 is scored in the transformed units
-(with a raw-units copy), and without --transform the benchmark trains and scores exactly as before."""
+(with a raw-units copy), and without --transform the benchmark trains and scores exactly as before; --train-store
+and --extra take rows of the same kind of runs only."""
 
 from __future__ import annotations
 
@@ -22,9 +23,9 @@ def _bench():
     return benchmark_modules.load("bench_simulator_surrogate")
 
 
-def _store(path: Path, n: int = 40) -> DatasetStore:
+def _store(path: Path, n: int = 40, ident: RunIdentity = IDENT, seed: int = 3) -> DatasetStore:
     """A tiny store: 2 parameters, a heavy-tailed positive feature above 0.02 and a smooth one."""
-    rng = np.random.default_rng(3)
+    rng = np.random.default_rng(seed)
     rows = []
     for i in range(n):
         theta = rng.random(2)
@@ -32,10 +33,10 @@ def _store(path: Path, n: int = 40) -> DatasetStore:
         stats = RunStats(substeps=1, wall_time_s=0.0, backend="numpy", device="cpu", preset="tiny",
                          simulator="toy_oscillator", simulator_version="1")
         res = SimulationResult(params=theta, ok=True, stats=stats, features=f)
-        rows.append(Row(key=row_key(theta, IDENT), sample_index=i, theta=theta, params=theta, result=res))
+        rows.append(Row(key=row_key(theta, ident), sample_index=i, theta=theta, params=theta, result=res))
     store = DatasetStore(path)
     with store.writer():
-        store.create_or_check({"identity": IDENT.to_dict(), "param_names": ["a", "b"],
+        store.create_or_check({"identity": ident.to_dict(), "param_names": ["a", "b"],
                                "feature_names": ["sep", "other"]})
         store.append(rows)
     return store
@@ -95,3 +96,21 @@ def test_default_path_unchanged_and_transform_scored_in_both_units(tmp_path: Pat
     assert set(res["r2_per_feature_raw_units"]) == {"sep", "other"}
     assert np.isfinite([res["r2"], res["r2_raw_units"]]).all()
     assert json.loads((tmp_path / "b.json").read_text())["transforms"]["sep"]["kind"] == "log10_gain"
+
+
+def test_train_store_of_another_preset_or_config_is_refused(tmp_path: Path) -> None:
+    """Rows of another preset (or config hash, or version) never train a surrogate scored on the main store's runs;
+    another backend of the same physics is accepted and trained on."""
+    bench = _bench()
+    main = _store(tmp_path / "main")
+    for field, value in (("preset", "quick"), ("config", "0123456789abcdef"), ("version", "2")):
+        other = _store(tmp_path / field, ident=RunIdentity(**{**IDENT.to_dict(), field: value}), seed=4)
+        for flag in ("--train-store", "--extra"):
+            with pytest.raises(SystemExit, match=f"not the same kind of runs.*{field} '{value}'"):
+                bench.main([str(main.path), "--models", "mlp_new", flag, str(other.path),
+                            "--out", str(tmp_path / "x.json")])
+    assert not (tmp_path / "x.json").exists()
+    warp = _store(tmp_path / "warp", ident=RunIdentity(**{**IDENT.to_dict(), "backend": "warp"}), seed=4)
+    out = bench.main([str(main.path), "--models", "mlp_new", "--train-store", str(warp.path), "--test-all",
+                      "--out", str(tmp_path / "w.json")])
+    assert out["n_train"] == 40 and out["n_test"] == 40

@@ -254,3 +254,19 @@ def test_raising_n_and_rounds_adds_rounds_and_keeps_the_planned_points(tmp_path)
     assert plan["rounds"][:2] == planned and len(plan["rounds"][2]["points"]) == 20
     assert (plan["key"]["n"], plan["key"]["rounds"]) == (100, 3)
     assert plan["rounds"][2]["record"]["training_rows"] == 80
+
+
+def test_a_design_with_the_default_initial_grows_without_restating_it(tmp_path) -> None:
+    """``initial`` left out is n // 2 for a new design but the stored plan's when a design grows (n // 2 of the
+    larger n would be other settings); stated differently, it is still refused."""
+    block = {k: v for k, v in ADAPTIVE.items() if k != "initial"}
+    first = generate_dataset(tmp_path / "ds", simulator={"type": SIM}, n=80, batch_size=10, seed=1, progress=False,
+                             adaptive=block)
+    assert first.complete and json.loads((tmp_path / "ds" / PLAN_FILE).read_text())["key"]["initial"] == 40
+    with pytest.raises(InvphysError, match="other adaptive settings"):
+        generate_dataset(tmp_path / "ds", simulator={"type": SIM}, n=100, batch_size=10, seed=1, progress=False,
+                         adaptive={**block, "rounds": 3, "initial": 50})
+    grown = generate_dataset(tmp_path / "ds", simulator={"type": SIM}, n=100, batch_size=10, seed=1, progress=False,
+                             adaptive={**block, "rounds": 3})
+    assert grown.complete and (grown.ran, grown.total_rows) == (20, 100)
+    assert json.loads((tmp_path / "ds" / PLAN_FILE).read_text())["key"]["initial"] == 40

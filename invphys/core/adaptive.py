@@ -50,9 +50,10 @@ class AdaptiveSettings:
     min_gap: float
 
     @classmethod
-    def of(cls, block: Any, n: int) -> AdaptiveSettings:
+    def of(cls, block: Any, n: int, planned_initial: int | None = None) -> AdaptiveSettings:
         """Validate ``block`` (an :class:`AdaptiveSection` or a mapping) for ``n`` runs; bad input raises
-        :class:`InvphysError`."""
+        :class:`InvphysError`. An unset ``initial`` is ``planned_initial`` (a stored plan's, so a design grows
+        without restating it), else ``n // 2``."""
         from pydantic import ValidationError
 
         from invphys.core.spec import AdaptiveSection
@@ -62,7 +63,8 @@ class AdaptiveSettings:
         except ValidationError as exc:
             problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'block'}: {e['msg']}" for e in exc.errors())
             raise InvphysError(f"dataset.adaptive: {problems}") from None
-        out = cls(initial=section.initial if section.initial is not None else n // 2, rounds=section.rounds,
+        initial = section.initial if section.initial is not None else planned_initial
+        out = cls(initial=initial if initial is not None else n // 2, rounds=section.rounds,
                   surrogate=dict(section.surrogate), candidates=section.candidates, min_gap=section.min_gap)
         if not 0 < out.initial < n:
             raise InvphysError(f"dataset.adaptive.initial must be in [1, n - 1] = [1, {n - 1}], got {out.initial}")
@@ -164,11 +166,10 @@ def _load_plan(path: Path) -> dict[str, Any] | None:
     return plan
 
 
-def _read_plan(path: Path, key: dict[str, Any]) -> dict[str, Any]:
-    """The stored plan (or a new one) for a design with settings ``key``; other fixed settings raise."""
+def _check_plan(plan: dict[str, Any] | None, path: Path, key: dict[str, Any]) -> dict[str, Any]:
+    """The stored ``plan`` (or a new one) for a design with settings ``key``; other fixed settings raise."""
     import json
 
-    plan = _load_plan(path)
     if plan is None:
         return {"format": PLAN_FORMAT, "key": key, "rounds": []}
     have, want = plan.get("key") or {}, json.loads(json.dumps(key))
@@ -203,11 +204,12 @@ def generate_adaptive(path: str | os.PathLike[str], *, n: int, sampler: str, see
     from invphys.core.generate import generate_dataset
 
     reg = registry or registry_module.default_registry()
-    settings = AdaptiveSettings.of(adaptive, n)
-    uncertain_surrogate(settings, reg)  # a bad surrogate block fails before anything is simulated
     store_path = Path(path)
+    stored = _load_plan(store_path)
+    settings = AdaptiveSettings.of(adaptive, n, None if stored is None else stored["key"].get("initial"))
+    uncertain_surrogate(settings, reg)  # a bad surrogate block fails before anything is simulated
     plan_key = settings.key(n, sampler, seed)
-    plan = _read_plan(store_path, plan_key)  # other settings than a stored plan's fail here too
+    plan = _check_plan(stored, store_path, plan_key)  # other settings than a stored plan's fail here too
     sizes = settings.round_sizes(n, [len(r["points"]) for r in plan["rounds"]])  # so does a bad extension
     t0 = time.monotonic()
 

@@ -104,7 +104,7 @@ class AdaptiveSection(_Section):
     """``dataset.adaptive``: generate part of the dataset where a surrogate is least sure
     (:mod:`invphys.core.adaptive`)."""
 
-    initial: int | None = Field(None, gt=0, description="runs of the sampler's design first (default: n // 2)")
+    initial: int | None = Field(None, gt=0, description="runs of the sampler's design first (default: a stored plan's when the design grows, else n // 2)")
     rounds: int = Field(4, ge=1, le=100, description="rounds the remaining runs are split into")
     surrogate: dict[str, Any] = Field(
         default_factory=lambda: {"type": "ensemble"},
