@@ -270,3 +270,33 @@ def test_a_design_with_the_default_initial_grows_without_restating_it(tmp_path) 
                              adaptive={**block, "rounds": 3})
     assert grown.complete and (grown.ran, grown.total_rows) == (20, 100)
     assert json.loads((tmp_path / "ds" / PLAN_FILE).read_text())["key"]["initial"] == 40
+
+
+def test_a_second_process_growing_the_same_design_is_refused_until_the_first_dies(tmp_path) -> None:
+    """The store's write lock is released while a round's surrogate trains; the design lock is not, so a second
+    generation fails with one line (exit 2) instead of planning the same round again, and a SIGKILLed holder
+    leaves no stale lock behind."""
+    spec, out = tmp_path / "spec.yaml", tmp_path / "ds"
+    spec.write_text(yaml.safe_dump({
+        "name": "adaptive-twice", "seed": 1, "stages": ["dataset"],
+        "simulator": {"type": SIM, "sleep_s": 0.05}, "executor": {"type": "local"},
+        "dataset": {"n": 80, "batch_size": 5, "adaptive": ADAPTIVE}}))
+    cmd = [sys.executable, "-m", "invphys.cli", "dataset", "generate", str(spec), "--out", str(out),
+           "--no-progress", "--json"]
+    first = subprocess.Popen(cmd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not (out / "_metadata.json").exists() or DatasetStore(out).info()["rows"] < 10:
+        assert first.poll() is None, first.stderr.read()
+        assert time.monotonic() < deadline, "the first generation never started"
+        time.sleep(0.05)
+    second = subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=120)
+    assert second.returncode == 2, second.stderr
+    assert "another process is growing the adaptive design" in second.stderr
+    assert len(second.stderr.strip().splitlines()) == 1
+    first.send_signal(signal.SIGKILL)
+    first.wait(timeout=10)
+    stored = DatasetStore(out).info()["rows"]
+    done = subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(done.stdout)
+    assert summary["complete"] and summary["total_rows"] == 80 and summary["already_present"] >= stored

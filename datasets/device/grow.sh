@@ -29,4 +29,4 @@ done
 wait
 echo "generated in $(( $(date +%s) - T0 )) s"
 for spec in "$@"; do grep -v Warning "$OUTDIR/$(basename "$spec" .yaml).txt" | grep -E "this run|store |adaptive round" ; done
-tar --exclude=.lock -czf "$OUTDIR/stores.tgz" "${stores[@]}"
+tar --exclude=.lock --exclude=.design.lock -czf "$OUTDIR/stores.tgz" "${stores[@]}"

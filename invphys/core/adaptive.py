@@ -10,7 +10,8 @@ deviation in the training rows), and the round simulates the ``m`` best candidat
 the rest fill the round).
 
 Each round's points are written to ``_design.json`` in the store before they are simulated, so a killed
-or time-limited generation resumes the same points (no refit). Raising ``n`` and ``rounds`` together adds
+or time-limited generation resumes the same points (no refit). One process grows a design at a time
+(``.design.lock``; a second one fails with one line). Raising ``n`` and ``rounds`` together adds
 rounds to a finished design (the planned ones keep their points); other settings than the stored plan's
 are refused. Rows are stored as any generation's (a session per round in the metadata, with its
 round number), so the store reads, verifies and joins like any other.
@@ -22,7 +23,9 @@ designs of 1,600 runs (``results/orange_peel_paper_surrogate/v030/design/``).
 
 from __future__ import annotations
 
+import contextlib
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,6 +36,8 @@ from invphys.core.atomic import write_json
 from invphys.core.errors import InvphysError
 
 PLAN_FILE = "_design.json"
+#: held by the one process growing a store's design (the store's ``.lock`` is released between rounds)
+DESIGN_LOCK = ".design.lock"
 PLAN_FORMAT = 1
 #: settings that fix the points already planned; ``n`` and ``rounds`` may grow to add rounds
 FIXED: tuple[str, ...] = ("sampler", "seed", "initial", "surrogate", "candidates", "min_gap")
@@ -197,11 +202,7 @@ def generate_adaptive(path: str | os.PathLike[str], *, n: int, sampler: str, see
     """Generate the adaptive design of ``n`` runs into ``path`` (the arguments of
     :func:`~invphys.core.generate.generate_dataset`); returns its :class:`GenerationSummary` summed over
     the initial design and the rounds, with ``design`` holding the rounds' records."""
-    import time
-
     from invphys import registry as registry_module
-    from invphys.core.dataset import DatasetStore, round_theta
-    from invphys.core.generate import generate_dataset
 
     reg = registry or registry_module.default_registry()
     store_path = Path(path)
@@ -210,7 +211,46 @@ def generate_adaptive(path: str | os.PathLike[str], *, n: int, sampler: str, see
     uncertain_surrogate(settings, reg)  # a bad surrogate block fails before anything is simulated
     plan_key = settings.key(n, sampler, seed)
     plan = _check_plan(stored, store_path, plan_key)  # other settings than a stored plan's fail here too
-    sizes = settings.round_sizes(n, [len(r["points"]) for r in plan["rounds"]])  # so does a bad extension
+    settings.round_sizes(n, [len(r["points"]) for r in plan["rounds"]])  # so does a bad extension
+    with _design_lock(store_path):
+        # under the lock, from the plan as it is now (another process may have planned a round meanwhile)
+        plan = _check_plan(_load_plan(store_path), store_path, plan_key)
+        sizes = settings.round_sizes(n, [len(r["points"]) for r in plan["rounds"]])
+        return _grow(store_path, plan, plan_key, sizes, settings, n=n, sampler=sampler, seed=seed,
+                     limit_minutes=limit_minutes, progress=progress, console=console, reg=reg, **common)
+
+
+@contextlib.contextmanager
+def _design_lock(path: Path) -> Iterator[None]:
+    """Hold ``path/.design.lock`` while a design grows: the store's own write lock is released between the
+    rounds (while the surrogate trains), and two processes planning the same round would race on the plan."""
+    from filelock import FileLock, Timeout
+
+    if path.exists() and not path.is_dir():
+        yield  # not a store: generation reports it
+        return
+    path.mkdir(parents=True, exist_ok=True)
+    lock = FileLock(str(path / DESIGN_LOCK))
+    try:
+        lock.acquire(timeout=0)
+    except Timeout:
+        raise InvphysError(f"another process is growing the adaptive design in {str(path)!r}; wait for it to "
+                           "finish (or stop it: a later run resumes its rounds)") from None
+    try:
+        yield
+    finally:
+        lock.release()
+
+
+def _grow(store_path: Path, plan: dict[str, Any], plan_key: dict[str, Any], sizes: list[int],
+          settings: AdaptiveSettings, *, n: int, sampler: str, seed: int, limit_minutes: float | None,
+          progress: bool, console: Any, reg: Any, **common: Any) -> Any:
+    """The initial design, then each round (planned or planned now), under the design lock."""
+    import time
+
+    from invphys.core.dataset import DatasetStore, round_theta
+    from invphys.core.generate import generate_dataset
+
     t0 = time.monotonic()
 
     def remaining() -> float | None:
