@@ -163,14 +163,19 @@ def _env() -> dict[str, str]:
             "INVPHYS_DISABLE_PLUGIN_AUTOLOAD": "1"}
 
 
-def test_killed_in_a_round_resumes_the_same_points(tmp_path) -> None:
+def _slow_generation(tmp_path: Path, name: str) -> tuple[Path, list[str]]:
+    """(store, CLI command) of an 80-run adaptive design with a slow simulator (0.05 s per run)."""
     spec, out = tmp_path / "spec.yaml", tmp_path / "ds"
     spec.write_text(yaml.safe_dump({
-        "name": "adaptive-kill", "seed": 1, "stages": ["dataset"],
+        "name": name, "seed": 1, "stages": ["dataset"],
         "simulator": {"type": SIM, "sleep_s": 0.05}, "executor": {"type": "local"},
         "dataset": {"n": 80, "batch_size": 5, "adaptive": ADAPTIVE}}))
-    cmd = [sys.executable, "-m", "invphys.cli", "dataset", "generate", str(spec), "--out", str(out),
-           "--no-progress", "--json"]
+    return out, [sys.executable, "-m", "invphys.cli", "dataset", "generate", str(spec), "--out", str(out),
+                 "--no-progress", "--json"]
+
+
+def test_killed_in_a_round_resumes_the_same_points(tmp_path) -> None:
+    out, cmd = _slow_generation(tmp_path, "adaptive-kill")
     proc = subprocess.Popen(cmd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
     while not (out / PLAN_FILE).exists() or DatasetStore(out).info()["rows"] < 45:
@@ -276,13 +281,7 @@ def test_a_second_process_growing_the_same_design_is_refused_until_the_first_die
     """The store's write lock is released while a round's surrogate trains; the design lock is not, so a second
     generation fails with one line (exit 2) instead of planning the same round again, and a SIGKILLed holder
     leaves no stale lock behind."""
-    spec, out = tmp_path / "spec.yaml", tmp_path / "ds"
-    spec.write_text(yaml.safe_dump({
-        "name": "adaptive-twice", "seed": 1, "stages": ["dataset"],
-        "simulator": {"type": SIM, "sleep_s": 0.05}, "executor": {"type": "local"},
-        "dataset": {"n": 80, "batch_size": 5, "adaptive": ADAPTIVE}}))
-    cmd = [sys.executable, "-m", "invphys.cli", "dataset", "generate", str(spec), "--out", str(out),
-           "--no-progress", "--json"]
+    out, cmd = _slow_generation(tmp_path, "adaptive-twice")
     first = subprocess.Popen(cmd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
     while not (out / "_metadata.json").exists() or DatasetStore(out).info()["rows"] < 10:
