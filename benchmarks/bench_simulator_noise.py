@@ -64,8 +64,8 @@ def main(argv: list[str] | None = None) -> dict:
     ident = meta["identity"]
     rng = np.random.default_rng(args.seed)
     pick = np.sort(rng.choice(len(data.theta), size=min(args.rows, len(data.theta)), replace=False))
-    what_if = dict(args.config or {})
-    if not isinstance(args.config or {}, dict) or {"preset", "backend", "arch", "batch_size"} & set(what_if):
+    what_if = args.config or {}
+    if not isinstance(what_if, dict) or {"preset", "backend", "arch", "batch_size"} & set(what_if):
         raise SystemExit("--config: a JSON object of settings other than preset, backend, arch and batch_size")
     sim = OrangePeelSimulator(preset=ident["preset"], backend=ident["backend"], arch=args.arch,
                               batch_size=args.batch, **what_if)
