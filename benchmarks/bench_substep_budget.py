@@ -1,6 +1,6 @@
 """What bounds the orange peel's time step, and what that means for GPU throughput (issue 16). CPU, no physics.
 
-Each run's dt is the smallest of four bounds (:func:`invphys_anisompm.engine.run_dt_bound`): the elastic CFL
+Each run's dt is the smallest of four bounds (:func:`invphys_anisompm.engine.dt_bounds`): the elastic CFL
 ``cfl * dx / c`` (c the run's wave speed), ``frame_dt / min_substeps_per_frame``, the damage regularisation
 ``eta_dt_factor * min(eta)`` and the grip's kinematic CFL. Over random parameter vectors this script counts which
 bound binds, each bound's share of all substeps, the substeps per run with and without the eta bound, and the
@@ -29,18 +29,6 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path[:0] = [str(ROOT), str(ROOT / "examples" / "orange_peel"), str(ROOT / "examples" / "anisompm")]
 
 
-def bounds(model, options, frames: int) -> dict[str, np.ndarray]:
-    """Each run's four dt bounds (s), as :func:`run_dt_bound` combines them."""
-    from invphys_anisompm.engine import kinematic_speed
-
-    n = model.n_envs
-    vk = kinematic_speed(model.scene, frames)
-    return {"elastic_cfl": options.cfl * options.dx / model.wave_speed(),
-            "min_substeps": np.full(n, 1.0 / options.fps / options.min_substeps_per_frame),
-            "eta": options.eta_dt_factor * model.min_eta() if options.damage else np.full(n, np.inf),
-            "kinematic_cfl": np.full(n, options.kinematic_cfl * options.dx / vk if vk > 0 else np.inf)}
-
-
 def substeps(dt_bound: np.ndarray, options, frames: int) -> np.ndarray:
     """Substeps per run (settling included) for a per-run dt bound: ceil(frame_dt / bound) per frame."""
     from invphys_anisompm.engine import frame_plan
@@ -65,6 +53,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
 
+    from invphys_anisompm.engine import dt_bounds
     from invphys_orange_peel.engine_scene import model_for
     from invphys_orange_peel.simulator import OrangePeelSimulator
 
@@ -75,7 +64,7 @@ def main(argv: list[str] | None = None) -> dict:
     options = scene.engine.options
     theta = np.random.default_rng(args.seed).random((args.runs, sim.parameter_space().dim))
     model = model_for(scene, sim.parameter_space().denormalize(theta))
-    terms = bounds(model, options, frames)
+    terms = dt_bounds(model, frames)
     table = np.stack(list(terms.values()), axis=1)
     binding = table.argmin(axis=1)
     full = substeps(table.min(axis=1), options, frames)

@@ -51,19 +51,23 @@ class RunRecord:
         return np.asarray(self.series[name], dtype=np.float64)
 
 
-def run_dt_bound(model: Model, frames: int) -> np.ndarray:
-    """Each run's own dt bound (s): min(elastic CFL, frame_dt / min_substeps, eta_dt_factor * min eta,
-    kinematic CFL of the fastest collider or grip)."""
+def dt_bounds(model: Model, frames: int) -> dict[str, np.ndarray]:
+    """Each run's dt bounds (s) by name: ``elastic_cfl``, ``min_substeps`` (frame_dt / min_substeps),
+    ``eta`` (eta_dt_factor * min eta; inf without damage) and ``kinematic_cfl`` (of the fastest collider or
+    grip; inf if none moves)."""
     scene = model.scene
     o = scene.options
-    dt = o.cfl * o.dx / model.wave_speed()
-    dt = np.minimum(dt, 1.0 / o.fps / o.min_substeps_per_frame)
-    if o.damage:
-        dt = np.minimum(dt, o.eta_dt_factor * model.min_eta())
+    n = model.n_envs
     vk = kinematic_speed(scene, frames)
-    if vk > 0:
-        dt = np.minimum(dt, o.kinematic_cfl * o.dx / vk)
-    return dt
+    return {"elastic_cfl": o.cfl * o.dx / model.wave_speed(),
+            "min_substeps": np.full(n, 1.0 / o.fps / o.min_substeps_per_frame),
+            "eta": o.eta_dt_factor * model.min_eta() if o.damage else np.full(n, np.inf),
+            "kinematic_cfl": np.full(n, o.kinematic_cfl * o.dx / vk if vk > 0 else np.inf)}
+
+
+def run_dt_bound(model: Model, frames: int) -> np.ndarray:
+    """Each run's own dt bound (s): the smallest of its :func:`dt_bounds`."""
+    return np.min(np.stack(list(dt_bounds(model, frames).values())), axis=0)
 
 
 def kinematic_speed(scene: Scene, frames: int) -> float:
@@ -295,5 +299,5 @@ class Engine:
         return records
 
 
-__all__ = ["Engine", "RunRecord", "estimated_substeps", "frame_plan", "kinematic_table", "run_dt_bound",
+__all__ = ["Engine", "RunRecord", "dt_bounds", "estimated_substeps", "frame_plan", "kinematic_table", "run_dt_bound",
            "velocity_guard"]
