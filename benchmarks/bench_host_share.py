@@ -1,0 +1,107 @@
+"""Where a lock-step batch's wall time goes: GPU substeps against the host's per-frame work (issue 16).
+
+One batch of the orange peel (``Engine.run``: settling, then every frame) with the backend's calls timed:
+``advance`` is followed by ``sync``, so its time is the GPU's work on the frame's substeps (launch included);
+everything else is the host's per-frame share while the GPU idles: frame statistics and force/work sums
+(small device reductions and copies), kinematic tables and uploads (``set_frame``), particle reads for
+recorded frames (``read``), failure checks and record keeping in Python (the rest). Kernels are compiled by a
+short untimed run first. The figures are per batch frame and per run.
+
+    python benchmarks/bench_host_share.py --preset paper --arch cuda --batch 64 \\
+        --out benchmarks/results/host_share_paper_h200.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path[:0] = [str(ROOT), str(ROOT / "examples" / "orange_peel"), str(ROOT / "examples" / "anisompm")]
+
+TIMED = ("load", "set_frame", "advance", "frame_stats", "kinematic_sums", "read", "sync")
+
+
+def instrument(backend) -> dict[str, list[float]]:
+    """Wrap the backend's calls with timers (``advance`` waits for the GPU); returns the running totals."""
+    totals: dict[str, list[float]] = defaultdict(lambda: [0.0, 0])
+    wait = backend.sync  # the unwrapped one: the GPU wait belongs to advance, not to the sync count
+    for name in TIMED:
+        orig = getattr(backend, name)
+
+        def timed(*a, _orig=orig, _name=name, **k):
+            t = time.perf_counter()
+            out = _orig(*a, **k)
+            if _name == "advance":
+                wait()
+            totals[_name][0] += time.perf_counter() - t
+            totals[_name][1] += 1
+            return out
+
+        setattr(backend, name, timed)
+    return totals
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--preset", default="tiny")
+    ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda"])
+    ap.add_argument("--backend", default="taichi", choices=["taichi", "warp"])
+    ap.add_argument("--batch", type=int, default=4)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--frames", type=int, default=None, help="override the preset's frame count")
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args(argv)
+
+    from invphys_orange_peel.engine_scene import model_for
+    from invphys_orange_peel.simulator import OrangePeelSimulator
+
+    from invphys.core.dataset import RunIdentity
+
+    settings = {"frames": args.frames} if args.frames else {}
+    sim = OrangePeelSimulator(preset=args.preset, arch=args.arch, backend=args.backend, batch_size=args.batch,
+                              **settings)
+    theta = np.random.default_rng(args.seed).random((args.batch, sim.parameter_space().dim))
+    model = model_for(sim.engine_scene, sim.parameter_space().denormalize(theta))
+    engine, frames, every = sim.engine, sim.frames, sim.record_every
+    t = time.perf_counter()
+    engine.run(model, 2, 1)  # compile every kernel at this batch's shapes
+    compile_s = time.perf_counter() - t
+    totals = instrument(engine.backend(args.batch))
+    t = time.perf_counter()
+    records = engine.run(model, frames, every)
+    wall = time.perf_counter() - t
+    calls = {k: {"s": round(v[0], 4), "calls": v[1]} for k, v in totals.items()}
+    batch_frames = totals["advance"][1]
+    gpu = totals["advance"][0]
+    host = wall - gpu
+    named = sum(v[0] for k, v in totals.items() if k != "advance")
+    out = {
+        "benchmark": "host_share", "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "command": "python benchmarks/bench_host_share.py " + " ".join(sys.argv[1:] if argv is None else argv),
+        "device": engine.device, "backend": args.backend, "simulator": sim.name, "simulator_version": sim.version,
+        "preset": args.preset, "config_hash": RunIdentity.of(sim).config, "batch": args.batch, "seed": args.seed,
+        "frames": frames, "batch_frames": batch_frames, "runs_ok": sum(r.ok for r in records),
+        "substeps_per_run": float(np.mean([r.substeps + r.settle_substeps for r in records])),
+        "compile_s": round(compile_s, 2), "wall_s": round(wall, 3), "wall_per_run_s": wall / args.batch,
+        "gpu_substeps_s": round(gpu, 3), "host_s": round(host, 3), "host_fraction": host / wall,
+        "host_ms_per_batch_frame": 1e3 * host / batch_frames,
+        "host_ms_per_run_frame": 1e3 * host / (batch_frames * args.batch),
+        "host_python_s": round(host - named, 3), "calls": calls,
+    }
+    text = json.dumps(out, indent=1) + "\n"
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text)
+    print(text)
+    return out
+
+
+if __name__ == "__main__":
+    main()
