@@ -1,4 +1,4 @@
-"""What benchmark JSONs record about the machine they ran on."""
+"""What benchmark JSONs record about the machine they ran on, and how they are written."""
 
 from __future__ import annotations
 
@@ -15,3 +15,14 @@ def cpu_name() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine()
+
+
+def emit(result: dict, out: Path | None) -> None:
+    """Print a benchmark's JSON and, with ``out``, write it there (parent folders made)."""
+    import json
+
+    text = json.dumps(result, indent=1) + "\n"
+    if out:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(text)
+    print(text)

@@ -14,7 +14,6 @@ short untimed run first. The figures are per batch frame and per run.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from collections import defaultdict
@@ -24,6 +23,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path[:0] = [str(ROOT), str(ROOT / "examples" / "orange_peel"), str(ROOT / "examples" / "anisompm")]
+
+from _machine import emit  # noqa: E402
 
 TIMED = ("load", "set_frame", "advance", "frame_stats", "kinematic_sums", "read", "sync")
 
@@ -95,11 +96,7 @@ def main(argv: list[str] | None = None) -> dict:
         "host_ms_per_run_frame": 1e3 * host / (batch_frames * args.batch),
         "host_python_s": round(host - named, 3), "calls": calls,
     }
-    text = json.dumps(out, indent=1) + "\n"
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text)
-    print(text)
+    emit(out, args.out)
     return out
 
 

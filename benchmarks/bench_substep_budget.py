@@ -18,7 +18,6 @@ Example::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -27,6 +26,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path[:0] = [str(ROOT), str(ROOT / "examples" / "orange_peel"), str(ROOT / "examples" / "anisompm")]
+
+from _machine import emit  # noqa: E402
 
 
 def substeps(dt_bound: np.ndarray, options, frames: int) -> np.ndarray:
@@ -96,11 +97,7 @@ def main(argv: list[str] | None = None) -> dict:
     if args.measured_rate:
         out["measured_rate"] = args.measured_rate
         out["kernel_s_per_run_at_measured_rate"] = float(work.mean() / args.measured_rate)
-    text = json.dumps(out, indent=1) + "\n"
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text)
-    print(text)
+    emit(out, args.out)
     return out
 
 
