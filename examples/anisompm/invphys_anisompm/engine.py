@@ -258,6 +258,7 @@ class Engine:
                 x, d = backend.read()
             host_vals = {r.name: np.asarray(r.fn(x, d, scene), float).reshape(B, -1) for r in host}
             t = frame / fps
+            moved = [path.displacement(t) for path in scene.kinematic_paths]  # the same for every run
             for b in np.flatnonzero(alive):
                 s = records[b].series
                 s.setdefault("max_speed", []).append(float(stats[b, STAT_VMAX]))
@@ -266,10 +267,10 @@ class Engine:
                     col = BODY0 + 4 * i
                     s.setdefault(f"centroid/{body.name}", []).append(stats[b, col:col + 3] / counts[i])
                     s.setdefault(f"mean_damage/{body.name}", []).append(float(stats[b, col + 3] / counts[i]))
-                for c, (name, path) in enumerate(zip(names, scene.kinematic_paths, strict=True)):
+                for c, name in enumerate(names):
                     s.setdefault(f"force/{name}", []).append(last_force[b, c].copy())
                     s.setdefault(f"work/{name}", []).append(float(work[b, c]))
-                    s.setdefault(f"position/{name}", []).append(path.displacement(t))
+                    s.setdefault(f"position/{name}", []).append(moved[c].copy())
                 for name, vals in host_vals.items():
                     v = vals[b]
                     s.setdefault(name, []).append(float(v[0]) if v.size == 1 else v.copy())
