@@ -76,7 +76,10 @@ def test_nevergrad_improves_with_batched_asks_and_rejects_unknown_names(optim_da
         NevergradOptimizer(optimizer="NGOPt", budget=10).optimize(problem)
 
 
-def test_ppo_improves_a_weighted_objective(optim_data) -> None:
+def test_ppo_improves_a_weighted_objective(optim_data, tmp_path, monkeypatch) -> None:
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # SB3's default logger would write here
     y_tr = optim_data["y"][optim_data["train_idx"]]
     names = [f"f{i}" for i in range(y_tr.shape[1])]
     obj = WeightedObjective.from_names({"f0": 1.0, "f3": -1.0, "f7": 0.5}, names, y_tr, name="firm")
@@ -88,6 +91,7 @@ def test_ppo_improves_a_weighted_objective(optim_data) -> None:
     res = opt.optimize(problem)
     assert res.evaluations == problem.info["counter"].count == 1 + 4096 + 8
     assert res.score > start + 0.1
+    assert not list(tmp_path.glob("SB3-*")), "SB3 wrote a log folder outside the output directory"
     # the best point is real: re-evaluating it gives its score
     assert np.isclose(res.score, obj(optim_data["surrogate"].predict(res.theta[None]))[0])
     # a budget too small for one update is a clear error

@@ -2,7 +2,9 @@
 
 SB3 dumps its key-values (``rollout/ep_rew_mean``, ``train/value_loss``, ``time/fps``, ...) once per
 rollout at ``step = num_timesteps``; :func:`attach` routes them to the run's tracker, so PPO learning
-curves land in TensorBoard or MLflow beside the surrogate's. Imports stable-baselines3 at top level:
+curves land in TensorBoard or MLflow beside the surrogate's. Without a tracker it still installs a
+logger that writes nowhere: SB3's default makes an empty ``SB3-<time>`` folder in the system's temp
+directory on every ``learn()``, outside the output directory the user named. Imports stable-baselines3 at top level:
 import this module only where SB3 is used.
 """
 
@@ -31,7 +33,6 @@ class TrackerOutputFormat(KVWriter):
 
 
 def attach(model: Any, tracker: Tracker | None) -> None:
-    """Send ``model``'s (an SB3 algorithm's) logs to ``tracker``; nothing to do for ``None``."""
-    if tracker is None:
-        return
-    model.set_logger(Logger(folder=None, output_formats=[TrackerOutputFormat(tracker)]))
+    """Send ``model``'s (an SB3 algorithm's) logs to ``tracker``; for ``None``, to nowhere (no temp folder)."""
+    formats = [] if tracker is None else [TrackerOutputFormat(tracker)]
+    model.set_logger(Logger(folder=None, output_formats=formats))

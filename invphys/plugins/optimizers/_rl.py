@@ -51,10 +51,9 @@ def make_ppo(env: Any, cfg: PPOSettings, seed: int, tracker: Any = None) -> Any:
                batch_size=min(cfg.batch_size, cfg.n_steps * cfg.n_envs), n_epochs=cfg.n_epochs,
                gamma=cfg.gamma, gae_lambda=cfg.gae_lambda, clip_range=cfg.clip_range, ent_coef=cfg.ent_coef,
                policy_kwargs={"net_arch": {"pi": arch, "vf": arch}}, seed=seed, device=cfg.device, verbose=0)
-    if tracker is not None:
-        from invphys.tracking.sb3 import attach
+    from invphys.tracking.sb3 import attach
 
-        attach(model, tracker)
+    attach(model, tracker)  # also without a tracker: SB3's default logger writes a temp folder
     return model
 
 
