@@ -188,3 +188,68 @@ def test_actors_extract_in_worker_processes_with_the_same_features(ray_instance)
         assert got[i].ok == local[i].ok and got[i].trajectory is None
         if local[i].ok:
             np.testing.assert_allclose(got[i].features, local[i].features, rtol=1e-4, atol=1e-6)
+
+
+
+class _StubRay:
+    """Just enough of ``ray`` for ``_run``: refs complete in the order they were submitted."""
+
+    def wait(self, refs: list, num_returns: int = 1, timeout: float | None = None) -> tuple[list, list]:
+        return refs[:1], refs[1:]
+
+    def get(self, ref):
+        return ref()
+
+    def cancel(self, ref) -> None:
+        pass
+
+
+class _StubActor:
+    """A local :class:`SimulatorActor` whose next calls (``run`` or ``ping``) raise the scripted errors."""
+
+    def __init__(self, errors: list[Exception]) -> None:
+        from invphys.plugins.executors.ray_actors import SimulatorActor
+
+        self.actor, self.errors, self.calls = SimulatorActor({}), list(errors), []
+        self.run, self.ping = self._method("run"), self._method("ping")
+
+    def _method(self, name: str):
+        stub = self
+
+        class Method:
+            def remote(self, *args):
+                stub.calls.append(name)
+                error = stub.errors.pop(0) if stub.errors else None
+
+                def ref():
+                    if error is not None:
+                        raise error
+                    return getattr(stub.actor, name)(*args)
+                return ref
+        return Method()
+
+
+def test_an_actor_that_died_gets_no_rows_until_it_answers_a_ping() -> None:
+    from ray.exceptions import ActorUnavailableError, RayActorError
+
+    sim, feats = {"type": SIM, "substeps": 1}, {"type": FEATURES}
+    params = _params(6, seed=5)
+    local = dict(LocalExecutor().run(sim, feats, params, batch_size=3))
+    restarting = ActorUnavailableError("restarting", None)
+    # the first chunk kills the actor; Ray is still restarting it at the first two pings
+    actor = _StubActor([RayActorError(), restarting, restarting])
+    executor = RayActorsExecutor(num_gpus=0, actors=1, max_restarts=3)
+    executor._ray = _StubRay()
+    got = dict(executor._run([actor], sim, feats, params, 3))
+    assert sorted(got) == list(range(6))
+    for i, res in got.items():   # as the local executor: no row failed for the actor's restart
+        assert res.failure == local[i].failure
+        assert res.ok == local[i].ok and (not res.ok or np.array_equal(res.features, local[i].features))
+    assert actor.calls == ["run", "ping", "ping", "ping", "run", "run", "run", "run"]
+    # an actor that stays unavailable counts as dead after `unavailable_retries` pings
+    actor = _StubActor([RayActorError()] + [restarting] * 3)
+    executor = RayActorsExecutor(num_gpus=0, actors=1, max_restarts=3, unavailable_retries=2)
+    executor._ray = _StubRay()
+    got = dict(executor._run([actor], sim, feats, params, 3))
+    assert actor.calls == ["run", "ping", "ping", "ping"]
+    assert all("did not come back after 2 pings" in res.failure for res in got.values())

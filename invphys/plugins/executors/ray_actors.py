@@ -61,6 +61,10 @@ class SimulatorActor:
         """``fn(simulator, extractor)`` on this actor's warm plugins (a warm-up, a counter reset)."""
         return fn(*_batch.build_plugins(simulator_spec, extractor_spec))
 
+    def ping(self) -> bool:
+        """Nothing: answers once the actor's process is up (after a restart)."""
+        return True
+
     def info(self) -> dict[str, Any]:
         """Where this actor runs and what it has done: pid, host, GPU ids, chunks, rows, busy seconds,
         plugin builds (one per spec: kernels compiled once), and the slot counters of warm engines."""
@@ -93,7 +97,10 @@ class RayActorsExecutor(Executor):
     Failures are per row: a chunk whose simulator raises is re-run row by row inside the actor
     (``isolate_failures``); an actor that dies (segfault, out of memory) is restarted by Ray (at most
     ``max_restarts`` times) and the rows of its chunk are re-run one at a time, each alone on an actor,
-    so only the rows that kill an actor are stored as failed (``ray actor died: ...``).
+    so only the rows that kill an actor are stored as failed (``ray actor died: ...``). An actor that
+    died gets no rows until it answers a ping: a ping that finds it still restarting
+    (``ActorUnavailableError``) is tried again after a short back-off, at most ``unavailable_retries``
+    times, so a row is never failed for reaching an actor that Ray had not brought back yet.
 
     With ``keep_actors`` the actors (and a Ray instance this executor started) live on after ``run`` for
     the next call on the same executor (simulator-in-the-loop optimisation, active learning); a later
@@ -119,6 +126,8 @@ class RayActorsExecutor(Executor):
         prefetch: int = Field(
             0, ge=0, description="chunks queued on a busy actor beyond the one it runs (0: pull when idle)")
         max_restarts: int = Field(8, ge=0, description="restarts of an actor whose process died")
+        unavailable_retries: int = Field(
+            20, ge=0, description="pings of a restarting actor before it counts as dead (back-off <= 2 s)")
         isolate_failures: bool = Field(
             True, description="when a chunk raises, re-run its rows one by one so only the bad row fails")
         extract_workers: int = Field(
@@ -229,6 +238,11 @@ class RayActorsExecutor(Executor):
         ray, cfg = self._ray, self.config
         from ray.exceptions import RayActorError
 
+        try:
+            from ray.exceptions import ActorUnavailableError
+        except ImportError:   # a Ray without that state (before 2.10)
+            ActorUnavailableError = RayActorError  # type: ignore[misc]
+
         pool = pool[:min(len(pool), cfg.actors or len(pool))]   # a smaller `actors` later: the first ones
 
         params = np.atleast_2d(np.asarray(params, dtype=np.float64))
@@ -236,8 +250,9 @@ class RayActorsExecutor(Executor):
         suspects: deque[np.ndarray] = deque()   # rows of a chunk whose actor died: each re-run alone
         load = [0] * len(pool)                  # chunks in flight per actor
         deaths = [0] * len(pool)
-        alone: set[int] = set()                 # actors running a suspect row (nothing else goes there)
-        inflight: dict[Any, tuple[int, np.ndarray, bool]] = {}
+        alone: set[int] = set()                 # actors running a suspect row or a ping (nothing else)
+        unpinged: dict[int, tuple[float, int]] = {}   # actor that died -> (ping no earlier than, pings)
+        inflight: dict[Any, tuple[int, np.ndarray | None, int]] = {}   # (actor, rows, alone) or (actor, None, pings)
 
         def failed(idx: np.ndarray, reason: str) -> list[SimulationResult]:
             simulator, _ = _batch.build_plugins(simulator_spec, None)
@@ -250,22 +265,43 @@ class RayActorsExecutor(Executor):
             if single:
                 alone.add(a)
 
+        def ping(a: int) -> None:
+            _, tries = unpinged.pop(a)
+            inflight[pool[a].ping.remote()] = (a, None, tries)
+            load[a] += 1
+            alone.add(a)
+
+        def ping_failed(a: int, tries: int, exc: Exception) -> None:
+            if isinstance(exc, ActorUnavailableError) and tries < cfg.unavailable_retries:
+                unpinged[a] = (time.monotonic() + min(0.05 * 2 ** (tries + 1), 2.0), tries + 1)
+            else:   # gone for good, or restarting for too long
+                deaths[a] = cfg.max_restarts + 1
+
         try:
             while todo or suspects or inflight:
                 live = [a for a in range(len(pool)) if deaths[a] <= cfg.max_restarts]
+                now = time.monotonic()
                 for a in sorted(live, key=lambda k: load[k]):   # idle actors pull first
-                    if a in alone:
+                    if a in unpinged and load[a] == 0 and unpinged[a][0] <= now:
+                        ping(a)
+                    if a in alone or a in unpinged:
                         continue
                     if suspects and load[a] == 0:
                         submit(a, suspects.popleft(), True)
                     elif todo and not suspects and load[a] <= cfg.prefetch:
                         submit(a, todo.popleft(), False)
+                waits = [unpinged[a][0] - now for a in live if a in unpinged]
+                if not inflight and waits:   # only actors still restarting: ping the first again
+                    time.sleep(max(min(waits), 0.0))
+                    continue
                 if not inflight:   # every actor died too often: the rest cannot run
-                    reason = f"ray actor died more than max_restarts={cfg.max_restarts} times"
+                    reason = (f"ray actor died more than max_restarts={cfg.max_restarts} times "
+                              f"(or did not come back after {cfg.unavailable_retries} pings)")
                     for idx in [*suspects, *todo]:
                         yield from zip(idx.tolist(), failed(idx, reason), strict=True)
                     return
-                done, _ = ray.wait(list(inflight), num_returns=1)
+                done, _ = ray.wait(list(inflight), num_returns=1,
+                                   timeout=max(min(waits), 0.0) if waits else None)
                 for ref in done:
                     a, idx, single = inflight.pop(ref)
                     load[a] -= 1
@@ -273,17 +309,23 @@ class RayActorsExecutor(Executor):
                     try:
                         results = ray.get(ref)
                     except Exception as exc:
+                        if idx is None:
+                            ping_failed(a, single, exc)
+                            continue
                         cause = getattr(exc, "cause", None) or exc
                         if isinstance(cause, InvphysError):
                             raise InvphysError(str(cause)) from exc
                         died = isinstance(exc, RayActorError)
                         deaths[a] += died
+                        if died and deaths[a] <= cfg.max_restarts:
+                            unpinged.setdefault(a, (0.0, 0))   # no rows until it answers a ping
                         if died and not single and (cfg.isolate_failures or len(idx) == 1):
                             suspects.extend(np.array([i]) for i in idx)   # find the row that kills it
                             continue
                         kind = "ray actor died" if died else "ray actor call failed"
                         results = failed(idx, f"{kind}: {type(cause).__name__}: {cause}")
-                    yield from zip(idx.tolist(), results, strict=True)
+                    if idx is not None:
+                        yield from zip(idx.tolist(), results, strict=True)
         finally:
             for ref in inflight:
                 try:
