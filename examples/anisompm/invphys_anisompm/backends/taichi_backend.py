@@ -202,6 +202,26 @@ def _p2g_terms(b, p, h, inv_dx, apic, mat: ti.template(), body: ti.template(), f
 
 
 @ti.func
+def _terms(stored: ti.template(), b, p, h, inv_dx, apic, mat: ti.template(), body: ti.template(),
+           fibre: ti.template(), vol: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(),
+           d: ti.template(), dtil: ti.template(), aff: ti.template(), pm: ti.template()) -> P2GTerms:
+    """Particle ``p``'s scatter terms: computed here, or (``stored``) read back from ``particle_terms``."""
+    t = P2GTerms(affine=mat3(0.0), mv=vec3(0.0), mass=0.0)
+    if ti.static(stored):
+        m = pm[b, p]
+        t = P2GTerms(affine=aff[b, p], mv=m * v[b, p], mass=m)
+    else:
+        t = _p2g_terms(b, p, h, inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil)
+    return t
+
+
+@ti.func
+def _w1(f, i):
+    """The quadratic B-spline weight of node offset ``i`` (0, 1, 2) at fractional position ``f``."""
+    return ti.select(i == 0, 0.5 * (1.5 - f) ** 2, ti.select(i == 1, 0.75 - (f - 1.0) ** 2, 0.5 * (f - 0.5) ** 2))
+
+
+@ti.func
 def _scatter_global(b, node, weight, mom, mass, dp, gp, ngrip, gv: ti.template(), gm: ti.template(),
                     gd: ti.template(), gg: ti.template()):
     """Add one particle's share ``weight`` (momentum ``mom`` already weighted) to grid node ``node``."""
@@ -231,7 +251,7 @@ def _build_kernels(serial_p2g: bool):
             mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
             grip: ND(ti.i32, 1), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2),
             d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
-            gg: ND(ti.f32, 4)):
+            gg: ND(ti.f32, 4), aff: ND(mat3, 2), pm: ND(ti.f32, 2), stored: ti.template()):
         inv_dx = 1.0 / dx
         G = gm.shape[1]
         if ti.static(serial_p2g):
@@ -242,7 +262,7 @@ def _build_kernels(serial_p2g: bool):
                 base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
                 fx = Xp - ti.cast(base, ti.f32)
                 w = _weights(fx)
-                t = _p2g_terms(b, p, dt[b], inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil)
+                t = _terms(stored, b, p, dt[b], inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil, aff, pm)
                 dp = d[b, p]
                 gp = grip[p]
                 for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
@@ -257,7 +277,7 @@ def _build_kernels(serial_p2g: bool):
                   mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
                   grip: ND(ti.i32, 1), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2),
                   d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
-                  gg: ND(ti.f32, 4)):
+                  gg: ND(ti.f32, 4), aff: ND(mat3, 2), pm: ND(ti.f32, 2), stored: ti.template()):
         # CUDA only. One thread block per TILE consecutive particles of a run (spatially coherent when the
         # particles are in Morton order): their 27-node contributions are summed in shared memory over
         # the tile's bounding box of nodes, then added to the grid once per node, instead of 6 global
@@ -305,7 +325,7 @@ def _build_kernels(serial_p2g: bool):
             ti.simt.block.sync()
             if active:
                 w = _weights(fx)
-                tm = _p2g_terms(b, p, dt[b], inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil)
+                tm = _terms(stored, b, p, dt[b], inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil, aff, pm)
                 dp = d[b, p]
                 gp = grip[p]
                 for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
@@ -405,10 +425,24 @@ def _build_kernels(serial_p2g: bool):
                 gv[b, i, j, q] = vel
 
     @ti.kernel
+    def particle_terms(k: ti.i32, dx: ti.f32, apic: ti.f32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
+                       mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
+                       v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2), dtil: ND(ti.f32, 2),
+                       aff: ND(mat3, 2), pm: ND(ti.f32, 2)):
+        # the first half of a split P2G: each particle's stress (SVD) and APIC terms, stored, so that the
+        # scatter that reads them needs fewer registers
+        inv_dx = 1.0 / dx
+        for b, p in aff:
+            if k < nsub[b]:
+                t = _p2g_terms(b, p, dt[b], inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil)
+                aff[b, p] = t.affine
+                pm[b, p] = t.mass
+
+    @ti.kernel
     def g2p(k: ti.i32, dx: ti.f32, l0sq: ti.f32, don: ND(ti.i32, 1), nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
             mat: ND(ti.f32, 3), body: ND(ti.i32, 1), grip: ND(ti.i32, 1), x0: ND(vec3, 1), kin: ND(ti.f32, 4),
             x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2),
-            dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gd: ND(vec2, 4)):
+            dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gd: ND(vec2, 4), unrolled: ti.template()):
         inv_dx = 1.0 / dx
         G = gv.shape[1]
         for b, p in x:
@@ -423,17 +457,36 @@ def _build_kernels(serial_p2g: bool):
                 new_v = vec3(0.0)
                 new_C = mat3(0.0)
                 lap = 0.0
-                for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
-                    off = ti.Vector([i, j, q])
-                    weight = w[i][0] * w[j][1] * w[q][2]
-                    node = base + off
-                    gvel = gv[b, node[0], node[1], node[2]]
-                    new_v += weight * gvel
-                    new_C += (4.0 * inv_dx * weight) * gvel.outer_product(ti.cast(off, ti.f32) - fx)
-                    g2 = gd[b, node[0], node[1], node[2]]
-                    if g2[1] > 0.0:
-                        hess = hs[i] * w[j][1] * w[q][2] + w[i][0] * hs[j] * w[q][2] + w[i][0] * w[j][1] * hs[q]
-                        lap += (g2[0] / g2[1] - dp) * hess
+                if ti.static(unrolled):   # all 27 nodes unrolled (215 registers on CUDA)
+                    for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
+                        off = ti.Vector([i, j, q])
+                        weight = w[i][0] * w[j][1] * w[q][2]
+                        node = base + off
+                        gvel = gv[b, node[0], node[1], node[2]]
+                        new_v += weight * gvel
+                        new_C += (4.0 * inv_dx * weight) * gvel.outer_product(ti.cast(off, ti.f32) - fx)
+                        g2 = gd[b, node[0], node[1], node[2]]
+                        if g2[1] > 0.0:
+                            hess = hs[i] * w[j][1] * w[q][2] + w[i][0] * hs[j] * w[q][2] + w[i][0] * w[j][1] * hs[q]
+                            lap += (g2[0] / g2[1] - dp) * hess
+                else:   # the same sums in the same order, i and j as loops: fewer live registers
+                    for i in range(3):
+                        wi = _w1(fx[0], i)
+                        hi = ti.select(i == 1, -2.0, 1.0)
+                        for j in range(3):
+                            wj = _w1(fx[1], j)
+                            hj = ti.select(j == 1, -2.0, 1.0)
+                            for q in ti.static(range(3)):
+                                off = ti.Vector([i, j, q])
+                                weight = wi * wj * w[q][2]
+                                node = base + off
+                                gvel = gv[b, node[0], node[1], node[2]]
+                                new_v += weight * gvel
+                                new_C += (4.0 * inv_dx * weight) * gvel.outer_product(ti.cast(off, ti.f32) - fx)
+                                g2 = gd[b, node[0], node[1], node[2]]
+                                if g2[1] > 0.0:
+                                    hess = hi * wj * w[q][2] + wi * hj * w[q][2] + wi * wj * hs[q]
+                                    lap += (g2[0] / g2[1] - dp) * hess
                 reg = body[p]
                 if don[b] != 0 and mat[b, reg, M_DMG] > 0.5:
                     Dc = dp - l0sq * lap
@@ -548,7 +601,7 @@ def _build_kernels(serial_p2g: bool):
             xo[i, p] = x[idx[i], p]
             do[i, p] = d[idx[i], p]
 
-    return clear_grid, p2g, grid_update, g2p, frame_stats, reset_slots, gather, frame_end, p2g_tiled
+    return clear_grid, p2g, grid_update, g2p, frame_stats, reset_slots, gather, frame_end, p2g_tiled, particle_terms
 
 
 _KERNELS: dict[bool, tuple] = {}
@@ -571,7 +624,7 @@ class TaichiBackend:
 
     def __init__(self, scene, batch: int, arch: str = "cpu", allow_cpu_fallback: bool = False,
                  stats_partials: int | None = None, p2g: str = "atomic", particle_order: str | None = None,
-                 **_: object):
+                 p2g_split: bool = False, g2p_unrolled: bool = True, **_: object):
         if p2g not in ("auto", "atomic", "tiled"):
             raise InvphysError(f"p2g must be 'auto', 'atomic' or 'tiled', got {p2g!r}")
         if particle_order not in (None, "scene", "morton"):
@@ -583,6 +636,9 @@ class TaichiBackend:
             raise InvphysError("p2g='tiled' needs CUDA (it sums tiles in GPU shared memory); use 'atomic' or 'auto'")
         #: the scatter in use: "atomic" (global float atomics; serialised on the CPU) or "tiled" (CUDA)
         self.p2g = p2g
+        #: P2G in two kernels (``particle_terms`` stores each particle's stress terms, the scatter reads
+        #: them: fewer registers in the scatter); g2p with its 27 nodes unrolled or as loops over i, j
+        self.p2g_split, self.g2p_unrolled = bool(p2g_split), bool(g2p_unrolled)
         self.device = device_name(self.arch)
         self.scene = scene
         o = scene.options
@@ -592,7 +648,7 @@ class TaichiBackend:
         if serial not in _KERNELS:
             _KERNELS[serial] = _build_kernels(serial)
         (self._clear, self._p2g, self._grid, self._g2p, self._stats, self._reset, self._gather,
-         self._frame_end, p2g_tiled) = _KERNELS[serial]
+         self._frame_end, p2g_tiled, self._terms) = _KERNELS[serial]
         if p2g == "tiled":
             self._p2g = p2g_tiled
         #: particle order on the device: Morton order of the initial cells for the tiled scatter (tiles of
@@ -612,6 +668,9 @@ class TaichiBackend:
         self.F = ti.ndarray(mat3, (B, N))
         self.d = ti.ndarray(ti.f32, (B, N))
         self.dtil = ti.ndarray(ti.f32, (B, N))
+        # the split P2G's stored terms (APIC affine matrix with stress, mass); a placeholder otherwise
+        self.aff = ti.ndarray(mat3, (B, N) if self.p2g_split else (1, 1))
+        self.pm = ti.ndarray(ti.f32, (B, N) if self.p2g_split else (1, 1))
         self.gv = ti.ndarray(vec3, (B, G, G, G))
         self.gm = ti.ndarray(ti.f32, (B, G, G, G))
         self.gd = ti.ndarray(vec2, (B, G, G, G))
@@ -712,19 +771,26 @@ class TaichiBackend:
         o = self.options
         dx = float(o.dx)
         ng = max(self.ngrip, 1)
-        return {
+        apic = float(o.apic_blend)
+        stages = {
             "clear": lambda: self._clear(k, ng, self.nsub, self.gv, self.gm, self.gd, self.gg),
-            "p2g": lambda: self._p2g(k, dx, float(o.apic_blend), ng, self.nsub, self.dt, self.mat, self.body,
+            "terms": lambda: self._terms(k, dx, apic, self.nsub, self.dt, self.mat, self.body, self.fibre,
+                                         self.vol, self.v, self.C, self.F, self.d, self.dtil, self.aff, self.pm),
+            "p2g": lambda: self._p2g(k, dx, apic, ng, self.nsub, self.dt, self.mat, self.body,
                                      self.fibre, self.vol, self.grip, self.x, self.v, self.C, self.F, self.d,
-                                     self.dtil, self.gv, self.gm, self.gd, self.gg),
+                                     self.dtil, self.gv, self.gm, self.gd, self.gg, self.aff, self.pm,
+                                     self.p2g_split),
             "grid": lambda: self._grid(k, dx, float(o.gravity), self.damp, int(o.boundary_cells), self.ngrip,
                                        self.ncol, self.nsub, self.dt, self.kin, self.ctype, self.ca, self.cb,
                                        self.csurf, self.fric, self.held, self.gv, self.gm, self.gg, self.imp,
                                        self.work),
             "g2p": lambda: self._g2p(k, dx, float(o.l0_cells) ** 2, self.don, self.nsub, self.dt, self.mat,
                                      self.body, self.grip, self.x0, self.kin, self.x, self.v, self.C, self.F,
-                                     self.d, self.dtil, self.gv, self.gd),
+                                     self.d, self.dtil, self.gv, self.gd, self.g2p_unrolled),
         }
+        if not self.p2g_split:
+            del stages["terms"]
+        return stages
 
     def advance(self, n_steps: int) -> None:
         """Run substeps 0..n_steps-1 of the current frame (runs past their own nsub idle)."""

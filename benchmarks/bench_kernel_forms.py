@@ -1,0 +1,131 @@
+"""Lower-register forms of the orange peel's Taichi kernels on a GPU: per-stage time, whole runs, agreement.
+
+Nsight Compute found the tiled P2G latency-bound at 25 % occupancy (107 registers per thread, the
+particle's SVD and stress inline with the shared-memory scatter) and ``g2p`` at 12 % (215 registers, its
+27 nodes unrolled). Two forms do the same sums with fewer live registers (``docs/gpu-throughput.md``):
+
+- ``split``: P2G in two kernels: ``particle_terms`` stores each particle's stress/APIC matrix and mass,
+  the scatter reads them (``taichi_p2g_split``);
+- ``loop``: ``g2p`` with loops over two of the three axes instead of 27 unrolled nodes (``taichi_g2p``).
+
+On ``--runs`` random parameter vectors (seed 0) of ``--preset``, in lock-step batches of ``--batch``:
+
+1. **kernel times**: seconds per launch of each substep stage (``kernel_times``, synchronised) for every
+   form in ``--forms`` (``p2gform:g2pform`` pairs), and the substep's total against the first form;
+2. **whole runs**: the first form, the fastest other form, then the first again (GPU float atomics make two
+   passes of the same form differ: that spread is the yardstick): seconds per run, the ratio to the
+   paper's 156 s, and the features' agreement with the first pass.
+
+    python benchmarks/bench_kernel_forms.py --preset paper --runs 128 --batch 64 --out $OUT/kernel_forms.json
+
+The CPU test ``tests/test_taichi_tiled_p2g.py`` checks that the forms agree to float rounding.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+for p in (ROOT, ROOT / "examples" / "orange_peel", ROOT / "examples" / "anisompm", Path(__file__).parent):
+    if str(p) not in sys.path:
+        sys.path.insert(0, str(p))
+
+from _machine import emit  # noqa: E402
+from bench_tiled_p2g import PAPER_SECONDS_PER_RUN, feature_agreement  # noqa: E402
+
+P2G_FORMS = {"fused": False, "split": True}
+G2P_FORMS = ("unrolled", "loop")
+
+
+def _args(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--preset", default="paper")
+    p.add_argument("--runs", type=int, default=128)
+    p.add_argument("--batch", type=int, default=64)
+    p.add_argument("--arch", default="cuda", help="cpu: a check of the script (times mean nothing there)")
+    p.add_argument("--p2g", default="auto", choices=["auto", "atomic", "tiled"], help="the scatter")
+    p.add_argument("--forms", default="fused:unrolled,split:unrolled,fused:loop,split:loop",
+                   help="comma-separated p2g:g2p forms; the first is the baseline")
+    p.add_argument("--steps", type=int, default=20, help="synchronised substeps timed per form")
+    p.add_argument("--frames", type=int, default=None, help="override the preset's frames (shorter runs)")
+    p.add_argument("--skip-runs", action="store_true", help="kernel times only")
+    p.add_argument("--out", type=Path, default=None)
+    a = p.parse_args(argv)
+    a.forms = [tuple(f.split(":")) for f in a.forms.split(",")]
+    for f in a.forms:
+        if len(f) != 2 or f[0] not in P2G_FORMS or f[1] not in G2P_FORMS:
+            p.error(f"a form is p2g:g2p with p2g in {sorted(P2G_FORMS)} and g2p in {list(G2P_FORMS)}, got {':'.join(f)!r}")
+    return a
+
+
+def main(argv: list[str] | None = None) -> int:
+    a = _args(argv)
+    from invphys_orange_peel.features import OrangePeelFeatures
+    from invphys_orange_peel.parameters import parameter_space
+    from invphys_orange_peel.simulator import OrangePeelSimulator
+
+    from invphys.core.dataset import RunIdentity
+
+    space = parameter_space()
+    params = space.denormalize(np.random.default_rng(0).uniform(size=(a.runs, space.dim)))
+    cfg = {"backend": "taichi", "preset": a.preset, "arch": a.arch, "batch_size": a.batch, "taichi_p2g": a.p2g}
+    if a.frames:
+        cfg["frames"] = a.frames
+    sims = {f"{p2g}:{g2p}": OrangePeelSimulator(**cfg, taichi_p2g_split=P2G_FORMS[p2g], taichi_g2p=g2p)
+            for p2g, g2p in a.forms}
+    names = list(sims)
+    base = sims[names[0]]
+    ident = RunIdentity.of(base)
+    out: dict = {"benchmark": "bench_kernel_forms", "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+                 "command": "python " + " ".join(shlex.quote(x) for x in [sys.argv[0], *(argv or sys.argv[1:])]),
+                 "simulator_version": ident.version, "config_hash": ident.config, "preset": a.preset,
+                 "runs": a.runs, "batch": a.batch, "frames": base.frames,
+                 "scatter": base.engine.backend(a.batch).p2g, "device": base.engine.backend(a.batch).device}
+
+    times: dict[str, dict[str, float]] = {}
+    for name, sim in sims.items():
+        backend = sim.engine.backend(a.batch)
+        backend.kernel_times(3)   # compile and warm
+        times[name] = backend.kernel_times(a.steps)
+        print(name, {k: f"{v * 1e3:.3f} ms" for k, v in times[name].items()}, flush=True)
+    total = {n: sum(t.values()) for n, t in times.items()}
+    out["kernel_seconds_per_substep"] = times
+    out["substep_seconds"] = total
+    out["substep_speedup_vs_first"] = {n: total[names[0]] / total[n] for n in names}
+    print("substep speed-up against", names[0], out["substep_speedup_vs_first"], flush=True)
+
+    if not a.skip_runs and len(names) > 1:
+        best = min(names[1:], key=total.__getitem__)
+        ex = OrangePeelFeatures()
+        feats, walls = {}, {}
+        for label, name in (("first", names[0]), ("best", best), ("first_again", names[0])):
+            sim = sims[name]
+            sim.simulate(params[: min(2, a.runs)])   # the whole path compiled first (not timed)
+            t0 = time.perf_counter()
+            res = sim.simulate(params)
+            walls[label] = time.perf_counter() - t0
+            feats[label] = np.array([ex.extract(r.trajectory) if r.ok else np.full(len(ex.feature_names), np.nan)
+                                     for r in res])
+            print(label, name, f"{walls[label] / a.runs:.3f} s/run", flush=True)
+        out["runs_forms"] = {"first": names[0], "best": best}
+        out["runs_result"] = {
+            label: {"form": out["runs_forms"].get(label, names[0]), "seconds_per_run": walls[label] / a.runs,
+                    "speedup_vs_paper_156s": PAPER_SECONDS_PER_RUN * a.runs / walls[label],
+                    "failed": int((~np.all(np.isfinite(feats[label]), axis=1)).sum())} for label in walls}
+        out["runs_speedup_best_vs_first"] = (walls["first"] + walls["first_again"]) / 2 / walls["best"]
+        out["feature_agreement"] = {
+            "best_vs_first": feature_agreement(feats["first"], feats["best"], ex.feature_names),
+            "first_vs_first_again": feature_agreement(feats["first"], feats["first_again"], ex.feature_names)}
+    emit(out, a.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
