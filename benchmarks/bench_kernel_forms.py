@@ -1,17 +1,15 @@
-"""Lower-register forms of the orange peel's Taichi kernels on a GPU: per-stage time, whole runs, agreement.
+"""Kernel forms of the orange peel's Taichi substep on a GPU: per-stage time, whole runs, agreement.
 
-Nsight Compute found the tiled P2G latency-bound at 25 % occupancy (107 registers per thread, the
-particle's SVD and stress inline with the shared-memory scatter) and ``g2p`` at 12 % (215 registers, its
-27 nodes unrolled). Two forms do the same sums with fewer live registers (``docs/gpu-throughput.md``):
-
-- ``split``: P2G in two kernels: ``particle_terms`` stores each particle's stress/APIC matrix and mass,
-  the scatter reads them (``taichi_p2g_split``);
-- ``loop``: ``g2p`` with loops over two of the three axes instead of 27 unrolled nodes (``taichi_g2p``).
+Nsight Compute found ``g2p`` at 12 % occupancy (215 registers per thread, its 27 nodes unrolled). The
+``loop`` form (``taichi_g2p: loop``, CUDA's default) does the same sums with loops over two of the three
+axes: 117 registers (``docs/gpu-throughput.md``). ``benchmarks/results/kernel_forms_paper_h100.json``
+also measured a split P2G (stress terms stored by one kernel, scattered by the next; forms
+``split:...``), slower, removed after commit de20e72; its forms there are named ``p2g:g2p``.
 
 On ``--runs`` random parameter vectors (seed 0) of ``--preset``, in lock-step batches of ``--batch``:
 
 1. **kernel times**: seconds per launch of each substep stage (``kernel_times``, synchronised) for every
-   form in ``--forms`` (``p2gform:g2pform`` pairs), and the substep's total against the first form;
+   g2p form in ``--forms``, and the substep's total against the first form;
 2. **whole runs**: the first form, the fastest other form, then both again (alternating, since one
    machine's whole-run times drift by several per cent; GPU float atomics make two passes of the same
    form differ: that spread is the yardstick): seconds per run, the ratio to the paper's 156 s, and the
@@ -41,7 +39,6 @@ for p in (ROOT, ROOT / "examples" / "orange_peel", ROOT / "examples" / "anisompm
 from _machine import emit  # noqa: E402
 from bench_tiled_p2g import PAPER_SECONDS_PER_RUN, feature_agreement  # noqa: E402
 
-P2G_FORMS = {"fused": False, "split": True}
 G2P_FORMS = ("unrolled", "loop")
 
 
@@ -52,17 +49,16 @@ def _args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--arch", default="cuda", help="cpu: a check of the script (times mean nothing there)")
     p.add_argument("--p2g", default="auto", choices=["auto", "atomic", "tiled"], help="the scatter")
-    p.add_argument("--forms", default="fused:unrolled,split:unrolled,fused:loop,split:loop",
-                   help="comma-separated p2g:g2p forms; the first is the baseline")
+    p.add_argument("--forms", default="unrolled,loop", help="comma-separated g2p forms; the first is the baseline")
     p.add_argument("--steps", type=int, default=20, help="synchronised substeps timed per form")
     p.add_argument("--frames", type=int, default=None, help="override the preset's frames (shorter runs)")
     p.add_argument("--skip-runs", action="store_true", help="kernel times only")
     p.add_argument("--out", type=Path, default=None)
     a = p.parse_args(argv)
-    a.forms = [tuple(f.split(":")) for f in a.forms.split(",")]
+    a.forms = a.forms.split(",")
     for f in a.forms:
-        if len(f) != 2 or f[0] not in P2G_FORMS or f[1] not in G2P_FORMS:
-            p.error(f"a form is p2g:g2p with p2g in {sorted(P2G_FORMS)} and g2p in {list(G2P_FORMS)}, got {':'.join(f)!r}")
+        if f not in G2P_FORMS:
+            p.error(f"a form is one of {list(G2P_FORMS)}, got {f!r}")
     return a
 
 
@@ -93,8 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     cfg = {"backend": "taichi", "preset": a.preset, "arch": a.arch, "batch_size": a.batch, "taichi_p2g": a.p2g}
     if a.frames:
         cfg["frames"] = a.frames
-    sims = {f"{p2g}:{g2p}": OrangePeelSimulator(**cfg, taichi_p2g_split=P2G_FORMS[p2g], taichi_g2p=g2p)
-            for p2g, g2p in a.forms}
+    sims = {g2p: OrangePeelSimulator(**cfg, taichi_g2p=g2p) for g2p in a.forms}
     names = list(sims)
     base = sims[names[0]]
     ident = RunIdentity.of(base)

@@ -37,7 +37,7 @@ for p in (ROOT, ROOT / "examples" / "orange_peel", ROOT / "examples" / "anisompm
 
 SECTIONS = ["SpeedOfLight", "MemoryWorkloadAnalysis", "ComputeWorkloadAnalysis", "LaunchStats", "Occupancy",
             "WarpStateStats"]
-STAGES = "clear_grid|particle_terms|p2g|grid_update|g2p"
+STAGES = "clear_grid|p2g|grid_update|g2p"
 
 
 def _args(argv: list[str] | None) -> argparse.Namespace:
@@ -48,7 +48,6 @@ def _args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--dt", type=float, default=1e-4, help="substep (s) of the warm-up and profiled substeps")
     p.add_argument("--arch", default="cuda", help="cpu: a check of the child alone (no ncu)")
     p.add_argument("--p2g", default="atomic", choices=["atomic", "tiled"], help="the Taichi scatter profiled")
-    p.add_argument("--p2g-split", action="store_true", help="P2G in two kernels (particle_terms, then the scatter)")
     p.add_argument("--g2p", default="unrolled", choices=["unrolled", "loop"], help="the g2p form profiled")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--out", type=Path, default=None)
@@ -65,7 +64,7 @@ def _child(a: argparse.Namespace) -> None:
     space = parameter_space()
     params = space.denormalize(np.random.default_rng(0).uniform(size=(a.batch, space.dim)))
     sim = OrangePeelSimulator(backend="taichi", preset=a.preset, arch=a.arch, batch_size=a.batch, taichi_p2g=a.p2g,
-                              taichi_p2g_split=a.p2g_split, taichi_g2p=a.g2p)
+                              taichi_g2p=a.g2p)
     backend = sim.engine.backend(a.batch)
     model = model_for(sim.engine_scene, params)
     backend.load(model.table(), model.friction)
@@ -101,16 +100,14 @@ def main(argv: list[str] | None = None) -> int:
     if ncu is None:
         print("bench_kernel_profile: ncu (Nsight Compute) is not on the PATH", file=sys.stderr)
         return 2
-    # --launch-skip: the warm-up substeps, counted over the kernels the filter matches: 4 stages (5 split),
-    # each a Taichi kernel of two CUDA kernels (a short serial task, then the loop)
-    per_substep = 2 * (5 if a.p2g_split else 4)
+    # --launch-skip: the warm-up substeps, counted over the kernels the filter matches: 4 stages, each a
+    # Taichi kernel of two CUDA kernels (a short serial task, then the loop)
     cmd = [ncu, "--csv", "--page", "details", "--target-processes", "all", "-k", f"regex:{STAGES}",
-           "--launch-skip", str(per_substep * a.warm), "--launch-count", str(per_substep), "--clock-control", "none"]
+           "--launch-skip", str(8 * a.warm), "--launch-count", "8", "--clock-control", "none"]
     for s in SECTIONS:
         cmd += ["--section", s]
     child = [sys.executable, str(Path(__file__).resolve()), "--child", "--preset", a.preset, "--batch",
-             str(a.batch), "--warm", str(a.warm), "--dt", str(a.dt), "--p2g", a.p2g, "--g2p", a.g2p,
-             *(["--p2g-split"] if a.p2g_split else [])]
+             str(a.batch), "--warm", str(a.warm), "--dt", str(a.dt), "--p2g", a.p2g, "--g2p", a.g2p]
     proc = subprocess.run(cmd + child, capture_output=True, text=True)
     if a.out:  # ncu's own CSV beside the JSON, whatever happens to the parsing
         a.out.parent.mkdir(parents=True, exist_ok=True)
@@ -126,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     out = {"benchmark": "bench_kernel_profile", "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
            "command": "python " + " ".join(shlex.quote(x) for x in [sys.argv[0], *(argv or sys.argv[1:])]),
            "device": gpu, "preset": a.preset, "batch": a.batch, "p2g": a.p2g,
-           "p2g_split": a.p2g_split, "g2p": a.g2p, "warm_substeps": a.warm, "dt": a.dt,
+           "g2p": a.g2p, "warm_substeps": a.warm, "dt": a.dt,
            "ncu": " ".join(cmd), **info, "kernels": kernels}
     text = json.dumps(out, indent=1) + "\n"
     if a.out:

@@ -202,20 +202,6 @@ def _p2g_terms(b, p, h, inv_dx, apic, mat: ti.template(), body: ti.template(), f
 
 
 @ti.func
-def _terms(stored: ti.template(), b, p, h, inv_dx, apic, mat: ti.template(), body: ti.template(),
-           fibre: ti.template(), vol: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(),
-           d: ti.template(), dtil: ti.template(), aff: ti.template(), pm: ti.template()) -> P2GTerms:
-    """Particle ``p``'s scatter terms: computed here, or (``stored``) read back from ``particle_terms``."""
-    t = P2GTerms(affine=mat3(0.0), mv=vec3(0.0), mass=0.0)
-    if ti.static(stored):
-        m = pm[b, p]
-        t = P2GTerms(affine=aff[b, p], mv=m * v[b, p], mass=m)
-    else:
-        t = _p2g_terms(b, p, h, inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil)
-    return t
-
-
-@ti.func
 def _w1(f, i):
     """The quadratic B-spline weight of node offset ``i`` (0, 1, 2) at fractional position ``f``."""
     return ti.select(i == 0, 0.5 * (1.5 - f) ** 2, ti.select(i == 1, 0.75 - (f - 1.0) ** 2, 0.5 * (f - 0.5) ** 2))
@@ -251,7 +237,7 @@ def _build_kernels(serial_p2g: bool):
             mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
             grip: ND(ti.i32, 1), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2),
             d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
-            gg: ND(ti.f32, 4), aff: ND(mat3, 2), pm: ND(ti.f32, 2), stored: ti.template()):
+            gg: ND(ti.f32, 4)):
         inv_dx = 1.0 / dx
         G = gm.shape[1]
         if ti.static(serial_p2g):
@@ -262,7 +248,7 @@ def _build_kernels(serial_p2g: bool):
                 base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
                 fx = Xp - ti.cast(base, ti.f32)
                 w = _weights(fx)
-                t = _terms(stored, b, p, dt[b], inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil, aff, pm)
+                t = _p2g_terms(b, p, dt[b], inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil)
                 dp = d[b, p]
                 gp = grip[p]
                 for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
@@ -277,7 +263,7 @@ def _build_kernels(serial_p2g: bool):
                   mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
                   grip: ND(ti.i32, 1), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2),
                   d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
-                  gg: ND(ti.f32, 4), aff: ND(mat3, 2), pm: ND(ti.f32, 2), stored: ti.template()):
+                  gg: ND(ti.f32, 4)):
         # CUDA only. One thread block per TILE consecutive particles of a run (spatially coherent when the
         # particles are in Morton order): their 27-node contributions are summed in shared memory over
         # the tile's bounding box of nodes, then added to the grid once per node, instead of 6 global
@@ -325,7 +311,7 @@ def _build_kernels(serial_p2g: bool):
             ti.simt.block.sync()
             if active:
                 w = _weights(fx)
-                tm = _terms(stored, b, p, dt[b], inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil, aff, pm)
+                tm = _p2g_terms(b, p, dt[b], inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil)
                 dp = d[b, p]
                 gp = grip[p]
                 for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
@@ -425,20 +411,6 @@ def _build_kernels(serial_p2g: bool):
                 gv[b, i, j, q] = vel
 
     @ti.kernel
-    def particle_terms(k: ti.i32, dx: ti.f32, apic: ti.f32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
-                       mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
-                       v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2), dtil: ND(ti.f32, 2),
-                       aff: ND(mat3, 2), pm: ND(ti.f32, 2)):
-        # the first half of a split P2G: each particle's stress (SVD) and APIC terms, stored, so that the
-        # scatter that reads them needs fewer registers
-        inv_dx = 1.0 / dx
-        for b, p in aff:
-            if k < nsub[b]:
-                t = _p2g_terms(b, p, dt[b], inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil)
-                aff[b, p] = t.affine
-                pm[b, p] = t.mass
-
-    @ti.kernel
     def g2p(k: ti.i32, dx: ti.f32, l0sq: ti.f32, don: ND(ti.i32, 1), nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
             mat: ND(ti.f32, 3), body: ND(ti.i32, 1), grip: ND(ti.i32, 1), x0: ND(vec3, 1), kin: ND(ti.f32, 4),
             x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2),
@@ -457,7 +429,7 @@ def _build_kernels(serial_p2g: bool):
                 new_v = vec3(0.0)
                 new_C = mat3(0.0)
                 lap = 0.0
-                if ti.static(unrolled):   # all 27 nodes unrolled (215 registers on CUDA)
+                if ti.static(unrolled):   # all 27 nodes unrolled (215 registers on CUDA: 12 % occupancy)
                     for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
                         off = ti.Vector([i, j, q])
                         weight = w[i][0] * w[j][1] * w[q][2]
@@ -469,7 +441,7 @@ def _build_kernels(serial_p2g: bool):
                         if g2[1] > 0.0:
                             hess = hs[i] * w[j][1] * w[q][2] + w[i][0] * hs[j] * w[q][2] + w[i][0] * w[j][1] * hs[q]
                             lap += (g2[0] / g2[1] - dp) * hess
-                else:   # the same sums in the same order, i and j as loops: fewer live registers
+                else:   # the same sums in the same order, i and j as loops (117 registers: 24 %)
                     for i in range(3):
                         wi = _w1(fx[0], i)
                         hi = ti.select(i == 1, -2.0, 1.0)
@@ -601,7 +573,7 @@ def _build_kernels(serial_p2g: bool):
             xo[i, p] = x[idx[i], p]
             do[i, p] = d[idx[i], p]
 
-    return clear_grid, p2g, grid_update, g2p, frame_stats, reset_slots, gather, frame_end, p2g_tiled, particle_terms
+    return clear_grid, p2g, grid_update, g2p, frame_stats, reset_slots, gather, frame_end, p2g_tiled
 
 
 _KERNELS: dict[bool, tuple] = {}
@@ -624,9 +596,11 @@ class TaichiBackend:
 
     def __init__(self, scene, batch: int, arch: str = "cpu", allow_cpu_fallback: bool = False,
                  stats_partials: int | None = None, p2g: str = "atomic", particle_order: str | None = None,
-                 p2g_split: bool = False, g2p_unrolled: bool = True, **_: object):
+                 g2p: str = "auto", **_: object):
         if p2g not in ("auto", "atomic", "tiled"):
             raise InvphysError(f"p2g must be 'auto', 'atomic' or 'tiled', got {p2g!r}")
+        if g2p not in ("auto", "unrolled", "loop"):
+            raise InvphysError(f"g2p must be 'auto', 'unrolled' or 'loop', got {g2p!r}")
         if particle_order not in (None, "scene", "morton"):
             raise InvphysError(f"particle_order must be 'scene' or 'morton', got {particle_order!r}")
         self.arch = ensure_taichi(arch, allow_cpu_fallback)
@@ -636,9 +610,9 @@ class TaichiBackend:
             raise InvphysError("p2g='tiled' needs CUDA (it sums tiles in GPU shared memory); use 'atomic' or 'auto'")
         #: the scatter in use: "atomic" (global float atomics; serialised on the CPU) or "tiled" (CUDA)
         self.p2g = p2g
-        #: P2G in two kernels (``particle_terms`` stores each particle's stress terms, the scatter reads
-        #: them: fewer registers in the scatter); g2p with its 27 nodes unrolled or as loops over i, j
-        self.p2g_split, self.g2p_unrolled = bool(p2g_split), bool(g2p_unrolled)
+        #: g2p's form: "unrolled" (27 nodes; the CPU's, bit for bit as before) or "loop" (loops over two
+        #: axes: half the registers, 1.23x faster on an H100; the same sums to float rounding)
+        self.g2p = g2p if g2p != "auto" else ("loop" if self.arch == "cuda" else "unrolled")
         self.device = device_name(self.arch)
         self.scene = scene
         o = scene.options
@@ -648,7 +622,7 @@ class TaichiBackend:
         if serial not in _KERNELS:
             _KERNELS[serial] = _build_kernels(serial)
         (self._clear, self._p2g, self._grid, self._g2p, self._stats, self._reset, self._gather,
-         self._frame_end, p2g_tiled, self._terms) = _KERNELS[serial]
+         self._frame_end, p2g_tiled) = _KERNELS[serial]
         if p2g == "tiled":
             self._p2g = p2g_tiled
         #: particle order on the device: Morton order of the initial cells for the tiled scatter (tiles of
@@ -668,9 +642,6 @@ class TaichiBackend:
         self.F = ti.ndarray(mat3, (B, N))
         self.d = ti.ndarray(ti.f32, (B, N))
         self.dtil = ti.ndarray(ti.f32, (B, N))
-        # the split P2G's stored terms (APIC affine matrix with stress, mass); a placeholder otherwise
-        self.aff = ti.ndarray(mat3, (B, N) if self.p2g_split else (1, 1))
-        self.pm = ti.ndarray(ti.f32, (B, N) if self.p2g_split else (1, 1))
         self.gv = ti.ndarray(vec3, (B, G, G, G))
         self.gm = ti.ndarray(ti.f32, (B, G, G, G))
         self.gd = ti.ndarray(vec2, (B, G, G, G))
@@ -772,25 +743,19 @@ class TaichiBackend:
         dx = float(o.dx)
         ng = max(self.ngrip, 1)
         apic = float(o.apic_blend)
-        stages = {
+        return {
             "clear": lambda: self._clear(k, ng, self.nsub, self.gv, self.gm, self.gd, self.gg),
-            "terms": lambda: self._terms(k, dx, apic, self.nsub, self.dt, self.mat, self.body, self.fibre,
-                                         self.vol, self.v, self.C, self.F, self.d, self.dtil, self.aff, self.pm),
             "p2g": lambda: self._p2g(k, dx, apic, ng, self.nsub, self.dt, self.mat, self.body,
                                      self.fibre, self.vol, self.grip, self.x, self.v, self.C, self.F, self.d,
-                                     self.dtil, self.gv, self.gm, self.gd, self.gg, self.aff, self.pm,
-                                     self.p2g_split),
+                                     self.dtil, self.gv, self.gm, self.gd, self.gg),
             "grid": lambda: self._grid(k, dx, float(o.gravity), self.damp, int(o.boundary_cells), self.ngrip,
                                        self.ncol, self.nsub, self.dt, self.kin, self.ctype, self.ca, self.cb,
                                        self.csurf, self.fric, self.held, self.gv, self.gm, self.gg, self.imp,
                                        self.work),
             "g2p": lambda: self._g2p(k, dx, float(o.l0_cells) ** 2, self.don, self.nsub, self.dt, self.mat,
                                      self.body, self.grip, self.x0, self.kin, self.x, self.v, self.C, self.F,
-                                     self.d, self.dtil, self.gv, self.gd, self.g2p_unrolled),
+                                     self.d, self.dtil, self.gv, self.gd, self.g2p == "unrolled"),
         }
-        if not self.p2g_split:
-            del stages["terms"]
-        return stages
 
     def advance(self, n_steps: int) -> None:
         """Run substeps 0..n_steps-1 of the current frame (runs past their own nsub idle)."""
