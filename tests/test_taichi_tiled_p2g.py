@@ -79,23 +79,32 @@ def test_morton_particle_order_returns_the_scene_order():
 
 
 
-def _substeps(sim: OrangePeelSimulator, params: np.ndarray, n: int = 3) -> dict[str, np.ndarray]:
-    """``n`` substeps from the loaded runs with random damage, deformation and velocities already present
-    (so the stress, g2p's damage Laplacian and the APIC terms all act); the particle state after them."""
+def _load(backend, sim: OrangePeelSimulator, params: np.ndarray) -> None:
     from invphys_orange_peel.engine_scene import model_for
 
-    B = len(params)
-    backend = sim.engine.backend(B)
     model = model_for(sim.engine_scene, params)
     backend.load(model.table(), model.friction)
-    rng = np.random.default_rng(0)
-    N = sim.engine_scene.engine.n_particles
-    backend.d.from_numpy(rng.uniform(0.0, 0.6, (B, N)).astype(np.float32))
-    backend.F.from_numpy((np.eye(3) + 0.05 * rng.standard_normal((B, N, 3, 3))).astype(np.float32))
-    backend.v.from_numpy(0.1 * rng.standard_normal((B, N, 3)).astype(np.float32))
+
+
+def _advance(backend, sim: OrangePeelSimulator, n: int) -> None:
+    """``n`` substeps of dt 2e-4 with damage on and the grips still."""
+    B = backend.batch
     nk = max(len(sim.engine_scene.engine.kinematic_names), 1)
     backend.set_frame(np.full(B, 2e-4), np.full(B, n), np.zeros((B, n, nk, 6)), damage_on=True)
     backend.advance(n)
+
+
+def _substeps(sim: OrangePeelSimulator, params: np.ndarray, n: int = 3) -> dict[str, np.ndarray]:
+    """``n`` substeps from the loaded runs with random damage, deformation and velocities already present
+    (so the stress, g2p's damage Laplacian and the APIC terms all act); the particle state after them."""
+    B, N = len(params), sim.engine_scene.engine.n_particles
+    backend = sim.engine.backend(B)
+    _load(backend, sim, params)
+    rng = np.random.default_rng(0)
+    backend.d.from_numpy(rng.uniform(0.0, 0.6, (B, N)).astype(np.float32))
+    backend.F.from_numpy((np.eye(3) + 0.05 * rng.standard_normal((B, N, 3, 3))).astype(np.float32))
+    backend.v.from_numpy(0.1 * rng.standard_normal((B, N, 3)).astype(np.float32))
+    _advance(backend, sim, n)
     backend.sync()
     return {k: getattr(backend, k).to_numpy() for k in ("x", "v", "C", "F", "d")}
 
@@ -121,3 +130,27 @@ def test_looped_g2p_does_the_same_sums_on_cpu_and_auto_keeps_the_cpu_unrolled():
     assert RunIdentity.of(looped_sim) == RunIdentity.of(_tiny())
     with pytest.raises(InvphysError, match="g2p must be"):
         TaichiBackend(auto_sim.engine_scene.engine, 2, arch="cpu", g2p="rolled")
+
+
+def test_reads_are_new_arrays_in_the_scene_order():
+    """``read``/``read_slots`` return new host arrays in the scene's particle order (the device gathers
+    them), so records may keep views: a later substep does not change what an earlier read returned."""
+    space = parameter_space()
+    params = space.denormalize(np.random.default_rng(3).uniform(size=(2, space.dim)))
+    sim = _tiny()
+    scene = sim.engine_scene.engine
+    for order in ("scene", "morton"):
+        backend = TaichiBackend(scene, 2, arch="cpu", particle_order=order)
+        assert backend.reads_are_new
+        _load(backend, sim, params)
+        x0, _ = backend.read()
+        np.testing.assert_array_equal(x0[1], scene.positions.astype(np.float32))   # scene order
+        kept = x0.copy()
+        _advance(backend, sim, 2)
+        x1, _ = backend.read()
+        xs, ds = backend.read_slots(np.array([1]))
+        assert not np.shares_memory(x0, x1) and not np.array_equal(x1, kept)
+        np.testing.assert_array_equal(x0, kept)   # the earlier read is untouched
+        np.testing.assert_array_equal(xs[0], x1[1])
+        assert ds.shape == (1, scene.n_particles)
+

@@ -199,6 +199,7 @@ class Engine:
         scene, o = self.scene, self.scene.options
         B = model.n_envs
         backend = self.backend(B)
+        fresh = bool(getattr(backend, "reads_are_new", False))
         start = time.perf_counter()
         backend.load(model.table(), model.friction)
         records = [RunRecord() for _ in range(B)]
@@ -274,9 +275,9 @@ class Engine:
                 for name, vals in host_vals.items():
                     v = vals[b]
                     s.setdefault(name, []).append(float(v[0]) if v.size == 1 else v.copy())
-                if recorded:
-                    records[b].positions.append(x[b].copy())
-                    records[b].damage.append(d[b].copy())
+                if recorded:   # views of this frame's new arrays where the backend made them
+                    records[b].positions.append(x[b] if fresh else x[b].copy())
+                    records[b].damage.append(d[b] if fresh else d[b].copy())
                     records[b].frames.append(frame)
 
         stats = backend.frame_stats(lo, hi)

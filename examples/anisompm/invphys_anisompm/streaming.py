@@ -82,6 +82,7 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
         return
     B = min(int(batch_size), n_runs)
     backend = engine.backend(B)
+    fresh = bool(getattr(backend, "reads_are_new", False))
     counters = counters if counters is not None else SlotCounters()
     fps, dx = o.fps, o.dx
     frame_dt = 1.0 / fps
@@ -164,8 +165,8 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
                 v = np.asarray(r.fn(*xs[b], scene), float).reshape(1, -1)[0]
                 s.setdefault(r.name, []).append(float(v[0]) if v.size == 1 else v.copy())
             if recorded_of[b]:
-                rec.positions.append(xs[b][0][0].copy())
-                rec.damage.append(xs[b][1][0].copy())
+                rec.positions.append(xs[b][0][0] if fresh else xs[b][0][0].copy())
+                rec.damage.append(xs[b][1][0] if fresh else xs[b][1][0].copy())
                 rec.frames.append(frame)
 
     def finish(b: int) -> tuple[int, RunRecord]:

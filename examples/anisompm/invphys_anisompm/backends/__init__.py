@@ -3,7 +3,9 @@
 A backend implements ``load(table, friction)``, ``set_frame(dt, nsub, kin, damage_on)``, ``advance(n)``,
 ``frame_stats(lo, hi)``, ``kinematic_sums()``, ``read()``, ``sync()`` (and ``grid_mass()`` for checks);
 continuous batching also uses ``load_slots``, ``read_slots``, ``frame_stats(lo, hi, slots)``,
-``kinematic_sums(slots)`` and ``frame_end(lo, hi, slots)`` (both of those at once).
+``kinematic_sums(slots)`` and ``frame_end(lo, hi, slots)`` (both of those at once). Its attribute
+``reads_are_new`` says whether ``read``/``read_slots`` return new host arrays that no later call changes
+(then the engine keeps views of them instead of copying each run's particles).
 :func:`load_backend` imports one lazily, so that nothing else pays for taichi or warp.
 """
 

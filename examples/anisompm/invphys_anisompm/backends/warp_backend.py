@@ -415,6 +415,8 @@ class WarpBackend:
         self.wp_device = resolve_device(arch, allow_cpu_fallback)
         self.arch = "cuda" if self.wp_device.startswith("cuda") else "cpu"
         self.device = device_name(self.wp_device)
+        #: on the CPU ``numpy()`` is a view of the simulator's memory (the next substep changes it): copy
+        self.reads_are_new = self.arch == "cuda"
         self.scene = scene
         o = scene.options
         self.options = o
