@@ -77,7 +77,7 @@ def bench(preset: str, n: int, batch_size: int, executors: list[str], workers: i
 
             store = DatasetStore(Path(tmp) / "ds")
             features[name] = np.asarray(store.arrays(ok_only=False).y, dtype=np.float64)
-            out.setdefault("simulator_identity", store.metadata().get("identity"))
+            out.setdefault("simulator_identity", store.metadata.get("identity"))
         res = {"executor": block, "wall_s": round(wall, 2), "ok": summary.ok, "failed": summary.failed,
                "runs_per_hour": round(3600 * n / wall, 1),
                "sim_s_per_run": round(float(np.mean(df["wall_time_s"])), 3),

@@ -101,6 +101,12 @@ class Simulator(Plugin):
         """The name of the feature extractor that fits this simulator's trajectories, if any."""
         return None
 
+    def estimate_cost(self, params: np.ndarray) -> np.ndarray | None:
+        """Optional: the relative cost of each row of ``params`` (n, d), e.g. its time steps, from cheap
+        host arithmetic. Dataset generation then starts the costliest runs first, so each batch holds
+        runs of similar cost (a lock-step batch waits for its slowest run). None: design order."""
+        return None
+
     #: True when :meth:`simulate_stream` keeps the device busy across the whole stream (continuous
     #: batching: a finished run's slot takes the next row at once); executors then hand it all their rows.
     native_stream: ClassVar[bool] = False

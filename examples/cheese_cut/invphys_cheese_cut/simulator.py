@@ -143,6 +143,10 @@ class CheeseCutSimulator(Simulator):
                                          int(batch_size or self.config.batch_size)):
             yield i, self._finished(x[i], rec)
 
+    def estimate_cost(self, params: np.ndarray) -> np.ndarray:
+        """Each run's estimated substeps: host arithmetic, no kernels."""
+        return self.engine.estimate_cost(model_for(self.scene, self._check(params)), self.preset.frames)
+
     def _check(self, params: np.ndarray) -> np.ndarray:
         space = self.parameter_space()
         return space.check(np.atleast_2d(np.asarray(params, dtype=np.float64))).reshape(-1, space.dim)

@@ -214,6 +214,10 @@ class OrangePeelSimulator(Simulator):
         return self.engine.stream(model, self.frames, self.record_every, batch_size, min_chunk=c.min_chunk,
                                   queue_order=c.queue_order)
 
+    def estimate_cost(self, params: np.ndarray) -> np.ndarray:
+        """Each run's estimated substeps (settling included): host arithmetic, no kernels."""
+        return self.engine.estimate_cost(model_for(self.engine_scene, self._check(params)), self.frames)
+
     def _check(self, params: np.ndarray) -> np.ndarray:
         space = self.parameter_space()
         return space.check(np.atleast_2d(np.asarray(params, dtype=np.float64))).reshape(-1, space.dim)

@@ -1,0 +1,53 @@
+"""Dataset generation starts the costliest runs first when the simulator estimates costs, so that each
+lock-step batch holds runs of similar cost; the stored rows are the same as in design order."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+import pytest
+from test_dataset_toy import FEATURES, SIM, ToyOscillator
+
+from invphys.core.dataset import DatasetStore
+from invphys.core.errors import InvphysError
+from invphys.core.generate import generate_dataset
+
+
+class CostedToy(ToyOscillator):
+    """The toy oscillator with a cost estimate (its stiffness k) and a log of the batches it simulated."""
+
+    batches: ClassVar[list[np.ndarray]] = []
+
+    def estimate_cost(self, params: np.ndarray) -> np.ndarray:
+        return np.atleast_2d(params)[:, 0]
+
+    def simulate(self, params, on_result=None):
+        CostedToy.batches.append(np.atleast_2d(params)[:, 0].copy())
+        return super().simulate(params, on_result)
+
+
+class MiscountingToy(ToyOscillator):
+    def estimate_cost(self, params: np.ndarray) -> np.ndarray:
+        return np.ones(1)
+
+
+def test_costliest_runs_go_first_in_batches_of_similar_cost(tmp_path) -> None:
+    CostedToy.batches.clear()
+    feats = {"type": FEATURES}
+    generate_dataset(tmp_path / "costed", {"type": f"{__name__}:CostedToy", "substeps": 5}, feats, n=8,
+                     batch_size=3, progress=False)
+    assert [len(b) for b in CostedToy.batches] == [3, 3, 2]
+    k = np.concatenate(CostedToy.batches)
+    assert np.all(np.diff(k) <= 0), k   # costliest first across and within batches
+    generate_dataset(tmp_path / "plain", {"type": SIM, "substeps": 5}, feats, n=8, batch_size=3, progress=False)
+    costed = DatasetStore(tmp_path / "costed").arrays(ok_only=False)
+    plain = DatasetStore(tmp_path / "plain").arrays(ok_only=False)
+    np.testing.assert_array_equal(costed.theta, plain.theta)
+    np.testing.assert_array_equal(costed.y, plain.y)
+
+
+def test_a_cost_estimate_of_the_wrong_length_is_one_clear_error(tmp_path) -> None:
+    with pytest.raises(InvphysError, match="estimate_cost gave 1 values for 4 rows"):
+        generate_dataset(tmp_path / "bad", {"type": f"{__name__}:MiscountingToy", "substeps": 5},
+                         {"type": FEATURES}, n=4, batch_size=2, progress=False)
