@@ -26,7 +26,6 @@ import argparse
 import datetime as dt
 import shlex
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +36,7 @@ for p in (ROOT, ROOT / "examples" / "orange_peel", ROOT / "examples" / "anisompm
         sys.path.insert(0, str(p))
 
 from _machine import emit  # noqa: E402
-from bench_tiled_p2g import PAPER_SECONDS_PER_RUN, feature_agreement  # noqa: E402
+from bench_tiled_p2g import PAPER_SECONDS_PER_RUN, feature_agreement, timed_features  # noqa: E402
 
 G2P_FORMS = ("unrolled", "loop")
 
@@ -117,13 +116,7 @@ def main(argv: list[str] | None = None) -> int:
         feats, walls = {}, {}
         passes = (("first", names[0]), ("best", best), ("first_again", names[0]), ("best_again", best))
         for label, name in passes:
-            sim = sims[name]
-            sim.simulate(params[: min(2, a.runs)])   # the whole path compiled first (not timed)
-            t0 = time.perf_counter()
-            res = sim.simulate(params)
-            walls[label] = time.perf_counter() - t0
-            feats[label] = np.array([ex.extract(r.trajectory) if r.ok else np.full(len(ex.feature_names), np.nan)
-                                     for r in res])
+            walls[label], feats[label] = timed_features(sims[name], params, ex)
             print(label, name, f"{walls[label] / a.runs:.3f} s/run", flush=True)
         out["runs_forms"] = {"first": names[0], "best": best}
         form_of = dict(passes)

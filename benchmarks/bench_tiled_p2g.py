@@ -60,6 +60,17 @@ def feature_agreement(x: np.ndarray, y: np.ndarray, names: list[str]) -> dict:
             "mean_of_feature_rel_diff": dict(zip(names, means.tolist(), strict=True))}
 
 
+def timed_features(sim, params: np.ndarray, extractor) -> tuple[float, np.ndarray]:
+    """Simulate ``params`` with ``sim`` after an untimed two-run pass (the whole path compiled): the wall
+    seconds and the features per run (NaN rows for failed runs)."""
+    sim.simulate(params[: min(2, len(params))])
+    t0 = time.perf_counter()
+    res = sim.simulate(params)
+    wall = time.perf_counter() - t0
+    nan = np.full(len(extractor.feature_names), np.nan)
+    return wall, np.array([extractor.extract(r.trajectory) if r.ok else nan for r in res])
+
+
 def _grids(sim, params: np.ndarray) -> dict[str, np.ndarray]:
     """One clear + P2G of the freshly loaded runs; the grid arrays in float64."""
     from invphys_orange_peel.engine_scene import model_for
@@ -125,12 +136,7 @@ def main(argv: list[str] | None = None) -> int:
         # atomic twice: two atomic runs of the same parameters differ too (GPU float atomics, amplified by
         # fracture); that spread is the yardstick for tiled against atomic
         for m, s in (("atomic", sims["atomic"]), ("tiled", sims["tiled"]), ("atomic_again", sims["atomic"])):
-            s.simulate(params[: min(2, a.runs)])  # compile the whole path first (not timed)
-            t0 = time.perf_counter()
-            res = s.simulate(params)
-            walls[m] = time.perf_counter() - t0
-            feats[m] = np.array([ex.extract(r.trajectory) if r.ok else np.full(len(ex.feature_names), np.nan)
-                                 for r in res])
+            walls[m], feats[m] = timed_features(s, params, ex)
             print(m, f"{walls[m] / a.runs:.3f} s/run", flush=True)
 
         out["runs_result"] = {
