@@ -144,9 +144,11 @@ def _costliest_first(sim: Any, params: np.ndarray, todo: np.ndarray) -> np.ndarr
     if cost is None:
         return todo
     cost = np.asarray(cost, dtype=np.float64).reshape(-1)
-    if cost.shape != todo.shape or not np.isfinite(cost).all():
-        raise InvphysError(f"{type(sim).__name__}.estimate_cost gave {cost.shape[0]} values for {len(todo)} rows"
-                           if cost.shape != todo.shape else f"{type(sim).__name__}.estimate_cost gave a non-finite cost")
+    name = type(sim).__name__
+    if cost.shape != todo.shape:
+        raise InvphysError(f"{name}.estimate_cost gave {len(cost)} values for {len(todo)} rows")
+    if not np.isfinite(cost).all():
+        raise InvphysError(f"{name}.estimate_cost gave a non-finite cost")
     return todo[np.argsort(-cost, kind="stable")]
 
 
