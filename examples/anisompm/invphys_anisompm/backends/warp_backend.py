@@ -206,18 +206,35 @@ def p2g_deterministic_kernel():
     return _P2G_DETERMINISTIC[0]
 
 
-@wp.kernel
-def clear_kernel(kstep: wp.array(dtype=wp.int32), ngrip: int, nsub: wp.array(dtype=wp.int32),
-                 gv: wp.array4d(dtype=wp.vec3), gm: wp.array4d(dtype=wp.float32), gd: wp.array4d(dtype=wp.vec2),
-                 gg: wp.array4d(dtype=wp.float32)):
-    b, i, j, q = wp.tid()
-    if kstep[0] >= nsub[b]:
-        return
+@wp.func
+def _zero_node(b: int, i: int, j: int, q: int, ngrip: int, gv: wp.array4d(dtype=wp.vec3),
+               gm: wp.array4d(dtype=wp.float32), gd: wp.array4d(dtype=wp.vec2), gg: wp.array4d(dtype=wp.float32)):
     gv[b, i, j, q] = wp.vec3(0.0)
     gm[b, i, j, q] = 0.0
     gd[b, i, j, q] = wp.vec2(0.0)
     for g in range(ngrip):
         gg[b * ngrip + g, i, j, q] = 0.0
+
+
+@wp.kernel
+def clear_kernel(kstep: wp.array(dtype=wp.int32), ngrip: int, nsub: wp.array(dtype=wp.int32),
+                 gv: wp.array4d(dtype=wp.vec3), gm: wp.array4d(dtype=wp.float32), gd: wp.array4d(dtype=wp.vec2),
+                 gg: wp.array4d(dtype=wp.float32)):
+    # only the nodes the last scatter touched (a zero weight sum: every channel is zero; see the Taichi
+    # backend's touched_node): one read per node instead of seven writes
+    b, i, j, q = wp.tid()
+    if kstep[0] >= nsub[b] or gd[b, i, j, q][1] == 0.0:
+        return
+    _zero_node(b, i, j, q, ngrip, gv, gm, gd, gg)
+
+
+@wp.kernel
+def wipe_grid_kernel(mask: wp.array(dtype=wp.int32), ngrip: int, gv: wp.array4d(dtype=wp.vec3),
+                     gm: wp.array4d(dtype=wp.float32), gd: wp.array4d(dtype=wp.vec2), gg: wp.array4d(dtype=wp.float32)):
+    # every node of runs mask[b] != 0 (a new run in a slot: nothing of the last run's grid survives)
+    b, i, j, q = wp.tid()
+    if mask[b] != 0:
+        _zero_node(b, i, j, q, ngrip, gv, gm, gd, gg)
 
 
 @wp.kernel
@@ -498,6 +515,8 @@ class WarpBackend:
         self.F.assign(self._F_init)
         self.d.zero_()
         self.dtil.zero_()
+        self._slot_mask.fill_(1)
+        self._wipe_grid()
 
     def set_frame(self, dt: np.ndarray, nsub: np.ndarray, kin: np.ndarray, damage_on: bool,
                   damping: float = 0.0) -> None:
@@ -600,6 +619,13 @@ class WarpBackend:
         self._slot_mask.assign(mask)
         wp.launch(reset_slots_kernel, dim=(self.batch, self.scene.n_particles), device=self.wp_device,
                   inputs=[self._slot_mask, self.x0, self.x, self.v, self.C, self.F, self.d, self.dtil])
+        self._wipe_grid()
+
+    def _wipe_grid(self) -> None:
+        """Zero the whole grid of the runs in ``_slot_mask``."""
+        G = self.options.grid
+        wp.launch(wipe_grid_kernel, dim=(self.batch, G, G, G), device=self.wp_device,
+                  inputs=[self._slot_mask, max(self.ngrip, 1), self.gv, self.gm, self.gd, self.gg])
 
     def read_slots(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Positions (n, N, 3) and damage (n, N) of runs ``slots`` only (a device gather, then one copy)."""
