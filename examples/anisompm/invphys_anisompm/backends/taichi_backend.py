@@ -23,10 +23,10 @@ _initialised_arch: str | None = None
 #: below this volume ratio a particle is treated as inverted: no tensile driving force
 J_MIN = 1e-6
 #: tiled P2G (CUDA): particles per thread block, the most nodes a tile sums in shared memory, and the
-#: channels per node summed there (momentum 3, mass, grip mass; the damage sums go to the grid directly)
+#: channels per node (momentum 3, mass, damage sum, weight sum, grip mass)
 TILE = 256
 TILE_NODES = 1024
-TILE_CH = 5
+TILE_CH = 7
 
 
 def _cuda_device_present() -> bool:
@@ -307,10 +307,9 @@ def _build_kernels(serial_p2g: bool):
                   d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
                   gg: ND(ti.f32, 4)):
         # CUDA only. One thread block per TILE consecutive particles of a run (spatially coherent when the
-        # particles are in Morton order): their 27-node momentum and mass are summed in shared memory over
-        # the tile's bounding box of nodes, then added to the grid once per node, instead of 4 of the 6
-        # global float atomics per particle and node of the plain scatter (bound by the L2's atomics); the
-        # two damage sums stay global atomics (see below). A tile whose box
+        # particles are in Morton order): their 27-node contributions are summed in shared memory over
+        # the tile's bounding box of nodes, then added to the grid once per node, instead of 6 global
+        # float atomics per particle and node (the L2 atomics bound the plain scatter). A tile whose box
         # exceeds TILE_NODES nodes (or a scene with more than one grip) scatters globally, as p2g does.
         inv_dx = 1.0 / dx
         G = gm.shape[1]
@@ -369,13 +368,10 @@ def _build_kernels(serial_p2g: bool):
                         ti.atomic_add(acc[c + 1], mom[1])
                         ti.atomic_add(acc[c + 2], mom[2])
                         ti.atomic_add(acc[c + 3], weight * tm.mass)
+                        ti.atomic_add(acc[c + 4], weight * dp)
+                        ti.atomic_add(acc[c + 5], weight)
                         if gp >= 0:
-                            ti.atomic_add(acc[c + 4], weight * tm.mass)
-                        # the damage sums as global float atomics: fire-and-forget (RED at L2), where a
-                        # float atomic in shared memory is a compare-and-swap loop the thread waits on
-                        # (SASS on sm_90: LDS, ATOMS.CAST.SPIN, BRA); a third of the adds at L2 keeps the
-                        # L2 well below the load that bounds the all-global scatter
-                        gd[b, node[0], node[1], node[2]] += weight * vec2(dp, 1.0)
+                            ti.atomic_add(acc[c + 6], weight * tm.mass)
                     else:
                         _scatter_global(b, node, weight, mom, tm.mass, dp, gp, ngrip, gv, gm, gd, gg)
             ti.simt.block.sync()
@@ -390,8 +386,9 @@ def _build_kernels(serial_p2g: bool):
                         q = c % sz + o2
                         gv[b, i, j, q] += vec3(acc[e], acc[e + 1], acc[e + 2])
                         gm[b, i, j, q] += m
-                        if ngrip > 0 and acc[e + 4] != 0.0:
-                            gg[b * ngrip, i, j, q] += acc[e + 4]
+                        gd[b, i, j, q] += vec2(acc[e + 4], acc[e + 5])
+                        if ngrip > 0 and acc[e + 6] != 0.0:
+                            gg[b * ngrip, i, j, q] += acc[e + 6]
                     c += TILE
             ti.simt.block.sync()  # the next tile of this thread block (grid-stride loop) reuses the arrays
 
