@@ -144,3 +144,53 @@ def test_the_clear_skips_untouched_nodes_and_a_new_run_gets_a_clean_grid(backend
     gv, gm, gd, gg = _grid_channels(clean)
     untouched = gd[..., 1] == 0.0
     assert not gv[untouched].any() and not gm[untouched].any() and not gg[:B][untouched].any()
+
+
+def test_substeps_per_call_from_python_change_no_result(tmp_path) -> None:
+    """``advance`` with ``launch_substeps: 3`` calls one kernel for three whole substeps (the four stages'
+    loops in order) and the stage kernels for a frame's rest. Without fast math (a fresh process with
+    ``TI_FAST_MATH=0``) the state after two frames of runs with different substep counts is bit-identical to
+    the stage kernels' alone; with it, the fused kernel's code may round differently, so the CPU keeps the
+    stage kernels by default."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = tmp_path / "compare.py"
+    script.write_text(_PER_CALL_SCRIPT)
+    here = Path(__file__).parent
+    env = {**os.environ, "TI_FAST_MATH": "0",
+           "PYTHONPATH": os.pathsep.join([str(here), str(here.parent / "examples" / "anisompm"),
+                                          os.environ.get("PYTHONPATH", "")])}
+    out = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
+    assert "moved, identical" in out.stdout
+
+
+_PER_CALL_SCRIPT = """
+import numpy as np
+from test_anisompm_streaming import SCENE
+from invphys_anisompm import Engine
+
+B = 2
+model = SCENE.model(B).set_material("paste", E=[3e4, 9e4], eta=[0.02, 0.01])
+nk = max(len(SCENE.kinematic_names), 1)
+nsub = np.array([7, 4])
+kin = np.zeros((B, 7, nk, 6))
+kin[:, :, :, 4] = -0.05   # every kinematic object moving down
+kin[:, :, :, 1] = -0.05 * 1e-4 * np.arange(1, 8)[None, :, None]
+got = []
+for per_call in (1, 3):
+    be = Engine(SCENE, backend="taichi", arch="cpu", launch_substeps=per_call).backend(B)
+    be.load(model.table(), model.friction)
+    for _ in range(2):   # two frames: the second starts from a moved, damaged state
+        be.set_frame(np.full(B, 1e-4), nsub, kin, damage_on=True)
+        be.advance(int(nsub.max()))
+    got.append([a.to_numpy() for a in (be.x, be.v, be.C, be.F, be.d, be.dtil, be.gv, be.gm, be.gd, be.gg,
+                                        be.imp, be.work)])
+assert np.abs(got[0][0] - be.x0.to_numpy()[None]).max() > 0
+for a, b in zip(got[0], got[1], strict=True):
+    np.testing.assert_array_equal(a, b)
+print("moved, identical")
+"""
