@@ -63,9 +63,8 @@ def _child(a: argparse.Namespace) -> None:
 
     space = parameter_space()
     params = space.denormalize(np.random.default_rng(0).uniform(size=(a.batch, space.dim)))
-    # one substep per stage-kernel launch (launch_substeps 1): the warm-up's launches are the ones --launch-skip counts
     sim = OrangePeelSimulator(backend="taichi", preset=a.preset, arch=a.arch, batch_size=a.batch, taichi_p2g=a.p2g,
-                              taichi_g2p=a.g2p, taichi_launch_substeps=1)
+                              taichi_g2p=a.g2p)
     backend = sim.engine.backend(a.batch)
     model = model_for(sim.engine_scene, params)
     backend.load(model.table(), model.friction)

@@ -54,7 +54,7 @@ class OrangePeelSimulator(Simulator):
     identity_ignores: ClassVar[tuple[str, ...]] = ("arch", "allow_cpu_fallback", "batch_size", "deterministic",
                                                    "scheduling", "warp_graphs", "gpu_deterministic",
                                                    "queue_order", "min_chunk", "taichi_p2g",
-                                                   "taichi_g2p", "taichi_launch_substeps")
+                                                   "taichi_g2p")
 
     class Config(PluginConfig):
         """Settings of the orange-peel simulator."""
@@ -104,10 +104,6 @@ class OrangePeelSimulator(Simulator):
         taichi_g2p: Literal["auto", "unrolled", "loop"] = Field(
             "auto", description="Taichi g2p: 27 nodes unrolled, or loops over two axes (half the registers; "
                                 "1.23x faster kernel on an H100), auto = loop on CUDA, unrolled on the CPU")
-        taichi_launch_substeps: int | None = Field(
-            None, ge=1, le=16, description="Taichi: substeps per kernel call from Python (each call costs ~0.1 ms "
-                                           "of host time; each count is compiled once); None = 4 on CUDA, 1 on "
-                                           "the CPU")
 
         @field_validator("preset")
         @classmethod
@@ -155,7 +151,7 @@ class OrangePeelSimulator(Simulator):
 
             c = self.config
             opts = ({"use_graphs": c.warp_graphs, "gpu_deterministic": c.gpu_deterministic} if c.backend == "warp"
-                    else {"p2g": c.taichi_p2g, "g2p": c.taichi_g2p, "launch_substeps": c.taichi_launch_substeps})
+                    else {"p2g": c.taichi_p2g, "g2p": c.taichi_g2p})
             self._engine = Engine(self.engine_scene.engine, backend=c.backend, arch=c.arch,
                                   allow_cpu_fallback=c.allow_cpu_fallback, **opts)
         return self._engine

@@ -257,9 +257,9 @@ def _build_kernels(serial_p2g: bool):
         for g in range(ngrip):
             gg[b * ngrip + g, i, j, q] = 0.0
 
-    @ti.func
-    def _clear_grid_loop(k: ti.i32, ngrip: ti.i32, nsub: ti.template(), gv: ti.template(), gm: ti.template(),
-                         gd: ti.template(), gg: ti.template(), G: ti.template()):
+    @ti.kernel
+    def clear_grid(k: ti.i32, ngrip: ti.i32, nsub: ND(ti.i32, 1), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
+                   gd: ND(vec2, 4), gg: ND(ti.f32, 4), G: ti.template()):
         # only the nodes the last scatter touched (see touched_node): one read per node instead of 7 writes;
         # the grid size G is a compile-time constant, so a node's indices cost no integer divisions
         for b, i, j, q in ti.ndrange(gm.shape[0], G, G, G):
@@ -274,12 +274,12 @@ def _build_kernels(serial_p2g: bool):
             if mask[b] != 0:
                 _zero_node(b, i, j, q, ngrip, gv, gm, gd, gg)
 
-    @ti.func
-    def _p2g_loop(k: ti.i32, dx: ti.f32, apic: ti.f32, ngrip: ti.i32, nsub: ti.template(), dt: ti.template(),
-                  mat: ti.template(), body: ti.template(), fibre: ti.template(), vol: ti.template(),
-                  grip: ti.template(), x: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(),
-                  d: ti.template(), dtil: ti.template(), gv: ti.template(), gm: ti.template(), gd: ti.template(),
-                  gg: ti.template()):
+    @ti.kernel
+    def p2g(k: ti.i32, dx: ti.f32, apic: ti.f32, ngrip: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
+            mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
+            grip: ND(ti.i32, 1), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2),
+            d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
+            gg: ND(ti.f32, 4)):
         inv_dx = 1.0 / dx
         G = gm.shape[1]
         if ti.static(serial_p2g):
@@ -300,12 +300,12 @@ def _build_kernels(serial_p2g: bool):
                     _scatter_global(b, base + off, weight, weight * (t.mv + t.affine @ dpos), t.mass, dp, gp,
                                     ngrip, gv, gm, gd, gg)
 
-    @ti.func
-    def _p2g_tiled_loop(k: ti.i32, dx: ti.f32, apic: ti.f32, ngrip: ti.i32, nsub: ti.template(), dt: ti.template(),
-                        mat: ti.template(), body: ti.template(), fibre: ti.template(), vol: ti.template(),
-                        grip: ti.template(), x: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(),
-                        d: ti.template(), dtil: ti.template(), gv: ti.template(), gm: ti.template(), gd: ti.template(),
-                        gg: ti.template()):
+    @ti.kernel
+    def p2g_tiled(k: ti.i32, dx: ti.f32, apic: ti.f32, ngrip: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
+                  mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
+                  grip: ND(ti.i32, 1), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2),
+                  d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
+                  gg: ND(ti.f32, 4)):
         # CUDA only. One thread block per TILE consecutive particles of a run (spatially coherent when the
         # particles are in Morton order): their 27-node contributions are summed in shared memory over
         # the tile's bounding box of nodes, then added to the grid once per node, instead of 6 global
@@ -392,12 +392,12 @@ def _build_kernels(serial_p2g: bool):
                     c += TILE
             ti.simt.block.sync()  # the next tile of this thread block (grid-stride loop) reuses the arrays
 
-    @ti.func
-    def _grid_update_loop(k: ti.i32, dx: ti.f32, gravity: ti.f32, damp: ti.template(), bc: ti.i32, ngrip: ti.i32, ncol: ti.i32,
-                          nsub: ti.template(), dt: ti.template(), kin: ti.template(), ctype: ti.template(),
-                          ca: ti.template(), cb: ti.template(), csurf: ti.template(), fric: ti.template(),
-                          held: ti.template(), gv: ti.template(), gm: ti.template(), gg: ti.template(),
-                          imp: ti.template(), work: ti.template(), G: ti.template()):
+    @ti.kernel
+    def grid_update(k: ti.i32, dx: ti.f32, gravity: ti.f32, damp: ND(ti.f32, 1), bc: ti.i32, ngrip: ti.i32, ncol: ti.i32,
+                    nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1), kin: ND(ti.f32, 4), ctype: ND(ti.i32, 1),
+                    ca: ND(vec3, 1), cb: ND(vec3, 1), csurf: ND(ti.i32, 1), fric: ND(ti.f32, 2),
+                    held: ND(ti.i32, 3), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gg: ND(ti.f32, 4),
+                    imp: ND(vec3, 2), work: ND(ti.f32, 2), G: ti.template()):
         # G (the grid size) is a compile-time constant: most nodes are empty and cost only their indices
         if ti.static(serial_p2g):
             ti.loop_config(serialize=True)  # the force and work sums, like the scatter, in a fixed order
@@ -452,11 +452,11 @@ def _build_kernels(serial_p2g: bool):
                     vel[2] = 0.0
                 gv[b, i, j, q] = vel
 
-    @ti.func
-    def _g2p_loop(k: ti.i32, dx: ti.f32, l0sq: ti.f32, don: ti.template(), nsub: ti.template(), dt: ti.template(),
-                  mat: ti.template(), body: ti.template(), grip: ti.template(), x0: ti.template(), kin: ti.template(),
-                  x: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(), d: ti.template(),
-                  dtil: ti.template(), gv: ti.template(), gd: ti.template(), unrolled: ti.template()):
+    @ti.kernel
+    def g2p(k: ti.i32, dx: ti.f32, l0sq: ti.f32, don: ND(ti.i32, 1), nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
+            mat: ND(ti.f32, 3), body: ND(ti.i32, 1), grip: ND(ti.i32, 1), x0: ND(vec3, 1), kin: ND(ti.f32, 4),
+            x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2),
+            dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gd: ND(vec2, 4), unrolled: ti.template()):
         inv_dx = 1.0 / dx
         G = gv.shape[1]
         for b, p in x:
@@ -499,71 +499,6 @@ def _build_kernels(serial_p2g: bool):
                 else:
                     v[b, p] = new_v
                     x[b, p] += h * new_v
-
-    @ti.kernel
-    def clear_grid(k: ti.i32, ngrip: ti.i32, nsub: ND(ti.i32, 1), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
-                   gd: ND(vec2, 4), gg: ND(ti.f32, 4), G: ti.template()):
-        _clear_grid_loop(k, ngrip, nsub, gv, gm, gd, gg, G)
-
-    @ti.kernel
-    def p2g(k: ti.i32, dx: ti.f32, apic: ti.f32, ngrip: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
-            mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
-            grip: ND(ti.i32, 1), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2),
-            d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
-            gg: ND(ti.f32, 4)):
-        _p2g_loop(k, dx, apic, ngrip, nsub, dt, mat, body, fibre, vol, grip, x, v, C, F, d, dtil, gv, gm, gd, gg)
-
-    @ti.kernel
-    def p2g_tiled(k: ti.i32, dx: ti.f32, apic: ti.f32, ngrip: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
-                  mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
-                  grip: ND(ti.i32, 1), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2),
-                  d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
-                  gg: ND(ti.f32, 4)):
-        _p2g_tiled_loop(k, dx, apic, ngrip, nsub, dt, mat, body, fibre, vol, grip, x, v, C, F, d, dtil, gv, gm, gd,
-                        gg)
-
-    @ti.kernel
-    def grid_update(k: ti.i32, dx: ti.f32, gravity: ti.f32, damp: ND(ti.f32, 1), bc: ti.i32, ngrip: ti.i32, ncol: ti.i32,
-                    nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1), kin: ND(ti.f32, 4), ctype: ND(ti.i32, 1),
-                    ca: ND(vec3, 1), cb: ND(vec3, 1), csurf: ND(ti.i32, 1), fric: ND(ti.f32, 2),
-                    held: ND(ti.i32, 3), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gg: ND(ti.f32, 4),
-                    imp: ND(vec3, 2), work: ND(ti.f32, 2), G: ti.template()):
-        _grid_update_loop(k, dx, gravity, damp, bc, ngrip, ncol, nsub, dt, kin, ctype, ca, cb, csurf, fric, held, gv,
-                          gm, gg, imp, work, G)
-
-    @ti.kernel
-    def g2p(k: ti.i32, dx: ti.f32, l0sq: ti.f32, don: ND(ti.i32, 1), nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
-            mat: ND(ti.f32, 3), body: ND(ti.i32, 1), grip: ND(ti.i32, 1), x0: ND(vec3, 1), kin: ND(ti.f32, 4),
-            x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2),
-            dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gd: ND(vec2, 4), unrolled: ti.template()):
-        _g2p_loop(k, dx, l0sq, don, nsub, dt, mat, body, grip, x0, kin, x, v, C, F, d, dtil, gv, gd, unrolled)
-
-    @ti.kernel
-    def substeps(k0: ti.i32, dx: ti.f32, apic: ti.f32, gravity: ti.f32, bc: ti.i32, ng: ti.i32, ngrip: ti.i32,
-                 ncol: ti.i32, l0sq: ti.f32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1), damp: ND(ti.f32, 1),
-                 don: ND(ti.i32, 1), mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1),
-                 vol: ND(ti.f32, 1), grip: ND(ti.i32, 1), x0: ND(vec3, 1), kin: ND(ti.f32, 4),
-                 ctype: ND(ti.i32, 1), ca: ND(vec3, 1), cb: ND(vec3, 1), csurf: ND(ti.i32, 1),
-                 fric: ND(ti.f32, 2), held: ND(ti.i32, 3), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2),
-                 F: ND(mat3, 2), d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
-                 gd: ND(vec2, 4), gg: ND(ti.f32, 4), imp: ND(vec3, 2), work: ND(ti.f32, 2), G: ti.template(),
-                 n: ti.template(), tiled: ti.template(), unrolled: ti.template()):
-        # substeps k0 .. k0 + n - 1 in one call from Python: the four stages of each, in order, are still
-        # separate GPU kernels (Taichi launches a kernel's top-level loops one after another), but a Taichi
-        # call with ~20 array arguments costs ~0.1 ms of host time, which bounds the substeps where few
-        # runs are active (docs/gpu-throughput.md)
-        for s in ti.static(range(n)):
-            _clear_grid_loop(k0 + s, ng, nsub, gv, gm, gd, gg, G)
-            if ti.static(tiled):
-                _p2g_tiled_loop(k0 + s, dx, apic, ng, nsub, dt, mat, body, fibre, vol, grip, x, v, C, F, d, dtil,
-                                gv, gm, gd, gg)
-            else:
-                _p2g_loop(k0 + s, dx, apic, ng, nsub, dt, mat, body, fibre, vol, grip, x, v, C, F, d, dtil, gv, gm,
-                          gd, gg)
-            _grid_update_loop(k0 + s, dx, gravity, damp, bc, ngrip, ncol, nsub, dt, kin, ctype, ca, cb, csurf,
-                              fric, held, gv, gm, gg, imp, work, G)
-            _g2p_loop(k0 + s, dx, l0sq, don, nsub, dt, mat, body, grip, x0, kin, x, v, C, F, d, dtil, gv, gd,
-                      unrolled)
 
     @ti.func
     def _particle_stats(b: ti.i32, r: ti.i32, p: ti.i32, lo: ti.f32, hi: ti.f32, mat: ti.template(),
@@ -667,8 +602,7 @@ def _build_kernels(serial_p2g: bool):
             xo[i, q] = x[idx[i], src[q]]
             do[i, q] = d[idx[i], src[q]]
 
-    return (clear_grid, p2g, grid_update, g2p, frame_stats, reset_slots, gather, frame_end, p2g_tiled, wipe_grid,
-            substeps)
+    return clear_grid, p2g, grid_update, g2p, frame_stats, reset_slots, gather, frame_end, p2g_tiled, wipe_grid
 
 
 _KERNELS: dict[bool, tuple] = {}
@@ -693,20 +627,14 @@ class TaichiBackend:
 
     def __init__(self, scene, batch: int, arch: str = "cpu", allow_cpu_fallback: bool = False,
                  stats_partials: int | None = None, p2g: str = "atomic", particle_order: str | None = None,
-                 g2p: str = "auto", launch_substeps: int | None = None, **_: object):
+                 g2p: str = "auto", **_: object):
         if p2g not in ("auto", "atomic", "tiled"):
             raise InvphysError(f"p2g must be 'auto', 'atomic' or 'tiled', got {p2g!r}")
         if g2p not in ("auto", "unrolled", "loop"):
             raise InvphysError(f"g2p must be 'auto', 'unrolled' or 'loop', got {g2p!r}")
         if particle_order not in (None, "scene", "morton"):
             raise InvphysError(f"particle_order must be 'scene' or 'morton', got {particle_order!r}")
-        if launch_substeps is not None and not 1 <= int(launch_substeps) <= 16:
-            raise InvphysError(f"launch_substeps must be 1 to 16, got {launch_substeps!r}")
         self.arch = ensure_taichi(arch, allow_cpu_fallback)
-        #: whole substeps per call from Python in ``advance`` (a frame's rest: stage by stage): a Taichi call
-        #: costs ~0.1 ms of host time; each count is one more kernel to compile (4 on CUDA, 1 on the CPU: the
-        #: stage kernels, whose float results a fused kernel's fast-math code matches only to rounding)
-        self.launch_substeps = int(launch_substeps or (4 if self.arch == "cuda" else 1))
         if p2g == "auto":
             p2g = "tiled" if self.arch == "cuda" else "atomic"
         if p2g == "tiled" and self.arch != "cuda":
@@ -725,7 +653,7 @@ class TaichiBackend:
         if serial not in _KERNELS:
             _KERNELS[serial] = _build_kernels(serial)
         (self._clear, self._p2g, self._grid, self._g2p, self._stats, self._reset, self._gather,
-         self._frame_end, p2g_tiled, self._wipe, self._substeps) = _KERNELS[serial]
+         self._frame_end, p2g_tiled, self._wipe) = _KERNELS[serial]
         if p2g == "tiled":
             self._p2g = p2g_tiled
         #: particle order on the device: Morton order of the initial cells for the tiled scatter (tiles of
@@ -861,26 +789,10 @@ class TaichiBackend:
         }
 
     def advance(self, n_steps: int) -> None:
-        """Run substeps 0..n_steps-1 of the current frame (runs past their own nsub idle): ``launch_substeps``
-        whole substeps per call from Python where that many are left, else the four stage kernels one by one
-        (the CPU's default: its results stay those of the stage kernels bit for bit)."""
-        o = self.options
-        per_call = self.launch_substeps
-        k = 0
-        while k < n_steps:
-            if per_call > 1 and n_steps - k >= per_call:
-                self._substeps(k, float(o.dx), float(o.apic_blend), float(o.gravity), int(o.boundary_cells),
-                               max(self.ngrip, 1), self.ngrip, self.ncol, float(o.l0_cells) ** 2, self.nsub,
-                               self.dt, self.damp, self.don, self.mat, self.body, self.fibre, self.vol, self.grip,
-                               self.x0, self.kin, self.ctype, self.ca, self.cb, self.csurf, self.fric, self.held,
-                               self.x, self.v, self.C, self.F, self.d, self.dtil, self.gv, self.gm, self.gd,
-                               self.gg, self.imp, self.work, int(o.grid), per_call, self.p2g == "tiled",
-                               self.g2p == "unrolled")
-                k += per_call
-            else:
-                for launch in self._stages(k).values():
-                    launch()
-                k += 1
+        """Run substeps 0..n_steps-1 of the current frame (runs past their own nsub idle)."""
+        for k in range(n_steps):
+            for launch in self._stages(k).values():
+                launch()
 
     def kernel_times(self, n_steps: int = 20) -> dict[str, float]:
         """Mean seconds per launch of each substep stage over ``n_steps`` synchronised substeps (profiling;
