@@ -144,30 +144,3 @@ def test_the_clear_skips_untouched_nodes_and_a_new_run_gets_a_clean_grid(backend
     gv, gm, gd, gg = _grid_channels(clean)
     untouched = gd[..., 1] == 0.0
     assert not gv[untouched].any() and not gm[untouched].any() and not gg[:B][untouched].any()
-
-
-def test_substep_kernels_loop_over_the_runs_still_active_only() -> None:
-    """The Taichi kernels of substep k loop over the runs with more than k substeps this frame (the runs
-    sorted by their substeps, most first); a run with fewer is left exactly as it was, and past the last
-    run's substeps nothing is launched."""
-    B = 4
-    model = SCENE.model(B).set_material("paste", E=[3e4, 9e4, 6e4, 2e5])
-    nk = max(len(SCENE.kinematic_names), 1)
-    be = Engine(SCENE, backend="taichi", arch="cpu").backend(B)
-    be.load(model.table(), model.friction)
-    nsub = np.array([2, 5, 0, 5])
-    be.set_frame(np.full(B, 1e-4), nsub, np.zeros((B, 5, nk, 6)), damage_on=True)
-    assert be.order.to_numpy().tolist() == [1, 3, 0, 2]
-    assert [be.active_runs(k) for k in range(6)] == [3, 3, 2, 2, 2, 0]
-    x0 = be.x.to_numpy()
-    be.advance(50)   # runs 1 and 3 take 5 substeps, run 0 two, run 2 none
-    x = be.x.to_numpy()
-    np.testing.assert_array_equal(x[2], x0[2])
-    assert all(np.abs(x[b] - x0[b]).max() > 0 for b in (0, 1, 3))
-    # the same runs one at a time: each as far as its own substeps, bit for bit
-    for b in (0, 1, 3):
-        one = Engine(SCENE, backend="taichi", arch="cpu").backend(1)
-        one.load(model.take(np.array([b])).table(), model.take(np.array([b])).friction)
-        one.set_frame(np.full(1, 1e-4), nsub[b:b + 1], np.zeros((1, 5, nk, 6)), damage_on=True)
-        one.advance(int(nsub[b]))
-        np.testing.assert_array_equal(one.x.to_numpy()[0], x[b])

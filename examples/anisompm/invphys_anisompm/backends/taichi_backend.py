@@ -258,14 +258,11 @@ def _build_kernels(serial_p2g: bool):
             gg[b * ngrip + g, i, j, q] = 0.0
 
     @ti.kernel
-    def clear_grid(k: ti.i32, na: ti.i32, order: ND(ti.i32, 1), ngrip: ti.i32, nsub: ND(ti.i32, 1),
-                   gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4), gg: ND(ti.f32, 4), G: ti.template()):
+    def clear_grid(k: ti.i32, ngrip: ti.i32, nsub: ND(ti.i32, 1), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
+                   gd: ND(vec2, 4), gg: ND(ti.f32, 4), G: ti.template()):
         # only the nodes the last scatter touched (see touched_node): one read per node instead of 7 writes;
-        # the grid size G is a compile-time constant, so a node's indices cost no integer divisions. Every
-        # substep kernel loops over the na runs still active at substep k only (order: runs by substeps,
-        # most first), so idle runs cost no threads
-        for r, i, j, q in ti.ndrange(na, G, G, G):
-            b = order[r]
+        # the grid size G is a compile-time constant, so a node's indices cost no integer divisions
+        for b, i, j, q in ti.ndrange(gm.shape[0], G, G, G):
             if k < nsub[b] and touched_node(gd[b, i, j, q]):
                 _zero_node(b, i, j, q, ngrip, gv, gm, gd, gg)
 
@@ -278,8 +275,7 @@ def _build_kernels(serial_p2g: bool):
                 _zero_node(b, i, j, q, ngrip, gv, gm, gd, gg)
 
     @ti.kernel
-    def p2g(k: ti.i32, na: ti.i32, order: ND(ti.i32, 1), dx: ti.f32, apic: ti.f32, ngrip: ti.i32,
-            nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
+    def p2g(k: ti.i32, dx: ti.f32, apic: ti.f32, ngrip: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
             mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
             grip: ND(ti.i32, 1), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2),
             d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
@@ -288,8 +284,7 @@ def _build_kernels(serial_p2g: bool):
         G = gm.shape[1]
         if ti.static(serial_p2g):
             ti.loop_config(serialize=True)
-        for r, p in ti.ndrange(na, x.shape[1]):
-            b = order[r]
+        for b, p in ti.ndrange(x.shape[0], x.shape[1]):
             if k < nsub[b]:
                 Xp = x[b, p] * inv_dx
                 base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
@@ -306,8 +301,7 @@ def _build_kernels(serial_p2g: bool):
                                     ngrip, gv, gm, gd, gg)
 
     @ti.kernel
-    def p2g_tiled(k: ti.i32, na: ti.i32, order: ND(ti.i32, 1), dx: ti.f32, apic: ti.f32, ngrip: ti.i32,
-                  nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
+    def p2g_tiled(k: ti.i32, dx: ti.f32, apic: ti.f32, ngrip: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
                   mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
                   grip: ND(ti.i32, 1), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2),
                   d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
@@ -322,9 +316,9 @@ def _build_kernels(serial_p2g: bool):
         N = x.shape[1]
         ntile = (N + TILE - 1) // TILE
         ti.loop_config(block_dim=TILE)
-        for t in range(na * ntile * TILE):
+        for t in range(x.shape[0] * ntile * TILE):
             tid = t % TILE
-            b = order[t // (ntile * TILE)]
+            b = t // (ntile * TILE)
             # lanes of a warp take particles TILE/32 apart, so that they rarely share a base cell: lanes
             # adding to the same shared address in one instruction would serialise
             p = (t // TILE) % ntile * TILE + (tid % 32) * (TILE // 32) + tid // 32
@@ -399,8 +393,7 @@ def _build_kernels(serial_p2g: bool):
             ti.simt.block.sync()  # the next tile of this thread block (grid-stride loop) reuses the arrays
 
     @ti.kernel
-    def grid_update(k: ti.i32, na: ti.i32, order: ND(ti.i32, 1), dx: ti.f32, gravity: ti.f32, damp: ND(ti.f32, 1),
-                    bc: ti.i32, ngrip: ti.i32, ncol: ti.i32,
+    def grid_update(k: ti.i32, dx: ti.f32, gravity: ti.f32, damp: ND(ti.f32, 1), bc: ti.i32, ngrip: ti.i32, ncol: ti.i32,
                     nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1), kin: ND(ti.f32, 4), ctype: ND(ti.i32, 1),
                     ca: ND(vec3, 1), cb: ND(vec3, 1), csurf: ND(ti.i32, 1), fric: ND(ti.f32, 2),
                     held: ND(ti.i32, 3), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gg: ND(ti.f32, 4),
@@ -408,8 +401,7 @@ def _build_kernels(serial_p2g: bool):
         # G (the grid size) is a compile-time constant: most nodes are empty and cost only their indices
         if ti.static(serial_p2g):
             ti.loop_config(serialize=True)  # the force and work sums, like the scatter, in a fixed order
-        for r, i, j, q in ti.ndrange(na, G, G, G):  # a range-for: serialize applies
-            b = order[r]
+        for b, i, j, q in ti.ndrange(gm.shape[0], G, G, G):  # a range-for: serialize applies
             m = gm[b, i, j, q]
             if k < nsub[b] and m > 0.0:
                 vel = gv[b, i, j, q] / m
@@ -461,15 +453,13 @@ def _build_kernels(serial_p2g: bool):
                 gv[b, i, j, q] = vel
 
     @ti.kernel
-    def g2p(k: ti.i32, na: ti.i32, order: ND(ti.i32, 1), dx: ti.f32, l0sq: ti.f32, don: ND(ti.i32, 1),
-            nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
+    def g2p(k: ti.i32, dx: ti.f32, l0sq: ti.f32, don: ND(ti.i32, 1), nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
             mat: ND(ti.f32, 3), body: ND(ti.i32, 1), grip: ND(ti.i32, 1), x0: ND(vec3, 1), kin: ND(ti.f32, 4),
             x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2),
             dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gd: ND(vec2, 4), unrolled: ti.template()):
         inv_dx = 1.0 / dx
         G = gv.shape[1]
-        for r, p in ti.ndrange(na, x.shape[1]):
-            b = order[r]
+        for b, p in x:
             if k < nsub[b]:
                 h = dt[b]
                 Xp = x[b, p] * inv_dx
@@ -720,9 +710,6 @@ class TaichiBackend:
         self._src = self._const(ti.i32, (np.arange(N) if self._unperm is None else self._unperm).astype(np.int32))
         self._uploaded: dict[str, np.ndarray] = {}
         self._slot_mask = ti.ndarray(ti.i32, (B,))
-        #: the runs by this frame's substeps, most first (set_frame), and those substep counts ascending
-        self.order = ti.ndarray(ti.i32, (B,))
-        self._nsub_ascending = np.zeros(B, np.int64)
         self._stats_mask = ti.ndarray(ti.i32, (B,))
 
     def _order(self, a: np.ndarray) -> np.ndarray:
@@ -767,10 +754,6 @@ class TaichiBackend:
                      * np.int32(self.options.damage))
         self._upload("dt", dt.astype(np.float32))
         self.nsub.from_numpy(nsub.astype(np.int32))
-        # the substep kernels loop over runs[:na] with na the runs still active at substep k
-        counts = np.asarray(nsub, np.int64)
-        self._upload("order", np.argsort(-counts, kind="stable").astype(np.int32))
-        self._nsub_ascending = np.sort(counts)
         B, K = kin.shape[:2]
         table = np.zeros((B, K, self.nk1, 6), np.float32)
         table[:, :, :kin.shape[2]] = kin
@@ -791,31 +774,23 @@ class TaichiBackend:
         ng = max(self.ngrip, 1)
         apic = float(o.apic_blend)
         G = int(o.grid)
-        na = self.active_runs(k)
         return {
-            "clear": lambda: self._clear(k, na, self.order, ng, self.nsub, self.gv, self.gm, self.gd, self.gg, G),
-            "p2g": lambda: self._p2g(k, na, self.order, dx, apic, ng, self.nsub, self.dt, self.mat, self.body,
+            "clear": lambda: self._clear(k, ng, self.nsub, self.gv, self.gm, self.gd, self.gg, G),
+            "p2g": lambda: self._p2g(k, dx, apic, ng, self.nsub, self.dt, self.mat, self.body,
                                      self.fibre, self.vol, self.grip, self.x, self.v, self.C, self.F, self.d,
                                      self.dtil, self.gv, self.gm, self.gd, self.gg),
-            "grid": lambda: self._grid(k, na, self.order, dx, float(o.gravity), self.damp, int(o.boundary_cells),
-                                       self.ngrip,
+            "grid": lambda: self._grid(k, dx, float(o.gravity), self.damp, int(o.boundary_cells), self.ngrip,
                                        self.ncol, self.nsub, self.dt, self.kin, self.ctype, self.ca, self.cb,
                                        self.csurf, self.fric, self.held, self.gv, self.gm, self.gg, self.imp,
                                        self.work, G),
-            "g2p": lambda: self._g2p(k, na, self.order, dx, float(o.l0_cells) ** 2, self.don, self.nsub, self.dt,
-                                     self.mat,
+            "g2p": lambda: self._g2p(k, dx, float(o.l0_cells) ** 2, self.don, self.nsub, self.dt, self.mat,
                                      self.body, self.grip, self.x0, self.kin, self.x, self.v, self.C, self.F,
                                      self.d, self.dtil, self.gv, self.gd, self.g2p == "unrolled"),
         }
 
-    def active_runs(self, k: int) -> int:
-        """How many runs of the current frame have a substep ``k`` (the kernels loop over only those)."""
-        return int(self.batch - np.searchsorted(self._nsub_ascending, k, side="right"))
-
     def advance(self, n_steps: int) -> None:
-        """Run substeps 0..n_steps-1 of the current frame (runs past their own nsub idle, and cost nothing:
-        once no run is left, nothing is launched)."""
-        for k in range(min(int(n_steps), int(self._nsub_ascending[-1]))):
+        """Run substeps 0..n_steps-1 of the current frame (runs past their own nsub idle)."""
+        for k in range(n_steps):
             for launch in self._stages(k).values():
                 launch()
 
