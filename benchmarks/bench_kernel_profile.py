@@ -49,6 +49,8 @@ def _args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--arch", default="cuda", help="cpu: a check of the child alone (no ncu)")
     p.add_argument("--p2g", default="atomic", choices=["atomic", "tiled"], help="the Taichi scatter profiled")
     p.add_argument("--g2p", default="unrolled", choices=["unrolled", "loop"], help="the g2p form profiled")
+    p.add_argument("--metrics", default="", help="extra ncu metrics, comma-separated (e.g. instruction counts "
+                                                 "by kind: smsp__sass_inst_executed_op_shared_atom.sum)")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--out", type=Path, default=None)
     return p.parse_args(argv)
@@ -106,6 +108,8 @@ def main(argv: list[str] | None = None) -> int:
            "--launch-skip", str(8 * a.warm), "--launch-count", "8", "--clock-control", "none"]
     for s in SECTIONS:
         cmd += ["--section", s]
+    if a.metrics:
+        cmd += ["--metrics", a.metrics]
     child = [sys.executable, str(Path(__file__).resolve()), "--child", "--preset", a.preset, "--batch",
              str(a.batch), "--warm", str(a.warm), "--dt", str(a.dt), "--p2g", a.p2g, "--g2p", a.g2p]
     proc = subprocess.run(cmd + child, capture_output=True, text=True)
