@@ -217,9 +217,9 @@ def touched_node(g2):
 def _tile_slot(n):
     """Where tile node ``n``'s channels start in the tiled scatter's shared array: ``TILE_CH`` floats per node,
     plus one spare float every two nodes. A float add to shared memory is a compare-and-swap loop in which one
-    lane per memory bank succeeds per try; the lanes of a warp hold particles 8 apart in Morton order, whose
-    nodes differ by even counts, and with a stride of 7 those fall on 16 of the 32 banks (2.4 tries per add,
-    measured); a stride of 7.5 spreads them over all 32."""
+    lane per memory bank succeeds per try (~2.4 tries per add, measured); lanes hold particles 8 apart in Morton
+    order, whose nodes tend to differ by even counts, and the odd half-stride spreads those over more banks.
+    Measured on an H100: 2 % fewer tries, the scatter 2.10 -> 2.02 ms, a substep of 64 runs 1.027x faster."""
     return n * TILE_CH + (n >> 1)
 
 
