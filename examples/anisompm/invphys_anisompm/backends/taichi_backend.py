@@ -750,7 +750,7 @@ class TaichiBackend:
         self.d.from_numpy(np.zeros((B, N), np.float32))
         self.dtil.from_numpy(np.zeros((B, N), np.float32))
         self._slot_mask.from_numpy(np.ones(B, np.int32))
-        self._wipe(self._slot_mask, max(self.ngrip, 1), self.gv, self.gm, self.gd, self.gg)
+        self._wipe_grid()
 
     def set_frame(self, dt: np.ndarray, nsub: np.ndarray, kin: np.ndarray, damage_on: bool,
                   damping: float = 0.0) -> None:
@@ -831,6 +831,10 @@ class TaichiBackend:
         mask[slots] = 1
         self._slot_mask.from_numpy(mask)
         self._reset(self._slot_mask, self.x0, self.x, self.v, self.C, self.F, self.d, self.dtil)
+        self._wipe_grid()
+
+    def _wipe_grid(self) -> None:
+        """Zero the whole grid of the runs in ``_slot_mask``."""
         self._wipe(self._slot_mask, max(self.ngrip, 1), self.gv, self.gm, self.gd, self.gg)
 
     def read_slots(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
