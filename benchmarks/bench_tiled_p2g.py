@@ -5,8 +5,9 @@ particles in shared memory before adding it to the grid; the atomic one adds eve
 every node with global float atomics (``docs/gpu-throughput.md``). This benchmark, on ``--runs`` random
 parameter vectors (seed 0) of the orange peel at ``--preset``:
 
-1. **grid parity**: both backends load the same runs and do one P2G; the grids (momentum, mass, damage
-   sums, grip mass) must agree to float rounding (the order of the sums differs);
+1. **grid parity**: both backends load the same runs, set the same moving, strained, partly damaged state
+   (``perturbed_state``) and do one P2G; the grids (momentum, mass, damage sums, grip mass) must agree to
+   float rounding (the order of the sums differs; the tiled momentum and mass are fixed-point sums);
 2. **kernel profile**: seconds per launch of each substep stage (``kernel_times``), both ways;
 3. **whole runs**: the same runs simulated atomic, tiled, then atomic again, in lock-step batches of
    ``--batch``: wall time per run, the ratio to the paper's 156 s, and the features' agreement (median,
@@ -71,14 +72,31 @@ def timed_features(sim, params: np.ndarray, extractor) -> tuple[float, np.ndarra
     return wall, np.array([extractor.extract(r.trajectory) if r.ok else nan for r in res])
 
 
+def perturbed_state(B: int, N: int, seed: int = 1) -> dict[str, np.ndarray]:
+    """A moving, strained, partly damaged state of ``B`` runs of ``N`` particles (scene order): velocities
+    ~0.1 m/s, deformation gradients 2 % from identity, APIC matrices, damage on a fifth of the particles.
+    At rest every momentum is zero, which would leave the momentum sums untested."""
+    rng = np.random.default_rng(seed)
+    f32 = np.float32
+    d = np.where(rng.uniform(size=(B, N)) < 0.2, rng.uniform(size=(B, N)), 0.0)
+    return {"v": (0.1 * rng.standard_normal((B, N, 3))).astype(f32),
+            "C": rng.standard_normal((B, N, 3, 3)).astype(f32),
+            "F": (np.eye(3) + 0.02 * rng.standard_normal((B, N, 3, 3))).astype(f32),
+            "d": d.astype(f32)}
+
+
 def _grids(sim, params: np.ndarray) -> dict[str, np.ndarray]:
-    """One clear + P2G of the freshly loaded runs; the grid arrays in float64."""
+    """One clear + P2G of the loaded runs in ``perturbed_state`` (the same state whatever the device's
+    particle order); the grid arrays in float64."""
     from invphys_orange_peel.engine_scene import model_for
 
     B = len(params)
     backend = sim.engine.backend(B)
     model = model_for(sim.engine_scene, params)
     backend.load(model.table(), model.friction)
+    perm = getattr(backend, "_perm", None)
+    for name, values in perturbed_state(B, backend.scene.n_particles).items():
+        getattr(backend, name).from_numpy(np.ascontiguousarray(values if perm is None else values[:, perm]))
     nk = max(len(sim.engine_scene.engine.kinematic_names), 1)
     backend.set_frame(np.full(B, 1e-4), np.full(B, 2), np.zeros((B, 2, nk, 6)), damage_on=True)
     stages = backend._stages(0)
