@@ -268,8 +268,10 @@ def _scatter_global(b, node, weight, mom, mass, dp, gp, ngrip, gv: ti.template()
         gg[b * ngrip + gp, node[0], node[1], node[2]] += weight * mass
 
 
-def _build_kernels(serial_p2g: bool):
-    """Compile-time configured kernels (``serial_p2g`` makes CPU scatter order deterministic)."""
+def _build_kernels(serial_p2g: bool, G: int, unrolled: bool):
+    """Compile-time configured kernels: ``serial_p2g`` makes the CPU's scatter order deterministic, ``G`` is the
+    grid size (no integer divisions for a node's indices), ``unrolled`` picks g2p's form. They are closure
+    constants, not template arguments, so that the substep's kernels can be recorded in a Taichi graph."""
 
     @ti.func
     def _zero_node(b, i, j, q, ngrip, gv: ti.template(), gm: ti.template(), gd: ti.template(), gg: ti.template()):
@@ -281,9 +283,8 @@ def _build_kernels(serial_p2g: bool):
 
     @ti.kernel
     def clear_grid(k: ti.i32, ngrip: ti.i32, nsub: ND(ti.i32, 1), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
-                   gd: ND(vec2, 4), gg: ND(ti.f32, 4), G: ti.template()):
-        # only the nodes the last scatter touched (see touched_node): one read per node instead of 7 writes;
-        # the grid size G is a compile-time constant, so a node's indices cost no integer divisions
+                   gd: ND(vec2, 4), gg: ND(ti.f32, 4)):
+        # only the nodes the last scatter touched (see touched_node): one read per node instead of 7 writes
         for b, i, j, q in ti.ndrange(gm.shape[0], G, G, G):
             if k < nsub[b] and touched_node(gd[b, i, j, q]):
                 _zero_node(b, i, j, q, ngrip, gv, gm, gd, gg)
@@ -303,7 +304,6 @@ def _build_kernels(serial_p2g: bool):
             d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
             gg: ND(ti.f32, 4)):
         inv_dx = 1.0 / dx
-        G = gm.shape[1]
         if ti.static(serial_p2g):
             ti.loop_config(serialize=True)
         for b, p in ti.ndrange(x.shape[0], x.shape[1]):
@@ -334,7 +334,6 @@ def _build_kernels(serial_p2g: bool):
         # float atomics per particle and node (the L2 atomics bound the plain scatter). A tile whose box
         # exceeds TILE_NODES nodes (or a scene with more than one grip) scatters globally, as p2g does.
         inv_dx = 1.0 / dx
-        G = gm.shape[1]
         N = x.shape[1]
         ntile = (N + TILE - 1) // TILE
         ti.loop_config(block_dim=TILE)
@@ -442,7 +441,7 @@ def _build_kernels(serial_p2g: bool):
                     nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1), kin: ND(ti.f32, 4), ctype: ND(ti.i32, 1),
                     ca: ND(vec3, 1), cb: ND(vec3, 1), csurf: ND(ti.i32, 1), fric: ND(ti.f32, 2),
                     held: ND(ti.i32, 3), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gg: ND(ti.f32, 4),
-                    imp: ND(vec3, 2), work: ND(ti.f32, 2), G: ti.template()):
+                    imp: ND(vec3, 2), work: ND(ti.f32, 2)):
         # G (the grid size) is a compile-time constant: most nodes are empty and cost only their indices
         if ti.static(serial_p2g):
             ti.loop_config(serialize=True)  # the force and work sums, like the scatter, in a fixed order
@@ -501,9 +500,8 @@ def _build_kernels(serial_p2g: bool):
     def g2p(k: ti.i32, dx: ti.f32, l0sq: ti.f32, don: ND(ti.i32, 1), nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
             mat: ND(ti.f32, 3), body: ND(ti.i32, 1), grip: ND(ti.i32, 1), x0: ND(vec3, 1), kin: ND(ti.f32, 4),
             x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2),
-            dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gd: ND(vec2, 4), unrolled: ti.template()):
+            dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gd: ND(vec2, 4)):
         inv_dx = 1.0 / dx
-        G = gv.shape[1]
         for b, p in x:
             if k < nsub[b]:
                 h = dt[b]
@@ -650,7 +648,29 @@ def _build_kernels(serial_p2g: bool):
     return clear_grid, p2g, grid_update, g2p, frame_stats, reset_slots, gather, frame_end, p2g_tiled, wipe_grid
 
 
-_KERNELS: dict[bool, tuple] = {}
+_KERNELS: dict[tuple[bool, int, bool], tuple] = {}
+#: a substep's kernels in order and their arguments: ``k`` (the substep), a scalar of the backend's
+#: ``_scalars`` or one of its arrays
+_STAGE_ARGS = {
+    "clear": ("k", "ngrip1", "nsub", "gv", "gm", "gd", "gg"),
+    "p2g": ("k", "dx", "apic", "ngrip1", "nsub", "dt", "mat", "body", "fibre", "vol", "grip", "x", "v", "C", "F", "d",
+            "dtil", "gv", "gm", "gd", "gg"),
+    "grid": ("k", "dx", "gravity", "damp", "bc", "ngrip", "ncol", "nsub", "dt", "kin", "ctype", "ca", "cb", "csurf",
+             "fric", "held", "gv", "gm", "gg", "imp", "work"),
+    "g2p": ("k", "dx", "l0sq", "don", "nsub", "dt", "mat", "body", "grip", "x0", "kin", "x", "v", "C", "F", "d", "dtil",
+            "gv", "gd"),
+}
+#: substeps per graph launch in ``advance`` (a frame's remainder goes one substep at a time)
+GRAPH_SUBSTEPS = 8
+
+
+def _element_type(arr):
+    """A Taichi ndarray's element type as a graph argument takes it: a scalar, vector or matrix type."""
+    if hasattr(arr, "m"):
+        return ti.types.matrix(arr.n, arr.m, arr.dtype)
+    if hasattr(arr, "n"):
+        return ti.types.vector(arr.n, arr.dtype)
+    return arr.dtype
 
 
 def morton_order(positions: np.ndarray, dx: float, grid: int) -> np.ndarray:
@@ -694,13 +714,20 @@ class TaichiBackend:
         o = scene.options
         self.options = o
         self.batch = int(batch)
-        serial = bool(o.deterministic and self.arch == "cpu")
-        if serial not in _KERNELS:
-            _KERNELS[serial] = _build_kernels(serial)
+        key = (bool(o.deterministic and self.arch == "cpu"), int(o.grid), self.g2p == "unrolled")
+        if key not in _KERNELS:
+            _KERNELS[key] = _build_kernels(*key)
         (self._clear, self._p2g, self._grid, self._g2p, self._stats, self._reset, self._gather,
-         self._frame_end, p2g_tiled, self._wipe) = _KERNELS[serial]
+         self._frame_end, p2g_tiled, self._wipe) = _KERNELS[key]
         if p2g == "tiled":
             self._p2g = p2g_tiled
+        self._kernel_of = {"clear": self._clear, "p2g": self._p2g, "grid": self._grid, "g2p": self._g2p}
+        #: the substep's scalar arguments (dtype, value): fixed by the scene's options
+        self._scalars = {"dx": (ti.f32, float(o.dx)), "apic": (ti.f32, float(o.apic_blend)),
+                         "ngrip1": (ti.i32, max(len(scene.grips), 1)), "gravity": (ti.f32, float(o.gravity)),
+                         "bc": (ti.i32, int(o.boundary_cells)), "ngrip": (ti.i32, len(scene.grips)),
+                         "ncol": (ti.i32, len(scene.colliders)), "l0sq": (ti.f32, float(o.l0_cells) ** 2)}
+        self._graphs: dict[int, object] = {}
         #: particle order on the device: Morton order of the initial cells for the tiled scatter (tiles of
         #: consecutive particles stay compact), else the scene's; every read returns the scene's order
         morton = (particle_order or ("morton" if p2g == "tiled" else "scene")) == "morton"
@@ -812,32 +839,67 @@ class TaichiBackend:
             getattr(self, name).from_numpy(values)
             self._uploaded[name] = values
 
+    def _stage_value(self, name: str, k: int):
+        """The value of substep argument ``name`` (``_STAGE_ARGS``) at substep ``k``."""
+        if name == "k":
+            return k
+        scalar = self._scalars.get(name)
+        return scalar[1] if scalar is not None else getattr(self, name)
+
     def _stages(self, k: int) -> dict[str, object]:
         """The substep's kernel launches in order, by stage name (each a no-argument callable)."""
-        o = self.options
-        dx = float(o.dx)
-        ng = max(self.ngrip, 1)
-        apic = float(o.apic_blend)
-        G = int(o.grid)
-        return {
-            "clear": lambda: self._clear(k, ng, self.nsub, self.gv, self.gm, self.gd, self.gg, G),
-            "p2g": lambda: self._p2g(k, dx, apic, ng, self.nsub, self.dt, self.mat, self.body,
-                                     self.fibre, self.vol, self.grip, self.x, self.v, self.C, self.F, self.d,
-                                     self.dtil, self.gv, self.gm, self.gd, self.gg),
-            "grid": lambda: self._grid(k, dx, float(o.gravity), self.damp, int(o.boundary_cells), self.ngrip,
-                                       self.ncol, self.nsub, self.dt, self.kin, self.ctype, self.ca, self.cb,
-                                       self.csurf, self.fric, self.held, self.gv, self.gm, self.gg, self.imp,
-                                       self.work, G),
-            "g2p": lambda: self._g2p(k, dx, float(o.l0_cells) ** 2, self.don, self.nsub, self.dt, self.mat,
-                                     self.body, self.grip, self.x0, self.kin, self.x, self.v, self.C, self.F,
-                                     self.d, self.dtil, self.gv, self.gd, self.g2p == "unrolled"),
-        }
+        return {stage: (lambda kern=self._kernel_of[stage], names=names:
+                        kern(*(self._stage_value(n, k) for n in names)))
+                for stage, names in _STAGE_ARGS.items()}
+
+    def _substep_graph(self, steps: int):
+        """A Taichi graph of ``steps`` substeps (substep ``s`` runs at ``k = k<s>``), compiled once per size.
+
+        A substep is four kernel launches of ~20 array arguments each; from Python they cost ~0.7-1 ms of host
+        time per substep (measured on an H100 host), more than the GPU needs for a substep of <= 16 runs, so
+        a lock-step batch's tail was bound by the host. A graph binds its arguments once per run and launches
+        its kernels from C++: the same kernels in the same order."""
+        graph = self._graphs.get(steps)
+        if graph is None:
+            from taichi import graph as tg
+
+            symbols: dict[str, object] = {}
+
+            def symbol(name: str, s: int):
+                key = f"k{s}" if name == "k" else name
+                if key not in symbols:
+                    if name == "k" or name in self._scalars:
+                        dtype = ti.i32 if name == "k" else self._scalars[name][0]
+                        symbols[key] = tg.Arg(tg.ArgKind.SCALAR, key, dtype)
+                    else:
+                        arr = getattr(self, name)
+                        symbols[key] = tg.Arg(tg.ArgKind.NDARRAY, key, dtype=_element_type(arr), ndim=len(arr.shape))
+                return symbols[key]
+
+            builder = tg.GraphBuilder()
+            for s in range(steps):
+                for stage, names in _STAGE_ARGS.items():
+                    builder.dispatch(self._kernel_of[stage], *(symbol(n, s) for n in names))
+            graph = self._graphs[steps] = builder.compile()
+        return graph
+
+    def _run_graph(self, steps: int, k0: int) -> None:
+        values: dict[str, object] = {f"k{s}": k0 + s for s in range(steps)}
+        for names in _STAGE_ARGS.values():
+            for n in names:
+                if n != "k" and n not in values:
+                    values[n] = self._stage_value(n, 0)
+        self._substep_graph(steps).run(values)
 
     def advance(self, n_steps: int) -> None:
-        """Run substeps 0..n_steps-1 of the current frame (runs past their own nsub idle)."""
-        for k in range(n_steps):
-            for launch in self._stages(k).values():
-                launch()
+        """Run substeps 0..n_steps-1 of the current frame (runs past their own nsub idle): graphs of
+        ``GRAPH_SUBSTEPS`` substeps, then single ones for the rest."""
+        k = 0
+        while n_steps - k >= GRAPH_SUBSTEPS:
+            self._run_graph(GRAPH_SUBSTEPS, k)
+            k += GRAPH_SUBSTEPS
+        for rest in range(k, n_steps):
+            self._run_graph(1, rest)
 
     def kernel_times(self, n_steps: int = 20) -> dict[str, float]:
         """Mean seconds per launch of each substep stage over ``n_steps`` synchronised substeps (profiling;
