@@ -29,24 +29,53 @@ from _machine import emit  # noqa: E402
 TIMED = ("load", "set_frame", "advance", "frame_stats", "kinematic_sums", "read", "sync")
 
 
-def instrument(backend) -> dict[str, list[float]]:
-    """Wrap the backend's calls with timers (``advance`` waits for the GPU); returns the running totals."""
+def instrument(backend, frames: list[dict] | None = None) -> dict[str, list[float]]:
+    """Wrap the backend's calls with timers (``advance`` waits for the GPU); returns the running totals.
+    With ``frames``, each ``advance`` appends ``{"nsub": the runs' substeps this frame, "steps", "s"}``."""
     totals: dict[str, list[float]] = defaultdict(lambda: [0.0, 0])
     wait = backend.sync  # the unwrapped one: the GPU wait belongs to advance, not to the sync count
+    last_nsub: list[np.ndarray] = [np.zeros(0)]
     for name in TIMED:
         orig = getattr(backend, name)
 
         def timed(*a, _orig=orig, _name=name, **k):
+            if _name == "set_frame":
+                last_nsub[0] = np.asarray(a[1] if len(a) > 1 else k["nsub"]).copy()
             t = time.perf_counter()
             out = _orig(*a, **k)
             if _name == "advance":
                 wait()
-            totals[_name][0] += time.perf_counter() - t
+            dt_s = time.perf_counter() - t
+            totals[_name][0] += dt_s
             totals[_name][1] += 1
+            if _name == "advance" and frames is not None:
+                frames.append({"nsub": last_nsub[0], "steps": int(a[0] if a else k["n_steps"]), "s": dt_s})
             return out
 
         setattr(backend, name, timed)
     return totals
+
+
+#: bins of the number of runs still active in a lock-step substep
+ACTIVE_BINS = ((0, 0), (1, 1), (2, 3), (4, 7), (8, 15), (16, 31), (32, 63), (64, 1 << 30))
+
+
+def lockstep_profile(frames: list[dict], batch: int) -> dict:
+    """Where a lock-step batch's substeps go: every frame launches ``steps`` substeps, and substep ``k`` has
+    the runs with ``nsub > k`` active. Returns the lock-step substeps, the runs' own substeps, the efficiency
+    (their ratio over the batch size times the lock-step substeps), the mean advance time per lock-step
+    substep, and how many lock-step substeps had how many runs active (bins)."""
+    lock = sum(f["steps"] for f in frames)
+    own = sum(int(np.minimum(f["nsub"], f["steps"]).sum()) for f in frames)
+    bins = {f"{lo}-{hi}" if hi < 1 << 30 else f">={lo}": 0 for lo, hi in ACTIVE_BINS}
+    for f in frames:
+        k = np.arange(f["steps"])
+        active = (np.asarray(f["nsub"])[None, :] > k[:, None]).sum(axis=1)
+        for (lo, hi), key in zip(ACTIVE_BINS, bins, strict=True):
+            bins[key] += int(((active >= lo) & (active <= hi)).sum())
+    return {"lockstep_substeps": lock, "run_substeps": own, "efficiency": own / max(lock * batch, 1),
+            "advance_ms_per_lockstep_substep": 1e3 * sum(f["s"] for f in frames) / max(lock, 1),
+            "substeps_by_active_runs": bins}
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -74,7 +103,8 @@ def main(argv: list[str] | None = None) -> dict:
     t = time.perf_counter()
     engine.run(model, 2, 1)  # compile every kernel at this batch's shapes
     compile_s = time.perf_counter() - t
-    totals = instrument(engine.backend(args.batch))
+    frame_log: list[dict] = []
+    totals = instrument(engine.backend(args.batch), frame_log)
     t = time.perf_counter()
     records = engine.run(model, frames, every)
     wall = time.perf_counter() - t
@@ -95,6 +125,7 @@ def main(argv: list[str] | None = None) -> dict:
         "host_ms_per_batch_frame": 1e3 * host / batch_frames,
         "host_ms_per_run_frame": 1e3 * host / (batch_frames * args.batch),
         "host_python_s": round(host - named, 3), "calls": calls,
+        "lockstep": lockstep_profile(frame_log, args.batch),
     }
     emit(out, args.out)
     return out

@@ -82,7 +82,7 @@ def _streamed_substep(sim, params: np.ndarray, steps: int) -> float:
     import time
 
     backend = _loaded(sim, params, steps)
-    backend.advance(2)   # warm
+    backend.advance(steps)   # warm: compiles whatever advance(steps) launches (Taichi graphs of substeps)
     backend.sync()
     t0 = time.perf_counter()
     backend.advance(steps)
