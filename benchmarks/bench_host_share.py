@@ -64,7 +64,9 @@ def lockstep_profile(frames: list[dict], batch: int) -> dict:
     """Where a lock-step batch's substeps go: every frame launches ``steps`` substeps, and substep ``k`` has
     the runs with ``nsub > k`` active. Returns the lock-step substeps, the runs' own substeps, the efficiency
     (their ratio over the batch size times the lock-step substeps), the mean advance time per lock-step
-    substep, and how many lock-step substeps had how many runs active (bins)."""
+    substep, how many lock-step substeps had how many runs active (bins), and a least-squares split of the
+    frames' advance seconds into a cost per lock-step substep (paid however few runs are active) and a cost
+    per run-substep."""
     lock = sum(f["steps"] for f in frames)
     own = sum(int(np.minimum(f["nsub"], f["steps"]).sum()) for f in frames)
     bins = {f"{lo}-{hi}" if hi < 1 << 30 else f">={lo}": 0 for lo, hi in ACTIVE_BINS}
@@ -73,7 +75,12 @@ def lockstep_profile(frames: list[dict], batch: int) -> dict:
         active = (np.asarray(f["nsub"])[None, :] > k[:, None]).sum(axis=1)
         for (lo, hi), key in zip(ACTIVE_BINS, bins, strict=True):
             bins[key] += int(((active >= lo) & (active <= hi)).sum())
+    # each frame's advance seconds ~ fixed * its lock-step substeps + per_run * its runs' substeps
+    design = np.array([[f["steps"], np.minimum(f["nsub"], f["steps"]).sum()] for f in frames], float)
+    secs = np.array([f["s"] for f in frames])
+    (fixed, per_run), *_ = np.linalg.lstsq(design, secs, rcond=None) if len(frames) >= 2 else ((np.nan, np.nan),)
     return {"lockstep_substeps": lock, "run_substeps": own, "efficiency": own / max(lock * batch, 1),
+            "fit_ms_per_lockstep_substep": 1e3 * float(fixed), "fit_ms_per_run_substep": 1e3 * float(per_run),
             "advance_ms_per_lockstep_substep": 1e3 * sum(f["s"] for f in frames) / max(lock, 1),
             "substeps_by_active_runs": bins}
 
