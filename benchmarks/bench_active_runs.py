@@ -8,7 +8,11 @@ active, the rest idle), ``--steps`` substeps are launched back to back with one 
 - ``gpu_ms``: wall milliseconds per substep, sync included (the GPU's time when it is the bound);
 - ``host_ms``: milliseconds per substep until the launches have been issued (Python + Taichi's launch path;
   the floor when the GPU is faster);
-- ``ms_per_active_run``: ``gpu_ms / a``, against the full batch's.
+- ``ms_per_active_run``: ``gpu_ms / a``, against the full batch's;
+- ``stage_ms``: each stage's milliseconds, synchronised one by one (``kernel_times``).
+
+``--frames F`` first simulates F frames of the batch, so that the state is deformed and fractured as a
+batch's tail finds it (else the state at rest).
 
     python benchmarks/bench_active_runs.py --preset paper --batch 64 --out $OUT/active_runs_paper.json
 """
@@ -39,6 +43,8 @@ def _args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--arch", default="cuda", help="cpu: a check of the script (times mean nothing there)")
     p.add_argument("--p2g", default="auto", choices=["auto", "atomic", "tiled"], help="the scatter")
     p.add_argument("--steps", type=int, default=40, help="substeps timed per count of active runs")
+    p.add_argument("--frames", type=int, default=0,
+                   help="simulate this many frames first (a deformed, partly fractured state; 0: the state at rest)")
     p.add_argument("--out", type=Path, default=None)
     return p.parse_args(argv)
 
@@ -82,20 +88,26 @@ def main(argv: list[str] | None = None) -> int:
     ident = RunIdentity.of(sim)
     backend = sim.engine.backend(a.batch)
     model = model_for(sim.engine_scene, params)
-    backend.load(model.table(), model.friction)
+    if a.frames:
+        sim.engine.run(model, a.frames, a.frames)  # leaves the batch's state at frame a.frames
+    else:
+        backend.load(model.table(), model.friction)
     nk = max(len(sim.engine_scene.engine.kinematic_names), 1)
     rows = []
     for active in active_counts(a.batch):
         host, wall = time_substeps(backend, active, a.steps, nk)
+        stage_ms = {k: v * 1e3 for k, v in backend.kernel_times(5).items()}  # each stage synchronised
         rows.append({"active_runs": active, "gpu_ms": wall * 1e3, "host_ms": host * 1e3,
-                     "ms_per_active_run": wall * 1e3 / active if active else None})
-        print(f"{active:3d} active: {wall * 1e3:.3f} ms per substep (host {host * 1e3:.3f} ms)", flush=True)
+                     "ms_per_active_run": wall * 1e3 / active if active else None, "stage_ms": stage_ms})
+        print(f"{active:3d} active: {wall * 1e3:.3f} ms per substep (host {host * 1e3:.3f} ms); stages "
+              + ", ".join(f"{k} {v:.3f}" for k, v in stage_ms.items()), flush=True)
     full = rows[0]["ms_per_active_run"]
     for r in rows:
         r["cost_per_run_vs_full"] = r["ms_per_active_run"] / full if r["active_runs"] else None
     out = {"benchmark": "bench_active_runs", "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
            "command": "python " + " ".join(shlex.quote(x) for x in [sys.argv[0], *(argv or sys.argv[1:])]),
            "simulator_version": ident.version, "config_hash": ident.config, "preset": a.preset, "batch": a.batch,
+           "state": f"after {a.frames} frames" if a.frames else "at rest",
            "scatter": backend.p2g, "device": backend.device, "steps": a.steps, "rows": rows}
     emit(out, a.out)
     return 0

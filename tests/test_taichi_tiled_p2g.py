@@ -154,3 +154,63 @@ def test_reads_are_new_arrays_in_the_scene_order():
         np.testing.assert_array_equal(xs[0], x1[1])
         assert ds.shape == (1, scene.n_particles)
 
+
+
+def _kernel(fn, *names):
+    """A Taichi kernel of ``fn`` with ndarray arguments ``names`` (this module's annotations are strings)."""
+    import taichi as ti
+
+    fn.__annotations__ = {n: ti.types.ndarray() for n in names}
+    return ti.kernel(fn)
+
+
+def test_fixed_point_scale_cannot_overflow_and_rounds_to_2e_minus_24_of_the_bound():
+    """The tiled scatter's integer sums (CUDA) rest on two CPU-checkable functions: a tile's bound as the
+    bits of a non-negative float (ordered as the floats are, a NaN above infinity) and the power-of-two scale
+    from it. For bounds over 60 decades and zero: 128 shares at the bound stay below 2**31, the scale is an
+    exact power of two with an exact inverse, and one share is rounded to at most 2**-24 of the bound."""
+    import taichi as ti
+
+    from invphys_anisompm.backends.taichi_backend import (
+        F32_INF_BITS,
+        _fixed_point_scale,
+        _momentum_bound_bits,
+        ensure_taichi,
+    )
+
+    ensure_taichi("cpu")
+    bounds = np.concatenate([[0.0, 1e-38], np.logspace(-30, 30, 121)]).astype(np.float32)
+    out = ti.ndarray(ti.f32, (len(bounds), 2))
+    src = ti.ndarray(ti.f32, (len(bounds),))
+    src.from_numpy(bounds)
+
+    def scales(b, o):
+        for i in range(b.shape[0]):
+            s, inv = _fixed_point_scale(ti.bit_cast(b[i], ti.i32))
+            o[i, 0] = s
+            o[i, 1] = inv
+
+    _kernel(scales, "b", "o")(src, out)
+    s, inv = out.to_numpy().astype(np.float64).T
+    assert np.all(s * inv == 1.0)
+    assert np.all(np.log2(s) == np.round(np.log2(s)))                    # powers of two: exact scaling
+    assert np.all(128.0 * bounds.astype(np.float64) * s < 2.0 ** 31)       # no overflow at the bound
+    big = bounds > 1e-30
+    assert np.all(0.5 * inv[big] <= 2.0 ** -24 * bounds[big])           # rounding step vs the bound
+
+    bits = ti.ndarray(ti.i32, (4,))
+    mv = ti.ndarray(ti.math.vec3, (4,))
+    aff = ti.ndarray(ti.math.mat3, (4,))
+    mv.from_numpy(np.array([[0, 0, 0], [1, -2, 0.5], [0, np.nan, 0], [np.inf, 0, 0]], np.float32))
+    aff.from_numpy(np.stack([np.zeros((3, 3)), np.diag([1.0, -1.0, 2.0]), np.zeros((3, 3)),
+                             np.zeros((3, 3))]).astype(np.float32))
+
+    def bound_bits(m, a, o):
+        for i in range(m.shape[0]):
+            o[i] = _momentum_bound_bits(m[i], a[i], 0.1)
+
+    _kernel(bound_bits, "m", "a", "o")(mv, aff, bits)
+    got = bits.to_numpy()
+    assert got[0] == 0
+    assert got[1] == np.float32(2.0 + 0.15).view(np.int32)     # row 1: |-2| + 1.5 * 0.1 * |-1|
+    assert got[2] >= F32_INF_BITS and got[3] >= F32_INF_BITS      # non-finite: the tile scatters globally
