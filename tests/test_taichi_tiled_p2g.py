@@ -214,3 +214,43 @@ def test_fixed_point_scale_cannot_overflow_and_rounds_to_2e_minus_24_of_the_boun
     assert got[0] == 0
     assert got[1] == np.float32(2.0 + 0.15).view(np.int32)     # row 1: |-2| + 1.5 * 0.1 * |-1|
     assert got[2] >= F32_INF_BITS and got[3] >= F32_INF_BITS      # non-finite: the tile scatters globally
+
+
+def test_weight_words_sum_without_overflow_to_float_precision():
+    """The tiled scatter sums a node's weights as two integer words (``_weight_words``): 256 weights at
+    the largest B-spline weight fit in int32, and the words' sum (``_weight_sum``) matches the float64 sum
+    to float32 rounding, also for nodes that only tiny weights reach (whose zero would mark the node as
+    untouched)."""
+    import taichi as ti
+
+    from invphys_anisompm.backends.taichi_backend import _weight_sum, _weight_words, ensure_taichi
+
+    ensure_taichi("cpu")
+    rng = np.random.default_rng(0)
+    w = np.concatenate([np.full((1, 256), 0.75 ** 3), rng.uniform(0, 0.42, (8, 256)),
+                        10.0 ** rng.uniform(-14, -3, (8, 256)), np.zeros((1, 256))]).astype(np.float32)
+    src = ti.ndarray(ti.f32, w.shape)
+    src.from_numpy(w)
+    words = ti.ndarray(ti.i32, (*w.shape, 2))
+
+    def split(a, o):
+        for i, j in ti.ndrange(a.shape[0], a.shape[1]):
+            hi, lo = _weight_words(a[i, j])
+            o[i, j, 0] = hi
+            o[i, j, 1] = lo
+
+    _kernel(split, "a", "o")(src, words)
+    sums = words.to_numpy().astype(np.int64).sum(axis=1)      # (nodes, 2) exact
+    assert np.abs(sums).max() < 2 ** 31
+    hi_lo = ti.ndarray(ti.i32, sums.shape)
+    hi_lo.from_numpy(sums.astype(np.int32))
+    got = ti.ndarray(ti.f32, (len(sums),))
+
+    def total(s, o):
+        for i in range(s.shape[0]):
+            o[i] = _weight_sum(s[i, 0], s[i, 1])
+
+    _kernel(total, "s", "o")(hi_lo, got)
+    want = w.astype(np.float64).sum(axis=1)
+    np.testing.assert_allclose(got.to_numpy(), want, rtol=3e-7, atol=1e-13)
+    assert (got.to_numpy() > 0).sum() == len(want) - 1                 # only the all-zero node is untouched
