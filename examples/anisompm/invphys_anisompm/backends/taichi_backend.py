@@ -235,27 +235,6 @@ def _fixed_point_scale(bound_bits):
     return ti.bit_cast((277 - e) << 23, ti.f32), ti.bit_cast((e - 23) << 23, ti.f32)
 
 
-#: the weight sum's two fixed-point words: units of 2**-24 and of 2**-47 (2**-24 * 2**-23)
-W_HI = 2.0 ** 24
-W_LO = 2.0 ** 23
-
-
-@ti.func
-def _weight_words(w):
-    """A B-spline weight ``0 <= w <= 0.75**3`` as two integers ``hi, lo`` with ``w = hi 2**-24 + lo 2**-47``
-    to within ``2**-48``: the tiled scatter sums them with native integer adds. At most TILE = 256 weights
-    reach a node, so ``sum hi <= 256 * 0.42 * 2**24 < 2**31`` and ``|sum lo| <= 256 * 2**22 = 2**30``."""
-    scaled = w * W_HI
-    hi = ti.round(scaled)
-    return ti.cast(hi, ti.i32), ti.cast(ti.round((scaled - hi) * W_LO), ti.i32)
-
-
-@ti.func
-def _weight_sum(hi, lo):
-    """A node's weight sum from the sums of its ``_weight_words`` (float32, as the float sum was)."""
-    return ti.cast(hi, ti.f32) * (1.0 / W_HI) + ti.cast(lo, ti.f32) * (1.0 / (W_HI * W_LO))
-
-
 @ti.func
 def _w1(f, i):
     """The quadratic B-spline weight of node offset ``i`` (0, 1, 2) at fractional position ``f``."""
@@ -367,11 +346,11 @@ def _build_kernels(serial_p2g: bool, G: int, unrolled: bool):
             lo = ti.simt.block.SharedArray((3,), ti.i32)
             hi = ti.simt.block.SharedArray((3,), ti.i32)
             big = ti.simt.block.SharedArray((2,), ti.i32)
-            # channel-major sums over the tile's nodes: momentum, mass and the weight sum as fixed-point integers
-            # (a shared integer add is one instruction; a float add is a compare-and-swap loop; see
-            # _fixed_point_scale and _weight_words), the damage sum and grip mass as floats
-            acc_i = ti.simt.block.SharedArray((6 * TILE_NODES,), ti.i32)
-            acc_f = ti.simt.block.SharedArray((2 * TILE_NODES,), ti.f32)
+            # channel-major sums over the tile's nodes: momentum and mass as fixed-point integers (a shared
+            # integer add is one instruction; a float add is a compare-and-swap loop), the weight sum, damage
+            # sum and grip mass as floats (see _fixed_point_scale)
+            acc_i = ti.simt.block.SharedArray((4 * TILE_NODES,), ti.i32)
+            acc_f = ti.simt.block.SharedArray((3 * TILE_NODES,), ti.f32)
             if tid < 3:
                 lo[tid] = G
                 hi[tid] = -1
@@ -410,9 +389,9 @@ def _build_kernels(serial_p2g: bool, G: int, unrolled: bool):
             if tiled:
                 c = tid
                 while c < n_nodes:
-                    for ch in ti.static(range(6)):
+                    for ch in ti.static(range(4)):
                         acc_i[ch * TILE_NODES + c] = 0
-                    for ch in ti.static(range(2)):
+                    for ch in ti.static(range(3)):
                         acc_f[ch * TILE_NODES + c] = 0.0
                     c += TILE
             ti.simt.block.sync()
@@ -431,23 +410,19 @@ def _build_kernels(serial_p2g: bool, G: int, unrolled: bool):
                         for a in ti.static(range(3)):
                             ti.atomic_add(acc_i[a * TILE_NODES + c], ti.cast(ti.round(mom[a] * s_mom), ti.i32))
                         ti.atomic_add(acc_i[3 * TILE_NODES + c], ti.cast(ti.round(weight * mass * s_mass), ti.i32))
-                        w_hi, w_lo = _weight_words(weight)
-                        ti.atomic_add(acc_i[4 * TILE_NODES + c], w_hi)
-                        ti.atomic_add(acc_i[5 * TILE_NODES + c], w_lo)
+                        ti.atomic_add(acc_f[c], weight)
                         if dp != 0.0:  # adding zero changes no sum: most particles are undamaged
-                            ti.atomic_add(acc_f[c], weight * dp)
+                            ti.atomic_add(acc_f[TILE_NODES + c], weight * dp)
                         if gp >= 0:
-                            ti.atomic_add(acc_f[TILE_NODES + c], weight * mass)
+                            ti.atomic_add(acc_f[2 * TILE_NODES + c], weight * mass)
                     else:
                         _scatter_global(b, node, weight, mom, mass, dp, gp, ngrip, gv, gm, gd, gg)
             ti.simt.block.sync()
             if tiled:
                 c = tid
                 while c < n_nodes:
-                    w_hi = acc_i[4 * TILE_NODES + c]
-                    w_lo = acc_i[5 * TILE_NODES + c]
-                    if w_hi != 0 or w_lo != 0:  # a node some particle touched (touched_node)
-                        sw = _weight_sum(w_hi, w_lo)
+                    sw = acc_f[c]
+                    if sw != 0.0:  # a node some particle touched (touched_node)
                         i = c // (sy * sz) + o0
                         j = (c // sz) % sy + o1
                         q = c % sz + o2
@@ -455,9 +430,9 @@ def _build_kernels(serial_p2g: bool, G: int, unrolled: bool):
                                                          ti.cast(acc_i[TILE_NODES + c], ti.f32),
                                                          ti.cast(acc_i[2 * TILE_NODES + c], ti.f32))
                         gm[b, i, j, q] += inv_mass * ti.cast(acc_i[3 * TILE_NODES + c], ti.f32)
-                        gd[b, i, j, q] += vec2(acc_f[c], sw)
-                        if ngrip > 0 and acc_f[TILE_NODES + c] != 0.0:
-                            gg[b * ngrip, i, j, q] += acc_f[TILE_NODES + c]
+                        gd[b, i, j, q] += vec2(acc_f[TILE_NODES + c], sw)
+                        if ngrip > 0 and acc_f[2 * TILE_NODES + c] != 0.0:
+                            gg[b * ngrip, i, j, q] += acc_f[2 * TILE_NODES + c]
                     c += TILE
             ti.simt.block.sync()  # the next tile of this thread block (grid-stride loop) reuses the arrays
 
