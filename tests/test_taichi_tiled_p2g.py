@@ -170,7 +170,6 @@ def test_fixed_point_scale_cannot_overflow_and_rounds_to_2e_minus_24_of_the_boun
     from it. For bounds over 60 decades and zero: 128 shares at the bound stay below 2**31, the scale is an
     exact power of two with an exact inverse, and one share is rounded to at most 2**-24 of the bound."""
     import taichi as ti
-
     from invphys_anisompm.backends.taichi_backend import (
         F32_INF_BITS,
         _fixed_point_scale,
