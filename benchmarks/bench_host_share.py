@@ -78,7 +78,9 @@ def lockstep_profile(frames: list[dict], batch: int) -> dict:
     # each frame's advance seconds ~ fixed * its lock-step substeps + per_run * its runs' substeps
     design = np.array([[f["steps"], np.minimum(f["nsub"], f["steps"]).sum()] for f in frames], float)
     secs = np.array([f["s"] for f in frames])
-    (fixed, per_run), *_ = np.linalg.lstsq(design, secs, rcond=None) if len(frames) >= 2 else ((np.nan, np.nan),)
+    fixed = per_run = float("nan")
+    if len(frames) >= 2:
+        (fixed, per_run), *_ = np.linalg.lstsq(design, secs, rcond=None)
     return {"lockstep_substeps": lock, "run_substeps": own, "efficiency": own / max(lock * batch, 1),
             "fit_ms_per_lockstep_substep": 1e3 * float(fixed), "fit_ms_per_run_substep": 1e3 * float(per_run),
             "advance_ms_per_lockstep_substep": 1e3 * sum(f["s"] for f in frames) / max(lock, 1),

@@ -660,6 +660,8 @@ _STAGE_ARGS = {
     "g2p": ("k", "dx", "l0sq", "don", "nsub", "dt", "mat", "body", "grip", "x0", "kin", "x", "v", "C", "F", "d", "dtil",
             "gv", "gd"),
 }
+#: every substep argument but ``k``, each once: what a graph launch binds
+_BOUND_ARGS = tuple(dict.fromkeys(n for names in _STAGE_ARGS.values() for n in names if n != "k"))
 #: substeps per graph launch in ``advance`` (a frame's remainder goes one substep at a time)
 GRAPH_SUBSTEPS = 8
 
@@ -884,11 +886,8 @@ class TaichiBackend:
         return graph
 
     def _run_graph(self, steps: int, k0: int) -> None:
-        values: dict[str, object] = {f"k{s}": k0 + s for s in range(steps)}
-        for names in _STAGE_ARGS.values():
-            for n in names:
-                if n != "k" and n not in values:
-                    values[n] = self._stage_value(n, 0)
+        values = {n: self._stage_value(n, k0) for n in _BOUND_ARGS}
+        values.update({f"k{s}": k0 + s for s in range(steps)})
         self._substep_graph(steps).run(values)
 
     def advance(self, n_steps: int) -> None:
