@@ -857,10 +857,11 @@ class TaichiBackend:
     def _substep_graph(self, steps: int):
         """A Taichi graph of ``steps`` substeps (substep ``s`` runs at ``k = k<s>``), compiled once per size.
 
-        A substep is four kernel launches of ~20 array arguments each; from Python they cost ~0.7-1 ms of host
-        time per substep (measured on an H100 host), more than the GPU needs for a substep of <= 16 runs, so
-        a lock-step batch's tail was bound by the host. A graph binds its arguments once per run and launches
-        its kernels from C++: the same kernels in the same order."""
+        A substep is four kernel launches of ~20 array arguments each; from Python they cost ~0.6-1.7 ms of host
+        time per substep (measured on an H100 host), more than the GPU needs for a substep of <= 16 runs. A
+        graph binds its arguments once per run and launches the same kernels in the same order from C++
+        (~0.2 ms per substep). Whole lock-step batches did not get faster (the host queues a frame's tail while
+        the GPU works on its full substeps); the host is freed for feature extraction and chunk round trips."""
         graph = self._graphs.get(steps)
         if graph is None:
             from taichi import graph as tg
