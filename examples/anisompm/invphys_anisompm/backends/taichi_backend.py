@@ -268,18 +268,20 @@ def _scatter_global(b, node, weight, mom, mass, dp, gp, ngrip, gv: ti.template()
         gg[b * ngrip + gp, node[0], node[1], node[2]] += weight * mass
 
 
-def _build_kernels(serial_p2g: bool, G: int, unrolled: bool):
-    """Compile-time configured kernels: ``serial_p2g`` makes the CPU's scatter order deterministic, ``G`` is the
-    grid size (no integer divisions for a node's indices), ``unrolled`` picks g2p's form. They are closure
-    constants, not template arguments, so that the substep's kernels can be recorded in a Taichi graph."""
+@ti.func
+def _zero_node(b, i, j, q, ngrip, gv: ti.template(), gm: ti.template(), gd: ti.template(), gg: ti.template()):
+    """Zero every channel of grid node ``(i, j, q)`` of run ``b``."""
+    gv[b, i, j, q] = vec3(0.0)
+    gm[b, i, j, q] = 0.0
+    gd[b, i, j, q] = vec2(0.0)
+    for g in range(ngrip):
+        gg[b * ngrip + g, i, j, q] = 0.0
 
-    @ti.func
-    def _zero_node(b, i, j, q, ngrip, gv: ti.template(), gm: ti.template(), gd: ti.template(), gg: ti.template()):
-        gv[b, i, j, q] = vec3(0.0)
-        gm[b, i, j, q] = 0.0
-        gd[b, i, j, q] = vec2(0.0)
-        for g in range(ngrip):
-            gg[b * ngrip + g, i, j, q] = 0.0
+
+def _build_grid_kernels(serial_p2g: bool, G: int):
+    """The grid's clear and update for grid size ``G`` (a compile-time constant: no integer divisions for a
+    node's indices; a closure constant, not a template argument, so that a Taichi graph can hold them);
+    ``serial_p2g`` makes the CPU's force and work sums' order deterministic."""
 
     @ti.kernel
     def clear_grid(k: ti.i32, ngrip: ti.i32, nsub: ND(ti.i32, 1), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
@@ -288,6 +290,126 @@ def _build_kernels(serial_p2g: bool, G: int, unrolled: bool):
         for b, i, j, q in ti.ndrange(gm.shape[0], G, G, G):
             if k < nsub[b] and touched_node(gd[b, i, j, q]):
                 _zero_node(b, i, j, q, ngrip, gv, gm, gd, gg)
+
+    @ti.kernel
+    def grid_update(k: ti.i32, dx: ti.f32, gravity: ti.f32, damp: ND(ti.f32, 1), bc: ti.i32, ngrip: ti.i32, ncol: ti.i32,
+                    nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1), kin: ND(ti.f32, 4), ctype: ND(ti.i32, 1),
+                    ca: ND(vec3, 1), cb: ND(vec3, 1), csurf: ND(ti.i32, 1), fric: ND(ti.f32, 2),
+                    held: ND(ti.i32, 3), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gg: ND(ti.f32, 4),
+                    imp: ND(vec3, 2), work: ND(ti.f32, 2)):
+        # G (the grid size) is a compile-time constant: most nodes are empty and cost only their indices
+        if ti.static(serial_p2g):
+            ti.loop_config(serialize=True)  # the force and work sums, like the scatter, in a fixed order
+        for b, i, j, q in ti.ndrange(gm.shape[0], G, G, G):  # a range-for: serialize applies
+            m = gm[b, i, j, q]
+            if k < nsub[b] and m > 0.0:
+                vel = gv[b, i, j, q] / m
+                vel[1] += dt[b] * gravity
+                vel /= 1.0 + damp[b] * dt[b]
+                for g in range(ngrip):
+                    if gg[b * ngrip + g, i, j, q] > 0.5 * m:
+                        vk = vec3(kin[b, k, g, 3], kin[b, k, g, 4], kin[b, k, g, 5])
+                        imp[b, g] += m * (vel - vk)
+                        work[b, g] += m * (vk - vel).dot(vk)
+                        vel = vk
+                pos = vec3(ti.cast(i, ti.f32), ti.cast(j, ti.f32), ti.cast(q, ti.f32)) * dx
+                for c in range(ncol):
+                    kc = ngrip + c
+                    disp = vec3(kin[b, k, kc, 0], kin[b, k, kc, 1], kin[b, k, kc, 2])
+                    vc = vec3(kin[b, k, kc, 3], kin[b, k, kc, 4], kin[b, k, kc, 5])
+                    inside, n = _collider_normal(ctype[c], ca[c], cb[c], pos - disp)
+                    if inside != 0:
+                        old = vel
+                        rel = vel - vc
+                        if csurf[c] == 0:
+                            rel = vec3(0.0)
+                        else:
+                            vn = rel.dot(n)
+                            if csurf[c] == 1 or vn < 0.0:
+                                rel_t = rel - vn * n
+                                if vn < 0.0:
+                                    lt = rel_t.norm()
+                                    if lt > 1e-12:
+                                        rel_t *= ti.max(0.0, 1.0 + fric[b, c] * vn / lt)
+                                rel = rel_t
+                        vel = vc + rel
+                        imp[b, kc] += m * (old - vel)
+                        work[b, kc] += m * (vel - old).dot(vc)
+                if held[i, j, q] != 0:
+                    vel = vec3(0.0)
+                if i < bc and vel[0] < 0.0:
+                    vel[0] = 0.0
+                if i > G - bc and vel[0] > 0.0:
+                    vel[0] = 0.0
+                if j <= bc and vel[1] < 0.0:
+                    vel[1] = 0.0
+                if j > G - bc and vel[1] > 0.0:
+                    vel[1] = 0.0
+                if q < bc and vel[2] < 0.0:
+                    vel[2] = 0.0
+                if q > G - bc and vel[2] > 0.0:
+                    vel[2] = 0.0
+                gv[b, i, j, q] = vel
+
+    return clear_grid, grid_update
+
+
+def _build_g2p(unrolled: bool):
+    """The grid-to-particle kernel in one of its forms (see ``TaichiBackend.g2p``)."""
+
+    @ti.kernel
+    def g2p(k: ti.i32, dx: ti.f32, l0sq: ti.f32, don: ND(ti.i32, 1), nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
+            mat: ND(ti.f32, 3), body: ND(ti.i32, 1), grip: ND(ti.i32, 1), x0: ND(vec3, 1), kin: ND(ti.f32, 4),
+            x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2),
+            dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gd: ND(vec2, 4)):
+        inv_dx = 1.0 / dx
+        G = gv.shape[1]
+        for b, p in x:
+            if k < nsub[b]:
+                h = dt[b]
+                Xp = x[b, p] * inv_dx
+                base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
+                fx = Xp - ti.cast(base, ti.f32)
+                w = _weights(fx)
+                hs = [1.0, -2.0, 1.0]
+                dp = d[b, p]
+                new_v = vec3(0.0)
+                new_C = mat3(0.0)
+                lap = 0.0
+                if ti.static(unrolled):   # all 27 nodes unrolled (215 registers on CUDA: 12 % occupancy)
+                    for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
+                        _g2p_node(b, base, ti.Vector([i, j, q]), fx, inv_dx, dp, w[i][0], w[j][1], w[q][2], hs[i],
+                                  hs[j], hs[q], gv, gd, new_v, new_C, lap)
+                else:   # the same sums in the same order, i and j as loops (117 registers: 24 %)
+                    for i in range(3):
+                        wi = _w1(fx[0], i)
+                        hi = ti.select(i == 1, -2.0, 1.0)
+                        for j in range(3):
+                            wj = _w1(fx[1], j)
+                            hj = ti.select(j == 1, -2.0, 1.0)
+                            for q in ti.static(range(3)):
+                                _g2p_node(b, base, ti.Vector([i, j, q]), fx, inv_dx, dp, wi, wj, w[q][2], hi, hj,
+                                          hs[q], gv, gd, new_v, new_C, lap)
+                reg = body[p]
+                if don[b] != 0 and mat[b, reg, M_DMG] > 0.5:
+                    Dc = dp - l0sq * lap
+                    rate = (1.0 - dp) * dtil[b, p] - Dc
+                    d[b, p] = ti.min(1.0, dp + h / mat[b, reg, M_ETA] * ti.max(rate, 0.0))
+                F[b, p] = (ti.Matrix.identity(ti.f32, 3) + h * new_C) @ F[b, p]
+                C[b, p] = new_C
+                gp = grip[p]
+                if gp >= 0:
+                    x[b, p] = x0[p] + vec3(kin[b, k, gp, 0], kin[b, k, gp, 1], kin[b, k, gp, 2])
+                    v[b, p] = vec3(kin[b, k, gp, 3], kin[b, k, gp, 4], kin[b, k, gp, 5])
+                else:
+                    v[b, p] = new_v
+                    x[b, p] += h * new_v
+
+    return g2p
+
+
+def _build_kernels(serial_p2g: bool):
+    """The kernels that depend only on ``serial_p2g`` (it makes the CPU's scatter order deterministic)."""
 
     @ti.kernel
     def wipe_grid(mask: ND(ti.i32, 1), ngrip: ti.i32, gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
@@ -304,6 +426,7 @@ def _build_kernels(serial_p2g: bool, G: int, unrolled: bool):
             d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
             gg: ND(ti.f32, 4)):
         inv_dx = 1.0 / dx
+        G = gm.shape[1]
         if ti.static(serial_p2g):
             ti.loop_config(serialize=True)
         for b, p in ti.ndrange(x.shape[0], x.shape[1]):
@@ -334,6 +457,7 @@ def _build_kernels(serial_p2g: bool, G: int, unrolled: bool):
         # float atomics per particle and node (the L2 atomics bound the plain scatter). A tile whose box
         # exceeds TILE_NODES nodes (or a scene with more than one grip) scatters globally, as p2g does.
         inv_dx = 1.0 / dx
+        G = gm.shape[1]
         N = x.shape[1]
         ntile = (N + TILE - 1) // TILE
         ti.loop_config(block_dim=TILE)
@@ -435,113 +559,6 @@ def _build_kernels(serial_p2g: bool, G: int, unrolled: bool):
                             gg[b * ngrip, i, j, q] += acc_f[2 * TILE_NODES + c]
                     c += TILE
             ti.simt.block.sync()  # the next tile of this thread block (grid-stride loop) reuses the arrays
-
-    @ti.kernel
-    def grid_update(k: ti.i32, dx: ti.f32, gravity: ti.f32, damp: ND(ti.f32, 1), bc: ti.i32, ngrip: ti.i32, ncol: ti.i32,
-                    nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1), kin: ND(ti.f32, 4), ctype: ND(ti.i32, 1),
-                    ca: ND(vec3, 1), cb: ND(vec3, 1), csurf: ND(ti.i32, 1), fric: ND(ti.f32, 2),
-                    held: ND(ti.i32, 3), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gg: ND(ti.f32, 4),
-                    imp: ND(vec3, 2), work: ND(ti.f32, 2)):
-        # G (the grid size) is a compile-time constant: most nodes are empty and cost only their indices
-        if ti.static(serial_p2g):
-            ti.loop_config(serialize=True)  # the force and work sums, like the scatter, in a fixed order
-        for b, i, j, q in ti.ndrange(gm.shape[0], G, G, G):  # a range-for: serialize applies
-            m = gm[b, i, j, q]
-            if k < nsub[b] and m > 0.0:
-                vel = gv[b, i, j, q] / m
-                vel[1] += dt[b] * gravity
-                vel /= 1.0 + damp[b] * dt[b]
-                for g in range(ngrip):
-                    if gg[b * ngrip + g, i, j, q] > 0.5 * m:
-                        vk = vec3(kin[b, k, g, 3], kin[b, k, g, 4], kin[b, k, g, 5])
-                        imp[b, g] += m * (vel - vk)
-                        work[b, g] += m * (vk - vel).dot(vk)
-                        vel = vk
-                pos = vec3(ti.cast(i, ti.f32), ti.cast(j, ti.f32), ti.cast(q, ti.f32)) * dx
-                for c in range(ncol):
-                    kc = ngrip + c
-                    disp = vec3(kin[b, k, kc, 0], kin[b, k, kc, 1], kin[b, k, kc, 2])
-                    vc = vec3(kin[b, k, kc, 3], kin[b, k, kc, 4], kin[b, k, kc, 5])
-                    inside, n = _collider_normal(ctype[c], ca[c], cb[c], pos - disp)
-                    if inside != 0:
-                        old = vel
-                        rel = vel - vc
-                        if csurf[c] == 0:
-                            rel = vec3(0.0)
-                        else:
-                            vn = rel.dot(n)
-                            if csurf[c] == 1 or vn < 0.0:
-                                rel_t = rel - vn * n
-                                if vn < 0.0:
-                                    lt = rel_t.norm()
-                                    if lt > 1e-12:
-                                        rel_t *= ti.max(0.0, 1.0 + fric[b, c] * vn / lt)
-                                rel = rel_t
-                        vel = vc + rel
-                        imp[b, kc] += m * (old - vel)
-                        work[b, kc] += m * (vel - old).dot(vc)
-                if held[i, j, q] != 0:
-                    vel = vec3(0.0)
-                if i < bc and vel[0] < 0.0:
-                    vel[0] = 0.0
-                if i > G - bc and vel[0] > 0.0:
-                    vel[0] = 0.0
-                if j <= bc and vel[1] < 0.0:
-                    vel[1] = 0.0
-                if j > G - bc and vel[1] > 0.0:
-                    vel[1] = 0.0
-                if q < bc and vel[2] < 0.0:
-                    vel[2] = 0.0
-                if q > G - bc and vel[2] > 0.0:
-                    vel[2] = 0.0
-                gv[b, i, j, q] = vel
-
-    @ti.kernel
-    def g2p(k: ti.i32, dx: ti.f32, l0sq: ti.f32, don: ND(ti.i32, 1), nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
-            mat: ND(ti.f32, 3), body: ND(ti.i32, 1), grip: ND(ti.i32, 1), x0: ND(vec3, 1), kin: ND(ti.f32, 4),
-            x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2),
-            dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gd: ND(vec2, 4)):
-        inv_dx = 1.0 / dx
-        for b, p in x:
-            if k < nsub[b]:
-                h = dt[b]
-                Xp = x[b, p] * inv_dx
-                base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
-                fx = Xp - ti.cast(base, ti.f32)
-                w = _weights(fx)
-                hs = [1.0, -2.0, 1.0]
-                dp = d[b, p]
-                new_v = vec3(0.0)
-                new_C = mat3(0.0)
-                lap = 0.0
-                if ti.static(unrolled):   # all 27 nodes unrolled (215 registers on CUDA: 12 % occupancy)
-                    for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
-                        _g2p_node(b, base, ti.Vector([i, j, q]), fx, inv_dx, dp, w[i][0], w[j][1], w[q][2], hs[i],
-                                  hs[j], hs[q], gv, gd, new_v, new_C, lap)
-                else:   # the same sums in the same order, i and j as loops (117 registers: 24 %)
-                    for i in range(3):
-                        wi = _w1(fx[0], i)
-                        hi = ti.select(i == 1, -2.0, 1.0)
-                        for j in range(3):
-                            wj = _w1(fx[1], j)
-                            hj = ti.select(j == 1, -2.0, 1.0)
-                            for q in ti.static(range(3)):
-                                _g2p_node(b, base, ti.Vector([i, j, q]), fx, inv_dx, dp, wi, wj, w[q][2], hi, hj,
-                                          hs[q], gv, gd, new_v, new_C, lap)
-                reg = body[p]
-                if don[b] != 0 and mat[b, reg, M_DMG] > 0.5:
-                    Dc = dp - l0sq * lap
-                    rate = (1.0 - dp) * dtil[b, p] - Dc
-                    d[b, p] = ti.min(1.0, dp + h / mat[b, reg, M_ETA] * ti.max(rate, 0.0))
-                F[b, p] = (ti.Matrix.identity(ti.f32, 3) + h * new_C) @ F[b, p]
-                C[b, p] = new_C
-                gp = grip[p]
-                if gp >= 0:
-                    x[b, p] = x0[p] + vec3(kin[b, k, gp, 0], kin[b, k, gp, 1], kin[b, k, gp, 2])
-                    v[b, p] = vec3(kin[b, k, gp, 3], kin[b, k, gp, 4], kin[b, k, gp, 5])
-                else:
-                    v[b, p] = new_v
-                    x[b, p] += h * new_v
 
     @ti.func
     def _particle_stats(b: ti.i32, r: ti.i32, p: ti.i32, lo: ti.f32, hi: ti.f32, mat: ti.template(),
@@ -645,10 +662,20 @@ def _build_kernels(serial_p2g: bool, G: int, unrolled: bool):
             xo[i, q] = x[idx[i], src[q]]
             do[i, q] = d[idx[i], src[q]]
 
-    return clear_grid, p2g, grid_update, g2p, frame_stats, reset_slots, gather, frame_end, p2g_tiled, wipe_grid
+    return p2g, frame_stats, reset_slots, gather, frame_end, p2g_tiled, wipe_grid
 
 
-_KERNELS: dict[tuple[bool, int, bool], tuple] = {}
+_KERNELS: dict[tuple, object] = {}
+
+
+def _kernels(build, *config):
+    """``build(*config)``'s kernels, built once per process (each new kernel object compiles anew)."""
+    key = (build.__name__, *config)
+    if key not in _KERNELS:
+        _KERNELS[key] = build(*config)
+    return _KERNELS[key]
+
+
 #: a substep's kernels in order and their arguments: ``k`` (the substep), a scalar of the backend's
 #: ``_scalars`` or one of its arrays
 _STAGE_ARGS = {
@@ -716,11 +743,11 @@ class TaichiBackend:
         o = scene.options
         self.options = o
         self.batch = int(batch)
-        key = (bool(o.deterministic and self.arch == "cpu"), int(o.grid), self.g2p == "unrolled")
-        if key not in _KERNELS:
-            _KERNELS[key] = _build_kernels(*key)
-        (self._clear, self._p2g, self._grid, self._g2p, self._stats, self._reset, self._gather,
-         self._frame_end, p2g_tiled, self._wipe) = _KERNELS[key]
+        serial = bool(o.deterministic and self.arch == "cpu")
+        (self._p2g, self._stats, self._reset, self._gather, self._frame_end, p2g_tiled,
+         self._wipe) = _kernels(_build_kernels, serial)
+        self._clear, self._grid = _kernels(_build_grid_kernels, serial, int(o.grid))
+        self._g2p = _kernels(_build_g2p, self.g2p == "unrolled")
         if p2g == "tiled":
             self._p2g = p2g_tiled
         self._kernel_of = {"clear": self._clear, "p2g": self._p2g, "grid": self._grid, "g2p": self._g2p}
