@@ -67,8 +67,10 @@ def lockstep_profile(frames: list[dict], batch: int) -> dict:
     substep, how many lock-step substeps had how many runs active (bins), and a least-squares split of the
     frames' advance seconds into a cost per lock-step substep (paid however few runs are active) and a cost
     per run-substep."""
-    lock = sum(f["steps"] for f in frames)
-    own = sum(int(np.minimum(f["nsub"], f["steps"]).sum()) for f in frames)
+    steps = np.array([f["steps"] for f in frames], float)
+    run_substeps = np.array([np.minimum(f["nsub"], f["steps"]).sum() for f in frames], float)
+    secs = np.array([f["s"] for f in frames])
+    lock, own = int(steps.sum()), int(run_substeps.sum())
     bins = {f"{lo}-{hi}" if hi < 1 << 30 else f">={lo}": 0 for lo, hi in ACTIVE_BINS}
     for f in frames:
         k = np.arange(f["steps"])
@@ -76,14 +78,12 @@ def lockstep_profile(frames: list[dict], batch: int) -> dict:
         for (lo, hi), key in zip(ACTIVE_BINS, bins, strict=True):
             bins[key] += int(((active >= lo) & (active <= hi)).sum())
     # each frame's advance seconds ~ fixed * its lock-step substeps + per_run * its runs' substeps
-    design = np.array([[f["steps"], np.minimum(f["nsub"], f["steps"]).sum()] for f in frames], float)
-    secs = np.array([f["s"] for f in frames])
     fixed = per_run = float("nan")
     if len(frames) >= 2:
-        (fixed, per_run), *_ = np.linalg.lstsq(design, secs, rcond=None)
+        (fixed, per_run), *_ = np.linalg.lstsq(np.stack([steps, run_substeps], axis=1), secs, rcond=None)
     return {"lockstep_substeps": lock, "run_substeps": own, "efficiency": own / max(lock * batch, 1),
             "fit_ms_per_lockstep_substep": 1e3 * float(fixed), "fit_ms_per_run_substep": 1e3 * float(per_run),
-            "advance_ms_per_lockstep_substep": 1e3 * sum(f["s"] for f in frames) / max(lock, 1),
+            "advance_ms_per_lockstep_substep": 1e3 * float(secs.sum()) / max(lock, 1),
             "substeps_by_active_runs": bins}
 
 

@@ -155,7 +155,6 @@ def test_reads_are_new_arrays_in_the_scene_order():
         assert ds.shape == (1, scene.n_particles)
 
 
-
 def _kernel(fn, *names):
     """A Taichi kernel of ``fn`` with ndarray arguments ``names`` (this module's annotations are strings)."""
     import taichi as ti
