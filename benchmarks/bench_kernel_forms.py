@@ -8,10 +8,12 @@ also measured a split P2G (stress terms stored by one kernel, scattered by the n
 
 On ``--runs`` random parameter vectors (seed 0) of ``--preset``, in lock-step batches of ``--batch``:
 
-1. **kernel times**: seconds per launch of each substep stage (``kernel_times``, synchronised) for every
+1. **g2p parity**: every form's g2p on the same grid and particle state (``perturbed_state``), against the
+   first form: the largest difference per particle array (0.0: bit for bit);
+2. **kernel times**: seconds per launch of each substep stage (``kernel_times``, synchronised) for every
    g2p form in ``--forms``, and the substep's total against the first form; and the substep when
    ``--steps`` of them are launched back to back with one sync at the end (launch gaps hidden);
-2. **whole runs**: the first form, the fastest other form, then both again (alternating, since one
+3. **whole runs**: the first form, the fastest other form, then both again (alternating, since one
    machine's whole-run times drift by several per cent; GPU float atomics make two passes of the same
    form differ: that spread is the yardstick): seconds per run, the ratio to the paper's 156 s, and the
    features' agreement with the first pass.
@@ -37,9 +39,10 @@ for p in (ROOT, ROOT / "examples" / "orange_peel", ROOT / "examples" / "anisompm
         sys.path.insert(0, str(p))
 
 from _machine import emit  # noqa: E402
-from bench_tiled_p2g import PAPER_SECONDS_PER_RUN, feature_agreement, timed_features  # noqa: E402
+from bench_tiled_p2g import PAPER_SECONDS_PER_RUN, feature_agreement, perturbed_state, timed_features  # noqa: E402
 
 G2P_FORMS = ("unrolled", "loop")
+PARTICLE_ARRAYS = ("x", "v", "C", "F", "d")
 
 
 def _args(argv: list[str] | None) -> argparse.Namespace:
@@ -74,6 +77,32 @@ def _loaded(sim, params: np.ndarray, substeps: int):
     nk = max(len(sim.engine_scene.engine.kinematic_names), 1)
     backend.set_frame(np.full(B, 1e-4), np.full(B, substeps), np.zeros((B, 1, nk, 6)), damage_on=True)
     return backend
+
+
+def g2p_parity(sim, params: np.ndarray, forms: list[str]) -> dict[str, dict[str, float]]:
+    """Every g2p form in ``forms`` on one grid: the runs set to ``perturbed_state``, one clear, P2G and grid
+    update, then each form's g2p from the same particle state; the largest difference of each particle array
+    from the first form's, over its largest value (0.0: bit for bit)."""
+    from invphys_anisompm.backends.taichi_backend import _STAGE_ARGS, _build_g2p, _kernels
+
+    backend = _loaded(sim, params, 2)
+    perm = getattr(backend, "_perm", None)
+    for name, values in perturbed_state(len(params), backend.scene.n_particles).items():
+        getattr(backend, name).from_numpy(np.ascontiguousarray(values if perm is None else values[:, perm]))
+    stages = backend._stages(0)
+    for stage in ("clear", "p2g", "grid"):
+        stages[stage]()
+    before = {n: getattr(backend, n).to_numpy() for n in PARTICLE_ARRAYS}
+    after: dict[str, dict[str, np.ndarray]] = {}
+    for form in forms:
+        for n, values in before.items():
+            getattr(backend, n).from_numpy(values)
+        _kernels(_build_g2p, form == "unrolled")(*(backend._stage_value(n, 0) for n in _STAGE_ARGS["g2p"]))
+        backend.sync()
+        after[form] = {n: getattr(backend, n).to_numpy().astype(np.float64) for n in PARTICLE_ARRAYS}
+    ref = after[forms[0]]
+    return {form: {n: float(np.abs(after[form][n] - ref[n]).max() / (np.abs(ref[n]).max() or 1.0))
+                   for n in PARTICLE_ARRAYS} for form in forms[1:]}
 
 
 def _streamed_substep(sim, params: np.ndarray, steps: int) -> float:
@@ -112,6 +141,10 @@ def main(argv: list[str] | None = None) -> int:
                  "simulator_version": ident.version, "config_hash": ident.config, "preset": a.preset,
                  "runs": a.runs, "batch": a.batch, "frames": base.frames,
                  "scatter": base.engine.backend(a.batch).p2g, "device": base.engine.backend(a.batch).device}
+
+    if len(names) > 1:
+        out["g2p_parity_vs_first"] = g2p_parity(base, params[:a.batch], names)
+        print("g2p parity against", names[0], out["g2p_parity_vs_first"], flush=True)
 
     times: dict[str, dict[str, float]] = {}
     streamed: dict[str, float] = {}

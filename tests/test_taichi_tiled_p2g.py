@@ -1,4 +1,4 @@
-"""The tiled P2G's CPU-checkable parts: Morton particle order, reads in the scene's order, clear errors.
+"""The tiled P2G's CPU-checkable parts: particle orders, reads in the scene's order, clear errors.
 
 The tiled scatter itself needs CUDA shared memory; on a GPU ``benchmarks/bench_tiled_p2g.py`` checks
 that its grid equals the atomic scatter's to float rounding and that whole runs agree as closely as two
@@ -13,7 +13,8 @@ import pytest
 pytest.importorskip("taichi")
 
 from invphys_anisompm import Engine
-from invphys_anisompm.backends.taichi_backend import TaichiBackend, morton_order
+from invphys_anisompm.backends.particle_order import hilbert_index, hilbert_order, morton_order
+from invphys_anisompm.backends.taichi_backend import TaichiBackend
 from invphys_orange_peel.parameters import parameter_space
 from invphys_orange_peel.simulator import OrangePeelSimulator
 
@@ -31,14 +32,30 @@ def _box_nodes(base: np.ndarray, tile: int) -> np.ndarray:
     return (b.max(axis=1) - b.min(axis=1) + 3).prod(axis=1)
 
 
-def test_morton_order_is_a_permutation_with_compact_tiles():
+def test_curve_orders_are_permutations_with_compact_tiles_hilbert_the_most():
     scene = OrangePeelSimulator(backend="taichi", preset="paper", arch="cpu").engine_scene.engine  # no kernels
     o = scene.options
-    perm = morton_order(scene.positions, o.dx, o.grid)
-    assert np.array_equal(np.sort(perm), np.arange(scene.n_particles))
     base = np.clip((scene.positions / o.dx - 0.5).astype(int), 0, o.grid - 3)
-    # tiles of consecutive particles span far fewer grid nodes in Morton order than in the scene's order
-    assert np.median(_box_nodes(base[perm], 256)) < 0.5 * np.median(_box_nodes(base, 256))
+    boxes = {}
+    for name, order in (("morton", morton_order), ("hilbert", hilbert_order)):
+        perm = order(scene.positions, o.dx, o.grid)
+        assert np.array_equal(np.sort(perm), np.arange(scene.n_particles))
+        boxes[name] = _box_nodes(base[perm], 256)
+    # tiles of consecutive particles span far fewer grid nodes along a curve than in the scene's order, and
+    # the Hilbert curve (no jumps) leaves fewer tiles too large for the shared-memory box (1,024 nodes)
+    assert np.median(boxes["morton"]) < 0.5 * np.median(_box_nodes(base, 256))
+    assert np.median(boxes["hilbert"]) < 0.8 * np.median(boxes["morton"])
+    assert (boxes["hilbert"] > 1024).sum() < 0.5 * (boxes["morton"] > 1024).sum()
+
+
+@pytest.mark.parametrize("bits", [1, 2, 3, 5])
+def test_hilbert_index_visits_every_cell_once_stepping_to_a_neighbour(bits):
+    n = 1 << bits
+    cells = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    index = hilbert_index(cells, bits)
+    assert np.array_equal(np.sort(index), np.arange(n ** 3))
+    path = cells[np.argsort(index)]
+    assert np.all(np.abs(np.diff(path, axis=0)).sum(axis=1) == 1)   # each step: one cell along one axis
 
 
 def test_tiled_scatter_needs_cuda_and_auto_picks_atomic_on_cpu():
@@ -48,7 +65,7 @@ def test_tiled_scatter_needs_cuda_and_auto_picks_atomic_on_cpu():
     with pytest.raises(InvphysError, match="p2g must be"):
         TaichiBackend(scene, 2, arch="cpu", p2g="shared")
     with pytest.raises(InvphysError, match="particle_order must be"):
-        TaichiBackend(scene, 2, arch="cpu", particle_order="hilbert")
+        TaichiBackend(scene, 2, arch="cpu", particle_order="peano")
     assert TaichiBackend(scene, 2, arch="cpu", p2g="auto").p2g == "atomic"
     sim = _tiny(taichi_p2g="tiled")
     with pytest.raises(InvphysError, match="needs CUDA"):
@@ -60,15 +77,16 @@ def test_scatter_choice_is_not_part_of_the_run_identity():
         == RunIdentity.of(_tiny())
 
 
-def test_morton_particle_order_returns_the_scene_order():
-    """The same runs with the device's particles in Morton order (the tiled scatter's order) and in the
-    scene's: every record comes back in the scene's order and agrees up to the scatter's summation order."""
+@pytest.mark.parametrize("order", ["hilbert", "morton"])
+def test_curve_particle_order_returns_the_scene_order(order):
+    """The same runs with the device's particles along a curve (Hilbert: the tiled scatter's order) and in
+    the scene's: every record comes back in the scene's order and agrees up to the scatter's summation order."""
     space = parameter_space()
     params = space.denormalize(np.random.default_rng(3).uniform(size=(2, space.dim)))
     plain = _tiny()
-    morton = _tiny()
-    morton._engine = Engine(morton.engine_scene.engine, backend="taichi", arch="cpu", particle_order="morton")
-    a, b = plain.simulate(params), morton.simulate(params)
+    curve = _tiny()
+    curve._engine = Engine(curve.engine_scene.engine, backend="taichi", arch="cpu", particle_order=order)
+    a, b = plain.simulate(params), curve.simulate(params)
     for ra, rb in zip(a, b, strict=True):
         assert ra.ok and rb.ok
         pa, pb = ra.trajectory.positions, rb.trajectory.positions
@@ -139,7 +157,7 @@ def test_reads_are_new_arrays_in_the_scene_order():
     params = space.denormalize(np.random.default_rng(3).uniform(size=(2, space.dim)))
     sim = _tiny()
     scene = sim.engine_scene.engine
-    for order in ("scene", "morton"):
+    for order in ("scene", "hilbert"):
         backend = TaichiBackend(scene, 2, arch="cpu", particle_order=order)
         assert backend.reads_are_new
         _load(backend, sim, params)
@@ -163,16 +181,20 @@ def _kernel(fn, *names):
     return ti.kernel(fn)
 
 
-def test_fixed_point_scale_cannot_overflow_and_rounds_to_2e_minus_24_of_the_bound():
-    """The tiled scatter's integer sums (CUDA) rest on two CPU-checkable functions: a tile's bound as the
-    bits of a non-negative float (ordered as the floats are, a NaN above infinity) and the power-of-two scale
-    from it. For bounds over 60 decades and zero: 128 shares at the bound stay below 2**31, the scale is an
-    exact power of two with an exact inverse, and one share is rounded to at most 2**-24 of the bound."""
+def test_fixed_point_scale_cannot_overflow_and_rounds_to_2e_minus_22_of_the_bound():
+    """The tiled scatter's integer sums (CUDA) rest on three CPU-checkable functions: a tile's bound as the
+    bits of a non-negative float (ordered as the floats are, a NaN above infinity), the power-of-two scale
+    from it, and the rounding of a scaled share. For bounds over 60 decades and zero: a share at the bound
+    scales to at most 2**22 (where the rounding is exact), a whole tile's shares at the bound stay below
+    2**31, the scale is an exact power of two with an exact inverse, and one share is rounded to at most
+    2**-22 of the bound, to the nearest integer."""
     import taichi as ti
     from invphys_anisompm.backends.taichi_backend import (
         F32_INF_BITS,
+        TILE,
         _fixed_point_scale,
         _momentum_bound_bits,
+        _round_to_int,
         ensure_taichi,
     )
 
@@ -192,9 +214,24 @@ def test_fixed_point_scale_cannot_overflow_and_rounds_to_2e_minus_24_of_the_boun
     s, inv = out.to_numpy().astype(np.float64).T
     assert np.all(s * inv == 1.0)
     assert np.all(np.log2(s) == np.round(np.log2(s)))                    # powers of two: exact scaling
-    assert np.all(128.0 * bounds.astype(np.float64) * s < 2.0 ** 31)       # no overflow at the bound
+    assert np.all(bounds.astype(np.float64) * s <= 2.0 ** 22)              # one share: exact rounding
+    assert np.all(TILE * 0.42 * bounds.astype(np.float64) * s < 2.0 ** 31)  # a node's sum: no overflow
     big = bounds > 1e-30
-    assert np.all(0.5 * inv[big] <= 2.0 ** -24 * bounds[big])           # rounding step vs the bound
+    assert np.all(0.5 * inv[big] <= 2.0 ** -22 * bounds[big])           # rounding step vs the bound
+
+    # ties to even, both signs, up to the 2**22 the scale allows
+    x = np.concatenate([np.arange(-6, 6.5, 0.25), [2.0 ** 22, -2.0 ** 22, 2.0 ** 22 - 0.5, 4194301.5, 1e6 + 0.5,
+                                                   -1e6 - 0.5, 123456.7, -0.49999997]]).astype(np.float32)
+    xs = ti.ndarray(ti.f32, (len(x),))
+    xs.from_numpy(x)
+    rounded = ti.ndarray(ti.i32, (len(x),))
+
+    def round_all(v, o):
+        for i in range(v.shape[0]):
+            o[i] = _round_to_int(v[i])
+
+    _kernel(round_all, "v", "o")(xs, rounded)
+    np.testing.assert_array_equal(rounded.to_numpy(), np.rint(x.astype(np.float64)).astype(np.int64))
 
     bits = ti.ndarray(ti.i32, (4,))
     mv = ti.ndarray(ti.math.vec3, (4,))
