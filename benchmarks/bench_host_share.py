@@ -22,7 +22,10 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path[:0] = [str(ROOT), str(ROOT / "examples" / "orange_peel"), str(ROOT / "examples" / "anisompm")]
+# this tree's packages, unless the path lists them already (a device run may put an older copy first)
+for _p in (str(ROOT), str(ROOT / "examples" / "orange_peel"), str(ROOT / "examples" / "anisompm"),):
+    if _p not in sys.path:
+        sys.path.insert(0, _p)
 
 from _machine import emit  # noqa: E402
 
@@ -44,6 +47,8 @@ def instrument(backend, frames: list[dict] | None = None) -> dict[str, list[floa
             t = time.perf_counter()
             out = _orig(*a, **k)
             if _name == "advance":
+                totals["advance_issue"][0] += time.perf_counter() - t   # until the launches were issued
+                totals["advance_issue"][1] += 1
                 wait()
             dt_s = time.perf_counter() - t
             totals[_name][0] += dt_s
@@ -95,8 +100,16 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--batch", type=int, default=4)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--frames", type=int, default=None, help="override the preset's frame count")
+    ap.add_argument("--kernel-profiler", action="store_true",
+                    help="Taichi's kernel profiler on (CUDA events around every launch): the kernels' total GPU "
+                         "seconds over the batch, against advance's wall seconds (the events add some overhead)")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
+    if args.kernel_profiler:
+        import taichi as ti
+
+        ti.init(arch=ti.cuda if args.arch == "cuda" else ti.cpu, default_fp=ti.f32, random_seed=0,
+                offline_cache=True, log_level=ti.WARN, kernel_profiler=True)
 
     from invphys_orange_peel.engine_scene import model_for
     from invphys_orange_peel.simulator import OrangePeelSimulator
@@ -114,6 +127,8 @@ def main(argv: list[str] | None = None) -> dict:
     compile_s = time.perf_counter() - t
     frame_log: list[dict] = []
     totals = instrument(engine.backend(args.batch), frame_log)
+    if args.kernel_profiler:
+        ti.profiler.clear_kernel_profiler_info()
     t = time.perf_counter()
     records = engine.run(model, frames, every)
     wall = time.perf_counter() - t
@@ -121,7 +136,7 @@ def main(argv: list[str] | None = None) -> dict:
     batch_frames = totals["advance"][1]
     gpu = totals["advance"][0]
     host = wall - gpu
-    named = sum(v[0] for k, v in totals.items() if k != "advance")
+    named = sum(v[0] for k, v in totals.items() if k not in ("advance", "advance_issue"))
     out = {
         "benchmark": "host_share", "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "command": "python benchmarks/bench_host_share.py " + " ".join(sys.argv[1:] if argv is None else argv),
@@ -136,6 +151,9 @@ def main(argv: list[str] | None = None) -> dict:
         "host_python_s": round(host - named, 3), "calls": calls,
         "lockstep": lockstep_profile(frame_log, args.batch),
     }
+    if args.kernel_profiler:
+        out["kernel_profiler_total_s"] = round(float(ti.profiler.get_kernel_profiler_total_time()), 3)
+        ti.profiler.print_kernel_profiler_info("count")   # per kernel: launches, total and mean GPU ms
     emit(out, args.out)
     return out
 

@@ -26,7 +26,10 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path[:0] = [str(ROOT), str(ROOT / "examples" / "orange_peel"), str(ROOT / "examples" / "anisompm")]
+# this tree's packages, unless the path lists them already (a device run may put an older copy first)
+for _p in (str(ROOT), str(ROOT / "examples" / "orange_peel"), str(ROOT / "examples" / "anisompm"),):
+    if _p not in sys.path:
+        sys.path.insert(0, _p)
 
 PAPER_SECONDS_PER_RUN = 156.0  # the paper's simulator, 8 CPU threads
 

@@ -54,7 +54,10 @@ from typing import Any
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path[:0] = [str(ROOT), str(ROOT / "examples" / "orange_peel"), str(ROOT / "examples" / "anisompm")]
+# this tree's packages, unless the path lists them already (a device run may put an older copy first)
+for _p in (str(ROOT), str(ROOT / "examples" / "orange_peel"), str(ROOT / "examples" / "anisompm"),):
+    if _p not in sys.path:
+        sys.path.insert(0, _p)
 
 PAPER = {"activation": "relu", "batch_norm": True, "dropout": 0.1, "optimizer": "adam", "schedule": "constant",
          "lr": 1e-3, "max_epochs": 1000, "patience": 50}

@@ -1,0 +1,38 @@
+"""Device comparisons run an older engine beside this tree's by listing its copy first on PYTHONPATH
+(``benchmarks/device/old_vs_new.sh``, ``variants.sh``): a benchmark must not put this tree's packages in front of
+it. Until stop 39 ``bench_host_share.py`` and ``bench_continuous_gpu.py`` did, and their old/new pairs compared
+the new code with itself (``docs/gpu-throughput.md``)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPTS = sorted(p.name for p in (ROOT / "benchmarks").glob("bench_*.py"))
+
+
+def test_no_benchmark_prepends_the_tree_unconditionally():
+    offenders = [s for s in SCRIPTS if "sys.path[:0]" in (ROOT / "benchmarks" / s).read_text()]
+    assert offenders == []
+
+
+@pytest.mark.parametrize("script", ["bench_host_share.py", "bench_continuous_gpu.py", "bench_kernel_forms.py",
+                                    "bench_active_runs.py"])
+def test_an_engine_listed_first_on_pythonpath_is_the_one_imported(tmp_path, script):
+    old = tmp_path / "old"
+    (old / "invphys_anisompm").mkdir(parents=True)
+    (old / "invphys_anisompm" / "__init__.py").write_text("MARK = 'older copy'\n")
+    # as `python benchmarks/<script>` would: the script's folder is on the path too
+    path = [old, ROOT, ROOT / "examples" / "anisompm", ROOT / "examples" / "orange_peel", ROOT / "benchmarks"]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(map(str, path))}
+    code = (f"import runpy; runpy.run_path({str(ROOT / 'benchmarks' / script)!r}, run_name='probe'); "
+            "import invphys_anisompm; print(getattr(invphys_anisompm, 'MARK', invphys_anisompm.__file__))")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120,
+                         cwd=tmp_path)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "older copy"
