@@ -5,7 +5,7 @@ when that box holds at most ``TILE_NODES`` (1,024) nodes, and falls back to glob
 device order is fixed when a run is loaded (a space-filling curve through the initial cells), so a tile
 whose particles drift apart grows. This script simulates ``--runs`` random runs (seed 0) at ``--preset``,
 then, for each recorded frame, computes every tile's box from the recorded positions: the share of tiles
-(and of particles) that would scatter globally, and the median box, for the Morton and Hilbert orders of
+that would scatter globally, and the median box, for the Morton and Hilbert orders of
 the initial cells and for the Hilbert order of that frame's own cells (what re-sorting would give), and the
 share of tiles over other box sizes (``LIMITS``: what a larger shared-memory box would keep tiled).
 Geometry only: the kernels are not instrumented, so any GPU (or a CPU at ``--preset quick``) will do.
