@@ -467,8 +467,8 @@ def _build_kernels(serial_p2g: bool):
                   grip: ND(ti.i32, 1), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2),
                   d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
                   gg: ND(ti.f32, 4)):
-        # CUDA only. One thread block per TILE consecutive particles of a run (spatially coherent when the
-        # particles are in a space-filling curve's order): their 27-node contributions are summed in shared memory over
+        # CUDA only. One thread block per TILE consecutive particles of a run (spatially coherent along a
+        # space-filling curve, particle_order.py): their 27-node contributions are summed in shared memory over
         # the tile's bounding box of nodes, then added to the grid once per node, instead of 6 global
         # float atomics per particle and node (the L2 atomics bound the plain scatter). A tile whose box
         # exceeds TILE_NODES nodes (or a scene with more than one grip) scatters globally, as p2g does.
