@@ -39,7 +39,7 @@ for p in (ROOT, ROOT / "examples" / "orange_peel", ROOT / "examples" / "anisompm
         sys.path.insert(0, str(p))
 
 from _machine import emit  # noqa: E402
-from bench_tiled_p2g import PAPER_SECONDS_PER_RUN, feature_agreement, perturbed_state, timed_features  # noqa: E402
+from bench_tiled_p2g import PAPER_SECONDS_PER_RUN, feature_agreement, set_perturbed_state, timed_features  # noqa: E402
 
 G2P_FORMS = ("unrolled", "loop")
 PARTICLE_ARRAYS = ("x", "v", "C", "F", "d")
@@ -86,9 +86,7 @@ def g2p_parity(sim, params: np.ndarray, forms: list[str]) -> dict[str, dict[str,
     from invphys_anisompm.backends.taichi_backend import _STAGE_ARGS, _build_g2p, _kernels
 
     backend = _loaded(sim, params, 2)
-    perm = getattr(backend, "_perm", None)
-    for name, values in perturbed_state(len(params), backend.scene.n_particles).items():
-        getattr(backend, name).from_numpy(np.ascontiguousarray(values if perm is None else values[:, perm]))
+    set_perturbed_state(backend)
     stages = backend._stages(0)
     for stage in ("clear", "p2g", "grid"):
         stages[stage]()

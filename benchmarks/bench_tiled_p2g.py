@@ -85,6 +85,13 @@ def perturbed_state(B: int, N: int, seed: int = 1) -> dict[str, np.ndarray]:
             "d": d.astype(f32)}
 
 
+def set_perturbed_state(backend, seed: int = 1) -> None:
+    """Write ``perturbed_state`` (scene order) into ``backend``'s particle arrays, in the device's order."""
+    perm = getattr(backend, "_perm", None)
+    for name, values in perturbed_state(backend.batch, backend.scene.n_particles, seed).items():
+        getattr(backend, name).from_numpy(np.ascontiguousarray(values if perm is None else values[:, perm]))
+
+
 def _grids(sim, params: np.ndarray) -> dict[str, np.ndarray]:
     """One clear + P2G of the loaded runs in ``perturbed_state`` (the same state whatever the device's
     particle order); the grid arrays in float64."""
@@ -94,9 +101,7 @@ def _grids(sim, params: np.ndarray) -> dict[str, np.ndarray]:
     backend = sim.engine.backend(B)
     model = model_for(sim.engine_scene, params)
     backend.load(model.table(), model.friction)
-    perm = getattr(backend, "_perm", None)
-    for name, values in perturbed_state(B, backend.scene.n_particles).items():
-        getattr(backend, name).from_numpy(np.ascontiguousarray(values if perm is None else values[:, perm]))
+    set_perturbed_state(backend)
     nk = max(len(sim.engine_scene.engine.kinematic_names), 1)
     backend.set_frame(np.full(B, 1e-4), np.full(B, 2), np.zeros((B, 2, nk, 6)), damage_on=True)
     stages = backend._stages(0)
