@@ -12,7 +12,9 @@ active, the rest idle), ``--steps`` substeps are launched back to back with one 
 - ``stage_ms``: each stage's milliseconds, synchronised one by one (``kernel_times``).
 
 ``--frames F`` first simulates F frames of the batch, so that the state is deformed and fractured as a
-batch's tail finds it (else the state at rest).
+batch's tail finds it (else the state at rest). With particle re-sorting on (``--resort-every``, the tiled
+scatter's default), the state is sorted once more before the timed substeps (none sorts during them) and
+``resort_ms`` records one sort of the whole batch.
 
     python benchmarks/bench_active_runs.py --preset paper --batch 64 --out $OUT/active_runs_paper.json
 """
@@ -42,6 +44,8 @@ def _args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--arch", default="cuda", help="cpu: a check of the script (times mean nothing there)")
     p.add_argument("--p2g", default="auto", choices=["auto", "atomic", "tiled"], help="the scatter")
+    p.add_argument("--resort-every", type=int, default=None,
+                   help="substeps between particle re-sorts (taichi_resort_every; default: the simulator's)")
     p.add_argument("--steps", type=int, default=40, help="substeps timed per count of active runs")
     p.add_argument("--frames", type=int, default=0,
                    help="simulate this many frames first (a deformed, partly fractured state; 0: the state at rest)")
@@ -84,7 +88,8 @@ def main(argv: list[str] | None = None) -> int:
 
     space = parameter_space()
     params = space.denormalize(np.random.default_rng(0).uniform(size=(a.batch, space.dim)))
-    sim = OrangePeelSimulator(backend="taichi", preset=a.preset, arch=a.arch, batch_size=a.batch, taichi_p2g=a.p2g)
+    sim = OrangePeelSimulator(backend="taichi", preset=a.preset, arch=a.arch, batch_size=a.batch, taichi_p2g=a.p2g,
+                              taichi_resort_every=a.resort_every)
     ident = RunIdentity.of(sim)
     backend = sim.engine.backend(a.batch)
     model = model_for(sim.engine_scene, params)
@@ -92,6 +97,17 @@ def main(argv: list[str] | None = None) -> int:
         sim.engine.run(model, a.frames, a.frames)  # leaves the batch's state at frame a.frames
     else:
         backend.load(model.table(), model.friction)
+    sort_ms = None
+    if backend.resorter is not None:  # sorted now, then not again while substeps are timed
+        backend.resorter.sort()
+        backend.sync()
+        t0 = time.perf_counter()
+        for _ in range(5):
+            backend.resorter.sort()
+        backend.sync()
+        sort_ms = (time.perf_counter() - t0) / 5 * 1e3
+        backend.resorter.every = 0
+        print(f"one re-sort of the batch's particles: {sort_ms:.3f} ms", flush=True)
     nk = max(len(sim.engine_scene.engine.kinematic_names), 1)
     rows = []
     for active in active_counts(a.batch):
@@ -108,7 +124,8 @@ def main(argv: list[str] | None = None) -> int:
            "command": "python " + " ".join(shlex.quote(x) for x in [sys.argv[0], *(argv or sys.argv[1:])]),
            "simulator_version": ident.version, "config_hash": ident.config, "preset": a.preset, "batch": a.batch,
            "state": f"after {a.frames} frames" if a.frames else "at rest",
-           "scatter": backend.p2g, "device": backend.device, "steps": a.steps, "rows": rows}
+           "scatter": backend.p2g, "resort_every": backend.resort_every, "resort_ms": sort_ms,
+           "device": backend.device, "steps": a.steps, "rows": rows}
     emit(out, a.out)
     return 0
 

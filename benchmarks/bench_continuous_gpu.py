@@ -143,6 +143,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--profile", action="store_true")
     ap.add_argument("--no-features", action="store_true", help="skip the feature agreement (host time)")
     ap.add_argument("--p2g", default="auto", choices=["auto", "atomic", "tiled"], help="Taichi scatter (taichi_p2g)")
+    ap.add_argument("--resort-every", type=int, default=None,
+                   help="substeps between particle re-sorts (taichi_resort_every; default: the simulator's)")
     ap.add_argument("--tag", default="")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
@@ -154,7 +156,8 @@ def main(argv: list[str] | None = None) -> dict:
 
     from invphys.core.dataset import RunIdentity
 
-    sim = OrangePeelSimulator(preset=args.preset, arch=args.arch, batch_size=args.batch, taichi_p2g=args.p2g)
+    sim = OrangePeelSimulator(preset=args.preset, arch=args.arch, batch_size=args.batch, taichi_p2g=args.p2g,
+                              taichi_resort_every=args.resort_every)
     space = sim.parameter_space()
     params = space.denormalize(np.random.default_rng(args.seed).uniform(size=(args.runs, space.dim)))
     ext = None if args.no_features else OrangePeelFeatures()
@@ -168,7 +171,7 @@ def main(argv: list[str] | None = None) -> dict:
     out = {"benchmark": "bench_continuous_gpu", "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
            "command": "python benchmarks/bench_continuous_gpu.py " + " ".join(sys.argv[1:] if argv is None else argv),
            "device": sim.engine.device, "backend": "taichi", "taichi": ".".join(map(str, ti.__version__)), "simulator": sim.name, "simulator_version": sim.version,
-           "p2g": sim.engine.backend(args.batch).p2g,
+           "p2g": sim.engine.backend(args.batch).p2g, "resort_every": sim.engine.backend(args.batch).resort_every,
            "config_hash": RunIdentity.of(sim).config, "config": sim.config.model_dump(mode="json"),
            "preset": args.preset, "particles": sim.engine_scene.engine.n_particles, "frames": sim.frames,
            "runs": args.runs, "batch": args.batch, "seed": args.seed, "params": "uniform in the normalised space",

@@ -54,7 +54,7 @@ class OrangePeelSimulator(Simulator):
     identity_ignores: ClassVar[tuple[str, ...]] = ("arch", "allow_cpu_fallback", "batch_size", "deterministic",
                                                    "scheduling", "warp_graphs", "gpu_deterministic",
                                                    "queue_order", "min_chunk", "taichi_p2g",
-                                                   "taichi_g2p")
+                                                   "taichi_g2p", "taichi_resort_every")
 
     class Config(PluginConfig):
         """Settings of the orange-peel simulator."""
@@ -104,6 +104,10 @@ class OrangePeelSimulator(Simulator):
         taichi_g2p: Literal["auto", "unrolled", "loop"] = Field(
             "auto", description="Taichi g2p: 27 nodes unrolled, or loops over two axes (half the registers; "
                                 "1.23x faster kernel on an H100), auto = loop on CUDA, unrolled on the CPU")
+        taichi_resort_every: int | None = Field(
+            None, ge=0, description="Taichi: substeps between re-sorts of each run's particles into the curve "
+                                    "order of their current cells (keeps the tiled scatter's tiles compact as "
+                                    "the orange tears); 0 = never, None = 128 with the tiled scatter, else never")
 
         @field_validator("preset")
         @classmethod
@@ -151,7 +155,7 @@ class OrangePeelSimulator(Simulator):
 
             c = self.config
             opts = ({"use_graphs": c.warp_graphs, "gpu_deterministic": c.gpu_deterministic} if c.backend == "warp"
-                    else {"p2g": c.taichi_p2g, "g2p": c.taichi_g2p})
+                    else {"p2g": c.taichi_p2g, "g2p": c.taichi_g2p, "resort_every": c.taichi_resort_every})
             self._engine = Engine(self.engine_scene.engine, backend=c.backend, arch=c.arch,
                                   allow_cpu_fallback=c.allow_cpu_fallback, **opts)
         return self._engine

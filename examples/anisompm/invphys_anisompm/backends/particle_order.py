@@ -19,13 +19,20 @@ def base_cells(positions: np.ndarray, dx: float, grid: int) -> np.ndarray:
     return np.clip((np.asarray(positions) / dx - 0.5).astype(np.int64), 0, grid - 3)
 
 
+def morton_code(cells: np.ndarray, bits: int) -> np.ndarray:
+    """(N,) Morton (Z-order) codes of cells (N, 3) with coordinates below ``2**bits``: bit ``b`` of axis ``a``
+    at bit ``3 b + a``."""
+    cells = np.asarray(cells, np.int64)
+    code = np.zeros(len(cells), np.int64)
+    for bit in range(bits):
+        for a in range(3):
+            code |= ((cells[:, a] >> bit) & 1) << (3 * bit + a)
+    return code
+
+
 def morton_order(positions: np.ndarray, dx: float, grid: int) -> np.ndarray:
     """Particle indices sorted by the Morton (Z-order) code of their P2G base cell (stable)."""
-    base = base_cells(positions, dx, grid)
-    code = np.zeros(len(base), np.int64)
-    for bit in range(int(grid).bit_length()):
-        for a in range(3):
-            code |= ((base[:, a] >> bit) & 1) << (3 * bit + a)
+    code = morton_code(base_cells(positions, dx, grid), int(grid).bit_length())
     return np.argsort(code, kind="stable")
 
 

@@ -31,6 +31,8 @@ F32_INF_BITS = 0x7F800000
 #: 1.5 * 2**23 and its bit pattern: adding it to |x| <= 2**22 rounds x to an integer (``_round_to_int``)
 ROUND_MAGIC = 12582912.0
 ROUND_MAGIC_BITS = 0x4B400000
+#: substeps between re-sorts of each run's particles (tiled scatter; ``TaichiBackend``'s ``resort_every``)
+RESORT_EVERY = 128
 
 
 def _cuda_device_present() -> bool:
@@ -159,15 +161,16 @@ P2GTerms = ti.types.struct(affine=mat3, mv=vec3, mass=ti.f32)
 
 
 @ti.func
-def _p2g_terms(b, p, h, inv_dx, apic, mat: ti.template(), body: ti.template(), fibre: ti.template(),
+def _p2g_terms(b, p, s, h, inv_dx, apic, mat: ti.template(), body: ti.template(), fibre: ti.template(),
                vol: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(), d: ti.template(),
                dtil: ti.template()) -> P2GTerms:
-    """Particle ``p`` of run ``b``: its APIC affine matrix (stress included), momentum and mass, as both
-    scatters add them to its 27 nodes; writes its crack driving force ``dtil``."""
+    """Particle ``p`` of run ``b`` (scene particle ``s``, whose constants ``body``, ``fibre``, ``vol`` it
+    reads): its APIC affine matrix (stress included), momentum and mass, as both scatters add them to its
+    27 nodes; writes its crack driving force ``dtil``."""
     Fp = F[b, p]
     U, sig, V = ti.svd(Fp)
     J = sig[0, 0] * sig[1, 1] * sig[2, 2]
-    reg = body[p]
+    reg = body[s]
     dp = d[b, p]
     mu = mat[b, reg, M_MU]
     lam = mat[b, reg, M_LAM]
@@ -185,7 +188,7 @@ def _p2g_terms(b, p, h, inv_dx, apic, mat: ti.template(), body: ti.template(), f
     tau = U @ ti.Matrix([[tau_d[0], 0.0, 0.0], [0.0, tau_d[1], 0.0], [0.0, 0.0, tau_d[2]]]) @ U.transpose()
     sigp = U @ ti.Matrix([[s_pos[0], 0.0, 0.0], [0.0, s_pos[1], 0.0], [0.0, 0.0, s_pos[2]]]) @ U.transpose()
     A = ti.Matrix.identity(ti.f32, 3)
-    a0 = fibre[p]
+    a0 = fibre[s]
     if a0.norm_sqr() > 0.0:
         kf = mat[b, reg, M_KF]
         if kf > 0.0:
@@ -199,7 +202,7 @@ def _p2g_terms(b, p, h, inv_dx, apic, mat: ti.template(), body: ti.template(), f
     sc = mat[b, reg, M_SC]
     phi = (M * M.transpose()).sum() / (sc * sc)
     dtil[b, p] = ti.max(phi - 1.0, 0.0)
-    vp_ = vol[p]
+    vp_ = vol[s]
     mass = mat[b, reg, M_RHO] * vp_
     affine = (-h * vp_ * 4.0 * inv_dx * inv_dx) * tau + (mass * apic) * C[b, p]
     return P2GTerms(affine=affine, mv=mass * v[b, p], mass=mass)
@@ -376,7 +379,7 @@ def _build_g2p(unrolled: bool):
     @ti.kernel
     def g2p(k: ti.i32, dx: ti.f32, l0sq: ti.f32, don: ND(ti.i32, 1), nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
             mat: ND(ti.f32, 3), body: ND(ti.i32, 1), grip: ND(ti.i32, 1), x0: ND(vec3, 1), kin: ND(ti.f32, 4),
-            x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2),
+            sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2),
             dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gd: ND(vec2, 4)):
         inv_dx = 1.0 / dx
         G = gv.shape[1]
@@ -406,16 +409,17 @@ def _build_g2p(unrolled: bool):
                             for q in ti.static(range(3)):
                                 _g2p_node(b, base, ti.Vector([i, j, q]), fx, inv_dx, dp, wi, wj, w[q][2], hi, hj,
                                           hs[q], gv, gd, new_v, new_C, lap)
-                reg = body[p]
+                s = sid[b, p]
+                reg = body[s]
                 if don[b] != 0 and mat[b, reg, M_DMG] > 0.5:
                     Dc = dp - l0sq * lap
                     rate = (1.0 - dp) * dtil[b, p] - Dc
                     d[b, p] = ti.min(1.0, dp + h / mat[b, reg, M_ETA] * ti.max(rate, 0.0))
                 F[b, p] = (ti.Matrix.identity(ti.f32, 3) + h * new_C) @ F[b, p]
                 C[b, p] = new_C
-                gp = grip[p]
+                gp = grip[s]
                 if gp >= 0:
-                    x[b, p] = x0[p] + vec3(kin[b, k, gp, 0], kin[b, k, gp, 1], kin[b, k, gp, 2])
+                    x[b, p] = x0[s] + vec3(kin[b, k, gp, 0], kin[b, k, gp, 1], kin[b, k, gp, 2])
                     v[b, p] = vec3(kin[b, k, gp, 3], kin[b, k, gp, 4], kin[b, k, gp, 5])
                 else:
                     v[b, p] = new_v
@@ -438,9 +442,9 @@ def _build_kernels(serial_p2g: bool):
     @ti.kernel
     def p2g(k: ti.i32, dx: ti.f32, apic: ti.f32, ngrip: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
             mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
-            grip: ND(ti.i32, 1), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2),
-            d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
-            gg: ND(ti.f32, 4)):
+            grip: ND(ti.i32, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2),
+            F: ND(mat3, 2), d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
+            gd: ND(vec2, 4), gg: ND(ti.f32, 4)):
         inv_dx = 1.0 / dx
         G = gm.shape[1]
         if ti.static(serial_p2g):
@@ -451,9 +455,10 @@ def _build_kernels(serial_p2g: bool):
                 base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
                 fx = Xp - ti.cast(base, ti.f32)
                 w = _weights(fx)
-                t = _p2g_terms(b, p, dt[b], inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil)
+                s = sid[b, p]
+                t = _p2g_terms(b, p, s, dt[b], inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil)
                 dp = d[b, p]
-                gp = grip[p]
+                gp = grip[s]
                 for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
                     off = ti.Vector([i, j, q])
                     dpos = (ti.cast(off, ti.f32) - fx) * dx
@@ -464,9 +469,9 @@ def _build_kernels(serial_p2g: bool):
     @ti.kernel
     def p2g_tiled(k: ti.i32, dx: ti.f32, apic: ti.f32, ngrip: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
                   mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
-                  grip: ND(ti.i32, 1), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2),
-                  d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
-                  gg: ND(ti.f32, 4)):
+                  grip: ND(ti.i32, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2),
+                  F: ND(mat3, 2), d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
+                  gd: ND(vec2, 4), gg: ND(ti.f32, 4)):
         # CUDA only. One thread block per TILE consecutive particles of a run (spatially coherent along a
         # space-filling curve, particle_order.py): their 27-node contributions are summed in shared memory over
         # the tile's bounding box of nodes, then added to the grid once per node, instead of 6 global
@@ -503,6 +508,7 @@ def _build_kernels(serial_p2g: bool):
             affine = mat3(0.0)
             mv = vec3(0.0)
             mass = 0.0
+            s = 0
             if active:
                 Xp = x[b, p] * inv_dx
                 base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
@@ -510,7 +516,8 @@ def _build_kernels(serial_p2g: bool):
                 for a in ti.static(range(3)):
                     ti.atomic_min(lo[a], base[a])
                     ti.atomic_max(hi[a], base[a] + 2)
-                tm = _p2g_terms(b, p, dt[b], inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil)
+                s = sid[b, p]
+                tm = _p2g_terms(b, p, s, dt[b], inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil)
                 affine = tm.affine
                 mv = tm.mv
                 mass = tm.mass
@@ -538,7 +545,7 @@ def _build_kernels(serial_p2g: bool):
             if active:
                 w = _weights(fx)
                 dp = d[b, p]
-                gp = grip[p]
+                gp = grip[s]
                 for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
                     off = ti.Vector([i, j, q])
                     dpos = (ti.cast(off, ti.f32) - fx) * dx
@@ -578,8 +585,8 @@ def _build_kernels(serial_p2g: bool):
 
     @ti.func
     def _particle_stats(b: ti.i32, r: ti.i32, p: ti.i32, lo: ti.f32, hi: ti.f32, mat: ti.template(),
-                        body: ti.template(), vol: ti.template(), x: ti.template(), v: ti.template(),
-                        F: ti.template(), d: ti.template(), acc: ti.template()):
+                        body: ti.template(), vol: ti.template(), sid: ti.template(), x: ti.template(),
+                        v: ti.template(), F: ti.template(), d: ti.template(), acc: ti.template()):
         xp = x[b, p]
         vp = v[b, p]
         dp = d[b, p]
@@ -591,9 +598,10 @@ def _build_kernels(serial_p2g: bool):
         if bad != 0:
             ti.atomic_add(acc[b, r, 2], 1.0)
         else:
-            reg = body[p]
+            q = sid[b, p]
+            reg = body[q]
             ti.atomic_max(acc[b, r, 0], s)
-            ti.atomic_add(acc[b, r, 1], 0.5 * mat[b, reg, M_RHO] * vol[p] * s * s)
+            ti.atomic_add(acc[b, r, 1], 0.5 * mat[b, reg, M_RHO] * vol[q] * s * s)
             if xp.min() < lo or xp.max() > hi:
                 ti.atomic_add(acc[b, r, 3], 1.0)
             col = BODY0 + 4 * reg
@@ -619,7 +627,7 @@ def _build_kernels(serial_p2g: bool):
     # addresses per column instead of one (same-address float atomics serialise); on the CPU R = 1.
     @ti.kernel
     def frame_stats(lo: ti.f32, hi: ti.f32, mask: ND(ti.i32, 1), mat: ND(ti.f32, 3), body: ND(ti.i32, 1),
-                    vol: ND(ti.f32, 1), x: ND(vec3, 2), v: ND(vec3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2),
+                    vol: ND(ti.f32, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2),
                     acc: ND(ti.f32, 3), out: ND(ti.f32, 2)):
         for b, r, c in ti.ndrange(acc.shape[0], acc.shape[1], acc.shape[2]):
             if mask[b] != 0:
@@ -628,13 +636,13 @@ def _build_kernels(serial_p2g: bool):
             ti.loop_config(serialize=True)  # float sums in a fixed order: features repeat bit for bit
         for b, p in ti.ndrange(x.shape[0], x.shape[1]):  # a range-for: serialize applies
             if mask[b] != 0:
-                _particle_stats(b, p % acc.shape[1], p, lo, hi, mat, body, vol, x, v, F, d, acc)
+                _particle_stats(b, p % acc.shape[1], p, lo, hi, mat, body, vol, sid, x, v, F, d, acc)
         _reduce_stats(mask, acc, out)
 
     @ti.kernel
     def frame_end(lo: ti.f32, hi: ti.f32, mask: ND(ti.i32, 1), nstats: ti.i32, nk: ti.i32, mat: ND(ti.f32, 3),
-                  body: ND(ti.i32, 1), vol: ND(ti.f32, 1), x: ND(vec3, 2), v: ND(vec3, 2), F: ND(mat3, 2),
-                  d: ND(ti.f32, 2), imp: ND(vec3, 2), work: ND(ti.f32, 2), acc: ND(ti.f32, 3), out: ND(ti.f32, 2)):
+                  body: ND(ti.i32, 1), vol: ND(ti.f32, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2),
+                  F: ND(mat3, 2), d: ND(ti.f32, 2), imp: ND(vec3, 2), work: ND(ti.f32, 2), acc: ND(ti.f32, 3), out: ND(ti.f32, 2)):
         """One launch at the end of a chunk: zero ``out``, the statistics of the masked runs (as
         ``frame_stats``), then their force and work sums moved into ``out`` (4 columns per object after
         the statistics) and reset on the device."""
@@ -647,7 +655,7 @@ def _build_kernels(serial_p2g: bool):
             ti.loop_config(serialize=True)
         for b, p in ti.ndrange(x.shape[0], x.shape[1]):
             if mask[b] != 0:
-                _particle_stats(b, p % acc.shape[1], p, lo, hi, mat, body, vol, x, v, F, d, acc)
+                _particle_stats(b, p % acc.shape[1], p, lo, hi, mat, body, vol, sid, x, v, F, d, acc)
         _reduce_stats(mask, acc, out)
         for b, c in ti.ndrange(imp.shape[0], nk):
             if mask[b] != 0:
@@ -658,11 +666,14 @@ def _build_kernels(serial_p2g: bool):
                 work[b, c] = 0.0
 
     @ti.kernel
-    def reset_slots(mask: ND(ti.i32, 1), x0: ND(vec3, 1), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2),
-                    F: ND(mat3, 2), d: ND(ti.f32, 2), dtil: ND(ti.f32, 2)):
+    def reset_slots(mask: ND(ti.i32, 1), perm0: ND(ti.i32, 1), x0: ND(vec3, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2),
+                    v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2), dtil: ND(ti.f32, 2)):
+        # a new run starts in the initial device order perm0 (scene particle perm0[p] at device index p)
         for b, p in x:
             if mask[b] != 0:
-                x[b, p] = x0[p]
+                s = perm0[p]
+                sid[b, p] = s
+                x[b, p] = x0[s]
                 v[b, p] = vec3(0.0)
                 C[b, p] = mat3(0.0)
                 F[b, p] = ti.Matrix.identity(ti.f32, 3)
@@ -670,13 +681,15 @@ def _build_kernels(serial_p2g: bool):
                 dtil[b, p] = 0.0
 
     @ti.kernel
-    def gather(idx: ND(ti.i32, 1), src: ND(ti.i32, 1), x: ND(vec3, 2), d: ND(ti.f32, 2), xo: ND(vec3, 2),
+    def gather(idx: ND(ti.i32, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2), d: ND(ti.f32, 2), xo: ND(vec3, 2),
                do: ND(ti.f32, 2)):
-        # runs idx[i], particle q of the scene's order from device particle src[q]: the reorder happens
-        # here, not in numpy on the host (~85 ms per read of 64 paper runs on a 2-core CPU)
-        for i, q in xo:
-            xo[i, q] = x[idx[i], src[q]]
-            do[i, q] = d[idx[i], src[q]]
+        # runs idx[i] back in the scene's order (device particle p is scene particle sid[b, p]): the reorder
+        # happens here, not in numpy on the host (~85 ms per read of 64 paper runs on a 2-core CPU)
+        for i, p in xo:
+            b = idx[i]
+            s = sid[b, p]
+            xo[i, s] = x[b, p]
+            do[i, s] = d[b, p]
 
     return p2g, frame_stats, reset_slots, gather, frame_end, p2g_tiled, wipe_grid
 
@@ -696,12 +709,12 @@ def _kernels(build, *config):
 #: ``_scalars`` or one of its arrays
 _STAGE_ARGS = {
     "clear": ("k", "ngrip1", "nsub", "gv", "gm", "gd", "gg"),
-    "p2g": ("k", "dx", "apic", "ngrip1", "nsub", "dt", "mat", "body", "fibre", "vol", "grip", "x", "v", "C", "F", "d",
-            "dtil", "gv", "gm", "gd", "gg"),
+    "p2g": ("k", "dx", "apic", "ngrip1", "nsub", "dt", "mat", "body", "fibre", "vol", "grip", "sid", "x", "v", "C", "F",
+            "d", "dtil", "gv", "gm", "gd", "gg"),
     "grid": ("k", "dx", "gravity", "damp", "bc", "ngrip", "ncol", "nsub", "dt", "kin", "ctype", "ca", "cb", "csurf",
              "fric", "held", "gv", "gm", "gg", "imp", "work"),
-    "g2p": ("k", "dx", "l0sq", "don", "nsub", "dt", "mat", "body", "grip", "x0", "kin", "x", "v", "C", "F", "d", "dtil",
-            "gv", "gd"),
+    "g2p": ("k", "dx", "l0sq", "don", "nsub", "dt", "mat", "body", "grip", "x0", "kin", "sid", "x", "v", "C", "F", "d",
+            "dtil", "gv", "gd"),
 }
 #: every substep argument but ``k``, each once: what a graph launch binds
 _BOUND_ARGS = tuple(dict.fromkeys(n for names in _STAGE_ARGS.values() for n in names if n != "k"))
@@ -727,13 +740,15 @@ class TaichiBackend:
 
     def __init__(self, scene, batch: int, arch: str = "cpu", allow_cpu_fallback: bool = False,
                  stats_partials: int | None = None, p2g: str = "atomic", particle_order: str | None = None,
-                 g2p: str = "auto", **_: object):
+                 g2p: str = "auto", resort_every: int | None = None, **_: object):
         if p2g not in ("auto", "atomic", "tiled"):
             raise InvphysError(f"p2g must be 'auto', 'atomic' or 'tiled', got {p2g!r}")
         if g2p not in ("auto", "unrolled", "loop"):
             raise InvphysError(f"g2p must be 'auto', 'unrolled' or 'loop', got {g2p!r}")
         if particle_order not in (None, "scene", *ORDERS):
             raise InvphysError(f"particle_order must be 'scene' or one of {sorted(ORDERS)}, got {particle_order!r}")
+        if resort_every is not None and (isinstance(resort_every, bool) or int(resort_every) < 0):
+            raise InvphysError(f"resort_every must be a number of substeps >= 0 (0: never), got {resort_every!r}")
         self.arch = ensure_taichi(arch, allow_cpu_fallback)
         if p2g == "auto":
             p2g = "tiled" if self.arch == "cuda" else "atomic"
@@ -766,11 +781,23 @@ class TaichiBackend:
         #: particle order on the device: the Hilbert order of the initial cells for the tiled scatter (tiles
         #: of consecutive particles stay compact; ``particle_order.py``), else the scene's; every read
         #: returns the scene's order
-        order = particle_order or ("hilbert" if p2g == "tiled" else "scene")
+        order = particle_order or ("hilbert" if p2g == "tiled" or resort_every else "scene")
         self.particle_order = order
         self._perm = ORDERS[order](scene.positions, o.dx, o.grid) if order != "scene" else None
-        self._unperm = None if self._perm is None else np.argsort(self._perm)
         B, N, G = self.batch, scene.n_particles, o.grid
+        #: substeps between re-sorts of each run's particles into the curve order of their current cells
+        #: (``taichi_resort.py``; 0: never): RESORT_EVERY for the tiled scatter, else never (the CPU's
+        #: serialised scatter keeps the scene's order, and its results bit for bit)
+        if resort_every is None:
+            resort_every = RESORT_EVERY if p2g == "tiled" else 0
+        if resort_every and order == "scene":
+            raise InvphysError("resort_every needs a particle_order curve ('hilbert' or 'morton'), not 'scene'")
+        self.resort_every = int(resort_every)
+        self.resorter = None
+        if self.resort_every:
+            from invphys_anisompm.backends.taichi_resort import ParticleResorter
+
+            self.resorter = ParticleResorter(self, order, self.resort_every)
         self.ngrip = len(scene.grips)
         self.ncol = len(scene.colliders)
         NG1, NK1, NC1 = max(self.ngrip, 1), max(self.ngrip + self.ncol, 1), max(self.ncol, 1)
@@ -782,6 +809,8 @@ class TaichiBackend:
         self.F = ti.ndarray(mat3, (B, N))
         self.d = ti.ndarray(ti.f32, (B, N))
         self.dtil = ti.ndarray(ti.f32, (B, N))
+        #: device particle p of run b is scene particle sid[b, p] (runs are re-sorted one by one)
+        self.sid = ti.ndarray(ti.i32, (B, N))
         self.gv = ti.ndarray(vec3, (B, G, G, G))
         self.gm = ti.ndarray(ti.f32, (B, G, G, G))
         self.gd = ti.ndarray(vec2, (B, G, G, G))
@@ -798,11 +827,14 @@ class TaichiBackend:
         self.end_out = ti.ndarray(ti.f32, (B, self.nstats + 4 * NK1))
         self.imp = ti.ndarray(vec3, (B, NK1))
         self.work = ti.ndarray(ti.f32, (B, NK1))
-        self.body = self._const(ti.i32, self._order(scene.body).astype(np.int32))
-        self.fibre = self._const(vec3, self._order(scene.fibres).astype(np.float32))
-        self.vol = self._const(ti.f32, self._order(scene.volume).astype(np.float32))
-        self.grip = self._const(ti.i32, self._order(scene.grip).astype(np.int32))
-        self.x0 = self._const(vec3, self._order(scene.positions).astype(np.float32))
+        # per-particle constants in the scene's order, read through sid
+        self.body = self._const(ti.i32, scene.body.astype(np.int32))
+        self.fibre = self._const(vec3, scene.fibres.astype(np.float32))
+        self.vol = self._const(ti.f32, scene.volume.astype(np.float32))
+        self.grip = self._const(ti.i32, scene.grip.astype(np.int32))
+        self.x0 = self._const(vec3, scene.positions.astype(np.float32))
+        #: the initial device order: scene particle perm0[p] at device index p of every new run
+        self.perm0 = self._const(ti.i32, (np.arange(N) if self._perm is None else self._perm).astype(np.int32))
         self.held = self._const(ti.i32, scene.held.astype(np.int32), (G, G, G))
         enc = [c.encode() for c in scene.colliders] or [(0, np.zeros(3), np.array([0.0, 1.0, 0.0]))]
         self.ctype = self._const(ti.i32, np.array([e[0] for e in enc], np.int32))
@@ -816,7 +848,6 @@ class TaichiBackend:
         self._mat_host = np.zeros((B, len(scene.bodies), N_MAT), np.float32)
         self._fric_host = np.zeros((B, NC1), np.float32)
         self._gather_bufs: dict[int, tuple] = {}
-        self._src = self._const(ti.i32, (np.arange(N) if self._unperm is None else self._unperm).astype(np.int32))
         self._uploaded: dict[str, np.ndarray] = {}
         self._slot_mask = ti.ndarray(ti.i32, (B,))
         self._stats_mask = ti.ndarray(ti.i32, (B,))
@@ -842,6 +873,7 @@ class TaichiBackend:
         self.fric.from_numpy(self._fric_host)
         self.imp.fill(0.0)
         self.work.fill(0.0)
+        self.sid.from_numpy(np.broadcast_to(self.perm0.to_numpy(), (B, N)).copy())
         self.x.from_numpy(np.broadcast_to(self._order(self.scene.positions).astype(np.float32), (B, N, 3)).copy())
         self.v.from_numpy(np.zeros((B, N, 3), np.float32))
         self.C.from_numpy(np.zeros((B, N, 3, 3), np.float32))
@@ -928,7 +960,10 @@ class TaichiBackend:
 
     def advance(self, n_steps: int) -> None:
         """Run substeps 0..n_steps-1 of the current frame (runs past their own nsub idle): graphs of
-        ``GRAPH_SUBSTEPS`` substeps, then single ones for the rest."""
+        ``GRAPH_SUBSTEPS`` substeps, then single ones for the rest (re-sorting the particles first when
+        ``resort_every`` substeps have passed since the last sort)."""
+        if self.resorter is not None:
+            self.resorter.count(n_steps)
         k = 0
         while n_steps - k >= GRAPH_SUBSTEPS:
             self._run_graph(GRAPH_SUBSTEPS, k)
@@ -962,7 +997,7 @@ class TaichiBackend:
         mask = np.zeros(self.batch, np.int32)
         mask[slots] = 1
         self._slot_mask.from_numpy(mask)
-        self._reset(self._slot_mask, self.x0, self.x, self.v, self.C, self.F, self.d, self.dtil)
+        self._reset(self._slot_mask, self.perm0, self.x0, self.sid, self.x, self.v, self.C, self.F, self.d, self.dtil)
         self._wipe_grid()
 
     def _wipe_grid(self) -> None:
@@ -978,7 +1013,7 @@ class TaichiBackend:
             self._gather_bufs[n] = (ti.ndarray(ti.i32, (n,)), ti.ndarray(vec3, (n, N)), ti.ndarray(ti.f32, (n, N)))
         idx, xo, do = self._gather_bufs[n]
         idx.from_numpy(slots)
-        self._gather(idx, self._src, self.x, self.d, xo, do)
+        self._gather(idx, self.sid, self.x, self.d, xo, do)
         return xo.to_numpy(), do.to_numpy()
 
     def frame_stats(self, lo: float, hi: float, slots: np.ndarray | None = None) -> np.ndarray:
@@ -990,7 +1025,7 @@ class TaichiBackend:
             mask[np.asarray(slots, np.int64)] = 1
         self._stats_mask.from_numpy(mask)
         self.stats_out.fill(0.0)
-        self._stats(lo, hi, self._stats_mask, self.mat, self.body, self.vol, self.x, self.v, self.F, self.d,
+        self._stats(lo, hi, self._stats_mask, self.mat, self.body, self.vol, self.sid, self.x, self.v, self.F, self.d,
                     self.stats_acc, self.stats_out)
         return self.stats_out.to_numpy().astype(np.float64)
 
@@ -1002,7 +1037,7 @@ class TaichiBackend:
         mask[slots] = 1
         self._stats_mask.from_numpy(mask)
         n, ns = self.ngrip + self.ncol, self.nstats
-        self._frame_end(lo, hi, self._stats_mask, ns, n, self.mat, self.body, self.vol, self.x, self.v, self.F,
+        self._frame_end(lo, hi, self._stats_mask, ns, n, self.mat, self.body, self.vol, self.sid, self.x, self.v, self.F,
                         self.d, self.imp, self.work, self.stats_acc, self.end_out)
         out = self.end_out.to_numpy().astype(np.float64)
         sums = out[slots, ns:ns + 4 * n].reshape(len(slots), n, 4)
