@@ -35,7 +35,7 @@ import numpy as np
 def bench(preset: str, n: int, batch_size: int, executors: list[str], workers: int, frames: int | None,
           backend: str, seed: int, arch: str = "cpu", scheduling: str | None = None,
           extract_workers: list[int] | None = None, simulator_type: str = "orange_peel",
-          features_type: str | None = None, warmup: int = 0) -> dict:
+          features_type: str | None = None, warmup: int = 0, min_chunk: int | None = None) -> dict:
     import pandas as pd
 
     from invphys.core.generate import generate_dataset
@@ -46,8 +46,10 @@ def bench(preset: str, n: int, batch_size: int, executors: list[str], workers: i
         sim["frames"] = frames
     if scheduling:
         sim["scheduling"] = scheduling
+    if min_chunk:
+        sim["min_chunk"] = min_chunk
     out: dict = {"benchmark": "dataset_generation", "preset": preset, "n": n, "batch_size": batch_size,
-                 "frames": frames, "backend": backend, "arch": arch, "scheduling": scheduling,
+                 "frames": frames, "backend": backend, "arch": arch, "scheduling": scheduling, "min_chunk": min_chunk,
                  "command": " ".join(sys.argv), "host": platform.node(), "cpu_count": os.cpu_count(),
                  "python": sys.version.split()[0], "started_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                  "results": {}}
@@ -106,6 +108,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"])
     ap.add_argument("--scheduling", default=None, choices=["lockstep", "continuous"])
+    ap.add_argument("--min-chunk", type=int, default=None, help="continuous: fewest substeps per host round trip")
     ap.add_argument("--extract-workers", default=None,
                     help="comma list: one local-executor variant per value (feature-extraction processes; 0 = none)")
     ap.add_argument("--simulator-type", default="orange_peel",
@@ -117,7 +120,7 @@ def main() -> None:
     ew = [int(x) for x in args.extract_workers.split(",")] if args.extract_workers else None
     data = bench(args.preset, args.n, args.batch_size, args.executors.split(","), args.workers, args.frames,
                  args.backend, args.seed, args.arch, args.scheduling, ew, args.simulator_type, args.features_type,
-                 args.warmup)
+                 args.warmup, args.min_chunk)
     path = args.out or Path(__file__).parent / "results" / f"dataset_{args.preset}_{platform.node()}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(data, indent=2) + "\n")

@@ -117,3 +117,20 @@ def sim_model(sim, params):
     from invphys_orange_peel.engine_scene import model_for
 
     return model_for(sim.engine_scene, params)
+
+
+def test_scheduling_auto_is_continuous_on_cuda_and_lockstep_on_the_cpu():
+    from invphys_orange_peel.simulator import OrangePeelSimulator
+
+    # resolved from the config alone (arch "cuda" is not probed: no engine, no GPU needed)
+    gpu = OrangePeelSimulator(preset="tiny", arch="cuda")
+    assert (gpu.scheduling, gpu.min_chunk, gpu.native_stream) == ("continuous", 16, True)
+    assert OrangePeelSimulator(preset="tiny", arch="cuda", backend="warp").scheduling == "lockstep"
+    cpu = OrangePeelSimulator(preset="tiny", arch="cpu")
+    assert (cpu.scheduling, cpu.min_chunk, cpu.native_stream) == ("lockstep", 1, False)
+    chosen = OrangePeelSimulator(preset="tiny", arch="cuda", scheduling="lockstep", min_chunk=4)
+    assert (chosen.scheduling, chosen.min_chunk) == ("lockstep", 4)
+    # "auto" here probes the machine: this test machine has no CUDA GPU
+    from invphys_anisompm.backends.taichi_backend import cuda_available
+
+    assert OrangePeelSimulator(preset="tiny", arch="auto").scheduling == ("continuous" if cuda_available() else "lockstep")

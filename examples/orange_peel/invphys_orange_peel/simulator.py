@@ -82,17 +82,19 @@ class OrangePeelSimulator(Simulator):
         damage: bool = Field(True, description="evolve the phase-field damage")
         deterministic: bool = Field(True, description="serialise CPU scatter so runs repeat bit-for-bit")
         energy_factor: float = Field(4.0, gt=0, description="kinetic-energy blow-up bound factor")
-        scheduling: Literal["lockstep", "continuous"] = Field(
-            "lockstep", description="lockstep: batches of similar cost run together until the slowest ends; "
-                                    "continuous: batch_size slots stay full, a finished run's slot takes the "
-                                    "next run at once (results stream out as runs finish)")
+        scheduling: Literal["auto", "lockstep", "continuous"] = Field(
+            "auto", description="lockstep: batches of similar cost run together until the slowest ends; "
+                                "continuous: batch_size slots stay full, a finished run's slot takes the "
+                                "next run at once (results stream out as runs finish); auto = continuous for "
+                                "Taichi on CUDA (768-run datasets 1.08x faster on an H100), else lockstep")
         queue_order: Literal["longest_first", "given"] = Field(
             "longest_first", description="continuous: order in which free slots take runs; longest_first "
                                          "starts the costliest (estimated substeps) at once, given keeps row "
                                          "order (results and their row indices are the same either way)")
-        min_chunk: int = Field(1, ge=1, le=4096, description="continuous: fewest substeps per host round trip "
-                                                             "(larger: fewer round trips, slots idle past "
-                                                             "their frame end)")
+        min_chunk: int | None = Field(None, ge=1, le=4096,
+                                      description="continuous: fewest substeps per host round trip (larger: fewer "
+                                                  "round trips, slots idle past their frame end); None = 16 on "
+                                                  "CUDA, 1 on the CPU")
         warp_graphs: bool | None = Field(None, description="Warp on CUDA: replay substeps as CUDA graphs "
                                                            "(None: on for CUDA)")
         gpu_deterministic: bool = Field(False, description="Warp on CUDA: deterministic scatter atomics "
@@ -169,8 +171,33 @@ class OrangePeelSimulator(Simulator):
         return self.config.record_every or self.preset.record_every
 
     @property
+    def on_cuda(self) -> bool:
+        """Whether runs go to a CUDA GPU (``arch: auto`` resolved by probing, without starting the engine)."""
+        c = self.config
+        if c.arch != "auto":
+            return c.arch == "cuda"
+        if c.backend == "warp":
+            from invphys_anisompm.backends.warp_backend import cuda_available
+        else:
+            from invphys_anisompm.backends.taichi_backend import cuda_available
+        return bool(cuda_available())
+
+    @property
+    def scheduling(self) -> str:
+        """The scheduling in use: the config's, ``auto`` resolved (continuous for Taichi on CUDA)."""
+        c = self.config
+        if c.scheduling != "auto":
+            return c.scheduling
+        return "continuous" if c.backend == "taichi" and self.on_cuda else "lockstep"
+
+    @property
+    def min_chunk(self) -> int:
+        """Continuous batching's fewest substeps per host round trip: the config's, else 16 on CUDA, 1 on the CPU."""
+        return self.config.min_chunk or (16 if self.on_cuda else 1)
+
+    @property
     def native_stream(self) -> bool:  # type: ignore[override]
-        return self.config.scheduling == "continuous"
+        return self.scheduling == "continuous"
 
     def engine_options(self) -> Any:
         """The engine's :class:`~invphys_anisompm.EngineOptions` of this config (no settling damping: the
@@ -198,7 +225,7 @@ class OrangePeelSimulator(Simulator):
                 on_result(i, res)
 
         model = model_for(self.engine_scene, x)
-        if self.config.scheduling == "continuous":
+        if self.scheduling == "continuous":
             for i, rec in self._stream(model, self.config.batch_size):
                 done(i, rec)
         else:
@@ -215,7 +242,7 @@ class OrangePeelSimulator(Simulator):
 
     def _stream(self, model: Any, batch_size: int) -> Iterator[tuple[int, Any]]:
         c = self.config
-        return self.engine.stream(model, self.frames, self.record_every, batch_size, min_chunk=c.min_chunk,
+        return self.engine.stream(model, self.frames, self.record_every, batch_size, min_chunk=self.min_chunk,
                                   queue_order=c.queue_order)
 
     def estimate_cost(self, params: np.ndarray) -> np.ndarray:
