@@ -104,3 +104,14 @@ def test_bad_resort_settings_get_one_clear_error():
     with pytest.raises(ValidationError):
         _sim(taichi_resort_every=-3)
     assert TaichiBackend(scene, 1, arch="cpu").resorter is None              # the CPU default: never
+
+
+def test_without_pytorch_the_default_is_never_and_asking_for_sorts_says_so(monkeypatch):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "torch" else real(name, *a))
+    scene = _sim().engine_scene.engine
+    assert TaichiBackend(scene, 1, arch="cpu", particle_order="hilbert").resorter is None
+    with pytest.raises(InvphysError, match="needs PyTorch"):
+        TaichiBackend(scene, 1, arch="cpu", particle_order="hilbert", resort_every=8)

@@ -786,12 +786,18 @@ class TaichiBackend:
         self._perm = ORDERS[order](scene.positions, o.dx, o.grid) if order != "scene" else None
         B, N, G = self.batch, scene.n_particles, o.grid
         #: substeps between re-sorts of each run's particles into the curve order of their current cells
-        #: (``taichi_resort.py``; 0: never): RESORT_EVERY for the tiled scatter, else never (the CPU's
-        #: serialised scatter keeps the scene's order, and its results bit for bit)
+        #: (``taichi_resort.py``; 0: never): RESORT_EVERY for the tiled scatter when PyTorch (the sort) is
+        #: installed, else never (the CPU's serialised scatter keeps the scene's order, and its results bit for bit)
+        import importlib.util
+
+        has_torch = importlib.util.find_spec("torch") is not None
         if resort_every is None:
-            resort_every = RESORT_EVERY if p2g == "tiled" else 0
+            resort_every = RESORT_EVERY if p2g == "tiled" and has_torch else 0
         if resort_every and order == "scene":
             raise InvphysError("resort_every needs a particle_order curve ('hilbert' or 'morton'), not 'scene'")
+        if resort_every and not has_torch:
+            raise InvphysError("resort_every needs PyTorch (it sorts each run's particles on the device): "
+                               "pip install torch, or set resort_every=0")
         self.resort_every = int(resort_every)
         self.resorter = None
         if self.resort_every:
