@@ -73,7 +73,7 @@ def warm_up(simulator, extractor) -> dict:
 
     t0 = time.perf_counter()
     space = simulator.parameter_space()
-    b = simulator.config.batch_size
+    b = getattr(simulator, "batch_size", None) or simulator.config.batch_size
     rng = np.random.default_rng(123)
     if simulator.name == "cheese_cut":
         from invphys_cheese_cut.scene import model_for

@@ -119,17 +119,17 @@ def sim_model(sim, params):
     return model_for(sim.engine_scene, params)
 
 
-def test_scheduling_auto_is_continuous_on_cuda_and_lockstep_on_the_cpu():
+def test_defaults_are_continuous_batches_of_64_on_cuda_and_lockstep_16_on_the_cpu():
     from invphys_orange_peel.simulator import OrangePeelSimulator
 
     # resolved from the config alone (arch "cuda" is not probed: no engine, no GPU needed)
     gpu = OrangePeelSimulator(preset="tiny", arch="cuda")
-    assert (gpu.scheduling, gpu.min_chunk, gpu.native_stream) == ("continuous", 16, True)
+    assert (gpu.scheduling, gpu.min_chunk, gpu.native_stream, gpu.batch_size) == ("continuous", 16, True, 64)
     assert OrangePeelSimulator(preset="tiny", arch="cuda", backend="warp").scheduling == "lockstep"
     cpu = OrangePeelSimulator(preset="tiny", arch="cpu")
-    assert (cpu.scheduling, cpu.min_chunk, cpu.native_stream) == ("lockstep", 1, False)
-    chosen = OrangePeelSimulator(preset="tiny", arch="cuda", scheduling="lockstep", min_chunk=4)
-    assert (chosen.scheduling, chosen.min_chunk) == ("lockstep", 4)
+    assert (cpu.scheduling, cpu.min_chunk, cpu.native_stream, cpu.batch_size) == ("lockstep", 1, False, 16)
+    chosen = OrangePeelSimulator(preset="tiny", arch="cuda", scheduling="lockstep", min_chunk=4, batch_size=8)
+    assert (chosen.scheduling, chosen.min_chunk, chosen.batch_size) == ("lockstep", 4, 8)
     # "auto" here probes the machine: this test machine has no CUDA GPU
     from invphys_anisompm.backends.taichi_backend import cuda_available
 

@@ -63,7 +63,9 @@ class OrangePeelSimulator(Simulator):
         preset: str = Field("quick", description="scene resolution: paper, quick or tiny")
         arch: Literal["cpu", "cuda", "auto"] = Field("auto", description="device; auto = CUDA if present")
         allow_cpu_fallback: bool = Field(False, description="run on CPU when CUDA is asked for but absent")
-        batch_size: int = Field(16, ge=1, le=4096, description="runs advanced together by one launch")
+        batch_size: int | None = Field(None, ge=1, le=4096,
+                                       description="runs advanced together by one launch (slots); None = 64 on "
+                                                   "CUDA, 16 on the CPU")
         record_every: int | None = Field(None, ge=1, description="frame stride of trajectories "
                                                                  "(default: the preset's)")
         frames: int | None = Field(None, ge=1, description="override the preset's frame count")
@@ -176,11 +178,14 @@ class OrangePeelSimulator(Simulator):
         c = self.config
         if c.arch != "auto":
             return c.arch == "cuda"
-        if c.backend == "warp":
-            from invphys_anisompm.backends.warp_backend import cuda_available
-        else:
-            from invphys_anisompm.backends.taichi_backend import cuda_available
-        return bool(cuda_available())
+        from invphys_anisompm.backends import quiet_library
+
+        with quiet_library():  # the libraries' start-up banners: hidden unless INVPHYS_DEBUG=1
+            if c.backend == "warp":
+                from invphys_anisompm.backends.warp_backend import cuda_available
+            else:
+                from invphys_anisompm.backends.taichi_backend import cuda_available
+            return bool(cuda_available())
 
     @property
     def scheduling(self) -> str:
@@ -194,6 +199,12 @@ class OrangePeelSimulator(Simulator):
     def min_chunk(self) -> int:
         """Continuous batching's fewest substeps per host round trip: the config's, else 16 on CUDA, 1 on the CPU."""
         return self.config.min_chunk or (16 if self.on_cuda else 1)
+
+    @property
+    def batch_size(self) -> int:
+        """Runs advanced together: the config's, else 64 on CUDA (a 768-run dataset on an H100: 196.5 s with 64,
+        189.9 s with 128), 16 on the CPU."""
+        return self.config.batch_size or (64 if self.on_cuda else 16)
 
     @property
     def native_stream(self) -> bool:  # type: ignore[override]
@@ -226,10 +237,10 @@ class OrangePeelSimulator(Simulator):
 
         model = model_for(self.engine_scene, x)
         if self.scheduling == "continuous":
-            for i, rec in self._stream(model, self.config.batch_size):
+            for i, rec in self._stream(model, self.batch_size):
                 done(i, rec)
         else:
-            self.engine.run_batched(model, self.frames, self.record_every, self.config.batch_size, on_result=done)
+            self.engine.run_batched(model, self.frames, self.record_every, self.batch_size, on_result=done)
         return [r for r in results if r is not None]
 
     def simulate_stream(self, params: np.ndarray, batch_size: int | None = None
@@ -237,7 +248,7 @@ class OrangePeelSimulator(Simulator):
         """Yield ``(i, result)`` as runs finish: continuous batching over every row, ``batch_size`` (default:
         the config's) slots kept full on the warm engine, whatever ``scheduling`` says."""
         x = self._check(params)
-        for i, rec in self._stream(model_for(self.engine_scene, x), int(batch_size or self.config.batch_size)):
+        for i, rec in self._stream(model_for(self.engine_scene, x), int(batch_size or self.batch_size)):
             yield i, self.result_from_record(x[i], rec)
 
     def _stream(self, model: Any, batch_size: int) -> Iterator[tuple[int, Any]]:
