@@ -125,6 +125,7 @@ class OrangePeelSimulator(Simulator):
         self._scene: Scene | None = None
         self._engine_scene: OrangeScene | None = None
         self._engine: Any = None
+        self._cuda_probed: bool | None = None   # arch "auto": whether a CUDA GPU was found (probed once)
 
     # -- description --------------------------------------------------------------------------
     def parameter_space(self) -> ParameterSpace:
@@ -178,14 +179,16 @@ class OrangePeelSimulator(Simulator):
         c = self.config
         if c.arch != "auto":
             return c.arch == "cuda"
-        from invphys_anisompm.backends import quiet_library
+        if self._cuda_probed is None:
+            from invphys_anisompm.backends import quiet_library
 
-        with quiet_library():  # the libraries' start-up banners: hidden unless INVPHYS_DEBUG=1
-            if c.backend == "warp":
-                from invphys_anisompm.backends.warp_backend import cuda_available
-            else:
-                from invphys_anisompm.backends.taichi_backend import cuda_available
-            return bool(cuda_available())
+            with quiet_library():  # the libraries' start-up banners: hidden unless INVPHYS_DEBUG=1
+                if c.backend == "warp":
+                    from invphys_anisompm.backends.warp_backend import cuda_available
+                else:
+                    from invphys_anisompm.backends.taichi_backend import cuda_available
+                self._cuda_probed = bool(cuda_available())
+        return self._cuda_probed
 
     @property
     def scheduling(self) -> str:
