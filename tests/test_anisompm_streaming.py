@@ -144,3 +144,36 @@ def test_the_clear_skips_untouched_nodes_and_a_new_run_gets_a_clean_grid(backend
     gv, gm, gd, gg = _grid_channels(clean)
     untouched = gd[..., 1] == 0.0
     assert not gv[untouched].any() and not gm[untouched].any() and not gg[:B][untouched].any()
+
+
+def test_one_run_velocity_guard_equals_the_batched_one_bit_for_bit():
+    from invphys_anisompm.engine import velocity_guard, velocity_guard_one
+
+    rng = np.random.default_rng(0)
+    vmax = np.concatenate([rng.lognormal(0.0, 3.0, 2000), [0.0, 1e-30, 1e-300, 5e-324, np.nan, np.inf, 1e300, 1e17]])
+    nsub = rng.integers(1, 400, len(vmax))
+    for dx, fps, cfl in ((0.01, 30.0, 0.3), (0.0037, 24.0, 0.5)):
+        with np.errstate(all="ignore"):   # the batched guard's casts of the absurd speeds warn
+            batched = velocity_guard(nsub, vmax, dx, fps, cfl)
+        one = [velocity_guard_one(int(n), float(v), dx, fps, cfl) for n, v in zip(nsub, vmax, strict=True)]
+        assert np.array_equal(batched, np.array(one)), (dx, fps, cfl)
+    assert np.count_nonzero(batched > nsub) > 100     # the guard binds often enough for the check to mean something
+
+
+def test_a_function_path_evaluates_its_origin_once_and_moves_as_before():
+    from invphys_anisompm.paths import FunctionPath
+
+    calls = []
+
+    def fn(t):
+        calls.append(np.shape(t))
+        t = np.asarray(t, float)
+        return np.stack([np.sin(t) + 2.0, t * t, np.ones_like(t)], axis=-1)
+
+    path = FunctionPath(fn)
+    ts = np.linspace(0.0, 3.0, 7)
+    first, second = path.displacement(ts), path.displacement(ts[::-1])
+    want = fn(ts) - fn(np.zeros(()))
+    assert np.array_equal(first, want) and np.array_equal(second, want[::-1])
+    assert calls.count(()) == 1 + 1                     # fn(0) once for the path, once for `want` above
+    assert path == FunctionPath(fn)                     # the cache is not a field

@@ -9,6 +9,7 @@ per-body centroid and mean damage, force and work on every collider and grip) an
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -91,6 +92,19 @@ def velocity_guard(nsub_run: np.ndarray, vmax: np.ndarray, dx: float, fps: float
     need = np.ceil((1.0 / fps) / dt_v - 1e-9)
     need = np.where(np.isfinite(need), need, 0).astype(np.int64)
     return np.maximum(nsub_run, need)
+
+
+def velocity_guard_one(nsub_run: int, vmax: float, dx: float, fps: float, velocity_cfl: float) -> int:
+    """:func:`velocity_guard` for one run, in Python floats (the same IEEE arithmetic, bit for bit; ~10x faster
+    than numpy on one-element arrays, and continuous batching calls it at every slot's frame end)."""
+    if vmax > 0:
+        dt_v = velocity_cfl * dx / max(vmax, 1e-30)
+        need = math.ceil((1.0 / fps) / dt_v - 1e-9) if dt_v > 0 and math.isfinite(vmax) else 0
+        if need >= 2 ** 63:  # as numpy's int64 cast of such a count: no bound (the energy check fails such a run)
+            need = 0
+    else:
+        need = 0   # no speed, or NaN: no bound from the guard
+    return max(int(nsub_run), need)
 
 
 def kinematic_table(scene: Scene, frame: int, nsub: np.ndarray, dt: np.ndarray, active: np.ndarray) -> np.ndarray:
@@ -302,4 +316,4 @@ class Engine:
 
 
 __all__ = ["Engine", "RunRecord", "dt_bounds", "estimated_substeps", "frame_plan", "kinematic_table", "run_dt_bound",
-           "velocity_guard"]
+           "velocity_guard", "velocity_guard_one"]

@@ -91,7 +91,15 @@ class FunctionPath(Path):
 
     def displacement(self, t: np.ndarray | float) -> np.ndarray:
         t = np.asarray(t, dtype=np.float64)
-        return np.asarray(self.fn(t), float) - np.asarray(self.fn(np.zeros(())), float)
+        return np.asarray(self.fn(t), float) - self._origin()
+
+    def _origin(self) -> np.ndarray:
+        """``fn(0)``, evaluated once (kinematic tables ask for displacements at every frame of every run)."""
+        origin = self.__dict__.get("_origin_value")
+        if origin is None:
+            origin = np.asarray(self.fn(np.zeros(())), float)
+            object.__setattr__(self, "_origin_value", origin)   # a cache on a frozen dataclass: not a field
+        return origin
 
 
 __all__ = ["FunctionPath", "Path", "Static", "Waypoints", "linear_cut", "smoothstep"]

@@ -25,7 +25,7 @@ from invphys_anisompm.engine import (
     kinematic_speed,
     kinematic_table,
     run_dt_bound,
-    velocity_guard,
+    velocity_guard_one,
 )
 from invphys_anisompm.failure import BODY0, STAT_KE, STAT_VMAX, energy_bound, frame_failure, substep_failure
 from invphys_anisompm.model import Model
@@ -120,22 +120,23 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
         settling = step[b] < n_settle
         frame = -1 - int(step[b]) if settling else int(step[b]) - n_settle
         i = run[b]
-        nsub = velocity_guard(nsub_all[i:i + 1], stats_prev[b:b + 1, STAT_VMAX], dx, fps, o.velocity_cfl)
-        reason = substep_failure(int(nsub[0]), o.max_substeps_per_frame, frame, float(stats_prev[b, STAT_VMAX]))
+        vmax = float(stats_prev[b, STAT_VMAX])
+        nsub = velocity_guard_one(int(nsub_all[i]), vmax, dx, fps, o.velocity_cfl)
+        reason = substep_failure(nsub, o.max_substeps_per_frame, frame, vmax)
         if reason:
             return reason
-        if nsub[0] > nsub_all[i]:
+        if nsub > nsub_all[i]:
             records[b].guard_frames += 1
         dt = frame_dt / nsub
-        cur_nsub[b], cur_dt[b], off[b] = int(nsub[0]), float(dt[0]), 0
+        cur_nsub[b], cur_dt[b], off[b] = nsub, dt, 0
         if settling:
-            kin_slot[b] = np.zeros((int(nsub[0]), max(nk, 1), 6))
+            kin_slot[b] = np.zeros((nsub, max(nk, 1), 6))
         else:
-            key = (frame, int(nsub[0]))   # runs with the same substeps share a frame's table
+            key = (frame, nsub)   # runs with the same substeps share a frame's table
             if key not in kin_cache:
                 if len(kin_cache) >= 4096:
                     kin_cache.pop(next(iter(kin_cache)))
-                kin_cache[key] = kinematic_table(scene, frame, nsub, dt, np.ones(1, bool))[0]
+                kin_cache[key] = kinematic_table(scene, frame, np.array([nsub]), np.array([dt]), np.ones(1, bool))[0]
             kin_slot[b] = kin_cache[key]
         return None
 
