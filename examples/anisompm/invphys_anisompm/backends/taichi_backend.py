@@ -8,6 +8,7 @@ advances a whole batch; a run whose substep index ``k`` is past its own ``nsub[b
 
 
 import contextlib
+import importlib.util
 import threading
 
 import numpy as np
@@ -788,8 +789,6 @@ class TaichiBackend:
         #: substeps between re-sorts of each run's particles into the curve order of their current cells
         #: (``taichi_resort.py``; 0: never): RESORT_EVERY for the tiled scatter when PyTorch (the sort) is
         #: installed, else never (the CPU's serialised scatter keeps the scene's order, and its results bit for bit)
-        import importlib.util
-
         has_torch = importlib.util.find_spec("torch") is not None
         if resort_every is None:
             resort_every = RESORT_EVERY if p2g == "tiled" and has_torch else 0
@@ -840,7 +839,8 @@ class TaichiBackend:
         self.grip = self._const(ti.i32, scene.grip.astype(np.int32))
         self.x0 = self._const(vec3, scene.positions.astype(np.float32))
         #: the initial device order: scene particle perm0[p] at device index p of every new run
-        self.perm0 = self._const(ti.i32, (np.arange(N) if self._perm is None else self._perm).astype(np.int32))
+        self._perm0_host = (np.arange(N) if self._perm is None else self._perm).astype(np.int32)
+        self.perm0 = self._const(ti.i32, self._perm0_host)
         self.held = self._const(ti.i32, scene.held.astype(np.int32), (G, G, G))
         enc = [c.encode() for c in scene.colliders] or [(0, np.zeros(3), np.array([0.0, 1.0, 0.0]))]
         self.ctype = self._const(ti.i32, np.array([e[0] for e in enc], np.int32))
@@ -879,7 +879,7 @@ class TaichiBackend:
         self.fric.from_numpy(self._fric_host)
         self.imp.fill(0.0)
         self.work.fill(0.0)
-        self.sid.from_numpy(np.broadcast_to(self.perm0.to_numpy(), (B, N)).copy())
+        self.sid.from_numpy(np.broadcast_to(self._perm0_host, (B, N)).copy())
         self.x.from_numpy(np.broadcast_to(self._order(self.scene.positions).astype(np.float32), (B, N, 3)).copy())
         self.v.from_numpy(np.zeros((B, N, 3), np.float32))
         self.C.from_numpy(np.zeros((B, N, 3, 3), np.float32))
