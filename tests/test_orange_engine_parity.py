@@ -125,7 +125,8 @@ def test_defaults_are_continuous_batches_of_64_on_cuda_and_lockstep_16_on_the_cp
     # resolved from the config alone (arch "cuda" is not probed: no engine, no GPU needed)
     gpu = OrangePeelSimulator(preset="tiny", arch="cuda")
     assert (gpu.scheduling, gpu.min_chunk, gpu.native_stream, gpu.batch_size) == ("continuous", 16, True, 64)
-    assert OrangePeelSimulator(preset="tiny", arch="cuda", backend="warp").scheduling == "lockstep"
+    warp = OrangePeelSimulator(preset="tiny", arch="cuda", backend="warp")
+    assert (warp.scheduling, warp.batch_size) == ("lockstep", 16)     # the defaults measured for Taichi only
     cpu = OrangePeelSimulator(preset="tiny", arch="cpu")
     assert (cpu.scheduling, cpu.min_chunk, cpu.native_stream, cpu.batch_size) == ("lockstep", 1, False, 16)
     chosen = OrangePeelSimulator(preset="tiny", arch="cuda", scheduling="lockstep", min_chunk=4, batch_size=8)
@@ -134,3 +135,5 @@ def test_defaults_are_continuous_batches_of_64_on_cuda_and_lockstep_16_on_the_cp
     from invphys_anisompm.backends.taichi_backend import cuda_available
 
     assert OrangePeelSimulator(preset="tiny", arch="auto").scheduling == ("continuous" if cuda_available() else "lockstep")
+    fallback = OrangePeelSimulator(preset="tiny", arch="cuda", allow_cpu_fallback=True)   # probed as "auto" is
+    assert fallback.batch_size == (64 if cuda_available() else 16)

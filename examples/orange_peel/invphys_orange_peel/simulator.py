@@ -64,8 +64,8 @@ class OrangePeelSimulator(Simulator):
         arch: Literal["cpu", "cuda", "auto"] = Field("auto", description="device; auto = CUDA if present")
         allow_cpu_fallback: bool = Field(False, description="run on CPU when CUDA is asked for but absent")
         batch_size: int | None = Field(None, ge=1, le=4096,
-                                       description="runs advanced together by one launch (slots); None = 64 on "
-                                                   "CUDA, 16 on the CPU")
+                                       description="runs advanced together by one launch (slots); None = 64 for "
+                                                   "Taichi on CUDA, else 16")
         record_every: int | None = Field(None, ge=1, description="frame stride of trajectories "
                                                                  "(default: the preset's)")
         frames: int | None = Field(None, ge=1, description="override the preset's frame count")
@@ -95,8 +95,8 @@ class OrangePeelSimulator(Simulator):
                                          "order (results and their row indices are the same either way)")
         min_chunk: int | None = Field(None, ge=1, le=4096,
                                       description="continuous: fewest substeps per host round trip (larger: fewer "
-                                                  "round trips, slots idle past their frame end); None = 16 on "
-                                                  "CUDA, 1 on the CPU")
+                                                  "round trips, slots idle past their frame end); None = 16 for "
+                                                  "Taichi on CUDA, else 1")
         warp_graphs: bool | None = Field(None, description="Warp on CUDA: replay substeps as CUDA graphs "
                                                            "(None: on for CUDA)")
         gpu_deterministic: bool = Field(False, description="Warp on CUDA: deterministic scatter atomics "
@@ -175,9 +175,10 @@ class OrangePeelSimulator(Simulator):
 
     @property
     def on_cuda(self) -> bool:
-        """Whether runs go to a CUDA GPU (``arch: auto`` resolved by probing, without starting the engine)."""
+        """Whether runs go to a CUDA GPU (``arch: auto``, or ``cuda`` with a CPU fallback, resolved by probing,
+        without starting the engine)."""
         c = self.config
-        if c.arch != "auto":
+        if c.arch == "cpu" or (c.arch == "cuda" and not c.allow_cpu_fallback):
             return c.arch == "cuda"
         if self._cuda_probed is None:
             from invphys_anisompm.backends import quiet_library
@@ -196,18 +197,24 @@ class OrangePeelSimulator(Simulator):
         c = self.config
         if c.scheduling != "auto":
             return c.scheduling
-        return "continuous" if c.backend == "taichi" and self.on_cuda else "lockstep"
+        return "continuous" if self._taichi_on_cuda else "lockstep"
 
     @property
     def min_chunk(self) -> int:
-        """Continuous batching's fewest substeps per host round trip: the config's, else 16 on CUDA, 1 on the CPU."""
-        return self.config.min_chunk or (16 if self.on_cuda else 1)
+        """Continuous batching's fewest substeps per host round trip: the config's, else 16 for Taichi on CUDA,
+        else 1."""
+        return self.config.min_chunk or (16 if self._taichi_on_cuda else 1)
 
     @property
     def batch_size(self) -> int:
-        """Runs advanced together: the config's, else 64 on CUDA (a 768-run dataset on an H100: 196.5 s with 64,
-        189.9 s with 128), 16 on the CPU."""
-        return self.config.batch_size or (64 if self.on_cuda else 16)
+        """Runs advanced together: the config's, else 64 for Taichi on CUDA (a 768-run dataset on an H100:
+        196.5 s with 64, 189.9 s with 128), else 16."""
+        return self.config.batch_size or (64 if self._taichi_on_cuda else 16)
+
+    @property
+    def _taichi_on_cuda(self) -> bool:
+        """The case the ``auto`` defaults were measured for: the Taichi backend on a CUDA GPU."""
+        return self.config.backend == "taichi" and self.on_cuda
 
     @property
     def native_stream(self) -> bool:  # type: ignore[override]
