@@ -62,6 +62,48 @@ def test_stream_idles_only_in_the_tail_and_reuses_the_backend() -> None:
     np.testing.assert_array_equal(again[0].positions[-1], out[3].positions[-1])
 
 
+def test_finished_runs_are_handed_out_while_the_next_chunk_runs() -> None:
+    """A finished run is yielded after the next chunk is launched (on a GPU the launch is asynchronous, so
+    the caller's work on the run overlaps the kernels), and the kinematic tables of a slot's next frame are
+    built before that frame ends (they are found in the cache when the frame starts)."""
+    import invphys_anisompm.streaming as streaming
+
+    engine = Engine(SCENE, backend="taichi", arch="cpu")
+    backend = engine.backend(2)
+    calls = {"advance": 0, "frame_end": 0, "table_after_frame_end": 0}
+    advance, frame_end, table = backend.advance, backend.frame_end, streaming.kinematic_table
+    in_frame_end = {"now": False}
+
+    def spy_advance(n: int) -> None:
+        calls["advance"] += 1
+        in_frame_end["now"] = False
+        advance(n)
+
+    def spy_frame_end(*args):
+        calls["frame_end"] += 1
+        in_frame_end["now"] = True
+        return frame_end(*args)
+
+    def spy_table(*args, **kwargs):
+        calls["table_after_frame_end"] += in_frame_end["now"]
+        return table(*args, **kwargs)
+
+    backend.advance, backend.frame_end = spy_advance, spy_frame_end
+    streaming.kinematic_table = spy_table
+    try:
+        at_yield = [(calls["advance"], calls["frame_end"])
+                    for _ in engine.stream(MODEL, frames=FRAMES, record_every=3, batch_size=2)]
+    finally:
+        streaming.kinematic_table = table
+    assert len(at_yield) == len(E)
+    # every run but the last two (finished when no slot has work left) is yielded with a chunk in flight
+    assert sum(a == f + 1 for a, f in at_yield) >= len(E) - 2
+    assert all(a in (f, f + 1) for a, f in at_yield)
+    # tables are built between a chunk's launch and its frame end, not while the GPU waits for the next
+    # chunk: only the velocity guard raising a frame's substeps could need one after a frame end
+    assert calls["table_after_frame_end"] == 0
+
+
 def test_failed_run_frees_its_slot() -> None:
     import dataclasses
 

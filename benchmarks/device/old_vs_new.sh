@@ -4,13 +4,17 @@
 #     one whole lock-step batch of SIZE random runs (bench_host_share; SIZE 64): old, new, old, new, since one
 #     machine's times drift by a few per cent between passes;
 #   kind "dataset": dataset generation end to end (bench_dataset.py: SIZE runs, default 384, 4 extraction
-#     processes, stores written, batches of 64 handed over costliest first): new, then old.
+#     processes, stores written, 64 slots; SCHED (4th argument) lockstep (default: batches handed over
+#     costliest first) or continuous (min_chunk 16)): new, then old;
+#   kind "stream": SIZE (default 256) random runs through continuous batching on a warm engine
+#     (bench_continuous_gpu.py, min_chunk 16, costliest first, no feature check): old, new, old, new.
 #
 # Prepare here (ignored; only the changed package, since a call carries at most 64 MiB):
 #     rm -rf .gpu/old && mkdir -p .gpu/old && git archive HEAD~1 examples/anisompm | tar -x -C .gpu/old
 # then run `bash benchmarks/device/old_vs_new.sh <tag> [batch|dataset] [size]` with carry [".gpu/wb", ".gpu/old"]
 # (or [".gpu/old"] on a machine staged already: ensure_staged.sh). Results under $OUT:
-# kernel_times_<tag>_{old,new}_{1,2}.json, host_share_<tag>_{old,new}_{1,2}.json, dataset_paper_<tag>_{new,old}.json.
+# kernel_times_<tag>_{old,new}_{1,2}.json, host_share_<tag>_{old,new}_{1,2}.json, dataset_paper_<tag>_{new,old}.json,
+# stream_<tag>_{old,new}_{1,2}.json.
 set -e
 bash benchmarks/device/ensure_staged.sh >/dev/null
 OUTDIR=${OUT:-/tmp/old_vs_new_out}; mkdir -p "$OUTDIR"
@@ -24,12 +28,25 @@ path_of() { if [ "$1" = old ]; then echo "/tmp/gpusite:$OLD"; else echo "/tmp/gp
 
 if [ "$KIND" = dataset ]; then
   N=${3:-384}
+  SCHED=${4:-lockstep}
+  CHUNK=""; if [ "$SCHED" = continuous ]; then CHUNK="--min-chunk 16"; fi
   for v in new old; do
     PYTHONPATH=$(path_of $v) python3 benchmarks/bench_dataset.py --preset paper --arch cuda --n "$N" --batch-size 64 \
-      --scheduling lockstep --executors local --extract-workers 4 --warmup 2 \
+      --scheduling "$SCHED" $CHUNK --executors local --extract-workers 4 --warmup 2 \
       --simulator-type invphys_orange_peel.simulator:OrangePeelSimulator \
       --features-type invphys_orange_peel.features:OrangePeelFeatures \
       --out "$OUTDIR/dataset_paper_${TAG}_${v}.json" 2>&1 | grep -E "runs/h|s/run|per run|wall|error|Error" | tail -4
+  done
+  exit 0
+fi
+if [ "$KIND" = stream ]; then
+  N=${3:-256}
+  for pass in 1 2; do
+    for v in old new; do
+      PYTHONPATH=$(path_of $v) python3 benchmarks/bench_continuous_gpu.py --runs "$N" --batch 64 \
+        --cases continuous:16:longest_first --no-features --tag "${TAG}_${v}_${pass}" \
+        --out "$OUTDIR/stream_${TAG}_${v}_${pass}.json" 2>&1 | grep -E "seconds_per_run|error|Error" | tail -3
+    done
   done
   exit 0
 fi

@@ -116,6 +116,23 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
     kin_cache: dict[tuple[int, int], np.ndarray] = {}   # (frame, substeps) -> kinematic table (read only)
     pos_cache: dict[tuple[int, int], np.ndarray] = {}   # (frame, object) -> displacement
 
+    def kin_table(frame: int, nsub: int) -> np.ndarray:
+        key = (frame, nsub)   # runs with the same substeps share a frame's table
+        if key not in kin_cache:
+            if len(kin_cache) >= 4096:
+                kin_cache.pop(next(iter(kin_cache)))
+            kin_cache[key] = kinematic_table(scene, frame, np.array([nsub]), np.array([frame_dt / nsub]),
+                                             np.ones(1, bool))[0]
+        return kin_cache[key]
+
+    def prefetch(ending: np.ndarray) -> None:
+        """Build, while the GPU works, the kinematic tables that slots ``ending`` their frame in this chunk
+        will most likely need next (their planned substeps; the velocity guard rarely raises them)."""
+        for b in ending:
+            nxt = int(step[b]) + 1 - n_settle   # the frame after this one (negative: still settling)
+            if 0 <= nxt < frames:
+                kin_table(nxt, int(nsub_all[run[b]]))
+
     def begin_frame(b: int) -> str | None:
         settling = step[b] < n_settle
         frame = -1 - int(step[b]) if settling else int(step[b]) - n_settle
@@ -127,17 +144,8 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
             return reason
         if nsub > nsub_all[i]:
             records[b].guard_frames += 1
-        dt = frame_dt / nsub
-        cur_nsub[b], cur_dt[b], off[b] = nsub, dt, 0
-        if settling:
-            kin_slot[b] = np.zeros((nsub, max(nk, 1), 6))
-        else:
-            key = (frame, nsub)   # runs with the same substeps share a frame's table
-            if key not in kin_cache:
-                if len(kin_cache) >= 4096:
-                    kin_cache.pop(next(iter(kin_cache)))
-                kin_cache[key] = kinematic_table(scene, frame, np.array([nsub]), np.array([dt]), np.ones(1, bool))[0]
-            kin_slot[b] = kin_cache[key]
+        cur_nsub[b], cur_dt[b], off[b] = nsub, frame_dt / nsub, 0
+        kin_slot[b] = np.zeros((nsub, max(nk, 1), 6)) if settling else kin_table(frame, nsub)
         return None
 
     def record(group: list[int], frame_of: dict[int, int], recorded_of: dict[int, bool]) -> None:
@@ -180,11 +188,13 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
         return out
 
     backend.kinematic_sums()   # start every slot's sums from zero (a warm backend may hold a previous batch's)
+    # finished runs not yet handed out: they are yielded once the next chunk is launched, so that the
+    # caller's work on them (features, stores) overlaps the GPU's instead of leaving it idle
+    done: list[tuple[int, RunRecord]] = []
     while True:
         # refill empty slots from the queue (one device reset for all of them)
         empty = [b for b in range(B) if run[b] < 0]
         new = [(b, queue.pop()) for b in empty[:len(queue)]]
-        done: list[tuple[int, RunRecord]] = []
         if new:
             slots = np.array([b for b, _ in new])
             idx = np.array([i for _, i in new])
@@ -202,9 +212,10 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
                     records[b].failure = reason
                 if reason or frames + n_settle == 0:
                     done.append(finish(b))
-        yield from done
         active = run >= 0
         if not active.any():
+            yield from done
+            done = []
             if queue:
                 continue   # every new run failed at once: refill again
             return
@@ -218,12 +229,16 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
         settling = active & (step < n_settle)
         backend.set_frame(np.where(active, cur_dt, frame_dt), n_chunk, kin, damage_on=~settling,
                           damping=np.where(settling, o.settle_damping, 0.0))
-        backend.advance(K)
+        backend.advance(K)   # asynchronous on a GPU: the host goes on while the chunk runs
+        yield from done
+        done = []
         counters.useful += int(n_chunk.sum())
         counters.launched += B * K
         counters.chunks += 1
         off += n_chunk
-        ended = [int(b) for b in np.flatnonzero(active & (off >= cur_nsub))]
+        ending = np.flatnonzero(active & (off >= cur_nsub))
+        prefetch(ending)
+        ended = [int(b) for b in ending]
         if not ended:
             continue
         # a slot's force/work sums stay on the device for its whole frame (float32, as in lock-step)
@@ -267,7 +282,6 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
             if reason:
                 records[b].failure = reason
                 done.append(finish(b))
-        yield from done
 
 
 __all__ = ["QUEUE_ORDERS", "SlotCounters", "queue_order", "stream_runs"]
