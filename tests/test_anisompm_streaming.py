@@ -115,6 +115,25 @@ def test_failed_run_frees_its_slot() -> None:
     assert all(r.failure and r.failure.startswith("dt:") and r.positions == [] for r in out.values())
 
 
+@pytest.mark.parametrize("settle_seconds", [0.0, 0.04])
+def test_failures_keep_their_reasons_and_no_particle_frames(settle_seconds: float) -> None:
+    """A run failing at a frame end (``energy``) or at a frame start (``dt``, right after the first frame was
+    taken when nothing settles) ends as in lock-step: the same reason, no particle frames."""
+    import dataclasses
+
+    scene = build_scene(settle_seconds=settle_seconds)
+    model = scene.model(3).set_material("paste", E=[3e4, 6e4, 9e4])
+    for change in ({"energy_factor": 1e-30}, {"max_substeps_per_frame": 1}):
+        strict = dataclasses.replace(scene, options=dataclasses.replace(scene.options, **change))
+        engine = Engine(strict, backend="taichi", arch="cpu")
+        plain = engine.run(model, frames=2, record_every=1)
+        out = dict(engine.stream(model, frames=2, record_every=1, batch_size=2))
+        assert all(r.failure for r in plain), change
+        for i, ref in enumerate(plain):
+            assert out[i].failure == ref.failure
+            assert out[i].positions == [] == ref.positions and out[i].damage == []
+
+
 def test_frame_statistics_in_partial_rows_agree_with_the_plain_sums() -> None:
     """The GPU's layout of the frame statistics (particles spread over partial rows, then reduced) run on
     the CPU: same particles bit for bit (the peak speed, which drives the velocity guard, is a max), the

@@ -10,6 +10,11 @@ records are taken exactly as in :meth:`Engine.run`; a slot's force and work sums
 the whole frame and are read (and reset) at its end, as in the lock-step path. So on the CPU with a
 serialised scatter every record is bit-for-bit the lock-step one, whatever the slot, the queue order or
 the other runs of the batch. Results stream out as runs finish.
+
+The host's work is ordered around the GPU: between a frame end (a synchronising read) and the next launch
+it does only what that launch needs (failure checks, the next frames' substeps, the particles a record
+takes); appending the records, building the next frames' kinematic tables and handing finished runs to
+the caller happen after the launch, while the chunk runs (launches are asynchronous on a GPU).
 """
 
 from __future__ import annotations
@@ -27,7 +32,16 @@ from invphys_anisompm.engine import (
     run_dt_bound,
     velocity_guard_one,
 )
-from invphys_anisompm.failure import BODY0, STAT_KE, STAT_VMAX, energy_bound, frame_failure, substep_failure
+from invphys_anisompm.failure import (
+    BODY0,
+    STAT_KE,
+    STAT_NONFINITE,
+    STAT_OUTSIDE,
+    STAT_VMAX,
+    energy_bound,
+    frame_failure,
+    substep_failure,
+)
 from invphys_anisompm.model import Model
 
 
@@ -148,15 +162,24 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
         kin_slot[b] = np.zeros((nsub, max(nk, 1), 6)) if settling else kin_table(frame, nsub)
         return None
 
-    def record(group: list[int], frame_of: dict[int, int], recorded_of: dict[int, bool]) -> None:
+    def snapshot(group: list[int], frame_of: dict[int, int], recorded_of: dict[int, bool]) -> None:
+        """Take what the records of slots ``group`` keep of the frame that just ended (particles read from the
+        device, host copies of the slot's statistics and sums) before the next launch changes it; the
+        records are written by :func:`write` while the GPU runs the next chunk."""
         host_of = {b: [r for r in scene.reductions if frame_of[b] % r.every == 0] for b in group}
         need = [b for b in group if recorded_of[b] or host_of[b]]
         xs: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         if need:
             x, d = backend.read_slots(np.array(need))
+            if not fresh:   # the backend reuses its read buffers
+                x, d = x.copy(), d.copy()
             xs = {b: (x[j:j + 1], d[j:j + 1]) for j, b in enumerate(need)}
-        for b in group:
-            rec, frame, st = records[b], frame_of[b], stats_prev[b]
+        pending.extend((records[b], frame_of[b], stats_prev[b].copy(), last_force[b].copy(), work[b].copy(),
+                        xs.get(b), host_of[b], recorded_of[b]) for b in group)
+
+    def write() -> None:
+        """Append the pending frames to their records (a run that failed since keeps no particle frames)."""
+        for rec, frame, st, force, wk, xb, reductions, recorded in pending:
             s = rec.series
             s.setdefault("max_speed", []).append(float(st[STAT_VMAX]))
             s.setdefault("kinetic_energy", []).append(float(st[STAT_KE]))
@@ -165,18 +188,20 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
                 s.setdefault(f"centroid/{body.name}", []).append(st[col:col + 3] / counts[i])
                 s.setdefault(f"mean_damage/{body.name}", []).append(float(st[col + 3] / counts[i]))
             for c, (name, path) in enumerate(zip(names, scene.kinematic_paths, strict=True)):
-                s.setdefault(f"force/{name}", []).append(last_force[b, c].copy())
-                s.setdefault(f"work/{name}", []).append(float(work[b, c]))
+                s.setdefault(f"force/{name}", []).append(force[c].copy())
+                s.setdefault(f"work/{name}", []).append(float(wk[c]))
                 if (frame, c) not in pos_cache:
                     pos_cache[(frame, c)] = path.displacement(frame / fps)
                 s.setdefault(f"position/{name}", []).append(pos_cache[(frame, c)].copy())
-            for r in host_of[b]:
-                v = np.asarray(r.fn(*xs[b], scene), float).reshape(1, -1)[0]
+            for r in reductions:
+                v = np.asarray(r.fn(*xb, scene), float).reshape(1, -1)[0]
                 s.setdefault(r.name, []).append(float(v[0]) if v.size == 1 else v.copy())
-            if recorded_of[b]:
-                rec.positions.append(xs[b][0][0] if fresh else xs[b][0][0].copy())
-                rec.damage.append(xs[b][1][0] if fresh else xs[b][1][0].copy())
+            if recorded:
+                if rec.failure is None:
+                    rec.positions.append(xb[0][0])
+                    rec.damage.append(xb[1][0])
                 rec.frames.append(frame)
+        pending.clear()
 
     def finish(b: int) -> tuple[int, RunRecord]:
         rec = records[b]
@@ -191,6 +216,8 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
     # finished runs not yet handed out: they are yielded once the next chunk is launched, so that the
     # caller's work on them (features, stores) overlaps the GPU's instead of leaving it idle
     done: list[tuple[int, RunRecord]] = []
+    # frames taken at a frame end, appended to their records after the next launch (snapshot, write)
+    pending: list[tuple] = []
     while True:
         # refill empty slots from the queue (one device reset for all of them)
         empty = [b for b in range(B) if run[b] < 0]
@@ -206,7 +233,7 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
                 stats_prev[b] = init_stats[b] if init_stats is not None else 0.0
                 work[b] = imp_acc[b] = w_acc[b] = last_force[b] = 0.0
                 if n_settle == 0:
-                    record([b], {b: 0}, {b: True})
+                    snapshot([b], {b: 0}, {b: True})
                 reason = begin_frame(b) if frames + n_settle > 0 else None
                 if reason:
                     records[b].failure = reason
@@ -214,6 +241,7 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
                     done.append(finish(b))
         active = run >= 0
         if not active.any():
+            write()
             yield from done
             done = []
             if queue:
@@ -230,6 +258,7 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
         backend.set_frame(np.where(active, cur_dt, frame_dt), n_chunk, kin, damage_on=~settling,
                           damping=np.where(settling, o.settle_damping, 0.0))
         backend.advance(K)   # asynchronous on a GPU: the host goes on while the chunk runs
+        write()
         yield from done
         done = []
         counters.useful += int(n_chunk.sum())
@@ -242,24 +271,34 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
         if not ended:
             continue
         # a slot's force/work sums stay on the device for its whole frame (float32, as in lock-step)
-        stats, imp, w = backend.frame_end(lo, hi, np.array(ended))
-        imp_acc[ended, :nk] = imp
-        w_acc[ended, :nk] = w
+        stats, imp, w = backend.frame_end(lo, hi, ending)
+        imp_acc[ending, :nk] = imp
+        w_acc[ending, :nk] = w
+        # what the host does between this sync and the next launch leaves the GPU idle: the slots' bookkeeping
+        # is done for all of them at once, and a message is built only for a run that looks unhealthy
+        ends = stats[ending]
+        extra = imp_acc[ending, :nk].reshape(len(ending), -1).sum(axis=1) + w_acc[ending, :nk].sum(axis=1)
+        with np.errstate(invalid="ignore"):
+            suspect = ((ends[:, STAT_NONFINITE] > 0) | ~np.isfinite(ends).all(axis=1) | ~np.isfinite(extra)
+                       | (ends[:, STAT_OUTSIDE] > 0) | (ends[:, STAT_KE] > bound_all[run[ending]]))
+        stats_prev[ending] = ends
+        last_force[ending] = imp_acc[ending] * fps
+        was_settling_all = step[ending] < n_settle
+        framing = ending[~was_settling_all]
+        work[framing] += w_acc[framing]
+        imp_acc[ending] = 0.0
+        w_acc[ending] = 0.0
         group, frame_of, recorded_of = [], {}, {}
-        for b in ended:
+        for j, b in enumerate(ended):
             rec = records[b]
-            was_settling = step[b] < n_settle
+            was_settling = bool(was_settling_all[j])
             frame = -1 - int(step[b]) if was_settling else int(step[b]) - n_settle
-            stats_prev[b] = stats[b]
-            last_force[b] = imp_acc[b] * fps
             if was_settling:
                 rec.settle_substeps += int(cur_nsub[b])
             else:
-                work[b] += w_acc[b]
                 rec.substeps += int(cur_nsub[b])
-            reason = frame_failure(stats[b], float(bound_all[run[b]]), frame + 1,
-                                   float(np.sum(imp_acc[b, :nk])) + float(np.sum(w_acc[b, :nk])))
-            imp_acc[b] = w_acc[b] = 0.0
+            reason = frame_failure(ends[j], float(bound_all[run[b]]), frame + 1, float(extra[j])) \
+                if suspect[j] else None
             if reason:
                 rec.failure = reason
                 done.append(finish(b))
@@ -271,7 +310,7 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
                 frame_of[b] = f
                 recorded_of[b] = was_settling or f % record_every == 0 or f == frames
         if group:
-            record(group, frame_of, recorded_of)
+            snapshot(group, frame_of, recorded_of)
         for b in ended:
             if run[b] < 0:
                 continue
