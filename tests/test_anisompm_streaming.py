@@ -221,6 +221,31 @@ def test_one_run_velocity_guard_equals_the_batched_one_bit_for_bit():
     assert np.count_nonzero(batched > nsub) > 100     # the guard binds often enough for the check to mean something
 
 
+def test_unhealthy_flags_the_rows_frame_failure_fails():
+    from invphys_anisompm.failure import (
+        STAT_KE,
+        STAT_NONFINITE,
+        STAT_OUTSIDE,
+        frame_failure,
+        n_stats,
+        unhealthy,
+    )
+
+    rng = np.random.default_rng(1)
+    n = 4000
+    stats = rng.normal(0.0, 1.0, (n, n_stats(2)))
+    stats[:, STAT_NONFINITE] = rng.random(n) < 0.05
+    stats[:, STAT_OUTSIDE] = (rng.random(n) < 0.05) * rng.integers(1, 9, n)
+    stats[:, STAT_KE] = rng.lognormal(0.0, 2.0, n)
+    for col, value in ((STAT_KE, np.nan), (5, np.inf), (7, -np.inf), (STAT_KE, np.inf)):
+        stats[rng.random(n) < 0.02, col] = value
+    bound = rng.lognormal(1.0, 1.0, n)
+    extra = np.where(rng.random(n) < 0.03, np.nan, rng.normal(size=n))
+    want = np.array([frame_failure(stats[i], float(bound[i]), 3, float(extra[i])) is not None for i in range(n)])
+    assert np.array_equal(unhealthy(stats, bound, extra), want)
+    assert 0.2 < want.mean() < 0.8   # healthy and failing rows, each reason among them
+
+
 def test_a_function_path_evaluates_its_origin_once_and_moves_as_before():
     from invphys_anisompm.paths import FunctionPath
 

@@ -43,6 +43,16 @@ def frame_failure(stats: np.ndarray, bound: float, frame: int, extra_finite: flo
     return None
 
 
+def unhealthy(stats: np.ndarray, bound: np.ndarray, extra: np.ndarray) -> np.ndarray:
+    """(n,) whether :func:`frame_failure` finds a reason for each row of ``stats`` (n, n_stats), with the
+    rows' energy ``bound`` and ``extra_finite`` values: one numpy test for many runs, so that only the
+    flagged rows need :func:`frame_failure`'s message (``test_unhealthy_flags_the_rows_frame_failure_fails``
+    holds the two equal)."""
+    with np.errstate(invalid="ignore"):
+        return ((stats[:, STAT_NONFINITE] > 0) | ~np.isfinite(stats).all(axis=1) | ~np.isfinite(extra)
+                | (stats[:, STAT_OUTSIDE] > 0) | (stats[:, STAT_KE] > bound))
+
+
 def substep_failure(nsub: int, limit: int, frame: int, vmax: float) -> str | None:
     """Failure when the adaptive dt collapses (a velocity blow-up in disguise)."""
     if nsub > limit:
@@ -51,4 +61,4 @@ def substep_failure(nsub: int, limit: int, frame: int, vmax: float) -> str | Non
 
 
 __all__ = ["BODY0", "STAT_KE", "STAT_NONFINITE", "STAT_OUTSIDE", "STAT_VMAX", "energy_bound", "frame_failure",
-           "n_stats", "substep_failure"]
+           "n_stats", "substep_failure", "unhealthy"]

@@ -35,12 +35,11 @@ from invphys_anisompm.engine import (
 from invphys_anisompm.failure import (
     BODY0,
     STAT_KE,
-    STAT_NONFINITE,
-    STAT_OUTSIDE,
     STAT_VMAX,
     energy_bound,
     frame_failure,
     substep_failure,
+    unhealthy,
 )
 from invphys_anisompm.model import Model
 
@@ -188,7 +187,7 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
                 s.setdefault(f"centroid/{body.name}", []).append(st[col:col + 3] / counts[i])
                 s.setdefault(f"mean_damage/{body.name}", []).append(float(st[col + 3] / counts[i]))
             for c, (name, path) in enumerate(zip(names, scene.kinematic_paths, strict=True)):
-                s.setdefault(f"force/{name}", []).append(force[c].copy())
+                s.setdefault(f"force/{name}", []).append(force[c])   # a row of the snapshot's own copy
                 s.setdefault(f"work/{name}", []).append(float(wk[c]))
                 if (frame, c) not in pos_cache:
                     pos_cache[(frame, c)] = path.displacement(frame / fps)
@@ -278,9 +277,7 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
         # is done for all of them at once, and a message is built only for a run that looks unhealthy
         ends = stats[ending]
         extra = imp_acc[ending, :nk].reshape(len(ending), -1).sum(axis=1) + w_acc[ending, :nk].sum(axis=1)
-        with np.errstate(invalid="ignore"):
-            suspect = ((ends[:, STAT_NONFINITE] > 0) | ~np.isfinite(ends).all(axis=1) | ~np.isfinite(extra)
-                       | (ends[:, STAT_OUTSIDE] > 0) | (ends[:, STAT_KE] > bound_all[run[ending]]))
+        suspect = unhealthy(ends, bound_all[run[ending]], extra)
         stats_prev[ending] = ends
         last_force[ending] = imp_acc[ending] * fps
         was_settling_all = step[ending] < n_settle
@@ -298,7 +295,7 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
             else:
                 rec.substeps += int(cur_nsub[b])
             reason = frame_failure(ends[j], float(bound_all[run[b]]), frame + 1, float(extra[j])) \
-                if suspect[j] else None
+                if suspect[j] else None   # unhealthy() flags exactly the rows frame_failure fails
             if reason:
                 rec.failure = reason
                 done.append(finish(b))
