@@ -56,7 +56,13 @@ def replay(nsub: np.ndarray, n_frames: int, slots: int, policy: str, curve: tupl
         raise SystemExit(f"unknown policy {policy!r}: chunked:<min_chunk> or rollover:<cap substeps>")
     limit = int(arg)
     act_pts, ms_pts = curve
-    full_ms = float(np.interp(slots, act_pts, ms_pts)) if slots <= act_pts[-1] else ms_pts[-1] * slots / act_pts[-1]
+    # beyond the curve's largest batch, a batch of `slots` is priced as that batch scaled up
+    scale = max(slots / act_pts[-1], 1.0)
+
+    def price_ms(active: np.ndarray) -> np.ndarray:
+        return np.interp(active / scale, act_pts, ms_pts) * scale
+
+    full_ms = float(price_ms(np.array([slots]))[0])
     queue = list(range(len(nsub)))[::-1]
     run = np.full(slots, -1)
     rem = np.zeros(slots, np.int64)      # substeps left in the slot's current frame (chunked) or run (rollover)
@@ -76,8 +82,7 @@ def replay(nsub: np.ndarray, n_frames: int, slots: int, policy: str, curve: tupl
         # active runs at substep s of the chunk: slots whose remaining count exceeds s
         counts = np.bincount(np.minimum(r, K), minlength=K + 1)
         alive = len(r) - np.cumsum(counts)[:K]
-        gpu_ms += float(np.interp(alive, act_pts, ms_pts).sum()) if slots <= act_pts[-1] else \
-            float(np.interp(alive * act_pts[-1] / slots, act_pts, ms_pts).sum() * slots / act_pts[-1])
+        gpu_ms += float(price_ms(alive).sum())
         useful += float(alive.sum())
         launched += slots * K
         chunks += 1
