@@ -124,7 +124,7 @@ def test_defaults_are_continuous_batches_of_64_on_cuda_and_lockstep_16_on_the_cp
 
     # resolved from the config alone (arch "cuda" is not probed: no engine, no GPU needed)
     gpu = OrangePeelSimulator(preset="tiny", arch="cuda")
-    assert (gpu.scheduling, gpu.min_chunk, gpu.native_stream, gpu.batch_size) == ("continuous", 16, True, 64)
+    assert (gpu.scheduling, gpu.min_chunk, gpu.native_stream, gpu.batch_size) == ("continuous", 64, True, 64)
     warp = OrangePeelSimulator(preset="tiny", arch="cuda", backend="warp")
     assert (warp.scheduling, warp.batch_size) == ("lockstep", 16)     # the defaults measured for Taichi only
     cpu = OrangePeelSimulator(preset="tiny", arch="cpu")
@@ -137,3 +137,24 @@ def test_defaults_are_continuous_batches_of_64_on_cuda_and_lockstep_16_on_the_cp
     assert OrangePeelSimulator(preset="tiny", arch="auto").scheduling == ("continuous" if cuda_available() else "lockstep")
     fallback = OrangePeelSimulator(preset="tiny", arch="cuda", allow_cpu_fallback=True)   # probed as "auto" is
     assert fallback.batch_size == (64 if cuda_available() else 16)
+
+
+def test_recorded_frames_are_gathered_into_the_orange_order_as_the_stacked_reorder_gives():
+    from invphys_orange_peel.simulator import OrangePeelSimulator
+
+    es = OrangePeelSimulator(preset="tiny", arch="cpu").engine_scene
+    n = len(es.from_engine)
+    assert sorted(es.from_engine.tolist()) == list(range(n)) and not np.array_equal(es.from_engine, np.arange(n))
+    rng = np.random.default_rng(0)
+    for shape, dtype in (((n, 3), np.float32), ((n,), np.float32), ((n, 3), np.float64)):
+        frames = [rng.normal(size=shape).astype(dtype) for _ in range(4)]
+        got = es.frames_in_orange_order(frames)
+        want = es.to_orange_order(np.stack(frames)).astype(np.float32)
+        assert got.dtype == np.float32 and got.shape == (4, *shape)
+        np.testing.assert_array_equal(got, want)
+        orange_particle = int(es.to_engine[7])   # engine particle 7 is this orange particle
+        np.testing.assert_array_equal(got[2, orange_particle], frames[2][7].astype(np.float32))
+    with pytest.raises(ValueError, match="no recorded frames"):
+        es.frames_in_orange_order([])
+    with pytest.raises(ValueError, match="frame 1 has shape"):
+        es.frames_in_orange_order([np.zeros((n, 3), np.float32), np.zeros((n,), np.float32)])
