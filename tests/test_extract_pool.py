@@ -156,3 +156,78 @@ def test_an_extractor_error_in_a_validator_worker_is_raised_as_in_thread() -> No
     for workers in (0, 2):
         with pytest.raises(ValueError, match="picky"):
             _validate(workers, PickyFeatures(limit=0.05), keep=frozenset())
+
+
+def _stream_through(pool_kwargs: dict, features: dict | None = None) -> tuple[dict, list[str]]:
+    from invphys.plugins.executors._batch import stream_rows
+    from invphys.plugins.executors._extract_pool import ExtractionPool
+
+    sim, ext = ToyOscillator(substeps=1), ToyFeatures()
+    with ExtractionPool(features or {"type": FEATURES}, 2, **pool_kwargs) as pool:
+        got = dict(stream_rows(sim, ext, _params(12), 4, pool=pool))
+        blocks = list(pool._blocks._all) if pool._blocks is not None else []
+        names = [b.name for b in blocks]
+        assert all(b in pool._blocks._free for b in blocks)   # every block given back once its run resolved
+        created = pool._blocks.created if pool._blocks is not None else 0
+    return got, names if created else []
+
+
+def test_trajectories_through_shared_memory_give_the_pickled_paths_features_and_leave_nothing() -> None:
+    from multiprocessing import shared_memory
+
+    import pytest
+
+    pickled, none = _stream_through({"min_shared_bytes": None})
+    shared, names = _stream_through({"min_shared_bytes": 0})
+    assert none == [] and 1 <= len(names) <= 2 * 2 + 2   # blocks were used, and reused (12 runs)
+    assert sorted(shared) == sorted(pickled) == list(range(12))
+    for i in range(12):
+        assert shared[i].ok == pickled[i].ok and shared[i].failure == pickled[i].failure
+        if pickled[i].ok:
+            np.testing.assert_array_equal(shared[i].features, pickled[i].features)
+    for name in names:   # closing the pool unlinked every block
+        with pytest.raises(FileNotFoundError):
+            shared_memory.SharedMemory(name=name)
+
+
+def test_an_extractor_error_through_shared_memory_is_that_runs_failure() -> None:
+    block = {"type": "test_extract_pool:PickyFeatures", "limit": 0.05}
+    pickled, _ = _stream_through({"min_shared_bytes": None}, block)
+    shared, names = _stream_through({"min_shared_bytes": 0}, block)
+    assert names
+    failed = [i for i, r in shared.items() if not r.ok and "picky" in r.failure]
+    assert 0 < len(failed) < 11
+    assert [shared[i].failure for i in range(12)] == [pickled[i].failure for i in range(12)]
+
+
+def test_pack_round_trips_arrays_as_views_of_a_reused_block() -> None:
+    from invphys.plugins.executors import _shared_blocks
+    from invphys.plugins.executors._shared_blocks import SharedBlocks, pack, unpack
+
+    rng = np.random.default_rng(1)
+    obj = {"f32": rng.normal(size=(5, 7, 3)).astype(np.float32), "i8": np.arange(11, dtype=np.int8),
+           "fortran": np.asfortranarray(rng.normal(size=(4, 6))), "strided": rng.normal(size=(9, 4))[::2],
+           "name": "run", "n": 3}
+    blocks = SharedBlocks(max_blocks=1)
+    try:
+        assert pack(obj, blocks, min_bytes=1 << 30) is None          # too small to be worth a block
+        assert blocks.created == 0
+        data, block, spans = pack(obj, blocks, min_bytes=0)
+        assert blocks.acquire(8) is None                              # the only block is lent out
+        back = unpack(data, block.name, spans)
+        for key in ("f32", "i8", "fortran", "strided"):
+            np.testing.assert_array_equal(back[key], obj[key])
+            assert back[key].dtype == obj[key].dtype
+        assert back["fortran"].flags.f_contiguous and (back["name"], back["n"]) == ("run", 3)
+        assert all(a % 64 == 0 for a, _ in spans)
+        np.frombuffer(block.buf, np.uint8)[:] = 0          # the unpacked arrays are views of the block's pages
+        assert not back["f32"].any() and not back["i8"].any()
+        del back
+        _shared_blocks._ATTACHED.pop(block.name).close()   # this process attached it as a worker would
+        blocks.release(block)
+        again = pack(obj, blocks, min_bytes=0)
+        assert again is not None and again[1] is block and blocks.created == 1   # reused
+        blocks.release(block)
+    finally:
+        blocks.close()
+    assert SharedBlocks(max_blocks=2, shm_dir="/no/such/dir").acquire(8) is None   # nowhere to put it: pickle
