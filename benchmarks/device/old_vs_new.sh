@@ -5,12 +5,15 @@
 #     machine's times drift by a few per cent between passes;
 #   kind "dataset": dataset generation end to end (bench_dataset.py: SIZE runs, default 384, 4 extraction
 #     processes, stores written, 64 slots; SCHED (4th argument) lockstep (default: batches handed over
-#     costliest first) or continuous (min_chunk 16)): new, then old;
+#     costliest first) or continuous; MIN_CHUNK (5th) for continuous: each version's own default when left
+#     out (until stop 42 this kind always passed 16)): new, then old;
 #   kind "stream": SIZE (default 256) random runs through continuous batching on a warm engine
 #     (bench_continuous_gpu.py, min_chunk 16, costliest first, no feature check): old, new, old, new.
 #
-# Prepare here (ignored; only the changed package, since a call carries at most 64 MiB):
+# Prepare here (ignored; only the changed packages, since a call carries at most 64 MiB):
 #     rm -rf .gpu/old && mkdir -p .gpu/old && git archive HEAD~1 examples/anisompm | tar -x -C .gpu/old
+# (add `invphys examples/orange_peel` to the archive when the change touches them: each old package found
+# under .gpu/old comes first on the old path)
 # then run `bash benchmarks/device/old_vs_new.sh <tag> [batch|dataset] [size]` with carry [".gpu/wb", ".gpu/old"]
 # (or [".gpu/old"] on a machine staged already: ensure_staged.sh). Results under $OUT:
 # kernel_times_<tag>_{old,new}_{1,2}.json, host_share_<tag>_{old,new}_{1,2}.json, dataset_paper_<tag>_{new,old}.json,
@@ -23,13 +26,17 @@ KIND=${2:-batch}
 export INVPHYS_DISABLE_PLUGIN_AUTOLOAD=1
 NEW=$PWD:$PWD/examples/anisompm:$PWD/examples/orange_peel
 # the benchmarks put this tree's packages first on sys.path unless they are there already: list them last
-OLD=$PWD/.gpu/old/examples/anisompm:$NEW
+OLD=$NEW
+for d in examples/orange_peel examples/anisompm .; do
+  if [ -d "$PWD/.gpu/old/$d" ] && { [ "$d" != . ] || [ -d "$PWD/.gpu/old/invphys" ]; }; then OLD=$PWD/.gpu/old/$d:$OLD; fi
+done
+OLD=${OLD//\/.:/:}
 path_of() { if [ "$1" = old ]; then echo "/tmp/gpusite:$OLD"; else echo "/tmp/gpusite:$NEW"; fi; }
 
 if [ "$KIND" = dataset ]; then
   N=${3:-384}
   SCHED=${4:-lockstep}
-  CHUNK=""; if [ "$SCHED" = continuous ]; then CHUNK="--min-chunk 16"; fi
+  CHUNK=""; if [ "$SCHED" = continuous ] && [ -n "$5" ]; then CHUNK="--min-chunk $5"; fi
   for v in new old; do
     PYTHONPATH=$(path_of $v) python3 benchmarks/bench_dataset.py --preset paper --arch cuda --n "$N" --batch-size 64 \
       --scheduling "$SCHED" $CHUNK --executors local --extract-workers 4 --warmup 2 \
