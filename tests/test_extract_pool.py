@@ -231,3 +231,30 @@ def test_pack_round_trips_arrays_as_views_of_a_reused_block() -> None:
     finally:
         blocks.close()
     assert SharedBlocks(max_blocks=2, shm_dir="/no/such/dir").acquire(8) is None   # nowhere to put it: pickle
+
+
+def test_a_pool_never_closed_unlinks_its_blocks_when_the_process_exits(tmp_path) -> None:
+    import subprocess
+    import sys
+    from multiprocessing import shared_memory
+    from pathlib import Path
+
+    import pytest
+
+    script = tmp_path / "keep_pool.py"
+    script.write_text(
+        "import sys\n"
+        f"sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+        "from test_dataset_toy import FEATURES, ToyOscillator\n"
+        "from invphys.plugins.executors._extract_pool import ExtractionPool\n"
+        "if __name__ == '__main__':\n"
+        "    pool = ExtractionPool({'type': FEATURES}, 1, min_shared_bytes=0)   # never closed, as the validator's\n"
+        "    res = ToyOscillator(substeps=1).simulate(ToyOscillator().parameter_space().denormalize([[0.5, 0.5, 0.5]]))[0]\n"
+        "    print(pool.extract(res.trajectory).result().shape, pool._blocks._all[0].name, flush=True)\n")
+    run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    shape, name = run.stdout.split(") ")
+    assert shape.startswith("(") and name.strip()
+    assert "leaked" not in run.stderr and "Traceback" not in run.stderr, run.stderr
+    with pytest.raises(FileNotFoundError):
+        shared_memory.SharedMemory(name=name.strip())

@@ -16,6 +16,7 @@ GIL-held time copying 20 MB per run; without a free block it is pickled as befor
 
 from __future__ import annotations
 
+import weakref
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from typing import Any
 
@@ -84,6 +85,8 @@ class ExtractionPool:
             # one block per run being extracted or queued for a worker, plus one being filled
             self._blocks = SharedBlocks(max_blocks=2 * self.workers + 2)
             self._stager = ThreadPoolExecutor(1, thread_name_prefix="extract-stager")
+            # a pool kept for the process's life (the validator's) is never closed: unlink its blocks at exit
+            weakref.finalize(self, self._blocks.close)
 
     def submit(self, res: SimulationResult) -> Future | None:
         """Start extracting an ok result's features (its trajectory is dropped here); None when there is
