@@ -92,7 +92,10 @@ class SharedBlocks:
             return None   # no shared-memory file system we can see: pickle instead
         if stat.f_bavail * stat.f_frsize < 2 * size:
             return None
-        block = shared_memory.SharedMemory(create=True, size=size)
+        try:
+            block = shared_memory.SharedMemory(create=True, size=size)
+        except OSError:   # no room, no permission: pickle instead
+            return None
         fd = getattr(block, "_fd", -1)
         try:
             if fd >= 0 and hasattr(os, "posix_fallocate"):
