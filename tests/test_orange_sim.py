@@ -113,6 +113,20 @@ def test_cpu_runs_are_bit_identical_across_calls_and_batches(sweep) -> None:
     assert again.stats.substeps == results[0].stats.substeps
 
 
+def test_real_trajectories_through_shared_memory_give_the_in_process_features(sweep) -> None:
+    """The extraction pool's shared-memory hand-off on real orange-peel trajectories (forced on: tiny ones are
+    below its 1 MiB default): the features of in-process extraction, bit for bit."""
+    from invphys.plugins.executors._extract_pool import ExtractionPool
+
+    _, _, results = sweep
+    with ExtractionPool(OrangePeelFeatures(), 2, min_shared_bytes=0) as pool:
+        futures = [pool.extract(r.trajectory) for r in results]
+        got = [f.result() for f in futures]
+        assert pool._blocks.created >= 1
+    for r, feats in zip(results, got, strict=True):
+        np.testing.assert_array_equal(feats, EX.extract(r.trajectory))
+
+
 def test_mass_is_conserved_on_the_grid() -> None:
     """After a pulling frame, P2G deposits exactly the particles' total mass (partition of unity)."""
     sim = OrangePeelSimulator(preset="tiny", arch="cpu", batch_size=2, frames=24)
