@@ -13,6 +13,13 @@ design, features checked equal::
     python benchmarks/bench_dataset.py --preset paper --arch cuda --n 256 --batch-size 64 \
         --scheduling continuous --executors local --extract-workers 0,4 --out benchmarks/results/dataset_paper_h100.json
 
+``--time-split`` (orange peel, ``local`` executor) records for each variant where its wall went: the stream's
+production against its consumer's time between runs (the pipeline: hand-off, stores), the Taichi backend's
+synchronising reads, launches and uploads, the hand-off and the store's appends (``time_split`` in the JSON)::
+
+    python benchmarks/bench_dataset.py --preset paper --arch cuda --n 512 --batch-size 64 --scheduling continuous \
+        --executors local --extract-workers 4 --warmup 2 --time-split --out dataset_split.json
+
 ``runs_per_hour`` is end to end (start-up and kernel compilation included: what a user waits for);
 ``sim_s_per_run`` is the simulator's own time per run (the store's ``wall_time_s`` column), which excludes
 start-up and, with several workers, overlaps.
@@ -27,15 +34,43 @@ import platform
 import sys
 import tempfile
 import time
+from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
 
 
+def split_points(backend: str):
+    """A :class:`TimeSplit` over the points of an in-process orange-peel dataset where its time goes: the
+    stream's production and its consumer (the pipeline: hand-off, stores), the Taichi backend's synchronising
+    reads and launches, the hand-off to extraction processes and the store's writes."""
+    if str(Path(__file__).parent) not in sys.path:   # loaded by file (tests): its helper module beside it
+        sys.path.insert(0, str(Path(__file__).parent))
+    from _time_split import TimeSplit
+    from invphys_orange_peel.simulator import OrangePeelSimulator
+
+    from invphys.core.dataset import DatasetStore
+    from invphys.plugins.executors._extract_pool import ExtractionPool
+
+    split = TimeSplit()
+    split.wrap_generator(OrangePeelSimulator, "simulate_stream", "stream")
+    split.wrap(ExtractionPool, "extract", "hand-off to extraction (caller)")
+    split.wrap(DatasetStore, "append", "store append")
+    if backend == "taichi":
+        from invphys_anisompm.backends.taichi_backend import TaichiBackend
+
+        for method, label in (("frame_end", "frame_end (synchronising read: GPU wait + statistics)"),
+                              ("read_slots", "read_slots (particles read)"), ("advance", "advance (launch)"),
+                              ("set_frame", "set_frame (uploads)"), ("load_slots", "load_slots (new runs)")):
+            split.wrap(TaichiBackend, method, label)
+    return split
+
+
 def bench(preset: str, n: int, batch_size: int, executors: list[str], workers: int, frames: int | None,
           backend: str, seed: int, arch: str = "cpu", scheduling: str | None = None,
           extract_workers: list[int] | None = None, simulator_type: str = "orange_peel",
-          features_type: str | None = None, warmup: int = 0, min_chunk: int | None = None) -> dict:
+          features_type: str | None = None, warmup: int = 0, min_chunk: int | None = None,
+          time_split: bool = False) -> dict:
     import pandas as pd
 
     from invphys.core.generate import generate_dataset
@@ -69,7 +104,7 @@ def bench(preset: str, n: int, batch_size: int, executors: list[str], workers: i
             out["warmup"] = {"n": warmup, "wall_s": round(time.perf_counter() - t0, 2)}
     features: dict[str, np.ndarray] = {}
     for name, block in variants:
-        with tempfile.TemporaryDirectory() as tmp:
+        with tempfile.TemporaryDirectory() as tmp, (split_points(backend) if time_split else nullcontext()) as split:
             t0 = time.perf_counter()
             summary = generate_dataset(Path(tmp) / "ds", sim, features=feat_block, n=n, batch_size=batch_size, seed=seed,
                                        executor=block, progress=False)
@@ -91,6 +126,8 @@ def bench(preset: str, n: int, batch_size: int, executors: list[str], workers: i
             res["features_median_rel_diff_to_" + variants[0][0]] = float(np.nanmedian(rel))
             res["features_max_rel_diff_of_means"] = float(np.nanmax(np.abs(np.nanmean(a, 0) - np.nanmean(b, 0))
                                                                       / np.maximum(np.abs(np.nanmean(b, 0)), 1e-12)))
+        if split is not None:
+            res["time_split"] = split.report(wall)
         out["results"][name] = res
         print(json.dumps(res), flush=True)
     return out
@@ -115,12 +152,14 @@ def main() -> None:
                     help="simulator plugin: entry-point name or module:Class (machines without entry points)")
     ap.add_argument("--features-type", default=None, help="extractor plugin (default: the simulator's)")
     ap.add_argument("--warmup", type=int, default=0, help="untimed runs first (kernel compilation)")
+    ap.add_argument("--time-split", action="store_true",
+                    help="orange peel, local executor: record where each variant's wall goes (time_split)")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     ew = [int(x) for x in args.extract_workers.split(",")] if args.extract_workers else None
     data = bench(args.preset, args.n, args.batch_size, args.executors.split(","), args.workers, args.frames,
                  args.backend, args.seed, args.arch, args.scheduling, ew, args.simulator_type, args.features_type,
-                 args.warmup, args.min_chunk)
+                 args.warmup, args.min_chunk, args.time_split)
     path = args.out or Path(__file__).parent / "results" / f"dataset_{args.preset}_{platform.node()}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(data, indent=2) + "\n")

@@ -1,0 +1,69 @@
+"""``benchmarks/_time_split.py`` and ``bench_dataset.py --time-split``: where a streamed dataset's wall goes
+(time inside patched methods, a generator's production against its consumer), and the patches undone."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+from benchmark_modules import BENCHMARKS, load
+
+
+class _Producer:
+    def work(self, seconds: float) -> float:
+        time.sleep(seconds)
+        return seconds
+
+    def items(self, n: int):
+        try:
+            for i in range(n):
+                time.sleep(0.02)   # producing each item
+                yield i
+        finally:
+            self.closed = True
+
+
+def test_time_inside_methods_and_a_generators_consumer_are_split_and_the_patches_undone(monkeypatch):
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    from _time_split import TimeSplit
+
+    original_work, original_items = _Producer.__dict__["work"], _Producer.__dict__["items"]
+    p = _Producer()
+    with TimeSplit() as split:
+        split.wrap(_Producer, "work")
+        split.wrap_generator(_Producer, "items", "items")
+        assert p.work(0.03) == 0.03 and p.work(0.01) == 0.01
+        got = []
+        for i in p.items(5):
+            got.append(i)
+            time.sleep(0.04)   # the consumer's time between items
+        early = p.items(5)
+        next(early)
+        early.close()          # closing the wrapper closes the generator it wraps
+    assert got == [0, 1, 2, 3, 4] and p.closed
+    assert _Producer.__dict__["work"] is original_work and _Producer.__dict__["items"] is original_items
+    s, calls = split.seconds, split.calls
+    assert calls["_Producer.work"] == 2 and s["_Producer.work"] == pytest.approx(0.04, abs=0.03)
+    assert calls["items inside"] == 6 and s["items inside"] == pytest.approx(0.12, abs=0.06)
+    assert calls["items consumer"] == 5 and s["items consumer"] == pytest.approx(0.20, abs=0.06)
+    report = split.report(1.0)
+    assert next(iter(report["split"])) == "items consumer" and report["split"]["items consumer"]["share"] > 0.1
+
+
+def test_bench_dataset_time_split_on_a_real_tiny_stream():
+    pytest.importorskip("taichi")
+    bench = load("bench_dataset")
+    out = bench.bench("tiny", 2, 2, ["local"], 1, 6, "taichi", 0, arch="cpu", scheduling="continuous",
+                      extract_workers=[1], time_split=True)
+    res = out["results"]["local_extract1"]
+    split = res["time_split"]["split"]
+    assert res["ok"] == 2
+    for key in ("stream inside", "stream consumer", "advance (launch)", "hand-off to extraction (caller)",
+                "store append", "frame_end (synchronising read: GPU wait + statistics)"):
+        assert split[key]["calls"] > 0, key
+    assert split["stream inside"]["calls"] == 2 and split["hand-off to extraction (caller)"]["calls"] == 2
+    assert split["stream inside"]["s"] + split["stream consumer"]["s"] <= res["time_split"]["wall_s"]
+    assert split["advance (launch)"]["s"] <= split["stream inside"]["s"]   # launches happen inside the stream
+    from invphys_anisompm.backends.taichi_backend import TaichiBackend
+
+    assert not hasattr(TaichiBackend.advance, "__wrapped__")   # patches undone
