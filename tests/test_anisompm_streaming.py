@@ -62,6 +62,29 @@ def test_stream_idles_only_in_the_tail_and_reuses_the_backend() -> None:
     np.testing.assert_array_equal(again[0].positions[-1], out[3].positions[-1])
 
 
+def test_a_live_stream_holds_its_slots_until_it_ends() -> None:
+    from invphys_anisompm import EngineBusyError
+
+    engine = Engine(SCENE, backend="taichi", arch="cpu")
+    first = engine.stream(MODEL, frames=FRAMES, record_every=3, batch_size=2)
+    i, rec = next(first)                          # suspended at a yield, its two slots mid-run
+    with pytest.raises(EngineBusyError, match="2-slot backend is serving a stream"):
+        next(engine.stream(MODEL, frames=FRAMES, record_every=3, batch_size=2))
+    with pytest.raises(EngineBusyError):
+        engine.run(MODEL.take(np.array([0, 1])), frames=FRAMES, record_every=3)
+    other = dict(engine.stream(MODEL.take(np.array([2, 4, 0])), frames=FRAMES, record_every=3, batch_size=3))
+    assert sorted(other) == [0, 1, 2]              # another slot count is another backend: free
+    rest = dict(first)                             # the first stream, undisturbed, finishes
+    assert sorted([i, *rest]) == list(range(len(E)))
+    plain = engine.run(MODEL, frames=FRAMES, record_every=3)   # slots free again
+    for j, r in {i: rec, **rest}.items():
+        np.testing.assert_array_equal(r.positions[-1], plain[j].positions[-1])
+    closed = engine.stream(MODEL, frames=FRAMES, record_every=3, batch_size=2)
+    next(closed)
+    closed.close()                                 # a closed stream gives its slots back too
+    assert len(dict(engine.stream(MODEL.take(np.array([1])), frames=FRAMES, record_every=3, batch_size=2))) == 1
+
+
 def test_finished_runs_are_handed_out_while_the_next_chunk_runs() -> None:
     """A finished run is yielded after the next chunk is launched (on a GPU the launch is asynchronous, so
     the caller's work on the run overlaps the kernels), and the kinematic tables of a slot's next frame are

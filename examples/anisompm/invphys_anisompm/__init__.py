@@ -20,11 +20,12 @@ from invphys_anisompm.model import Model
 from invphys_anisompm.paths import FunctionPath, Path, Static, Waypoints, linear_cut
 from invphys_anisompm.regions import Box, Cylinder, Ellipsoid, HalfSpace, Region, Shell, Sphere, lattice
 from invphys_anisompm.scene import EngineOptions, Scene, SceneBuilder, SceneError
+from invphys_anisompm.streaming import EngineBusyError
 
 __version__ = "0.1.0"
 #: bump when the engine's results change (scenes record it with their own version)
 ENGINE_VERSION = "0.1.0"
 
-__all__ = ["ENGINE_VERSION", "Box", "Cylinder", "Ellipsoid", "Engine", "EngineOptions", "FunctionPath",
+__all__ = ["ENGINE_VERSION", "Box", "Cylinder", "Ellipsoid", "Engine", "EngineBusyError", "EngineOptions", "FunctionPath",
            "HalfSpace", "MaterialSpec", "Model", "Path", "Region", "RunRecord", "Scene", "SceneBuilder",
            "SceneError", "Shell", "Sphere", "Static", "Waypoints", "lattice", "linear_cut"]

@@ -156,10 +156,24 @@ class Engine:
         self.allow_cpu_fallback = allow_cpu_fallback
         self.backend_options = backend_options
         self._backends: dict[int, Any] = {}
+        self._streaming: set[int] = set()   # slot counts whose backend a live stream holds
         #: slot-substep accounting of every batch run so far (``useful``, ``launched``, ``efficiency``)
         from invphys_anisompm.streaming import SlotCounters
 
         self.counters = SlotCounters()
+
+    def claim_slots(self, batch: int) -> None:
+        """Mark the ``batch``-slot backend as serving a stream (raises if it already is)."""
+        from invphys_anisompm.streaming import EngineBusyError
+
+        if batch in self._streaming:
+            raise EngineBusyError(f"this engine's {batch}-slot backend is serving a stream that has not finished: "
+                                  "exhaust or close() that stream first (or use another engine)")
+        self._streaming.add(batch)
+
+    def release_slots(self, batch: int) -> None:
+        """The ``batch``-slot backend's stream has ended."""
+        self._streaming.discard(batch)
 
     def backend(self, batch: int) -> Any:
         """The backend object for batches of ``batch`` runs (allocated once per size)."""
@@ -212,6 +226,8 @@ class Engine:
         particles every ``record_every`` frames (and the last); returns one record per run."""
         scene, o = self.scene, self.scene.options
         B = model.n_envs
+        if B in self._streaming:
+            self.claim_slots(B)   # raises: a live stream holds these slots
         backend = self.backend(B)
         fresh = bool(getattr(backend, "reads_are_new", False))
         start = time.perf_counter()

@@ -79,6 +79,10 @@ def queue_order(cost: np.ndarray, order: str = "longest_first") -> np.ndarray:
     return np.argsort(-cost, kind="stable")
 
 
+class EngineBusyError(RuntimeError):
+    """The engine's backend for this many slots is serving a stream that has not finished."""
+
+
 def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size: int, min_chunk: int = 1,
                 counters: SlotCounters | None = None, order: str = "longest_first",
                 cost: np.ndarray | None = None) -> Iterator[tuple[int, RunRecord]]:
@@ -87,8 +91,22 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
     ``engine`` is an :class:`~invphys_anisompm.engine.Engine` (its backend for ``min(batch_size, runs)``
     slots is reused across calls); ``min_chunk`` trades idle slot-substeps for fewer host round trips.
     ``order`` is the queue order (:func:`queue_order`) over ``cost`` (per-run estimated slot-substeps;
-    default :meth:`Engine.estimate_cost`).
+    default :meth:`Engine.estimate_cost`). The slots are the stream's until it is exhausted or closed:
+    another stream or lock-step run on the same backend meanwhile raises :class:`EngineBusyError`.
     """
+    n_slots = min(int(batch_size), model.n_envs)
+    if n_slots <= 0:
+        return
+    engine.claim_slots(n_slots)
+    try:
+        yield from _stream_runs(engine, model, frames, record_every, batch_size, min_chunk, counters, order, cost)
+    finally:
+        engine.release_slots(n_slots)
+
+
+def _stream_runs(engine, model: Model, frames: int, record_every: int, batch_size: int, min_chunk: int,
+                 counters: SlotCounters | None, order: str, cost: np.ndarray | None
+                 ) -> Iterator[tuple[int, RunRecord]]:
     scene, o = engine.scene, engine.scene.options
     n_runs = model.n_envs
     if n_runs == 0:
@@ -320,4 +338,4 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
                 done.append(finish(b))
 
 
-__all__ = ["QUEUE_ORDERS", "SlotCounters", "queue_order", "stream_runs"]
+__all__ = ["QUEUE_ORDERS", "EngineBusyError", "SlotCounters", "queue_order", "stream_runs"]
