@@ -162,13 +162,17 @@ class Engine:
 
         self.counters = SlotCounters()
 
-    def claim_slots(self, batch: int) -> None:
-        """Mark the ``batch``-slot backend as serving a stream (raises if it already is)."""
+    def ensure_free(self, batch: int) -> None:
+        """Raise :class:`EngineBusyError` if a live stream holds the ``batch``-slot backend."""
         from invphys_anisompm.streaming import EngineBusyError
 
         if batch in self._streaming:
             raise EngineBusyError(f"this engine's {batch}-slot backend is serving a stream that has not finished: "
                                   "exhaust or close() that stream first (or use another engine)")
+
+    def claim_slots(self, batch: int) -> None:
+        """Mark the ``batch``-slot backend as serving a stream (raises if it already is)."""
+        self.ensure_free(batch)
         self._streaming.add(batch)
 
     def release_slots(self, batch: int) -> None:
@@ -226,8 +230,7 @@ class Engine:
         particles every ``record_every`` frames (and the last); returns one record per run."""
         scene, o = self.scene, self.scene.options
         B = model.n_envs
-        if B in self._streaming:
-            self.claim_slots(B)   # raises: a live stream holds these slots
+        self.ensure_free(B)
         backend = self.backend(B)
         fresh = bool(getattr(backend, "reads_are_new", False))
         start = time.perf_counter()
