@@ -149,7 +149,7 @@ def test_recorded_frames_are_gathered_into_the_orange_order_as_the_stacked_reord
     for shape, dtype in (((n, 3), np.float32), ((n,), np.float32), ((n, 3), np.float64)):
         frames = [rng.normal(size=shape).astype(dtype) for _ in range(4)]
         got = es.frames_in_orange_order(frames)
-        want = es.to_orange_order(np.stack(frames)).astype(np.float32)
+        want = np.take(np.stack(frames), es.from_engine, axis=1).astype(np.float32)   # stack, reorder, cast
         assert got.dtype == np.float32 and got.shape == (4, *shape)
         np.testing.assert_array_equal(got, want)
         orange_particle = int(es.to_engine[7])   # engine particle 7 is this orange particle

@@ -27,10 +27,10 @@ export INVPHYS_DISABLE_PLUGIN_AUTOLOAD=1
 NEW=$PWD:$PWD/examples/anisompm:$PWD/examples/orange_peel
 # the benchmarks put this tree's packages first on sys.path unless they are there already: list them last
 OLD=$NEW
-for d in examples/orange_peel examples/anisompm .; do
-  if [ -d "$PWD/.gpu/old/$d" ] && { [ "$d" != . ] || [ -d "$PWD/.gpu/old/invphys" ]; }; then OLD=$PWD/.gpu/old/$d:$OLD; fi
+for d in examples/orange_peel examples/anisompm; do
+  if [ -d "$PWD/.gpu/old/$d" ]; then OLD=$PWD/.gpu/old/$d:$OLD; fi
 done
-OLD=${OLD//\/.:/:}
+if [ -d "$PWD/.gpu/old/invphys" ]; then OLD=$PWD/.gpu/old:$OLD; fi
 path_of() { if [ "$1" = old ]; then echo "/tmp/gpusite:$OLD"; else echo "/tmp/gpusite:$NEW"; fi; }
 
 if [ "$KIND" = dataset ]; then
