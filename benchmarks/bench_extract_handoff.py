@@ -18,6 +18,7 @@ time, for each mode, in alternating rounds::
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import threading
 import time
@@ -126,8 +127,6 @@ def main() -> None:
             rows.append(row)
             print(row, flush=True)
     assert len({row["features_checksum"] for row in rows}) == 1, "the modes extracted different features"
-    import os
-
     emit({"benchmark": "extract_handoff", "date": time.strftime("%Y-%m-%d"),
           "command": "python benchmarks/bench_extract_handoff.py " + " ".join(sys.argv[1:]),
           "device": f"cpu: {cpu_name()} ({os.cpu_count()} cores)", "trajectory_mb": round(mb, 2),

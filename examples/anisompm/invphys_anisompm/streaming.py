@@ -99,19 +99,17 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
         return
     engine.claim_slots(n_slots)
     try:
-        yield from _stream_runs(engine, model, frames, record_every, batch_size, min_chunk, counters, order, cost)
+        yield from _stream_runs(engine, model, frames, record_every, n_slots, min_chunk, counters, order, cost)
     finally:
         engine.release_slots(n_slots)
 
 
-def _stream_runs(engine, model: Model, frames: int, record_every: int, batch_size: int, min_chunk: int,
+def _stream_runs(engine, model: Model, frames: int, record_every: int, B: int, min_chunk: int,
                  counters: SlotCounters | None, order: str, cost: np.ndarray | None
                  ) -> Iterator[tuple[int, RunRecord]]:
+    """:func:`stream_runs`'s loop over ``B`` (>= 1) claimed slots."""
     scene, o = engine.scene, engine.scene.options
     n_runs = model.n_envs
-    if n_runs == 0:
-        return
-    B = min(int(batch_size), n_runs)
     backend = engine.backend(B)
     fresh = bool(getattr(backend, "reads_are_new", False))
     counters = counters if counters is not None else SlotCounters()

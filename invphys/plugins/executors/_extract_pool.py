@@ -44,11 +44,8 @@ def _extract(trajectory: Any) -> np.ndarray:
 def _extract_shared(data: bytes, name: str, spans: list[tuple[int, int]]) -> np.ndarray:
     from invphys.plugins.executors._shared_blocks import unpack
 
-    trajectory = unpack(data, name, spans)
-    try:
-        return _extract(trajectory)
-    finally:
-        del trajectory   # its arrays are views of the block, which the parent reuses once this returns
+    # the trajectory's arrays are views of the block: dropped on return, before the parent reuses the block
+    return _extract(unpack(data, name, spans))
 
 
 def _chain(inner: Future, outer: Future) -> None:
