@@ -6,7 +6,7 @@
 #   kind "dataset": dataset generation end to end (bench_dataset.py: SIZE runs, default 384, 4 extraction
 #     processes, stores written, 64 slots; SCHED (4th argument) lockstep (default: batches handed over
 #     costliest first) or continuous; MIN_CHUNK (5th) for continuous: each version's own default when left
-#     out (until stop 42 this kind always passed 16)): new, then old;
+#     out (until stop 42 this kind always passed 16)): new, then old (ORDER="old new" in the environment: old first);
 #   kind "stream": SIZE (default 256) random runs through continuous batching on a warm engine
 #     (bench_continuous_gpu.py, min_chunk 16, costliest first, no feature check): old, new, old, new.
 #
@@ -37,7 +37,7 @@ if [ "$KIND" = dataset ]; then
   N=${3:-384}
   SCHED=${4:-lockstep}
   CHUNK=""; if [ "$SCHED" = continuous ] && [ -n "$5" ]; then CHUNK="--min-chunk $5"; fi
-  for v in new old; do
+  for v in ${ORDER:-new old}; do
     PYTHONPATH=$(path_of $v) python3 benchmarks/bench_dataset.py --preset paper --arch cuda --n "$N" --batch-size 64 \
       --scheduling "$SCHED" $CHUNK --executors local --extract-workers 4 --warmup 2 \
       --simulator-type invphys_orange_peel.simulator:OrangePeelSimulator \

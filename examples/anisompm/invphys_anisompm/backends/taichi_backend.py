@@ -17,6 +17,7 @@ import taichi as ti
 from invphys.core.errors import DeviceUnavailableError, InvphysError
 from invphys_anisompm.backends import quiet_library
 from invphys_anisompm.backends.particle_order import ORDERS
+from invphys_anisompm.backends.taichi_host_copy import HostCopy
 from invphys_anisompm.failure import BODY0, n_stats
 from invphys_anisompm.materials import M_ALPHA, M_DMG, M_ETA, M_KF, M_LAM, M_MU, M_RES, M_RHO, M_SC, N_MAT
 
@@ -736,7 +737,7 @@ class TaichiBackend:
     """Batched engine state and kernels on one Taichi arch (see :mod:`invphys_anisompm.backends`)."""
 
     name = "taichi"
-    #: ``read``/``read_slots`` return new host arrays (``to_numpy`` copies): records may keep views of them
+    #: ``read``/``read_slots`` return new host arrays (``host_copy``): records may keep views of them
     reads_are_new = True
 
     def __init__(self, scene, batch: int, arch: str = "cpu", allow_cpu_fallback: bool = False,
@@ -761,6 +762,8 @@ class TaichiBackend:
         #: axes: half the registers, 1.23x faster on an H100; the same sums to float rounding)
         self.g2p = g2p if g2p != "auto" else ("loop" if self.arch == "cuda" else "unrolled")
         self.device = device_name(self.arch)
+        #: device arrays to new host arrays in one copy (``taichi_host_copy.py``); ``.fallback`` says why not
+        self.host_copy = HostCopy(self.arch)
         self.scene = scene
         o = scene.options
         self.options = o
@@ -1020,7 +1023,7 @@ class TaichiBackend:
         idx, xo, do = self._gather_bufs[n]
         idx.from_numpy(slots)
         self._gather(idx, self.sid, self.x, self.d, xo, do)
-        return xo.to_numpy(), do.to_numpy()
+        return self.host_copy(xo), self.host_copy(do)
 
     def frame_stats(self, lo: float, hi: float, slots: np.ndarray | None = None) -> np.ndarray:
         """(B, n_stats) statistics of the current state (columns: :mod:`invphys_anisompm.failure`); with
@@ -1033,7 +1036,7 @@ class TaichiBackend:
         self.stats_out.fill(0.0)
         self._stats(lo, hi, self._stats_mask, self.mat, self.body, self.vol, self.sid, self.x, self.v, self.F, self.d,
                     self.stats_acc, self.stats_out)
-        return self.stats_out.to_numpy().astype(np.float64)
+        return self.host_copy(self.stats_out).astype(np.float64)
 
     def frame_end(self, lo: float, hi: float, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``frame_stats(lo, hi, slots)`` and ``kinematic_sums(slots)`` in one launch and one copy back:
@@ -1045,7 +1048,7 @@ class TaichiBackend:
         n, ns = self.ngrip + self.ncol, self.nstats
         self._frame_end(lo, hi, self._stats_mask, ns, n, self.mat, self.body, self.vol, self.sid, self.x, self.v, self.F,
                         self.d, self.imp, self.work, self.stats_acc, self.end_out)
-        out = self.end_out.to_numpy().astype(np.float64)
+        out = self.host_copy(self.end_out).astype(np.float64)
         sums = out[slots, ns:ns + 4 * n].reshape(len(slots), n, 4)
         return out[:, :ns], sums[..., :3], sums[..., 3]
 
@@ -1055,7 +1058,7 @@ class TaichiBackend:
         runs' rows are returned (len(slots), ...) and reset; the others keep accumulating on the device
         (continuous batching reads a run's sums once per frame, as the lock-step path does)."""
         n = self.ngrip + self.ncol
-        imp_all, work_all = self.imp.to_numpy(), self.work.to_numpy()
+        imp_all, work_all = self.host_copy(self.imp), self.host_copy(self.work)
         if slots is None:
             self.imp.fill(0.0)
             self.work.fill(0.0)
@@ -1071,12 +1074,12 @@ class TaichiBackend:
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         """Positions (B, N, 3) and damage (B, N), float32, in the scene's particle order (new host arrays)."""
         if self._perm is None:
-            return self.x.to_numpy(), self.d.to_numpy()
+            return self.host_copy(self.x), self.host_copy(self.d)
         return self.read_slots(np.arange(self.batch))
 
     def grid_mass(self) -> np.ndarray:
         """(B,) total grid mass deposited by the last P2G (equals the particle mass: a check)."""
-        return self.gm.to_numpy().astype(np.float64).reshape(self.batch, -1).sum(axis=1)
+        return self.host_copy(self.gm).astype(np.float64).reshape(self.batch, -1).sum(axis=1)
 
     def sync(self) -> None:
         ti.sync()

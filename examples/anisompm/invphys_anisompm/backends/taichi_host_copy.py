@@ -1,0 +1,71 @@
+"""Taichi ndarrays copied into new host arrays in one copy (issue 16: the reads at a stream's frame end).
+
+Taichi's ``to_numpy`` runs a kernel that writes into the host array; on CUDA it stages that array through a
+device buffer: a copy to the device, the kernel, a copy back. At the paper preset a frame end reads ~60 runs'
+particles (~50 MB) that way with the GPU idle: 25 ms on an H200's host, 17 ms with :class:`HostCopy`, which
+copies the ndarray's own memory once (``cuMemcpyDtoH`` on CUDA, ``memmove`` on the CPU, where an ndarray lives
+in host memory). Of those 17 ms, 12 are the new host array's first-touch page faults
+(``benchmarks/bench_host_reads.py``).
+"""
+
+from __future__ import annotations
+
+import ctypes
+
+import numpy as np
+import taichi as ti
+from taichi.lang.util import to_numpy_type
+
+
+def _cuda_memcpy_dtoh():
+    """The driver's ``cuMemcpyDtoH`` (dst host pointer, src device address, bytes) -> CUresult."""
+    fn = ctypes.CDLL("libcuda.so.1").cuMemcpyDtoH_v2
+    fn.argtypes = [ctypes.c_void_p, ctypes.c_uint64, ctypes.c_size_t]
+    fn.restype = ctypes.c_int
+    return fn
+
+
+class HostCopy:
+    """``copy(arr)``: a new host array (``to_numpy``'s shape and dtype) holding Taichi ndarray ``arr``'s values,
+    taken after every launched kernel has finished (``ti.sync()``).
+
+    On ``arch`` "cuda" one device-to-host copy, on "cpu" a ``memmove``; anything else, or the first copy the
+    driver refuses (no CUDA context current in this thread, say), uses ``to_numpy`` from then on, and
+    ``fallback`` says why.
+    """
+
+    def __init__(self, arch: str):
+        self.fallback: str | None = None
+        self._dtoh = None
+        if arch == "cuda":
+            try:
+                self._dtoh = _cuda_memcpy_dtoh()
+            except (OSError, AttributeError) as exc:
+                self.fallback = f"no cuMemcpyDtoH in the CUDA driver: {exc}"
+        elif arch != "cpu":
+            self.fallback = f"no direct copy on arch {arch!r}"
+
+    def __call__(self, arr) -> np.ndarray:
+        if self.fallback is not None:
+            return arr.to_numpy()
+        out = np.empty(tuple(arr.arr.total_shape()), to_numpy_type(arr.dtype))
+        return out if self._copy_into([out], arr) else arr.to_numpy()
+
+    def _copy_into(self, out: list[np.ndarray], arr) -> bool:
+        """Copy ``arr``'s memory, in order, into the host arrays ``out`` (their sizes add up to it); False (and
+        ``fallback`` set) if the driver refused."""
+        ti.sync()   # the kernels that write arr have finished
+        src = ti.lang.impl.get_runtime().prog.get_ndarray_data_ptr_as_int(arr.arr)
+        for a in out:
+            if self._dtoh is None:
+                ctypes.memmove(a.ctypes.data, src, a.nbytes)
+            else:
+                status = self._dtoh(a.ctypes.data, src, a.nbytes)
+                if status != 0:
+                    self.fallback = f"cuMemcpyDtoH returned CUresult {status}"
+                    return False
+            src += a.nbytes
+        return True
+
+
+__all__ = ["HostCopy"]
