@@ -33,6 +33,10 @@ F32_INF_BITS = 0x7F800000
 #: 1.5 * 2**23 and its bit pattern: adding it to |x| <= 2**22 rounds x to an integer (``_round_to_int``)
 ROUND_MAGIC = 12582912.0
 ROUND_MAGIC_BITS = 0x4B400000
+#: each run's two boxes of grid nodes (``TaichiBackend.box``): the last scatter's, which the next clear zeroes,
+#: and the one the scatter under way grows; g2p moves the second into the first. The clear and the grid update
+#: read only the nodes of their box: most of a run's grid is empty
+BOX_LAST, BOX_NEXT = 0, 1
 #: substeps between re-sorts of each run's particles (tiled scatter; ``TaichiBackend``'s ``resort_every``)
 RESORT_EVERY = 128
 
@@ -290,6 +294,20 @@ def _scatter_global(b, node, weight, mom, mass, dp, gp, ngrip, gv: ti.template()
 
 
 @ti.func
+def _in_box(box: ti.template(), b, w, i, j, q):
+    """Whether node ``(i, j, q)`` of run ``b`` lies in the run's node box ``box[b, w]`` (lo xyz, hi xyz)."""
+    return box[b, w, 0] <= i <= box[b, w, 3] and box[b, w, 1] <= j <= box[b, w, 4] and box[b, w, 2] <= q <= box[b, w, 5]
+
+
+@ti.func
+def _grow_box(box: ti.template(), b, lo, hi):
+    """Widen run ``b``'s box of the scatter under way (``box[b, BOX_NEXT]``) to nodes ``lo .. hi`` (per axis)."""
+    for a in ti.static(range(3)):
+        ti.atomic_min(box[b, BOX_NEXT, a], lo[a])
+        ti.atomic_max(box[b, BOX_NEXT, 3 + a], hi[a])
+
+
+@ti.func
 def _zero_node(b, i, j, q, ngrip, gv: ti.template(), gm: ti.template(), gd: ti.template(), gg: ti.template()):
     """Zero every channel of grid node ``(i, j, q)`` of run ``b``."""
     gv[b, i, j, q] = vec3(0.0)
@@ -305,25 +323,30 @@ def _build_grid_kernels(serial_p2g: bool, G: int):
     ``serial_p2g`` makes the CPU's force and work sums' order deterministic."""
 
     @ti.kernel
-    def clear_grid(k: ti.i32, ngrip: ti.i32, nsub: ND(ti.i32, 1), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
-                   gd: ND(vec2, 4), gg: ND(ti.f32, 4)):
-        # only the nodes the last scatter touched (see touched_node): one read per node instead of 7 writes
+    def clear_grid(k: ti.i32, ngrip: ti.i32, nsub: ND(ti.i32, 1), box: ND(ti.i32, 3), gv: ND(vec3, 4),
+                   gm: ND(ti.f32, 4), gd: ND(vec2, 4), gg: ND(ti.f32, 4)):
+        # only the nodes the last scatter touched (see touched_node): one read per node of its box
+        # (box[b, BOX_LAST]) instead of 7 writes per node of the grid
         for b, i, j, q in ti.ndrange(gm.shape[0], G, G, G):
-            if k < nsub[b] and touched_node(gd[b, i, j, q]):
-                _zero_node(b, i, j, q, ngrip, gv, gm, gd, gg)
+            if k < nsub[b] and _in_box(box, b, BOX_LAST, i, j, q):   # (Taichi's `and` evaluates both sides)
+                if touched_node(gd[b, i, j, q]):
+                    _zero_node(b, i, j, q, ngrip, gv, gm, gd, gg)
 
     @ti.kernel
     def grid_update(k: ti.i32, dx: ti.f32, gravity: ti.f32, damp: ND(ti.f32, 1), bc: ti.i32, ngrip: ti.i32, ncol: ti.i32,
                     nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1), kin: ND(ti.f32, 4), ctype: ND(ti.i32, 1),
                     ca: ND(vec3, 1), cb: ND(vec3, 1), csurf: ND(ti.i32, 1), fric: ND(ti.f32, 2),
-                    held: ND(ti.i32, 3), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gg: ND(ti.f32, 4),
+                    held: ND(ti.i32, 3), box: ND(ti.i32, 3), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gg: ND(ti.f32, 4),
                     imp: ND(vec3, 2), work: ND(ti.f32, 2)):
         # G (the grid size) is a compile-time constant: most nodes are empty and cost only their indices
         if ti.static(serial_p2g):
             ti.loop_config(serialize=True)  # the force and work sums, like the scatter, in a fixed order
         for b, i, j, q in ti.ndrange(gm.shape[0], G, G, G):  # a range-for: serialize applies
-            m = gm[b, i, j, q]
-            if k < nsub[b] and m > 0.0:
+            # nodes outside the box of this substep's scatter (box[b, BOX_NEXT]) hold no mass: not read
+            m = 0.0
+            if k < nsub[b] and _in_box(box, b, BOX_NEXT, i, j, q):
+                m = gm[b, i, j, q]
+            if m > 0.0:
                 vel = gv[b, i, j, q] / m
                 vel[1] += dt[b] * gravity
                 vel /= 1.0 + damp[b] * dt[b]
@@ -382,11 +405,15 @@ def _build_g2p(unrolled: bool):
     def g2p(k: ti.i32, dx: ti.f32, l0sq: ti.f32, don: ND(ti.i32, 1), nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
             mat: ND(ti.f32, 3), body: ND(ti.i32, 1), grip: ND(ti.i32, 1), x0: ND(vec3, 1), kin: ND(ti.f32, 4),
             sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2),
-            dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gd: ND(vec2, 4)):
+            dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gd: ND(vec2, 4), box: ND(ti.i32, 3)):
         inv_dx = 1.0 / dx
         G = gv.shape[1]
         for b, p in x:
             if k < nsub[b]:
+                if p == 0:   # this substep's scatter box is what the next substep's clear zeroes
+                    for a in ti.static(range(6)):
+                        box[b, BOX_LAST, a] = box[b, BOX_NEXT, a]
+                        box[b, BOX_NEXT, a] = G if a < 3 else -1
                 h = dt[b]
                 Xp = x[b, p] * inv_dx
                 base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
@@ -435,18 +462,22 @@ def _build_kernels(serial_p2g: bool):
 
     @ti.kernel
     def wipe_grid(mask: ND(ti.i32, 1), ngrip: ti.i32, gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
-                  gg: ND(ti.f32, 4)):
+                  gg: ND(ti.f32, 4), box: ND(ti.i32, 3)):
         # every node of runs mask[b] != 0 (a new run in a slot: nothing of the last run's grid survives)
         for b, i, j, q in gm:
             if mask[b] != 0:
                 _zero_node(b, i, j, q, ngrip, gv, gm, gd, gg)
+        for b, w in ti.ndrange(box.shape[0], 2):   # and both node boxes empty
+            if mask[b] != 0:
+                for a in ti.static(range(6)):
+                    box[b, w, a] = gm.shape[1] if a < 3 else -1
 
     @ti.kernel
     def p2g(k: ti.i32, dx: ti.f32, apic: ti.f32, ngrip: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
             mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
             grip: ND(ti.i32, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2),
             F: ND(mat3, 2), d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
-            gd: ND(vec2, 4), gg: ND(ti.f32, 4)):
+            gd: ND(vec2, 4), gg: ND(ti.f32, 4), box: ND(ti.i32, 3)):
         inv_dx = 1.0 / dx
         G = gm.shape[1]
         if ti.static(serial_p2g):
@@ -459,6 +490,7 @@ def _build_kernels(serial_p2g: bool):
                 w = _weights(fx)
                 s = sid[b, p]
                 t = _p2g_terms(b, p, s, dt[b], inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil)
+                _grow_box(box, b, base, base + 2)
                 dp = d[b, p]
                 gp = grip[s]
                 for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
@@ -473,7 +505,7 @@ def _build_kernels(serial_p2g: bool):
                   mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
                   grip: ND(ti.i32, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2),
                   F: ND(mat3, 2), d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
-                  gd: ND(vec2, 4), gg: ND(ti.f32, 4)):
+                  gd: ND(vec2, 4), gg: ND(ti.f32, 4), box: ND(ti.i32, 3)):
         # CUDA only. One thread block per TILE consecutive particles of a run (spatially coherent along a
         # space-filling curve, particle_order.py): their 27-node contributions are summed in shared memory over
         # the tile's bounding box of nodes, then added to the grid once per node, instead of 6 global
@@ -527,6 +559,8 @@ def _build_kernels(serial_p2g: bool):
                 ti.atomic_max(big[1], ti.bit_cast(ti.abs(mass), ti.i32))
             ti.simt.block.sync()
             o0, o1, o2 = lo[0], lo[1], lo[2]
+            if tid == 0 and hi[0] >= 0:   # the run's scatter box takes in the tile's
+                _grow_box(box, b, ti.Vector([o0, o1, o2]), ti.Vector([hi[0], hi[1], hi[2]]))
             sy = hi[1] - o1 + 1
             sz = hi[2] - o2 + 1
             n_nodes = (hi[0] - o0 + 1) * sy * sz
@@ -710,13 +744,13 @@ def _kernels(build, *config):
 #: a substep's kernels in order and their arguments: ``k`` (the substep), a scalar of the backend's
 #: ``_scalars`` or one of its arrays
 _STAGE_ARGS = {
-    "clear": ("k", "ngrip1", "nsub", "gv", "gm", "gd", "gg"),
+    "clear": ("k", "ngrip1", "nsub", "box", "gv", "gm", "gd", "gg"),
     "p2g": ("k", "dx", "apic", "ngrip1", "nsub", "dt", "mat", "body", "fibre", "vol", "grip", "sid", "x", "v", "C", "F",
-            "d", "dtil", "gv", "gm", "gd", "gg"),
+            "d", "dtil", "gv", "gm", "gd", "gg", "box"),
     "grid": ("k", "dx", "gravity", "damp", "bc", "ngrip", "ncol", "nsub", "dt", "kin", "ctype", "ca", "cb", "csurf",
-             "fric", "held", "gv", "gm", "gg", "imp", "work"),
+             "fric", "held", "box", "gv", "gm", "gg", "imp", "work"),
     "g2p": ("k", "dx", "l0sq", "don", "nsub", "dt", "mat", "body", "grip", "x0", "kin", "sid", "x", "v", "C", "F", "d",
-            "dtil", "gv", "gd"),
+            "dtil", "gv", "gd", "box"),
 }
 #: every substep argument but ``k``, each once: what a graph launch binds
 _BOUND_ARGS = tuple(dict.fromkeys(n for names in _STAGE_ARGS.values() for n in names if n != "k"))
@@ -823,6 +857,9 @@ class TaichiBackend:
         self.gm = ti.ndarray(ti.f32, (B, G, G, G))
         self.gd = ti.ndarray(vec2, (B, G, G, G))
         self.gg = ti.ndarray(ti.f32, (B * NG1, G, G, G))
+        #: per run, the node boxes (lo xyz, hi xyz) of the last scatter and of the one under way (BOX_*)
+        self.box = ti.ndarray(ti.i32, (B, 2, 6))
+        self.box.from_numpy(np.broadcast_to(np.array([G] * 3 + [-1] * 3, np.int32), (B, 2, 6)).copy())
         self.mat = ti.ndarray(ti.f32, (B, len(scene.bodies), N_MAT))
         self.fric = ti.ndarray(ti.f32, (B, NC1))
         self.nsub = ti.ndarray(ti.i32, (B,))
@@ -1011,7 +1048,7 @@ class TaichiBackend:
 
     def _wipe_grid(self) -> None:
         """Zero the whole grid of the runs in ``_slot_mask``."""
-        self._wipe(self._slot_mask, max(self.ngrip, 1), self.gv, self.gm, self.gd, self.gg)
+        self._wipe(self._slot_mask, max(self.ngrip, 1), self.gv, self.gm, self.gd, self.gg, self.box)
 
     def read_slots(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Positions (n, N, 3) and damage (n, N) of runs ``slots`` only, in the scene's particle order (a
