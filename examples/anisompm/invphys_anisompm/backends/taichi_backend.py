@@ -300,6 +300,12 @@ def _in_box(box: ti.template(), b, w, i, j, q):
 
 
 @ti.func
+def _in_columns(box: ti.template(), b, w, i, q):
+    """Whether the column of nodes ``(i, ., q)`` of run ``b`` crosses the run's node box ``box[b, w]``."""
+    return box[b, w, 0] <= i <= box[b, w, 3] and box[b, w, 2] <= q <= box[b, w, 5]
+
+
+@ti.func
 def _grow_box(box: ti.template(), b, lo, hi):
     """Widen run ``b``'s box of the scatter under way (``box[b, BOX_NEXT]``) to nodes ``lo .. hi`` (per axis)."""
     for a in ti.static(range(3)):
@@ -320,17 +326,77 @@ def _zero_node(b, i, j, q, ngrip, gv: ti.template(), gm: ti.template(), gd: ti.t
 def _build_grid_kernels(serial_p2g: bool, G: int):
     """The grid's clear and update for grid size ``G`` (a compile-time constant: no integer divisions for a
     node's indices; a closure constant, not a template argument, so that a Taichi graph can hold them);
-    ``serial_p2g`` makes the CPU's force and work sums' order deterministic."""
+    ``serial_p2g`` makes the CPU's force and work sums' order deterministic.
+
+    Both visit only the nodes of each run's scatter box (``BOX_*``), with one thread per (run, x, z) column
+    walking y: a G-th of the threads a loop over every node takes, each of which cost its indices and a read
+    (the CPU's serialised update keeps its loop over nodes, and with it the order of its sums)."""
 
     @ti.kernel
     def clear_grid(k: ti.i32, ngrip: ti.i32, nsub: ND(ti.i32, 1), box: ND(ti.i32, 3), gv: ND(vec3, 4),
                    gm: ND(ti.f32, 4), gd: ND(vec2, 4), gg: ND(ti.f32, 4)):
-        # only the nodes the last scatter touched (see touched_node): one read per node of its box
-        # (box[b, BOX_LAST]) instead of 7 writes per node of the grid
-        for b, i, j, q in ti.ndrange(gm.shape[0], G, G, G):
-            if k < nsub[b] and _in_box(box, b, BOX_LAST, i, j, q):   # (Taichi's `and` evaluates both sides)
-                if touched_node(gd[b, i, j, q]):
-                    _zero_node(b, i, j, q, ngrip, gv, gm, gd, gg)
+        # only the nodes the last scatter touched (box[b, BOX_LAST]; see touched_node): one read per node
+        # of the box instead of 7 writes per node of the grid
+        for b, i, q in ti.ndrange(gm.shape[0], G, G):
+            if k < nsub[b] and _in_columns(box, b, BOX_LAST, i, q):   # (Taichi's `and` evaluates both sides)
+                for j in range(box[b, BOX_LAST, 1], box[b, BOX_LAST, 4] + 1):
+                    if touched_node(gd[b, i, j, q]):
+                        _zero_node(b, i, j, q, ngrip, gv, gm, gd, gg)
+
+    @ti.func
+    def _update_node(b, i, j, q, m, k, dx, gravity, damp: ti.template(), bc, ngrip, ncol, dt: ti.template(),
+                     kin: ti.template(), ctype: ti.template(), ca: ti.template(), cb: ti.template(),
+                     csurf: ti.template(), fric: ti.template(), held: ti.template(), gv: ti.template(),
+                     gg: ti.template(), imp: ti.template(), work: ti.template()):
+        """Node (i, j, q) of run b, holding mass m > 0: its velocity after gravity, damping, grips,
+        colliders, held nodes and walls; the grips' and colliders' impulse and work."""
+        vel = gv[b, i, j, q] / m
+        vel[1] += dt[b] * gravity
+        vel /= 1.0 + damp[b] * dt[b]
+        for g in range(ngrip):
+            if gg[b * ngrip + g, i, j, q] > 0.5 * m:
+                vk = vec3(kin[b, k, g, 3], kin[b, k, g, 4], kin[b, k, g, 5])
+                imp[b, g] += m * (vel - vk)
+                work[b, g] += m * (vk - vel).dot(vk)
+                vel = vk
+        pos = vec3(ti.cast(i, ti.f32), ti.cast(j, ti.f32), ti.cast(q, ti.f32)) * dx
+        for c in range(ncol):
+            kc = ngrip + c
+            disp = vec3(kin[b, k, kc, 0], kin[b, k, kc, 1], kin[b, k, kc, 2])
+            vc = vec3(kin[b, k, kc, 3], kin[b, k, kc, 4], kin[b, k, kc, 5])
+            inside, n = _collider_normal(ctype[c], ca[c], cb[c], pos - disp)
+            if inside != 0:
+                old = vel
+                rel = vel - vc
+                if csurf[c] == 0:
+                    rel = vec3(0.0)
+                else:
+                    vn = rel.dot(n)
+                    if csurf[c] == 1 or vn < 0.0:
+                        rel_t = rel - vn * n
+                        if vn < 0.0:
+                            lt = rel_t.norm()
+                            if lt > 1e-12:
+                                rel_t *= ti.max(0.0, 1.0 + fric[b, c] * vn / lt)
+                        rel = rel_t
+                vel = vc + rel
+                imp[b, kc] += m * (old - vel)
+                work[b, kc] += m * (vel - old).dot(vc)
+        if held[i, j, q] != 0:
+            vel = vec3(0.0)
+        if i < bc and vel[0] < 0.0:
+            vel[0] = 0.0
+        if i > G - bc and vel[0] > 0.0:
+            vel[0] = 0.0
+        if j <= bc and vel[1] < 0.0:
+            vel[1] = 0.0
+        if j > G - bc and vel[1] > 0.0:
+            vel[1] = 0.0
+        if q < bc and vel[2] < 0.0:
+            vel[2] = 0.0
+        if q > G - bc and vel[2] > 0.0:
+            vel[2] = 0.0
+        gv[b, i, j, q] = vel
 
     @ti.kernel
     def grid_update(k: ti.i32, dx: ti.f32, gravity: ti.f32, damp: ND(ti.f32, 1), bc: ti.i32, ngrip: ti.i32, ncol: ti.i32,
@@ -338,62 +404,23 @@ def _build_grid_kernels(serial_p2g: bool, G: int):
                     ca: ND(vec3, 1), cb: ND(vec3, 1), csurf: ND(ti.i32, 1), fric: ND(ti.f32, 2),
                     held: ND(ti.i32, 3), box: ND(ti.i32, 3), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gg: ND(ti.f32, 4),
                     imp: ND(vec3, 2), work: ND(ti.f32, 2)):
-        # G (the grid size) is a compile-time constant: most nodes are empty and cost only their indices
+        # only the nodes of this substep's scatter box (box[b, BOX_NEXT]): outside it no node holds mass
         if ti.static(serial_p2g):
             ti.loop_config(serialize=True)  # the force and work sums, like the scatter, in a fixed order
-        for b, i, j, q in ti.ndrange(gm.shape[0], G, G, G):  # a range-for: serialize applies
-            # nodes outside the box of this substep's scatter (box[b, BOX_NEXT]) hold no mass: not read
-            m = 0.0
-            if k < nsub[b] and _in_box(box, b, BOX_NEXT, i, j, q):
-                m = gm[b, i, j, q]
-            if m > 0.0:
-                vel = gv[b, i, j, q] / m
-                vel[1] += dt[b] * gravity
-                vel /= 1.0 + damp[b] * dt[b]
-                for g in range(ngrip):
-                    if gg[b * ngrip + g, i, j, q] > 0.5 * m:
-                        vk = vec3(kin[b, k, g, 3], kin[b, k, g, 4], kin[b, k, g, 5])
-                        imp[b, g] += m * (vel - vk)
-                        work[b, g] += m * (vk - vel).dot(vk)
-                        vel = vk
-                pos = vec3(ti.cast(i, ti.f32), ti.cast(j, ti.f32), ti.cast(q, ti.f32)) * dx
-                for c in range(ncol):
-                    kc = ngrip + c
-                    disp = vec3(kin[b, k, kc, 0], kin[b, k, kc, 1], kin[b, k, kc, 2])
-                    vc = vec3(kin[b, k, kc, 3], kin[b, k, kc, 4], kin[b, k, kc, 5])
-                    inside, n = _collider_normal(ctype[c], ca[c], cb[c], pos - disp)
-                    if inside != 0:
-                        old = vel
-                        rel = vel - vc
-                        if csurf[c] == 0:
-                            rel = vec3(0.0)
-                        else:
-                            vn = rel.dot(n)
-                            if csurf[c] == 1 or vn < 0.0:
-                                rel_t = rel - vn * n
-                                if vn < 0.0:
-                                    lt = rel_t.norm()
-                                    if lt > 1e-12:
-                                        rel_t *= ti.max(0.0, 1.0 + fric[b, c] * vn / lt)
-                                rel = rel_t
-                        vel = vc + rel
-                        imp[b, kc] += m * (old - vel)
-                        work[b, kc] += m * (vel - old).dot(vc)
-                if held[i, j, q] != 0:
-                    vel = vec3(0.0)
-                if i < bc and vel[0] < 0.0:
-                    vel[0] = 0.0
-                if i > G - bc and vel[0] > 0.0:
-                    vel[0] = 0.0
-                if j <= bc and vel[1] < 0.0:
-                    vel[1] = 0.0
-                if j > G - bc and vel[1] > 0.0:
-                    vel[1] = 0.0
-                if q < bc and vel[2] < 0.0:
-                    vel[2] = 0.0
-                if q > G - bc and vel[2] > 0.0:
-                    vel[2] = 0.0
-                gv[b, i, j, q] = vel
+            for b, i, j, q in ti.ndrange(gm.shape[0], G, G, G):  # a range-for: serialize applies
+                if k < nsub[b] and _in_box(box, b, BOX_NEXT, i, j, q):
+                    m = gm[b, i, j, q]
+                    if m > 0.0:
+                        _update_node(b, i, j, q, m, k, dx, gravity, damp, bc, ngrip, ncol, dt, kin, ctype, ca, cb,
+                                     csurf, fric, held, gv, gg, imp, work)
+        else:
+            for b, i, q in ti.ndrange(gm.shape[0], G, G):
+                if k < nsub[b] and _in_columns(box, b, BOX_NEXT, i, q):
+                    for j in range(box[b, BOX_NEXT, 1], box[b, BOX_NEXT, 4] + 1):
+                        m = gm[b, i, j, q]
+                        if m > 0.0:
+                            _update_node(b, i, j, q, m, k, dx, gravity, damp, bc, ngrip, ncol, dt, kin, ctype, ca,
+                                         cb, csurf, fric, held, gv, gg, imp, work)
 
     return clear_grid, grid_update
 
