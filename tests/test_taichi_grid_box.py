@@ -111,6 +111,7 @@ def test_the_update_by_columns_equals_the_serialised_update_over_nodes() -> None
     and its impulse and work sums to float rounding (their order differs)."""
     serial = _loaded()
     parallel = _loaded(build_scene(settle_seconds=0.06, deterministic=False))
+    G = serial.options.grid
     for k in range(3):
         stages = serial._stages(k)
         stages["clear"]()
@@ -123,4 +124,7 @@ def test_the_update_by_columns_equals_the_serialised_update_over_nodes() -> None
         assert np.array_equal(serial.gv.to_numpy(), parallel.gv.to_numpy()), k
         assert np.allclose(serial.imp.to_numpy(), parallel.imp.to_numpy(), rtol=1e-5, atol=1e-12)
         assert np.abs(serial.imp.to_numpy()).max() > 0   # the wire and the grip pushed: the sums are checked
+        if k == 0:   # its own (parallel) atomic scatter hands the update the whole grid instead
+            parallel._stages(k)["p2g"]()
+            assert np.all(parallel.box.to_numpy()[:, BOX_NEXT] == [0, 0, 0, G - 1, G - 1, G - 1])
         stages["g2p"]()

@@ -329,8 +329,9 @@ def _build_grid_kernels(serial_p2g: bool, G: int):
     ``serial_p2g`` makes the CPU's force and work sums' order deterministic.
 
     Both visit only the nodes of each run's scatter box (``BOX_*``), with one thread per (run, x, z) column
-    walking y: a G-th of the threads a loop over every node takes, each of which cost its indices and a read
-    (the CPU's serialised update keeps its loop over nodes, and with it the order of its sums)."""
+    walking y: a G-th of the threads of a loop over every node, each of which cost its indices and a read even
+    for an empty node (the CPU's serialised update keeps its loop over nodes, and with it the order of its
+    sums)."""
 
     @ti.kernel
     def clear_grid(k: ti.i32, ngrip: ti.i32, nsub: ND(ti.i32, 1), box: ND(ti.i32, 3), gv: ND(vec3, 4),
@@ -517,7 +518,12 @@ def _build_kernels(serial_p2g: bool):
                 w = _weights(fx)
                 s = sid[b, p]
                 t = _p2g_terms(b, p, s, dt[b], inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil)
-                _grow_box(box, b, base, base + 2)
+                if ti.static(serial_p2g):
+                    _grow_box(box, b, base, base + 2)
+                elif p == 0:   # a run's particles all growing one box would contend for six addresses
+                    for a in ti.static(range(3)):
+                        box[b, BOX_NEXT, a] = 0
+                        box[b, BOX_NEXT, 3 + a] = G - 1
                 dp = d[b, p]
                 gp = grip[s]
                 for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
