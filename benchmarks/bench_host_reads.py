@@ -100,8 +100,8 @@ def main(argv: list[str] | None = None) -> int:
 
     def read_reused():
         gather()
-        copy._copy_into([reused[0]], xo)
-        copy._copy_into([reused[1]], do)
+        copy._copy_into(reused[0], xo)
+        copy._copy_into(reused[1], do)
 
     def fresh_pages():
         for r in ref:

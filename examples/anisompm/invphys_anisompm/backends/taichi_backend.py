@@ -306,6 +306,14 @@ def _in_columns(box: ti.template(), b, w, i, q):
 
 
 @ti.func
+def _set_box(box: ti.template(), b, w, lo, hi):
+    """Set run ``b``'s node box ``box[b, w]`` to nodes ``lo .. hi`` on every axis (``G, -1``: empty)."""
+    for a in ti.static(range(3)):
+        box[b, w, a] = lo
+        box[b, w, 3 + a] = hi
+
+
+@ti.func
 def _grow_box(box: ti.template(), b, lo, hi):
     """Widen run ``b``'s box of the scatter under way (``box[b, BOX_NEXT]``) to nodes ``lo .. hi`` (per axis)."""
     for a in ti.static(range(3)):
@@ -441,7 +449,7 @@ def _build_g2p(unrolled: bool):
                 if p == 0:   # this substep's scatter box is what the next substep's clear zeroes
                     for a in ti.static(range(6)):
                         box[b, BOX_LAST, a] = box[b, BOX_NEXT, a]
-                        box[b, BOX_NEXT, a] = G if a < 3 else -1
+                    _set_box(box, b, BOX_NEXT, G, -1)
                 h = dt[b]
                 Xp = x[b, p] * inv_dx
                 base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
@@ -497,8 +505,7 @@ def _build_kernels(serial_p2g: bool):
                 _zero_node(b, i, j, q, ngrip, gv, gm, gd, gg)
         for b, w in ti.ndrange(box.shape[0], 2):   # and both node boxes empty
             if mask[b] != 0:
-                for a in ti.static(range(6)):
-                    box[b, w, a] = gm.shape[1] if a < 3 else -1
+                _set_box(box, b, w, gm.shape[1], -1)
 
     @ti.kernel
     def p2g(k: ti.i32, dx: ti.f32, apic: ti.f32, ngrip: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
@@ -521,9 +528,7 @@ def _build_kernels(serial_p2g: bool):
                 if ti.static(serial_p2g):
                     _grow_box(box, b, base, base + 2)
                 elif p == 0:   # a run's particles all growing one box would contend for six addresses
-                    for a in ti.static(range(3)):
-                        box[b, BOX_NEXT, a] = 0
-                        box[b, BOX_NEXT, 3 + a] = G - 1
+                    _set_box(box, b, BOX_NEXT, 0, G - 1)
                 dp = d[b, p]
                 gp = grip[s]
                 for i, j, q in ti.static(ti.ndrange(3, 3, 3)):

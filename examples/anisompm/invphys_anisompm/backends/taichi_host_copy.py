@@ -49,23 +49,20 @@ class HostCopy:
         if self.fallback is not None:
             return arr.to_numpy()
         out = np.empty(tuple(arr.arr.total_shape()), to_numpy_type(arr.dtype))
-        return out if self._copy_into([out], arr) else arr.to_numpy()
+        return out if self._copy_into(out, arr) else arr.to_numpy()
 
-    def _copy_into(self, out: list[np.ndarray], arr) -> bool:
-        """Copy ``arr``'s memory, in order, into the host arrays ``out`` (their sizes add up to it); False (and
-        ``fallback`` set) if the driver refused."""
+    def _copy_into(self, out: np.ndarray, arr) -> bool:
+        """Copy ``arr``'s memory into the host array ``out`` (of its size); False (and ``fallback`` set) if the
+        driver refused."""
         ti.sync()   # the kernels that write arr have finished
         src = ti.lang.impl.get_runtime().prog.get_ndarray_data_ptr_as_int(arr.arr)
-        for a in out:
-            if self._dtoh is None:
-                ctypes.memmove(a.ctypes.data, src, a.nbytes)
-            else:
-                status = self._dtoh(a.ctypes.data, src, a.nbytes)
-                if status != 0:
-                    self.fallback = f"cuMemcpyDtoH returned CUresult {status}"
-                    return False
-            src += a.nbytes
-        return True
+        if self._dtoh is None:
+            ctypes.memmove(out.ctypes.data, src, out.nbytes)
+            return True
+        status = self._dtoh(out.ctypes.data, src, out.nbytes)
+        if status != 0:
+            self.fallback = f"cuMemcpyDtoH returned CUresult {status}"
+        return status == 0
 
 
 __all__ = ["HostCopy"]
