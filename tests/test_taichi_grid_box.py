@@ -10,11 +10,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from benchmark_modules import load
 
 pytest.importorskip("taichi")
 
 from anisompm_scene import build_scene
 from invphys_anisompm.backends.taichi_backend import BOX_LAST, BOX_NEXT, TaichiBackend
+
+#: the host's computation of a scatter's node box, which the GPU check (benchmarks/check_grid_box.py) uses too
+scatter_box = load("check_grid_box").scatter_box
 
 SCENE = build_scene(settle_seconds=0.06)
 MODEL = SCENE.model(2).set_material("paste", E=[3e4, 6e4], eta=[0.02, 0.05]).set_friction("wire", [0.3, 0.0])
@@ -43,20 +47,12 @@ def _nonzero_nodes(backend: TaichiBackend, b: int) -> np.ndarray:
     return np.argwhere(held)
 
 
-def _scatter_box(backend: TaichiBackend, b: int) -> np.ndarray:
-    """Run b's box of nodes a scatter of its current positions touches, computed here: lo xyz, hi xyz."""
-    G = backend.options.grid
-    inv_dx = np.float32(1.0) / np.float32(backend.options.dx)
-    base = np.clip((backend.x.to_numpy()[b] * inv_dx - np.float32(0.5)).astype(np.int32), 0, G - 3)
-    return np.concatenate([base.min(0), base.max(0) + 2])
-
-
 def test_the_last_box_is_the_scatters_and_holds_every_node_of_the_grid() -> None:
     backend = _loaded()
     G = backend.options.grid
     empty = [G] * 3 + [-1] * 3
     for k in range(N_STEPS):
-        expected = [_scatter_box(backend, b) for b in range(2)]
+        expected = [scatter_box(x, backend.options.dx, G) for x in backend.x.to_numpy()]
         before = backend.box.to_numpy()
         for launch in backend._stages(k).values():
             launch()
