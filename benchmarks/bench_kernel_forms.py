@@ -90,14 +90,14 @@ def g2p_parity(sim, params: np.ndarray, forms: list[str]) -> dict[str, dict[str,
     stages = backend._stages(0)
     for stage in ("clear", "p2g", "grid"):
         stages[stage]()
-    before = {n: getattr(backend, n).to_numpy() for n in PARTICLE_ARRAYS}
+    before = {n: backend.particle_array(n) for n in PARTICLE_ARRAYS}
     after: dict[str, dict[str, np.ndarray]] = {}
     for form in forms:
         for n, values in before.items():
-            getattr(backend, n).from_numpy(values)
-        _kernels(_build_g2p, form == "unrolled")(*(backend._stage_value(n, 0) for n in _STAGE_ARGS["g2p"]))
+            backend.set_particle_array(n, values)
+        _kernels(_build_g2p, form == "unrolled", backend.component_major)(*(backend._stage_value(n, 0) for n in _STAGE_ARGS["g2p"]))
         backend.sync()
-        after[form] = {n: getattr(backend, n).to_numpy().astype(np.float64) for n in PARTICLE_ARRAYS}
+        after[form] = {n: backend.particle_array(n).astype(np.float64) for n in PARTICLE_ARRAYS}
     ref = after[forms[0]]
     return {form: {n: float(np.abs(after[form][n] - ref[n]).max() / (np.abs(ref[n]).max() or 1.0))
                    for n in PARTICLE_ARRAYS} for form in forms[1:]}

@@ -89,7 +89,7 @@ def set_perturbed_state(backend, seed: int = 1) -> None:
     """Write ``perturbed_state`` (scene order) into ``backend``'s particle arrays, in the device's order."""
     perm = getattr(backend, "_perm", None)
     for name, values in perturbed_state(backend.batch, backend.scene.n_particles, seed).items():
-        getattr(backend, name).from_numpy(np.ascontiguousarray(values if perm is None else values[:, perm]))
+        backend.set_particle_array(name, values if perm is None else values[:, perm])
 
 
 def _grids(sim, params: np.ndarray) -> dict[str, np.ndarray]:

@@ -23,6 +23,15 @@ from pydantic import ValidationError
 from invphys.core.errors import InvphysError
 
 
+def _by_scene_particle(backend, name: str) -> np.ndarray:
+    """Particle array ``name`` with each run's rows in the scene's order (device particle p is sid[b, p])."""
+    values, sid = backend.particle_array(name), backend.particle_array("sid")
+    out = np.empty_like(values)
+    for b in range(values.shape[0]):
+        out[b, sid[b]] = values[b]
+    return out
+
+
 def _sim(**kw) -> OrangePeelSimulator:
     return OrangePeelSimulator(backend="taichi", preset="tiny", arch="cpu", batch_size=2, frames=8, **kw)
 
@@ -51,10 +60,12 @@ def test_curve_keys_equal_the_numpy_curves(curve):
     assert np.array_equal(keys.numpy(), want(cells.reshape(-1, 3), bits).reshape(2, 500))
 
 
-def test_a_sort_moves_state_only_and_puts_each_run_in_the_order_of_its_cells():
+@pytest.mark.parametrize("component_major", [False, True], ids=["matrices_aos", "matrices_component_major"])
+def test_a_sort_moves_state_only_and_puts_each_run_in_the_order_of_its_cells(component_major):
     sim = _sim()
     scene = sim.engine_scene.engine
-    backend = TaichiBackend(scene, 2, arch="cpu", particle_order="hilbert", resort_every=10_000)
+    backend = TaichiBackend(scene, 2, arch="cpu", particle_order="hilbert", resort_every=10_000,
+                            component_major=component_major)
     model = model_for(sim.engine_scene, _params(2))
     backend.load(model.table(), model.friction)
     N, o = scene.n_particles, scene.options
@@ -63,8 +74,10 @@ def test_a_sort_moves_state_only_and_puts_each_run_in_the_order_of_its_cells():
     d = rng.uniform(size=(2, N)).astype(np.float32)
     backend.x.from_numpy(np.clip(x, 2 * o.dx, o.domain - 2 * o.dx))
     backend.d.from_numpy(d)
+    backend.set_particle_array("F", np.eye(3) + rng.normal(0.0, 0.1, size=(2, N, 3, 3)))  # each particle its own
+    backend.set_particle_array("C", rng.normal(size=(2, N, 3, 3)))
     before_x, before_d = backend.read()
-    before_F = backend.F.to_numpy()
+    before = {name: _by_scene_particle(backend, name) for name in ("F", "C", "v")}
     backend.resorter.sort()
     after_x, after_d = backend.read()
     assert np.array_equal(after_x, before_x) and np.array_equal(after_d, before_d)
@@ -75,8 +88,9 @@ def test_a_sort_moves_state_only_and_puts_each_run_in_the_order_of_its_cells():
         keys = hilbert_index(base_cells(backend.x.to_numpy()[b], o.dx, o.grid), bits)
         assert np.all(np.diff(keys) >= 0)                                      # in the curve order of now
     assert not np.array_equal(sid[0], sid[1])                                  # each run sorted by its own cells
-    # the per-particle state travelled with its particle (F was identity for all: compare a moved field)
-    assert np.array_equal(np.sort(backend.F.to_numpy().reshape(-1)), np.sort(before_F.reshape(-1)))
+    # the per-particle state travelled with its particle, every entry of the component-major matrices
+    for name, values in before.items():
+        assert np.array_equal(_by_scene_particle(backend, name), values), name
     assert backend.resorter.sorts == 1
 
 

@@ -119,12 +119,12 @@ def _substeps(sim: OrangePeelSimulator, params: np.ndarray, n: int = 3) -> dict[
     backend = sim.engine.backend(B)
     _load(backend, sim, params)
     rng = np.random.default_rng(0)
-    backend.d.from_numpy(rng.uniform(0.0, 0.6, (B, N)).astype(np.float32))
-    backend.F.from_numpy((np.eye(3) + 0.05 * rng.standard_normal((B, N, 3, 3))).astype(np.float32))
-    backend.v.from_numpy(0.1 * rng.standard_normal((B, N, 3)).astype(np.float32))
+    backend.set_particle_array("d", rng.uniform(0.0, 0.6, (B, N)))
+    backend.set_particle_array("F", np.eye(3) + 0.05 * rng.standard_normal((B, N, 3, 3)))
+    backend.set_particle_array("v", 0.1 * rng.standard_normal((B, N, 3)))
     _advance(backend, sim, n)
     backend.sync()
-    return {k: getattr(backend, k).to_numpy() for k in ("x", "v", "C", "F", "d")}
+    return {k: backend.particle_array(k) for k in ("x", "v", "C", "F", "d")}
 
 
 def test_looped_g2p_does_the_same_sums_on_cpu_and_auto_keeps_the_cpu_unrolled():

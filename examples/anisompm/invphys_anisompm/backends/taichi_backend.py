@@ -33,6 +33,13 @@ F32_INF_BITS = 0x7F800000
 #: 1.5 * 2**23 and its bit pattern: adding it to |x| <= 2**22 rounds x to an integer (``_round_to_int``)
 ROUND_MAGIC = 12582912.0
 ROUND_MAGIC_BITS = 0x4B400000
+#: the particle matrices: on CUDA stored component-major, ``(B, 9, N)`` (entry ``3 i + j`` of particle ``p`` at
+#: ``[b, 3 i + j, p]``), so that a warp's threads read and write consecutive words of each entry; as ``(B, N)``
+#: arrays of 3x3 matrices (36 bytes apart, the CPU's layout) every store of one entry by a warp touches 32
+#: sectors of the L2 for 128 bytes (g2p writes F and C every substep). The CPU keeps its layout: the same
+#: arithmetic compiles differently with it, so its results would change at float rounding.
+#: ``TaichiBackend.particle_array`` returns either as ``(B, N, 3, 3)``.
+MATRIX_STATE = ("C", "F")
 #: each run's two boxes of grid nodes (``TaichiBackend.box``): the last scatter's, which the next clear zeroes,
 #: and the one the scatter under way grows; g2p moves the second into the first. The clear and the grid update
 #: read only the nodes of their box: most of a run's grid is empty
@@ -166,6 +173,31 @@ def _collider_normal(kind: ti.i32, a: vec3, bb: vec3, p: vec3):
 P2GTerms = ti.types.struct(affine=mat3, mv=vec3, mass=ti.f32)
 
 
+def matrix_nd(component_major: bool):
+    """The kernels' annotation of a particle matrix array in either layout (``MATRIX_STATE``)."""
+    return ND(ti.f32, 3) if component_major else ND(mat3, 2)
+
+
+@ti.func
+def load_mat3(A: ti.template(), b, p):
+    """Particle ``p``'s matrix of run ``b`` from ``A`` in either layout (``MATRIX_STATE``)."""
+    if ti.static(len(A.shape) == 3):   # component-major (B, 9, N)
+        return ti.Matrix([[A[b, 0, p], A[b, 1, p], A[b, 2, p]], [A[b, 3, p], A[b, 4, p], A[b, 5, p]],
+                          [A[b, 6, p], A[b, 7, p], A[b, 8, p]]])
+    else:
+        return A[b, p]
+
+
+@ti.func
+def store_mat3(A: ti.template(), b, p, M):
+    """Write ``M`` as particle ``p``'s matrix of run ``b`` into ``A`` in either layout."""
+    if ti.static(len(A.shape) == 3):
+        for i, j in ti.static(ti.ndrange(3, 3)):
+            A[b, 3 * i + j, p] = M[i, j]
+    else:
+        A[b, p] = M
+
+
 @ti.func
 def _p2g_terms(b, p, s, h, inv_dx, apic, mat: ti.template(), body: ti.template(), fibre: ti.template(),
                vol: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(), d: ti.template(),
@@ -173,7 +205,7 @@ def _p2g_terms(b, p, s, h, inv_dx, apic, mat: ti.template(), body: ti.template()
     """Particle ``p`` of run ``b`` (scene particle ``s``, whose constants ``body``, ``fibre``, ``vol`` it
     reads): its APIC affine matrix (stress included), momentum and mass, as both scatters add them to its
     27 nodes; writes its crack driving force ``dtil``."""
-    Fp = F[b, p]
+    Fp = load_mat3(F, b, p)
     U, sig, V = ti.svd(Fp)
     J = sig[0, 0] * sig[1, 1] * sig[2, 2]
     reg = body[s]
@@ -210,7 +242,7 @@ def _p2g_terms(b, p, s, h, inv_dx, apic, mat: ti.template(), body: ti.template()
     dtil[b, p] = ti.max(phi - 1.0, 0.0)
     vp_ = vol[s]
     mass = mat[b, reg, M_RHO] * vp_
-    affine = (-h * vp_ * 4.0 * inv_dx * inv_dx) * tau + (mass * apic) * C[b, p]
+    affine = (-h * vp_ * 4.0 * inv_dx * inv_dx) * tau + (mass * apic) * load_mat3(C, b, p)
     return P2GTerms(affine=affine, mv=mass * v[b, p], mass=mass)
 
 
@@ -434,13 +466,15 @@ def _build_grid_kernels(serial_p2g: bool, G: int):
     return clear_grid, grid_update
 
 
-def _build_g2p(unrolled: bool):
-    """The grid-to-particle kernel in one of its forms (see ``TaichiBackend.g2p``)."""
+def _build_g2p(unrolled: bool, component_major: bool):
+    """The grid-to-particle kernel in one of its forms (see ``TaichiBackend.g2p``), for particle matrices in
+    either layout (``MATRIX_STATE``)."""
+    MND = matrix_nd(component_major)
 
     @ti.kernel
     def g2p(k: ti.i32, dx: ti.f32, l0sq: ti.f32, don: ND(ti.i32, 1), nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
             mat: ND(ti.f32, 3), body: ND(ti.i32, 1), grip: ND(ti.i32, 1), x0: ND(vec3, 1), kin: ND(ti.f32, 4),
-            sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2),
+            sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), C: MND, F: MND, d: ND(ti.f32, 2),
             dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gd: ND(vec2, 4), box: ND(ti.i32, 3)):
         inv_dx = 1.0 / dx
         G = gv.shape[1]
@@ -480,8 +514,8 @@ def _build_g2p(unrolled: bool):
                     Dc = dp - l0sq * lap
                     rate = (1.0 - dp) * dtil[b, p] - Dc
                     d[b, p] = ti.min(1.0, dp + h / mat[b, reg, M_ETA] * ti.max(rate, 0.0))
-                F[b, p] = (ti.Matrix.identity(ti.f32, 3) + h * new_C) @ F[b, p]
-                C[b, p] = new_C
+                store_mat3(F, b, p, (ti.Matrix.identity(ti.f32, 3) + h * new_C) @ load_mat3(F, b, p))
+                store_mat3(C, b, p, new_C)
                 gp = grip[s]
                 if gp >= 0:
                     x[b, p] = x0[s] + vec3(kin[b, k, gp, 0], kin[b, k, gp, 1], kin[b, k, gp, 2])
@@ -493,8 +527,10 @@ def _build_g2p(unrolled: bool):
     return g2p
 
 
-def _build_kernels(serial_p2g: bool):
-    """The kernels that depend only on ``serial_p2g`` (it makes the CPU's scatter order deterministic)."""
+def _build_kernels(serial_p2g: bool, component_major: bool):
+    """The kernels that depend only on ``serial_p2g`` (it makes the CPU's scatter order deterministic) and on
+    the particle matrices' layout (``MATRIX_STATE``)."""
+    MND = matrix_nd(component_major)
 
     @ti.kernel
     def wipe_grid(mask: ND(ti.i32, 1), ngrip: ti.i32, gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
@@ -510,8 +546,8 @@ def _build_kernels(serial_p2g: bool):
     @ti.kernel
     def p2g(k: ti.i32, dx: ti.f32, apic: ti.f32, ngrip: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
             mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
-            grip: ND(ti.i32, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2),
-            F: ND(mat3, 2), d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
+            grip: ND(ti.i32, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), C: MND,
+            F: MND, d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
             gd: ND(vec2, 4), gg: ND(ti.f32, 4), box: ND(ti.i32, 3)):
         inv_dx = 1.0 / dx
         G = gm.shape[1]
@@ -541,8 +577,8 @@ def _build_kernels(serial_p2g: bool):
     @ti.kernel
     def p2g_tiled(k: ti.i32, dx: ti.f32, apic: ti.f32, ngrip: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
                   mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
-                  grip: ND(ti.i32, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2),
-                  F: ND(mat3, 2), d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
+                  grip: ND(ti.i32, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), C: MND,
+                  F: MND, d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
                   gd: ND(vec2, 4), gg: ND(ti.f32, 4), box: ND(ti.i32, 3)):
         # CUDA only. One thread block per TILE consecutive particles of a run (spatially coherent along a
         # space-filling curve, particle_order.py): their 27-node contributions are summed in shared memory over
@@ -666,7 +702,7 @@ def _build_kernels(serial_p2g: bool):
         dp = d[b, p]
         s = vp.norm()
         bad = 0
-        if not (s < 1e20) or not (ti.abs(xp).max() < 1e20) or not (ti.abs(F[b, p]).max() < 1e20) \
+        if not (s < 1e20) or not (ti.abs(xp).max() < 1e20) or not (ti.abs(load_mat3(F, b, p)).max() < 1e20) \
                 or not (ti.abs(dp) < 1e20):
             bad = 1
         if bad != 0:
@@ -701,7 +737,7 @@ def _build_kernels(serial_p2g: bool):
     # addresses per column instead of one (same-address float atomics serialise); on the CPU R = 1.
     @ti.kernel
     def frame_stats(lo: ti.f32, hi: ti.f32, mask: ND(ti.i32, 1), mat: ND(ti.f32, 3), body: ND(ti.i32, 1),
-                    vol: ND(ti.f32, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2),
+                    vol: ND(ti.f32, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), F: MND, d: ND(ti.f32, 2),
                     acc: ND(ti.f32, 3), out: ND(ti.f32, 2)):
         for b, r, c in ti.ndrange(acc.shape[0], acc.shape[1], acc.shape[2]):
             if mask[b] != 0:
@@ -716,7 +752,7 @@ def _build_kernels(serial_p2g: bool):
     @ti.kernel
     def frame_end(lo: ti.f32, hi: ti.f32, mask: ND(ti.i32, 1), nstats: ti.i32, nk: ti.i32, mat: ND(ti.f32, 3),
                   body: ND(ti.i32, 1), vol: ND(ti.f32, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2),
-                  F: ND(mat3, 2), d: ND(ti.f32, 2), imp: ND(vec3, 2), work: ND(ti.f32, 2), acc: ND(ti.f32, 3), out: ND(ti.f32, 2)):
+                  F: MND, d: ND(ti.f32, 2), imp: ND(vec3, 2), work: ND(ti.f32, 2), acc: ND(ti.f32, 3), out: ND(ti.f32, 2)):
         """One launch at the end of a chunk: zero ``out``, the statistics of the masked runs (as
         ``frame_stats``), then their force and work sums moved into ``out`` (4 columns per object after
         the statistics) and reset on the device."""
@@ -741,7 +777,7 @@ def _build_kernels(serial_p2g: bool):
 
     @ti.kernel
     def reset_slots(mask: ND(ti.i32, 1), perm0: ND(ti.i32, 1), x0: ND(vec3, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2),
-                    v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2), d: ND(ti.f32, 2), dtil: ND(ti.f32, 2)):
+                    v: ND(vec3, 2), C: MND, F: MND, d: ND(ti.f32, 2), dtil: ND(ti.f32, 2)):
         # a new run starts in the initial device order perm0 (scene particle perm0[p] at device index p)
         for b, p in x:
             if mask[b] != 0:
@@ -749,8 +785,8 @@ def _build_kernels(serial_p2g: bool):
                 sid[b, p] = s
                 x[b, p] = x0[s]
                 v[b, p] = vec3(0.0)
-                C[b, p] = mat3(0.0)
-                F[b, p] = ti.Matrix.identity(ti.f32, 3)
+                store_mat3(C, b, p, mat3(0.0))
+                store_mat3(F, b, p, ti.Matrix.identity(ti.f32, 3))
                 d[b, p] = 0.0
                 dtil[b, p] = 0.0
 
@@ -814,7 +850,8 @@ class TaichiBackend:
 
     def __init__(self, scene, batch: int, arch: str = "cpu", allow_cpu_fallback: bool = False,
                  stats_partials: int | None = None, p2g: str = "atomic", particle_order: str | None = None,
-                 g2p: str = "auto", resort_every: int | None = None, **_: object):
+                 g2p: str = "auto", resort_every: int | None = None, component_major: bool | None = None,
+                 **_: object):
         if p2g not in ("auto", "atomic", "tiled"):
             raise InvphysError(f"p2g must be 'auto', 'atomic' or 'tiled', got {p2g!r}")
         if g2p not in ("auto", "unrolled", "loop"):
@@ -841,10 +878,12 @@ class TaichiBackend:
         self.options = o
         self.batch = int(batch)
         serial = bool(o.deterministic and self.arch == "cpu")
+        #: particle matrices component-major (``MATRIX_STATE``): on CUDA unless asked otherwise
+        self.component_major = bool(self.arch == "cuda" if component_major is None else component_major)
         (self._p2g, self._stats, self._reset, self._gather, self._frame_end, p2g_tiled,
-         self._wipe) = _kernels(_build_kernels, serial)
+         self._wipe) = _kernels(_build_kernels, serial, self.component_major)
         self._clear, self._grid = _kernels(_build_grid_kernels, serial, int(o.grid))
-        self._g2p = _kernels(_build_g2p, self.g2p == "unrolled")
+        self._g2p = _kernels(_build_g2p, self.g2p == "unrolled", self.component_major)
         if p2g == "tiled":
             self._p2g = p2g_tiled
         self._kernel_of = {"clear": self._clear, "p2g": self._p2g, "grid": self._grid, "g2p": self._g2p}
@@ -885,8 +924,9 @@ class TaichiBackend:
         self.nstats = n_stats(len(scene.bodies))
         self.x = ti.ndarray(vec3, (B, N))
         self.v = ti.ndarray(vec3, (B, N))
-        self.C = ti.ndarray(mat3, (B, N))
-        self.F = ti.ndarray(mat3, (B, N))
+        # the APIC matrix C and the deformation gradient F, in the layout of MATRIX_STATE
+        self.C = ti.ndarray(ti.f32, (B, 9, N)) if self.component_major else ti.ndarray(mat3, (B, N))
+        self.F = ti.ndarray(ti.f32, (B, 9, N)) if self.component_major else ti.ndarray(mat3, (B, N))
         self.d = ti.ndarray(ti.f32, (B, N))
         self.dtil = ti.ndarray(ti.f32, (B, N))
         #: device particle p of run b is scene particle sid[b, p] (runs are re-sorted one by one)
@@ -960,8 +1000,8 @@ class TaichiBackend:
         self.sid.from_numpy(np.broadcast_to(self._perm0_host, (B, N)).copy())
         self.x.from_numpy(np.broadcast_to(self._order(self.scene.positions).astype(np.float32), (B, N, 3)).copy())
         self.v.from_numpy(np.zeros((B, N, 3), np.float32))
-        self.C.from_numpy(np.zeros((B, N, 3, 3), np.float32))
-        self.F.from_numpy(np.broadcast_to(np.eye(3, dtype=np.float32), (B, N, 3, 3)).copy())
+        self.set_particle_array("C", np.zeros((B, N, 3, 3), np.float32))
+        self.set_particle_array("F", np.broadcast_to(np.eye(3, dtype=np.float32), (B, N, 3, 3)))
         self.d.from_numpy(np.zeros((B, N), np.float32))
         self.dtil.from_numpy(np.zeros((B, N), np.float32))
         self._slot_mask.from_numpy(np.ones(B, np.int32))
@@ -985,6 +1025,22 @@ class TaichiBackend:
         if self.kin.shape != table.shape:
             self.kin = ti.ndarray(ti.f32, table.shape)
         self.kin.from_numpy(table)
+
+    def particle_array(self, name: str) -> np.ndarray:
+        """Particle array ``name`` (``x``, ``v``, ``C``, ``F``, ``d``, ``dtil``, ``sid``) on the host, run-major in
+        the device's particle order: ``(B, N, ...)``, matrices ``(B, N, 3, 3)`` whatever their device layout."""
+        values = self.host_copy(getattr(self, name))
+        if name in MATRIX_STATE and self.component_major:
+            B, _, N = values.shape
+            return np.ascontiguousarray(values.transpose(0, 2, 1)).reshape(B, N, 3, 3)
+        return values
+
+    def set_particle_array(self, name: str, values: np.ndarray) -> None:
+        """Write particle array ``name`` from host ``values`` shaped as :meth:`particle_array` returns them."""
+        values = np.asarray(values, np.float32 if name != "sid" else np.int32)
+        if name in MATRIX_STATE and self.component_major:
+            values = values.reshape(values.shape[0], values.shape[1], 9).transpose(0, 2, 1)
+        getattr(self, name).from_numpy(np.ascontiguousarray(values))
 
     def _upload(self, name: str, values: np.ndarray) -> None:
         last = self._uploaded.get(name)

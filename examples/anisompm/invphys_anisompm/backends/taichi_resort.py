@@ -14,10 +14,9 @@ sort moves only per-run state; reads return the scene's order whatever the sorts
 
 import taichi as ti
 
-from invphys_anisompm.backends.taichi_backend import _element_type
+from invphys_anisompm.backends.taichi_backend import _element_type, load_mat3, matrix_nd, store_mat3
 
 vec3 = ti.math.vec3
-mat3 = ti.math.mat3
 ND = ti.types.ndarray
 #: the per-run particle arrays a sort permutes (the backend's attribute names)
 SORTED_ARRAYS = ("x", "v", "C", "F", "d", "dtil", "sid")
@@ -64,9 +63,11 @@ def _curve_index(curve: str, bits: int):
     return hilbert if curve == "hilbert" else morton
 
 
-def _build_resort_kernels(grid: int, curve: str):
-    """The key and gather kernels for grid size ``grid`` and ``curve`` (compile-time constants)."""
+def _build_resort_kernels(grid: int, curve: str, component_major: bool = False):
+    """The key and gather kernels for grid size ``grid``, ``curve`` and the particle matrices' layout
+    (compile-time constants)."""
     curve_index = _curve_index(curve, int(grid).bit_length())
+    MND = matrix_nd(component_major)
 
     @ti.kernel
     def curve_keys(inv_dx: ti.f32, x: ND(vec3, 2), keys: ND(ti.i64, 2)):
@@ -75,16 +76,16 @@ def _build_resort_kernels(grid: int, curve: str):
             keys[b, p] = curve_index(base)
 
     @ti.kernel
-    def gather_sorted(order: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), C: ND(mat3, 2), F: ND(mat3, 2),
+    def gather_sorted(order: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), C: MND, F: MND,
                       d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), sid: ND(ti.i32, 2), xo: ND(vec3, 2), vo: ND(vec3, 2),
-                      Co: ND(mat3, 2), Fo: ND(mat3, 2), do: ND(ti.f32, 2), dtilo: ND(ti.f32, 2),
+                      Co: MND, Fo: MND, do: ND(ti.f32, 2), dtilo: ND(ti.f32, 2),
                       sido: ND(ti.i32, 2)):
         for b, p in xo:
             q = order[b, p]
             xo[b, p] = x[b, q]
             vo[b, p] = v[b, q]
-            Co[b, p] = C[b, q]
-            Fo[b, p] = F[b, q]
+            store_mat3(Co, b, p, load_mat3(C, b, q))
+            store_mat3(Fo, b, p, load_mat3(F, b, q))
             do[b, p] = d[b, q]
             dtilo[b, p] = dtil[b, q]
             sido[b, p] = sid[b, q]
@@ -92,7 +93,7 @@ def _build_resort_kernels(grid: int, curve: str):
     return curve_keys, gather_sorted
 
 
-_KERNELS: dict[tuple[int, str], tuple] = {}
+_KERNELS: dict[tuple[int, str, bool], tuple] = {}
 
 
 class ParticleResorter:
@@ -105,7 +106,7 @@ class ParticleResorter:
         self.every = int(every)
         self.since = 0
         self.sorts = 0
-        key = (int(backend.options.grid), curve)
+        key = (int(backend.options.grid), curve, bool(backend.component_major))
         if key not in _KERNELS:
             _KERNELS[key] = _build_resort_kernels(*key)
         self._keys_kernel, self._gather = _KERNELS[key]
@@ -126,7 +127,8 @@ class ParticleResorter:
         B, N = be.batch, be.scene.n_particles
         device = "cuda" if be.arch == "cuda" else "cpu"
         if self._spare is None:
-            self._spare = {name: ti.ndarray(_element_type(getattr(be, name)), (B, N)) for name in SORTED_ARRAYS}
+            self._spare = {name: ti.ndarray(_element_type(getattr(be, name)), tuple(getattr(be, name).shape))
+                           for name in SORTED_ARRAYS}
             self._keys = torch.empty((B, N), dtype=torch.int64, device=device)
         self._keys_kernel(1.0 / float(be.options.dx), be.x, self._keys)
         order = torch.sort(self._keys, dim=1, stable=True).indices.to(torch.int32).contiguous()
