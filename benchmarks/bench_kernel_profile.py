@@ -77,7 +77,7 @@ def _child(a: argparse.Namespace) -> None:
     backend.sync()
     backend.kernel_times(2)  # the profiled launches: two substeps of the four stages
     ident = RunIdentity.of(sim)
-    info = {"particles": int(backend.d.shape[1]), "simulator": ident.simulator,
+    info = {"particles": int(backend.x.shape[1]), "simulator": ident.simulator,
             "simulator_version": ident.version, "config_hash": ident.config}
     print("CHILD_INFO " + json.dumps(info), flush=True)
 

@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     backend.set_frame(np.full(B, 2e-5), np.full(B, a.steps), np.zeros((B, a.steps, nk, 6)), damage_on=True)
     violations, volumes = [], []
     for k in range(a.steps):
-        expected = [scatter_box(x, o.dx, G) for x in backend.particle_array("x")]
+        expected = [scatter_box(x, o.dx, G) for x in backend.x.to_numpy()]
         for launch in backend._stages(k).values():
             launch()
         box = backend.box.to_numpy()

@@ -70,9 +70,9 @@ def test_a_sort_moves_state_only_and_puts_each_run_in_the_order_of_its_cells(com
     backend.load(model.table(), model.friction)
     N, o = scene.n_particles, scene.options
     rng = np.random.default_rng(1)
-    x = backend.particle_array("x") + rng.normal(0.0, 3 * o.dx, size=(2, N, 3)).astype(np.float32)  # each run its own
+    x = backend.x.to_numpy() + rng.normal(0.0, 3 * o.dx, size=(2, N, 3)).astype(np.float32)  # each run its own
     d = rng.uniform(size=(2, N)).astype(np.float32)
-    backend.set_particle_array("x", np.clip(x, 2 * o.dx, o.domain - 2 * o.dx))
+    backend.x.from_numpy(np.clip(x, 2 * o.dx, o.domain - 2 * o.dx))
     backend.d.from_numpy(d)
     backend.set_particle_array("F", np.eye(3) + rng.normal(0.0, 0.1, size=(2, N, 3, 3)))  # each particle its own
     backend.set_particle_array("C", rng.normal(size=(2, N, 3, 3)))
@@ -85,7 +85,7 @@ def test_a_sort_moves_state_only_and_puts_each_run_in_the_order_of_its_cells(com
     bits = int(o.grid).bit_length()
     for b in range(2):
         assert np.array_equal(np.sort(sid[b]), np.arange(N))                 # a permutation of the scene
-        keys = hilbert_index(base_cells(backend.particle_array("x")[b], o.dx, o.grid), bits)
+        keys = hilbert_index(base_cells(backend.x.to_numpy()[b], o.dx, o.grid), bits)
         assert np.all(np.diff(keys) >= 0)                                      # in the curve order of now
     assert not np.array_equal(sid[0], sid[1])                                  # each run sorted by its own cells
     # the per-particle state travelled with its particle, every entry of the component-major matrices

@@ -38,10 +38,8 @@ ROUND_MAGIC_BITS = 0x4B400000
 #: arrays of 3x3 matrices (36 bytes apart, the CPU's layout) every store of one entry by a warp touches 32
 #: sectors of the L2 for 128 bytes (g2p writes F and C every substep). The CPU keeps its layout: the same
 #: arithmetic compiles differently with it, so its results would change at float rounding.
-#: ``TaichiBackend.particle_array`` returns either as ``(B, N, 3, 3)``. Positions and velocities likewise:
-#: ``(B, 3, N)`` component-major, ``(B, N)`` arrays of 3-vectors on the CPU (``VECTOR_STATE``).
+#: ``TaichiBackend.particle_array`` returns either as ``(B, N, 3, 3)``.
 MATRIX_STATE = ("C", "F")
-VECTOR_STATE = ("x", "v")
 #: each run's two boxes of grid nodes (``TaichiBackend.box``): the last scatter's, which the next clear zeroes,
 #: and the one the scatter under way grows; g2p moves the second into the first. The clear and the grid update
 #: read only the nodes of their box: most of a run's grid is empty
@@ -180,30 +178,6 @@ def matrix_nd(component_major: bool):
     return ND(ti.f32, 3) if component_major else ND(mat3, 2)
 
 
-def vector_nd(component_major: bool):
-    """The kernels' annotation of a particle vector array in either layout (``VECTOR_STATE``)."""
-    return ND(ti.f32, 3) if component_major else ND(vec3, 2)
-
-
-@ti.func
-def load_vec3(A: ti.template(), b, p):
-    """Particle ``p``'s vector of run ``b`` from ``A`` in either layout (``VECTOR_STATE``)."""
-    if ti.static(len(A.shape) == 3):   # component-major (B, 3, N)
-        return ti.Vector([A[b, 0, p], A[b, 1, p], A[b, 2, p]])
-    else:
-        return A[b, p]
-
-
-@ti.func
-def store_vec3(A: ti.template(), b, p, u):
-    """Write ``u`` as particle ``p``'s vector of run ``b`` into ``A`` in either layout."""
-    if ti.static(len(A.shape) == 3):
-        for i in ti.static(range(3)):
-            A[b, i, p] = u[i]
-    else:
-        A[b, p] = u
-
-
 @ti.func
 def load_mat3(A: ti.template(), b, p):
     """Particle ``p``'s matrix of run ``b`` from ``A`` in either layout (``MATRIX_STATE``)."""
@@ -269,7 +243,7 @@ def _p2g_terms(b, p, s, h, inv_dx, apic, mat: ti.template(), body: ti.template()
     vp_ = vol[s]
     mass = mat[b, reg, M_RHO] * vp_
     affine = (-h * vp_ * 4.0 * inv_dx * inv_dx) * tau + (mass * apic) * load_mat3(C, b, p)
-    return P2GTerms(affine=affine, mv=mass * load_vec3(v, b, p), mass=mass)
+    return P2GTerms(affine=affine, mv=mass * v[b, p], mass=mass)
 
 
 @ti.func
@@ -495,23 +469,23 @@ def _build_grid_kernels(serial_p2g: bool, G: int):
 def _build_g2p(unrolled: bool, component_major: bool):
     """The grid-to-particle kernel in one of its forms (see ``TaichiBackend.g2p``), for particle matrices in
     either layout (``MATRIX_STATE``)."""
-    MND, VND = matrix_nd(component_major), vector_nd(component_major)
+    MND = matrix_nd(component_major)
 
     @ti.kernel
     def g2p(k: ti.i32, dx: ti.f32, l0sq: ti.f32, don: ND(ti.i32, 1), nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
             mat: ND(ti.f32, 3), body: ND(ti.i32, 1), grip: ND(ti.i32, 1), x0: ND(vec3, 1), kin: ND(ti.f32, 4),
-            sid: ND(ti.i32, 2), x: VND, v: VND, C: MND, F: MND, d: ND(ti.f32, 2),
+            sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), C: MND, F: MND, d: ND(ti.f32, 2),
             dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gd: ND(vec2, 4), box: ND(ti.i32, 3)):
         inv_dx = 1.0 / dx
         G = gv.shape[1]
-        for b, p in d:
+        for b, p in x:
             if k < nsub[b]:
                 if p == 0:   # this substep's scatter box is what the next substep's clear zeroes
                     for a in ti.static(range(6)):
                         box[b, BOX_LAST, a] = box[b, BOX_NEXT, a]
                     _set_box(box, b, BOX_NEXT, G, -1)
                 h = dt[b]
-                Xp = load_vec3(x, b, p) * inv_dx
+                Xp = x[b, p] * inv_dx
                 base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
                 fx = Xp - ti.cast(base, ti.f32)
                 w = _weights(fx)
@@ -544,11 +518,11 @@ def _build_g2p(unrolled: bool, component_major: bool):
                 store_mat3(C, b, p, new_C)
                 gp = grip[s]
                 if gp >= 0:
-                    store_vec3(x, b, p, x0[s] + vec3(kin[b, k, gp, 0], kin[b, k, gp, 1], kin[b, k, gp, 2]))
-                    store_vec3(v, b, p, vec3(kin[b, k, gp, 3], kin[b, k, gp, 4], kin[b, k, gp, 5]))
+                    x[b, p] = x0[s] + vec3(kin[b, k, gp, 0], kin[b, k, gp, 1], kin[b, k, gp, 2])
+                    v[b, p] = vec3(kin[b, k, gp, 3], kin[b, k, gp, 4], kin[b, k, gp, 5])
                 else:
-                    store_vec3(v, b, p, new_v)
-                    store_vec3(x, b, p, load_vec3(x, b, p) + h * new_v)
+                    v[b, p] = new_v
+                    x[b, p] += h * new_v
 
     return g2p
 
@@ -556,7 +530,7 @@ def _build_g2p(unrolled: bool, component_major: bool):
 def _build_kernels(serial_p2g: bool, component_major: bool):
     """The kernels that depend only on ``serial_p2g`` (it makes the CPU's scatter order deterministic) and on
     the particle matrices' layout (``MATRIX_STATE``)."""
-    MND, VND = matrix_nd(component_major), vector_nd(component_major)
+    MND = matrix_nd(component_major)
 
     @ti.kernel
     def wipe_grid(mask: ND(ti.i32, 1), ngrip: ti.i32, gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
@@ -572,16 +546,16 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
     @ti.kernel
     def p2g(k: ti.i32, dx: ti.f32, apic: ti.f32, ngrip: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
             mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
-            grip: ND(ti.i32, 1), sid: ND(ti.i32, 2), x: VND, v: VND, C: MND,
+            grip: ND(ti.i32, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), C: MND,
             F: MND, d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
             gd: ND(vec2, 4), gg: ND(ti.f32, 4), box: ND(ti.i32, 3)):
         inv_dx = 1.0 / dx
         G = gm.shape[1]
         if ti.static(serial_p2g):
             ti.loop_config(serialize=True)
-        for b, p in ti.ndrange(d.shape[0], d.shape[1]):
+        for b, p in ti.ndrange(x.shape[0], x.shape[1]):
             if k < nsub[b]:
-                Xp = load_vec3(x, b, p) * inv_dx
+                Xp = x[b, p] * inv_dx
                 base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
                 fx = Xp - ti.cast(base, ti.f32)
                 w = _weights(fx)
@@ -603,7 +577,7 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
     @ti.kernel
     def p2g_tiled(k: ti.i32, dx: ti.f32, apic: ti.f32, ngrip: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
                   mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
-                  grip: ND(ti.i32, 1), sid: ND(ti.i32, 2), x: VND, v: VND, C: MND,
+                  grip: ND(ti.i32, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), C: MND,
                   F: MND, d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
                   gd: ND(vec2, 4), gg: ND(ti.f32, 4), box: ND(ti.i32, 3)):
         # CUDA only. One thread block per TILE consecutive particles of a run (spatially coherent along a
@@ -613,10 +587,10 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
         # exceeds TILE_NODES nodes (or a scene with more than one grip) scatters globally, as p2g does.
         inv_dx = 1.0 / dx
         G = gm.shape[1]
-        N = d.shape[1]
+        N = x.shape[1]
         ntile = (N + TILE - 1) // TILE
         ti.loop_config(block_dim=TILE)
-        for t in range(d.shape[0] * ntile * TILE):
+        for t in range(x.shape[0] * ntile * TILE):
             tid = t % TILE
             b = t // (ntile * TILE)
             # lanes of a warp take particles TILE/32 apart, so that they rarely share a base cell: lanes
@@ -644,7 +618,7 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
             mass = 0.0
             s = 0
             if active:
-                Xp = load_vec3(x, b, p) * inv_dx
+                Xp = x[b, p] * inv_dx
                 base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
                 fx = Xp - ti.cast(base, ti.f32)
                 for a in ti.static(range(3)):
@@ -723,8 +697,8 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
     def _particle_stats(b: ti.i32, r: ti.i32, p: ti.i32, lo: ti.f32, hi: ti.f32, mat: ti.template(),
                         body: ti.template(), vol: ti.template(), sid: ti.template(), x: ti.template(),
                         v: ti.template(), F: ti.template(), d: ti.template(), acc: ti.template()):
-        xp = load_vec3(x, b, p)
-        vp = load_vec3(v, b, p)
+        xp = x[b, p]
+        vp = v[b, p]
         dp = d[b, p]
         s = vp.norm()
         bad = 0
@@ -763,21 +737,21 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
     # addresses per column instead of one (same-address float atomics serialise); on the CPU R = 1.
     @ti.kernel
     def frame_stats(lo: ti.f32, hi: ti.f32, mask: ND(ti.i32, 1), mat: ND(ti.f32, 3), body: ND(ti.i32, 1),
-                    vol: ND(ti.f32, 1), sid: ND(ti.i32, 2), x: VND, v: VND, F: MND, d: ND(ti.f32, 2),
+                    vol: ND(ti.f32, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), F: MND, d: ND(ti.f32, 2),
                     acc: ND(ti.f32, 3), out: ND(ti.f32, 2)):
         for b, r, c in ti.ndrange(acc.shape[0], acc.shape[1], acc.shape[2]):
             if mask[b] != 0:
                 acc[b, r, c] = 0.0
         if ti.static(serial_p2g):
             ti.loop_config(serialize=True)  # float sums in a fixed order: features repeat bit for bit
-        for b, p in ti.ndrange(d.shape[0], d.shape[1]):  # a range-for: serialize applies
+        for b, p in ti.ndrange(x.shape[0], x.shape[1]):  # a range-for: serialize applies
             if mask[b] != 0:
                 _particle_stats(b, p % acc.shape[1], p, lo, hi, mat, body, vol, sid, x, v, F, d, acc)
         _reduce_stats(mask, acc, out)
 
     @ti.kernel
     def frame_end(lo: ti.f32, hi: ti.f32, mask: ND(ti.i32, 1), nstats: ti.i32, nk: ti.i32, mat: ND(ti.f32, 3),
-                  body: ND(ti.i32, 1), vol: ND(ti.f32, 1), sid: ND(ti.i32, 2), x: VND, v: VND,
+                  body: ND(ti.i32, 1), vol: ND(ti.f32, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2),
                   F: MND, d: ND(ti.f32, 2), imp: ND(vec3, 2), work: ND(ti.f32, 2), acc: ND(ti.f32, 3), out: ND(ti.f32, 2)):
         """One launch at the end of a chunk: zero ``out``, the statistics of the masked runs (as
         ``frame_stats``), then their force and work sums moved into ``out`` (4 columns per object after
@@ -789,7 +763,7 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
                 acc[b, r, c] = 0.0
         if ti.static(serial_p2g):
             ti.loop_config(serialize=True)
-        for b, p in ti.ndrange(d.shape[0], d.shape[1]):
+        for b, p in ti.ndrange(x.shape[0], x.shape[1]):
             if mask[b] != 0:
                 _particle_stats(b, p % acc.shape[1], p, lo, hi, mat, body, vol, sid, x, v, F, d, acc)
         _reduce_stats(mask, acc, out)
@@ -802,29 +776,29 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
                 work[b, c] = 0.0
 
     @ti.kernel
-    def reset_slots(mask: ND(ti.i32, 1), perm0: ND(ti.i32, 1), x0: ND(vec3, 1), sid: ND(ti.i32, 2), x: VND,
-                    v: VND, C: MND, F: MND, d: ND(ti.f32, 2), dtil: ND(ti.f32, 2)):
+    def reset_slots(mask: ND(ti.i32, 1), perm0: ND(ti.i32, 1), x0: ND(vec3, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2),
+                    v: ND(vec3, 2), C: MND, F: MND, d: ND(ti.f32, 2), dtil: ND(ti.f32, 2)):
         # a new run starts in the initial device order perm0 (scene particle perm0[p] at device index p)
-        for b, p in d:
+        for b, p in x:
             if mask[b] != 0:
                 s = perm0[p]
                 sid[b, p] = s
-                store_vec3(x, b, p, x0[s])
-                store_vec3(v, b, p, vec3(0.0))
+                x[b, p] = x0[s]
+                v[b, p] = vec3(0.0)
                 store_mat3(C, b, p, mat3(0.0))
                 store_mat3(F, b, p, ti.Matrix.identity(ti.f32, 3))
                 d[b, p] = 0.0
                 dtil[b, p] = 0.0
 
     @ti.kernel
-    def gather(idx: ND(ti.i32, 1), sid: ND(ti.i32, 2), x: VND, d: ND(ti.f32, 2), xo: ND(vec3, 2),
+    def gather(idx: ND(ti.i32, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2), d: ND(ti.f32, 2), xo: ND(vec3, 2),
                do: ND(ti.f32, 2)):
         # runs idx[i] back in the scene's order (device particle p is scene particle sid[b, p]): the reorder
         # happens here, not in numpy on the host (~85 ms per read of 64 paper runs on a 2-core CPU)
         for i, p in xo:
             b = idx[i]
             s = sid[b, p]
-            xo[i, s] = load_vec3(x, b, p)
+            xo[i, s] = x[b, p]
             do[i, s] = d[b, p]
 
     return p2g, frame_stats, reset_slots, gather, frame_end, p2g_tiled, wipe_grid
@@ -904,7 +878,7 @@ class TaichiBackend:
         self.options = o
         self.batch = int(batch)
         serial = bool(o.deterministic and self.arch == "cpu")
-        #: particle vectors and matrices component-major (``VECTOR_STATE``, ``MATRIX_STATE``): on CUDA unless asked otherwise
+        #: particle matrices component-major (``MATRIX_STATE``): on CUDA unless asked otherwise
         self.component_major = bool(self.arch == "cuda" if component_major is None else component_major)
         (self._p2g, self._stats, self._reset, self._gather, self._frame_end, p2g_tiled,
          self._wipe) = _kernels(_build_kernels, serial, self.component_major)
@@ -948,9 +922,8 @@ class TaichiBackend:
         NG1, NK1, NC1 = max(self.ngrip, 1), max(self.ngrip + self.ncol, 1), max(self.ncol, 1)
         self.nk1 = NK1
         self.nstats = n_stats(len(scene.bodies))
-        # positions and velocities, in the layout of VECTOR_STATE
-        self.x = ti.ndarray(ti.f32, (B, 3, N)) if self.component_major else ti.ndarray(vec3, (B, N))
-        self.v = ti.ndarray(ti.f32, (B, 3, N)) if self.component_major else ti.ndarray(vec3, (B, N))
+        self.x = ti.ndarray(vec3, (B, N))
+        self.v = ti.ndarray(vec3, (B, N))
         # the APIC matrix C and the deformation gradient F, in the layout of MATRIX_STATE
         self.C = ti.ndarray(ti.f32, (B, 9, N)) if self.component_major else ti.ndarray(mat3, (B, N))
         self.F = ti.ndarray(ti.f32, (B, 9, N)) if self.component_major else ti.ndarray(mat3, (B, N))
@@ -1025,8 +998,8 @@ class TaichiBackend:
         self.imp.fill(0.0)
         self.work.fill(0.0)
         self.sid.from_numpy(np.broadcast_to(self._perm0_host, (B, N)).copy())
-        self.set_particle_array("x", np.broadcast_to(self._order(self.scene.positions).astype(np.float32), (B, N, 3)))
-        self.set_particle_array("v", np.zeros((B, N, 3), np.float32))
+        self.x.from_numpy(np.broadcast_to(self._order(self.scene.positions).astype(np.float32), (B, N, 3)).copy())
+        self.v.from_numpy(np.zeros((B, N, 3), np.float32))
         self.set_particle_array("C", np.zeros((B, N, 3, 3), np.float32))
         self.set_particle_array("F", np.broadcast_to(np.eye(3, dtype=np.float32), (B, N, 3, 3)))
         self.d.from_numpy(np.zeros((B, N), np.float32))
@@ -1057,17 +1030,16 @@ class TaichiBackend:
         """Particle array ``name`` (``x``, ``v``, ``C``, ``F``, ``d``, ``dtil``, ``sid``) on the host, run-major in
         the device's particle order: ``(B, N, ...)``, matrices ``(B, N, 3, 3)`` whatever their device layout."""
         values = self.host_copy(getattr(self, name))
-        if name in MATRIX_STATE + VECTOR_STATE and self.component_major:
+        if name in MATRIX_STATE and self.component_major:
             B, _, N = values.shape
-            values = np.ascontiguousarray(values.transpose(0, 2, 1))
-            return values.reshape(B, N, 3, 3) if name in MATRIX_STATE else values
+            return np.ascontiguousarray(values.transpose(0, 2, 1)).reshape(B, N, 3, 3)
         return values
 
     def set_particle_array(self, name: str, values: np.ndarray) -> None:
         """Write particle array ``name`` from host ``values`` shaped as :meth:`particle_array` returns them."""
         values = np.asarray(values, np.float32 if name != "sid" else np.int32)
-        if name in MATRIX_STATE + VECTOR_STATE and self.component_major:
-            values = values.reshape(values.shape[0], values.shape[1], -1).transpose(0, 2, 1)
+        if name in MATRIX_STATE and self.component_major:
+            values = values.reshape(values.shape[0], values.shape[1], 9).transpose(0, 2, 1)
         getattr(self, name).from_numpy(np.ascontiguousarray(values))
 
     def _upload(self, name: str, values: np.ndarray) -> None:
@@ -1233,7 +1205,7 @@ class TaichiBackend:
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         """Positions (B, N, 3) and damage (B, N), float32, in the scene's particle order (new host arrays)."""
         if self._perm is None:
-            return self.particle_array("x"), self.host_copy(self.d)
+            return self.host_copy(self.x), self.host_copy(self.d)
         return self.read_slots(np.arange(self.batch))
 
     def grid_mass(self) -> np.ndarray:

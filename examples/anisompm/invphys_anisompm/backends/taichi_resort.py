@@ -14,16 +14,9 @@ sort moves only per-run state; reads return the scene's order whatever the sorts
 
 import taichi as ti
 
-from invphys_anisompm.backends.taichi_backend import (
-    _element_type,
-    load_mat3,
-    load_vec3,
-    matrix_nd,
-    store_mat3,
-    store_vec3,
-    vector_nd,
-)
+from invphys_anisompm.backends.taichi_backend import _element_type, load_mat3, matrix_nd, store_mat3
 
+vec3 = ti.math.vec3
 ND = ti.types.ndarray
 #: the per-run particle arrays a sort permutes (the backend's attribute names)
 SORTED_ARRAYS = ("x", "v", "C", "F", "d", "dtil", "sid")
@@ -74,23 +67,23 @@ def _build_resort_kernels(grid: int, curve: str, component_major: bool = False):
     """The key and gather kernels for grid size ``grid``, ``curve`` and the particle matrices' layout
     (compile-time constants)."""
     curve_index = _curve_index(curve, int(grid).bit_length())
-    MND, VND = matrix_nd(component_major), vector_nd(component_major)
+    MND = matrix_nd(component_major)
 
     @ti.kernel
-    def curve_keys(inv_dx: ti.f32, x: VND, keys: ND(ti.i64, 2)):
-        for b, p in keys:
-            base = ti.math.clamp(ti.cast(load_vec3(x, b, p) * inv_dx - 0.5, ti.i32), 0, grid - 3)
+    def curve_keys(inv_dx: ti.f32, x: ND(vec3, 2), keys: ND(ti.i64, 2)):
+        for b, p in x:
+            base = ti.math.clamp(ti.cast(x[b, p] * inv_dx - 0.5, ti.i32), 0, grid - 3)
             keys[b, p] = curve_index(base)
 
     @ti.kernel
-    def gather_sorted(order: ND(ti.i32, 2), x: VND, v: VND, C: MND, F: MND,
-                      d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), sid: ND(ti.i32, 2), xo: VND, vo: VND,
+    def gather_sorted(order: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), C: MND, F: MND,
+                      d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), sid: ND(ti.i32, 2), xo: ND(vec3, 2), vo: ND(vec3, 2),
                       Co: MND, Fo: MND, do: ND(ti.f32, 2), dtilo: ND(ti.f32, 2),
                       sido: ND(ti.i32, 2)):
-        for b, p in do:
+        for b, p in xo:
             q = order[b, p]
-            store_vec3(xo, b, p, load_vec3(x, b, q))
-            store_vec3(vo, b, p, load_vec3(v, b, q))
+            xo[b, p] = x[b, q]
+            vo[b, p] = v[b, q]
             store_mat3(Co, b, p, load_mat3(C, b, q))
             store_mat3(Fo, b, p, load_mat3(F, b, q))
             do[b, p] = d[b, q]
