@@ -39,9 +39,12 @@ def _substeps(component_major: bool, n: int) -> tuple[TaichiBackend, dict[str, n
         backend.set_particle_array(name, values)
     nk = max(len(scene.kinematic_names), 1)
     backend.set_frame(np.full(2, 2e-4), np.full(2, n), np.zeros((2, n, nk, 6)), damage_on=True)
+    x0 = backend.particle_array("x")
     backend.advance(n)
     backend.sync()
-    return backend, {name: backend.particle_array(name) for name in PARTICLE}
+    out = {name: backend.particle_array(name) for name in PARTICLE}
+    out["dx"] = out["x"] - x0   # the motion, which is small against the positions themselves
+    return backend, out
 
 
 def test_the_cpu_keeps_matrices_per_particle_and_cuda_would_store_them_component_major():
@@ -61,10 +64,11 @@ def test_the_cpu_keeps_matrices_per_particle_and_cuda_would_store_them_component
 def test_component_major_kernels_do_the_same_substeps_as_the_cpu_layout():
     _, ref = _substeps(False, 4)
     _, got = _substeps(True, 4)
-    for name in PARTICLE:
+    for name in (*PARTICLE, "dx"):
         scale = np.abs(ref[name]).max()
         assert scale > 0, name
         # the same sums in the same order; the compiler may contract them differently (float rounding)
         assert np.abs(got[name] - ref[name]).max() <= 1e-4 * scale, name
+    assert np.abs(ref["dx"]).max() > 1e-5   # the particles moved
     for name in MATRIX_STATE:   # the substeps changed the matrices: the comparison covers the kernels' stores
         assert not np.allclose(ref[name], _state(2, ref[name].shape[1])[name], atol=1e-6), name
