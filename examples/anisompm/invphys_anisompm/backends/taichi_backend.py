@@ -33,6 +33,9 @@ F32_INF_BITS = 0x7F800000
 #: 1.5 * 2**23 and its bit pattern: adding it to |x| <= 2**22 rounds x to an integer (``_round_to_int``)
 ROUND_MAGIC = 12582912.0
 ROUND_MAGIC_BITS = 0x4B400000
+#: the tiled scatter's fixed-point unit of a B-spline weight (2**-23): a share (<= 0.75**3) stays below 2**22
+#: (``_round_to_int``) and a node's sum of TILE shares below ``256 * 0.42 * 2**23 < 2**31``
+WEIGHT_SCALE = 8388608.0
 #: the particle matrices: on CUDA stored component-major, ``(B, 9, N)`` (entry ``3 i + j`` of particle ``p`` at
 #: ``[b, 3 i + j, p]``), so that a warp's threads read and write consecutive words of each entry; as ``(B, N)``
 #: arrays of 3x3 matrices (36 bytes apart, the CPU's layout) every store of one entry by a warp touches 32
@@ -599,11 +602,12 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
             lo = ti.simt.block.SharedArray((3,), ti.i32)
             hi = ti.simt.block.SharedArray((3,), ti.i32)
             big = ti.simt.block.SharedArray((2,), ti.i32)
-            # channel-major sums over the tile's nodes: momentum and mass as fixed-point integers (a shared
-            # integer add is one instruction; a float add is a compare-and-swap loop), the weight sum, damage
-            # sum and grip mass as floats (see _fixed_point_scale)
-            acc_i = ti.simt.block.SharedArray((4 * TILE_NODES,), ti.i32)
-            acc_f = ti.simt.block.SharedArray((3 * TILE_NODES,), ti.f32)
+            # channel-major sums over the tile's nodes: momentum, mass and the weight sum as fixed-point integers
+            # (a shared integer add is one instruction; a float add is a compare-and-swap loop, which lanes of
+            # the block's warps adding to one node at once make retry), the damage sum and grip mass as floats
+            # (see _fixed_point_scale, WEIGHT_SCALE)
+            acc_i = ti.simt.block.SharedArray((5 * TILE_NODES,), ti.i32)
+            acc_f = ti.simt.block.SharedArray((2 * TILE_NODES,), ti.f32)
             if tid < 3:
                 lo[tid] = G
                 hi[tid] = -1
@@ -646,9 +650,9 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
             if tiled:
                 c = tid
                 while c < n_nodes:
-                    for ch in ti.static(range(4)):
+                    for ch in ti.static(range(5)):
                         acc_i[ch * TILE_NODES + c] = 0
-                    for ch in ti.static(range(3)):
+                    for ch in ti.static(range(2)):
                         acc_f[ch * TILE_NODES + c] = 0.0
                     c += TILE
             ti.simt.block.sync()
@@ -667,19 +671,19 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
                         for a in ti.static(range(3)):
                             ti.atomic_add(acc_i[a * TILE_NODES + c], _round_to_int(mom[a] * s_mom))
                         ti.atomic_add(acc_i[3 * TILE_NODES + c], _round_to_int(weight * mass * s_mass))
-                        ti.atomic_add(acc_f[c], weight)
+                        ti.atomic_add(acc_i[4 * TILE_NODES + c], _round_to_int(weight * WEIGHT_SCALE))
                         if dp != 0.0:  # adding zero changes no sum: most particles are undamaged
-                            ti.atomic_add(acc_f[TILE_NODES + c], weight * dp)
+                            ti.atomic_add(acc_f[c], weight * dp)
                         if gp >= 0:
-                            ti.atomic_add(acc_f[2 * TILE_NODES + c], weight * mass)
+                            ti.atomic_add(acc_f[TILE_NODES + c], weight * mass)
                     else:
                         _scatter_global(b, node, weight, mom, mass, dp, gp, ngrip, gv, gm, gd, gg)
             ti.simt.block.sync()
             if tiled:
                 c = tid
                 while c < n_nodes:
-                    sw = acc_f[c]
-                    if sw != 0.0:  # a node some particle touched (touched_node)
+                    sw_units = acc_i[4 * TILE_NODES + c]
+                    if sw_units != 0:  # a node some particle touched (touched_node)
                         i = c // (sy * sz) + o0
                         j = (c // sz) % sy + o1
                         q = c % sz + o2
@@ -687,9 +691,9 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
                                                          ti.cast(acc_i[TILE_NODES + c], ti.f32),
                                                          ti.cast(acc_i[2 * TILE_NODES + c], ti.f32))
                         gm[b, i, j, q] += inv_mass * ti.cast(acc_i[3 * TILE_NODES + c], ti.f32)
-                        gd[b, i, j, q] += vec2(acc_f[TILE_NODES + c], sw)
-                        if ngrip > 0 and acc_f[2 * TILE_NODES + c] != 0.0:
-                            gg[b * ngrip, i, j, q] += acc_f[2 * TILE_NODES + c]
+                        gd[b, i, j, q] += vec2(acc_f[c], ti.cast(sw_units, ti.f32) * (1.0 / WEIGHT_SCALE))
+                        if ngrip > 0 and acc_f[TILE_NODES + c] != 0.0:
+                            gg[b * ngrip, i, j, q] += acc_f[TILE_NODES + c]
                     c += TILE
             ti.simt.block.sync()  # the next tile of this thread block (grid-stride loop) reuses the arrays
 
