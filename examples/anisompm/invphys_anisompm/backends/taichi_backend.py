@@ -256,7 +256,9 @@ def touched_node(g2):
     Every contribution to any channel of a node carries a B-spline weight ``w``, and ``sum w`` (positive terms)
     is nonzero as soon as one ``w`` is (a NaN sum counts as touched). A node with ``sum w == 0`` holds zeros in
     every channel, so the substep's clear can skip it; a slot that gets a new run is wiped whole
-    (``wipe_grid``), in case a blown-up run left a NaN beside a zero weight.
+    (``wipe_grid``), in case a blown-up run left a NaN beside a zero weight. (The tiled scatter sums a tile's
+    weights in units of ``1 / WEIGHT_SCALE``: a node that a tile reaches only with weights below ~6e-8 gets
+    nothing from that tile in any channel, its momentum and mass shares rounding to zero as well.)
     """
     return g2[1] != 0.0
 
