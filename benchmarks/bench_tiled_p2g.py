@@ -7,7 +7,7 @@ parameter vectors (seed 0) of the orange peel at ``--preset``:
 
 1. **grid parity**: both backends load the same runs, set the same moving, strained, partly damaged state
    (``perturbed_state``) and do one P2G; the grids (momentum, mass, damage sums, grip mass) must agree to
-   float rounding (the order of the sums differs; the tiled momentum and mass are fixed-point sums);
+   float rounding (the order of the sums differs; the tiled sums are fixed-point integers);
 2. **kernel profile**: seconds per launch of each substep stage (``kernel_times``), both ways;
 3. **whole runs**: the same runs simulated atomic, tiled, then atomic again, in lock-step batches of
    ``--batch``: wall time per run, the ratio to the paper's 156 s, and the features' agreement (median,

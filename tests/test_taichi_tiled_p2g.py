@@ -251,11 +251,12 @@ def test_fixed_point_scale_cannot_overflow_and_rounds_to_2e_minus_22_of_the_boun
     assert got[2] >= F32_INF_BITS and got[3] >= F32_INF_BITS      # non-finite: the tile scatters globally
 
 
-def test_weight_sums_in_fixed_point_cannot_overflow_and_match_the_float_sums():
-    """The tiled scatter (CUDA) sums each node's B-spline weights as integers of 2**-23 (``WEIGHT_SCALE``):
-    the largest weight (0.75**3) scales below 2**22, where ``_round_to_int`` is exact, and a node's TILE
-    shares below 2**31. A tile's weights rounded and summed as the kernel does (on the CPU) equal the
-    float64 sums to half a unit per share, and every node a particle reaches keeps a nonzero sum."""
+def test_weight_and_damage_sums_in_fixed_point_cannot_overflow_and_match_the_float_sums():
+    """The tiled scatter (CUDA) sums each node's B-spline weights ``w`` and damage shares ``w d`` (``d`` in
+    [0, 1]; a tile with another ``d`` scatters globally) as integers of 2**-23 (``WEIGHT_SCALE``): the largest
+    share (0.75**3) scales below 2**22, where ``_round_to_int`` is exact, and a node's TILE shares below
+    2**31. A tile's shares rounded and summed as the kernel does (on the CPU) equal the float64 sums to half
+    a unit per share, and every node a particle reaches keeps a nonzero weight sum."""
     import taichi as ti
     from invphys_anisompm.backends.taichi_backend import TILE, WEIGHT_SCALE, _round_to_int, ensure_taichi
 
@@ -266,17 +267,21 @@ def test_weight_sums_in_fixed_point_cannot_overflow_and_match_the_float_sums():
     fx = rng.uniform(0.5, 1.5, size=(TILE, 3))   # a tile's particles, each in its base cell (worst case: one cell)
     per_axis = np.stack([0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2], axis=1)
     w = np.einsum("pi,pj,pk->pijk", per_axis[:, :, 0], per_axis[:, :, 1], per_axis[:, :, 2]).reshape(TILE, 27)
-    src = ti.ndarray(ti.f32, w.shape)
-    src.from_numpy(w.astype(np.float32))
-    units = ti.ndarray(ti.i32, w.shape)
+    d = np.where(rng.random(TILE) < 0.5, 1.0, rng.uniform(0.0, 1.0, TILE))[:, None]  # half fully damaged
 
     def to_units(v, o):
         for p, n in ti.ndrange(v.shape[0], v.shape[1]):
             o[p, n] = _round_to_int(v[p, n] * WEIGHT_SCALE)
 
-    _kernel(to_units, "v", "o")(src, units)
-    sums = units.to_numpy().astype(np.int64).sum(axis=0)
-    assert sums.max() < 2 ** 31
-    exact = w.astype(np.float32).astype(np.float64).sum(axis=0)
-    assert np.all(np.abs(sums / WEIGHT_SCALE - exact) <= TILE * 0.5 / WEIGHT_SCALE)
-    assert np.all(sums > 0)   # touched nodes stay touched (the flush skips a zero sum)
+    kernel = _kernel(to_units, "v", "o")
+    sums = {}
+    for name, shares in (("w", w.astype(np.float32)), ("w d", w.astype(np.float32) * d.astype(np.float32))):
+        src = ti.ndarray(ti.f32, w.shape)
+        src.from_numpy(shares)
+        units = ti.ndarray(ti.i32, w.shape)
+        kernel(src, units)
+        sums[name] = units.to_numpy().astype(np.int64).sum(axis=0)
+        assert sums[name].max() < 2 ** 31
+        exact = shares.astype(np.float64).sum(axis=0)
+        assert np.all(np.abs(sums[name] / WEIGHT_SCALE - exact) <= TILE * 0.5 / WEIGHT_SCALE), name
+    assert np.all(sums["w"] > 0)   # touched nodes stay touched (the flush skips a zero sum)

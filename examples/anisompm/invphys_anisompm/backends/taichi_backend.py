@@ -36,6 +36,10 @@ ROUND_MAGIC_BITS = 0x4B400000
 #: the tiled scatter's fixed-point unit of a B-spline weight (2**-23): a share (<= 0.75**3) stays below 2**22
 #: (``_round_to_int``) and a node's sum of TILE shares below ``256 * 0.42 * 2**23 < 2**31``
 WEIGHT_SCALE = 8388608.0
+#: the tiled scatter's shared sums per node, all fixed-point integers: momentum (3 channels, the tile's momentum
+#: scale), mass (mass scale), the weight sum and the damage sum ``w d`` (``WEIGHT_SCALE``: ``d`` in [0, 1]; a tile
+#: with a damage outside scatters globally) and the grip mass (mass scale)
+ACC_CHANNELS = 7
 #: the particle matrices: on CUDA stored component-major, ``(B, 9, N)`` (entry ``3 i + j`` of particle ``p`` at
 #: ``[b, 3 i + j, p]``), so that a warp's threads read and write consecutive words of each entry; as ``(B, N)``
 #: arrays of 3x3 matrices (36 bytes apart, the CPU's layout) every store of one entry by a warp touches 32
@@ -603,17 +607,15 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
             p = (t // TILE) % ntile * TILE + (tid % 32) * (TILE // 32) + tid // 32
             lo = ti.simt.block.SharedArray((3,), ti.i32)
             hi = ti.simt.block.SharedArray((3,), ti.i32)
-            big = ti.simt.block.SharedArray((2,), ti.i32)
-            # channel-major sums over the tile's nodes: momentum, mass and the weight sum as fixed-point integers
-            # (a shared integer add is one instruction; a float add is a compare-and-swap loop, which lanes of
-            # the block's warps adding to one node at once make retry), the damage sum and grip mass as floats
-            # (see _fixed_point_scale, WEIGHT_SCALE)
-            acc_i = ti.simt.block.SharedArray((5 * TILE_NODES,), ti.i32)
-            acc_f = ti.simt.block.SharedArray((2 * TILE_NODES,), ti.f32)
+            big = ti.simt.block.SharedArray((3,), ti.i32)
+            # channel-major sums over the tile's nodes, all as fixed-point integers (a shared integer add is one
+            # instruction; a float add is a compare-and-swap loop, which lanes of the block's warps adding to one
+            # node at once make retry): momentum (3), mass, the weight sum, the damage sum and the grip mass
+            # (ACC_CHANNELS; see _fixed_point_scale, WEIGHT_SCALE)
+            acc = ti.simt.block.SharedArray((ACC_CHANNELS * TILE_NODES,), ti.i32)
             if tid < 3:
                 lo[tid] = G
                 hi[tid] = -1
-            if tid < 2:
                 big[tid] = 0
             ti.simt.block.sync()
             active = p < N and k < nsub[b]
@@ -622,6 +624,7 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
             affine = mat3(0.0)
             mv = vec3(0.0)
             mass = 0.0
+            dp = 0.0
             s = 0
             if active:
                 Xp = x[b, p] * inv_dx
@@ -637,6 +640,9 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
                 mass = tm.mass
                 ti.atomic_max(big[0], _momentum_bound_bits(mv, affine, dx))
                 ti.atomic_max(big[1], ti.bit_cast(ti.abs(mass), ti.i32))
+                dp = d[b, p]
+                if not (dp >= 0.0 and dp <= 1.0):  # the damage sum's units need d in [0, 1] (NaN included)
+                    big[2] = 1
             ti.simt.block.sync()
             o0, o1, o2 = lo[0], lo[1], lo[2]
             if tid == 0 and hi[0] >= 0:   # the run's scatter box takes in the tile's
@@ -644,23 +650,21 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
             sy = hi[1] - o1 + 1
             sz = hi[2] - o2 + 1
             n_nodes = (hi[0] - o0 + 1) * sy * sz
-            # a tile with a non-finite particle scatters globally, so that its NaN reaches the grid as before
-            finite = big[0] < F32_INF_BITS and big[1] < F32_INF_BITS
+            # a tile with a non-finite particle (or a damage outside [0, 1]) scatters globally, so that its NaN
+            # reaches the grid as before
+            finite = big[0] < F32_INF_BITS and big[1] < F32_INF_BITS and big[2] == 0
             tiled = hi[0] >= 0 and n_nodes <= TILE_NODES and ngrip <= 1 and finite
             s_mom, inv_mom = _fixed_point_scale(big[0])
             s_mass, inv_mass = _fixed_point_scale(big[1])
             if tiled:
                 c = tid
                 while c < n_nodes:
-                    for ch in ti.static(range(5)):
-                        acc_i[ch * TILE_NODES + c] = 0
-                    for ch in ti.static(range(2)):
-                        acc_f[ch * TILE_NODES + c] = 0.0
+                    for ch in ti.static(range(ACC_CHANNELS)):
+                        acc[ch * TILE_NODES + c] = 0
                     c += TILE
             ti.simt.block.sync()
             if active:
                 w = _weights(fx)
-                dp = d[b, p]
                 gp = grip[s]
                 for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
                     off = ti.Vector([i, j, q])
@@ -671,31 +675,32 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
                     if tiled:
                         c = ((node[0] - o0) * sy + node[1] - o1) * sz + node[2] - o2
                         for a in ti.static(range(3)):
-                            ti.atomic_add(acc_i[a * TILE_NODES + c], _round_to_int(mom[a] * s_mom))
-                        ti.atomic_add(acc_i[3 * TILE_NODES + c], _round_to_int(weight * mass * s_mass))
-                        ti.atomic_add(acc_i[4 * TILE_NODES + c], _round_to_int(weight * WEIGHT_SCALE))
+                            ti.atomic_add(acc[a * TILE_NODES + c], _round_to_int(mom[a] * s_mom))
+                        ti.atomic_add(acc[3 * TILE_NODES + c], _round_to_int(weight * mass * s_mass))
+                        ti.atomic_add(acc[4 * TILE_NODES + c], _round_to_int(weight * WEIGHT_SCALE))
                         if dp != 0.0:  # adding zero changes no sum: most particles are undamaged
-                            ti.atomic_add(acc_f[c], weight * dp)
+                            ti.atomic_add(acc[5 * TILE_NODES + c], _round_to_int(weight * dp * WEIGHT_SCALE))
                         if gp >= 0:
-                            ti.atomic_add(acc_f[TILE_NODES + c], weight * mass)
+                            ti.atomic_add(acc[6 * TILE_NODES + c], _round_to_int(weight * mass * s_mass))
                     else:
                         _scatter_global(b, node, weight, mom, mass, dp, gp, ngrip, gv, gm, gd, gg)
             ti.simt.block.sync()
             if tiled:
                 c = tid
                 while c < n_nodes:
-                    sw_units = acc_i[4 * TILE_NODES + c]
+                    sw_units = acc[4 * TILE_NODES + c]
                     if sw_units != 0:  # a node some particle touched (touched_node)
                         i = c // (sy * sz) + o0
                         j = (c // sz) % sy + o1
                         q = c % sz + o2
-                        gv[b, i, j, q] += inv_mom * vec3(ti.cast(acc_i[c], ti.f32),
-                                                         ti.cast(acc_i[TILE_NODES + c], ti.f32),
-                                                         ti.cast(acc_i[2 * TILE_NODES + c], ti.f32))
-                        gm[b, i, j, q] += inv_mass * ti.cast(acc_i[3 * TILE_NODES + c], ti.f32)
-                        gd[b, i, j, q] += vec2(acc_f[c], ti.cast(sw_units, ti.f32) * (1.0 / WEIGHT_SCALE))
-                        if ngrip > 0 and acc_f[TILE_NODES + c] != 0.0:
-                            gg[b * ngrip, i, j, q] += acc_f[TILE_NODES + c]
+                        gv[b, i, j, q] += inv_mom * vec3(ti.cast(acc[c], ti.f32),
+                                                         ti.cast(acc[TILE_NODES + c], ti.f32),
+                                                         ti.cast(acc[2 * TILE_NODES + c], ti.f32))
+                        gm[b, i, j, q] += inv_mass * ti.cast(acc[3 * TILE_NODES + c], ti.f32)
+                        gd[b, i, j, q] += (1.0 / WEIGHT_SCALE) * vec2(ti.cast(acc[5 * TILE_NODES + c], ti.f32),
+                                                                      ti.cast(sw_units, ti.f32))
+                        if ngrip > 0 and acc[6 * TILE_NODES + c] != 0:
+                            gg[b * ngrip, i, j, q] += inv_mass * ti.cast(acc[6 * TILE_NODES + c], ti.f32)
                     c += TILE
             ti.simt.block.sync()  # the next tile of this thread block (grid-stride loop) reuses the arrays
 
