@@ -73,3 +73,43 @@ def test_other_archs_use_to_numpy() -> None:
     assert copy.fallback == "no direct copy on arch 'vulkan'"
     values = np.ones((2, 3), np.float32)
     assert np.array_equal(copy(_filled(ti.f32, (2, 3), values)), values)
+
+
+def test_the_wait_for_the_device_lets_other_threads_run() -> None:
+    """On CUDA ``wait`` (every copy's) blocks in the driver's ``cuCtxSynchronize`` through ctypes, which
+    releases the GIL, so that the process's other threads (extraction hand-off, stores) run while the GPU
+    works rather than in the gap before the next launch. Here a ctypes ``usleep`` of 0.3 s stands in for the
+    driver's wait: a pure-Python thread keeps stamping the time through the middle of it (a wait that held
+    the GIL, as ``ti.sync()`` does, or ``ctypes.PyDLL``'s usleep, leaves no stamp inside)."""
+    import ctypes
+    import threading
+    import time
+
+    usleep = ctypes.CDLL(None).usleep
+    usleep.argtypes = [ctypes.c_uint]
+    window: list[float] = []
+
+    def driver_wait() -> None:
+        window.append(time.perf_counter())
+        usleep(300_000)
+        window.append(time.perf_counter())
+
+    copy = HostCopy("cpu")
+    copy._ctx_sync = driver_wait
+    stamps: list[float] = []
+    stop = threading.Event()
+
+    def stamp() -> None:
+        while not stop.is_set():
+            stamps.append(time.perf_counter())
+
+    worker = threading.Thread(target=stamp)
+    worker.start()
+    values = np.arange(6, dtype=np.float32)
+    got = copy(_filled(ti.f32, (6,), values))
+    stop.set()
+    worker.join()
+    assert np.array_equal(got, values) and len(window) == 2
+    t = np.asarray(stamps)
+    inside = ((t > window[0] + 0.05) & (t < window[1] - 0.05)).sum()
+    assert inside > 100   # the thread ran in the middle of the wait
