@@ -57,7 +57,7 @@ def gaps_report(gpu_csv: Path, api_csv: Path | None, last_s: float | None = None
     hist = {f"{lo}-{hi} us": {"count": int(((gap >= lo * 1e3) & (gap < hi * 1e3)).sum()),
                                "total_s": float(gap[(gap >= lo * 1e3) & (gap < hi * 1e3)].sum() / 1e9)}
             for lo, hi in itertools.pairwise(edges_us)}
-    out = {"kernels": int(len(start)), "window_s": float(span / 1e9), "busy_s": float(busy / 1e9),
+    out = {"kernels": len(start), "window_s": float(span / 1e9), "busy_s": float(busy / 1e9),
            "busy_share": float(busy / span), "idle_s": float(gap.sum() / 1e9), "gaps_by_size": hist}
     if api_csv is not None:
         api = _rows(api_csv)
