@@ -1,4 +1,4 @@
-"""Reading runs' particles back from the device: Taichi's ``to_numpy`` against one direct copy (issue 16).
+"""Reads and uploads between a stream's chunks: Taichi's ``to_numpy``/``from_numpy`` against one direct copy (issue 16).
 
 At a stream's frame end the engine reads the particles (positions and damage, the scene's order) of every slot
 at a recorded frame, with the GPU idle until the next launch. ``TaichiBackend.read_slots`` gathers them on the
@@ -10,7 +10,9 @@ through each host copy, alternating, after checking they return the same arrays:
 - ``direct_into_reused_arrays``: the same into arrays touched before (the copy alone, no page faults);
 - ``fresh_pages_only``: no copy, only new arrays of the read's size written once (their page faults).
 
-Also times ``frame_end`` (the statistics of a frame end, one small read) each way. The particles read must be
+Also times ``frame_end`` (the statistics of a frame end: a mask upload, a kernel, one small read) and
+``set_frame`` (a chunk's uploads: time steps, substep counts, a 64-substep kinematic table) each way: with
+``from_numpy`` (forced) and with ``HostUpload`` (``cuMemcpyHtoD``). The particles read must be
 equal bit for bit (``same_arrays``); ``frame_end``'s statistics are float sums whose order GPU atomics vary
 between calls, so their largest relative difference is recorded instead.
 
@@ -48,8 +50,10 @@ def _args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def _timed(fn, forced: str | None, backend) -> float:
-    """Seconds for ``fn()`` with the backend's host copy forced to ``to_numpy`` (``forced``) or direct."""
+    """Seconds for ``fn()`` with the backend's host copies and uploads forced to ``to_numpy``/``from_numpy``
+    (``forced``) or direct."""
     backend.host_copy.fallback = forced
+    backend.upload.fallback = forced
     backend.sync()
     t0 = time.perf_counter()
     fn()
@@ -112,15 +116,24 @@ def main(argv: list[str] | None = None) -> int:
     end_diff = max(float(np.abs(r - g).max() / max(np.abs(r).max(), 1e-30)) for r, g in zip(ref_end, got_end, strict=True))
     if copy.fallback is not None:
         raise SystemExit(f"error: the direct copy fell back ({copy.fallback})")
+    nk = len(sim.engine_scene.engine.kinematic_names)
+    kin = np.zeros((a.batch, 64, max(nk, 1), 6))
+    steps = [np.full(a.batch, 1e-4), np.full(a.batch, 2e-4)]   # alternating, so that dt is sent every time
+
+    def frame():
+        steps.reverse()
+        backend.set_frame(steps[0], np.full(a.batch, 64), kin, damage_on=True)
+
     cases = {"read_slots": {"to_numpy": (read, "forced"), "direct": (read, None),
                             "direct_into_reused_arrays": (read_reused, None), "fresh_pages_only": (fresh_pages, None)},
-             "frame_end": {"to_numpy": (end, "forced"), "direct": (end, None)}}
+             "frame_end": {"to_numpy": (end, "forced"), "direct": (end, None)},
+             "set_frame": {"from_numpy": (frame, "forced"), "direct": (frame, None)}}
     times: dict[str, dict[str, list[float]]] = {n: {k: [] for k in c} for n, c in cases.items()}
     for _ in range(a.repeats):
         for name, c in cases.items():
             for k, (fn, forced) in c.items():
                 times[name][k].append(_timed(fn, forced, backend))
-    backend.host_copy.fallback = None
+    backend.host_copy.fallback = backend.upload.fallback = None
     mb = sum(r.nbytes for r in ref) / 1e6
     summary = {name: {k: {"median_ms": float(np.median(v)) * 1e3, "ms": [x * 1e3 for x in v]} for k, v in t.items()}
                for name, t in times.items()}

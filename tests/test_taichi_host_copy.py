@@ -1,4 +1,5 @@
-"""HostCopy: Taichi ndarrays read into new host arrays in one copy, equal to ``to_numpy`` (issue 16)."""
+"""HostCopy and HostUpload: Taichi ndarrays read into new host arrays and written from host arrays in one copy,
+equal to ``to_numpy`` and ``from_numpy`` (issue 16)."""
 
 import numpy as np
 import pytest
@@ -6,7 +7,7 @@ import pytest
 ti = pytest.importorskip("taichi")
 
 from invphys_anisompm.backends.taichi_backend import ensure_taichi  # noqa: E402
-from invphys_anisompm.backends.taichi_host_copy import HostCopy  # noqa: E402
+from invphys_anisompm.backends.taichi_host_copy import HostCopy, HostUpload  # noqa: E402
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -113,3 +114,85 @@ def test_the_wait_for_the_device_lets_other_threads_run() -> None:
     t = np.asarray(stamps)
     inside = ((t > window[0] + 0.05) & (t < window[1] - 0.05)).sum()
     assert inside > 100   # the thread ran in the middle of the wait
+
+
+def test_uploads_equal_from_numpy() -> None:
+    rng = np.random.default_rng(1)
+    cases = [(ti.math.vec3, (4, 9), rng.normal(size=(4, 9, 3))),
+             (ti.math.mat3, (2, 5), rng.normal(size=(2, 5, 3, 3))),
+             (ti.f32, (3, 7), rng.normal(size=(3, 7))),
+             (ti.i32, (11,), rng.integers(-9, 9, size=11))]   # int64 and float64 in: converted as from_numpy's callers did
+    upload = HostUpload("cpu", HostCopy("cpu"))
+    for dtype, shape, values in cases:
+        arr, ref = ti.ndarray(dtype, shape), ti.ndarray(dtype, shape)
+        upload(arr, values)
+        ref.from_numpy(values.astype(ref.to_numpy().dtype))
+        assert np.array_equal(arr.to_numpy(), ref.to_numpy())
+    assert upload.fallback is None
+    with pytest.raises(ValueError, match="shape"):
+        upload(ti.ndarray(ti.f32, (3,)), np.zeros(4))
+
+
+def test_an_upload_waits_for_the_kernels_launched_before_it_and_kernels_see_it() -> None:
+    @ti.kernel
+    def total(a: ti.types.ndarray(ti.f32, 1), out: ti.types.ndarray(ti.f32, 1)):
+        for i in a:
+            out[0] += a[i]
+
+    arr, out = ti.ndarray(ti.f32, (100,)), ti.ndarray(ti.f32, (1,))
+    upload = HostUpload("cpu", HostCopy("cpu"))
+    for v in (1.0, 3.0):
+        upload(arr, np.full(100, v))
+        upload(out, np.zeros(1))
+        total(arr, out)
+        assert out.to_numpy()[0] == 100 * v
+
+
+def test_a_direct_upload_that_reads_back_wrong_or_is_refused_falls_back_to_from_numpy_for_good() -> None:
+    """The CUDA path (emulated on the CPU: ``_htod`` a stand-in, the first upload checked): a copy that leaves
+    other values in the ndarray, or a refused driver call, hands every upload to ``from_numpy`` from then on."""
+    import ctypes
+
+    values = np.arange(12, dtype=np.float32).reshape(3, 4)
+    calls = []
+
+    def wrong(dst, src, nbytes):   # copies only half of the bytes
+        calls.append(nbytes)
+        ctypes.memmove(dst, src, nbytes // 2)
+        return 0
+
+    arr = _filled(ti.f32, (3, 4), np.zeros((3, 4), np.float32))
+    upload = HostUpload("cpu", HostCopy("cpu"))
+    upload._htod, upload._checked = wrong, False
+    upload(arr, values)
+    assert np.array_equal(arr.to_numpy(), values)
+    assert upload.fallback == "the first direct upload read back different values"
+    upload(arr, values + 1)
+    assert np.array_equal(arr.to_numpy(), values + 1) and calls == [48]   # not tried again
+
+    def refuse(dst, src, nbytes):
+        return 201
+
+    upload = HostUpload("cpu", HostCopy("cpu"))
+    upload._htod, upload._checked = refuse, False
+    upload(arr, values)
+    assert np.array_equal(arr.to_numpy(), values) and upload.fallback == "cuMemcpyHtoD returned CUresult 201"
+
+
+def test_a_correct_direct_upload_is_checked_once_then_trusted() -> None:
+    import ctypes
+
+    calls = []
+
+    def right(dst, src, nbytes):
+        calls.append(nbytes)
+        ctypes.memmove(dst, src, nbytes)
+        return 0
+
+    arr = ti.ndarray(ti.i32, (5,))
+    upload = HostUpload("cpu", HostCopy("cpu"))
+    upload._htod, upload._checked = right, False
+    for v in range(3):
+        upload(arr, np.full(5, v))
+        assert np.array_equal(arr.to_numpy(), np.full(5, v))
+    assert upload.fallback is None and upload._checked and calls == [20, 20, 20]

@@ -17,7 +17,7 @@ import taichi as ti
 from invphys.core.errors import DeviceUnavailableError, InvphysError
 from invphys_anisompm.backends import quiet_library
 from invphys_anisompm.backends.particle_order import ORDERS
-from invphys_anisompm.backends.taichi_host_copy import HostCopy
+from invphys_anisompm.backends.taichi_host_copy import HostCopy, HostUpload
 from invphys_anisompm.failure import BODY0, n_stats
 from invphys_anisompm.materials import M_ALPHA, M_DMG, M_ETA, M_KF, M_LAM, M_MU, M_RES, M_RHO, M_SC, N_MAT
 
@@ -884,6 +884,8 @@ class TaichiBackend:
         self.device = device_name(self.arch)
         #: device arrays to new host arrays in one copy (``taichi_host_copy.py``); ``.fallback`` says why not
         self.host_copy = HostCopy(self.arch)
+        #: host arrays into device arrays in one copy (the uploads between a stream's chunks)
+        self.upload = HostUpload(self.arch, self.host_copy)
         self.scene = scene
         o = scene.options
         self.options = o
@@ -1029,13 +1031,13 @@ class TaichiBackend:
         self._upload("don", (np.broadcast_to(np.asarray(damage_on), (B,)) != 0).astype(np.int32)
                      * np.int32(self.options.damage))
         self._upload("dt", dt.astype(np.float32))
-        self.nsub.from_numpy(nsub.astype(np.int32))
+        self.upload(self.nsub, nsub)
         B, K = kin.shape[:2]
         table = np.zeros((B, K, self.nk1, 6), np.float32)
         table[:, :, :kin.shape[2]] = kin
         if self.kin.shape != table.shape:
             self.kin = ti.ndarray(ti.f32, table.shape)
-        self.kin.from_numpy(table)
+        self.upload(self.kin, table)
 
     def particle_array(self, name: str) -> np.ndarray:
         """Particle array ``name`` (``x``, ``v``, ``C``, ``F``, ``d``, ``dtil``, ``sid``) on the host, run-major in
@@ -1056,7 +1058,7 @@ class TaichiBackend:
     def _upload(self, name: str, values: np.ndarray) -> None:
         last = self._uploaded.get(name)
         if last is None or not np.array_equal(last, values):
-            getattr(self, name).from_numpy(values)
+            self.upload(getattr(self, name), values)
             self._uploaded[name] = values
 
     def _stage_value(self, name: str, k: int):
@@ -1143,11 +1145,11 @@ class TaichiBackend:
         slots = np.asarray(slots, np.int64)
         self._mat_host[slots] = table
         self._fric_host[slots, :self.ncol] = friction
-        self.mat.from_numpy(self._mat_host)
-        self.fric.from_numpy(self._fric_host)
+        self.upload(self.mat, self._mat_host)
+        self.upload(self.fric, self._fric_host)
         mask = np.zeros(self.batch, np.int32)
         mask[slots] = 1
-        self._slot_mask.from_numpy(mask)
+        self.upload(self._slot_mask, mask)
         self._reset(self._slot_mask, self.perm0, self.x0, self.sid, self.x, self.v, self.C, self.F, self.d, self.dtil)
         self._wipe_grid()
 
@@ -1163,7 +1165,7 @@ class TaichiBackend:
         if n not in self._gather_bufs:
             self._gather_bufs[n] = (ti.ndarray(ti.i32, (n,)), ti.ndarray(vec3, (n, N)), ti.ndarray(ti.f32, (n, N)))
         idx, xo, do = self._gather_bufs[n]
-        idx.from_numpy(slots)
+        self.upload(idx, slots)
         self._gather(idx, self.sid, self.x, self.d, xo, do)
         return self.host_copy(xo), self.host_copy(do)
 
@@ -1174,7 +1176,7 @@ class TaichiBackend:
         if slots is not None:
             mask[:] = 0
             mask[np.asarray(slots, np.int64)] = 1
-        self._stats_mask.from_numpy(mask)
+        self.upload(self._stats_mask, mask)
         self.stats_out.fill(0.0)
         self._stats(lo, hi, self._stats_mask, self.mat, self.body, self.vol, self.sid, self.x, self.v, self.F, self.d,
                     self.stats_acc, self.stats_out)
@@ -1186,7 +1188,7 @@ class TaichiBackend:
         slots = np.asarray(slots, np.int64)
         mask = np.zeros(self.batch, np.int32)
         mask[slots] = 1
-        self._stats_mask.from_numpy(mask)
+        self.upload(self._stats_mask, mask)
         n, ns = self.ngrip + self.ncol, self.nstats
         self._frame_end(lo, hi, self._stats_mask, ns, n, self.mat, self.body, self.vol, self.sid, self.x, self.v, self.F,
                         self.d, self.imp, self.work, self.stats_acc, self.end_out)
