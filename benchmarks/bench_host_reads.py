@@ -116,6 +116,8 @@ def main(argv: list[str] | None = None) -> int:
     end_diff = max(float(np.abs(r - g).max() / max(np.abs(r).max(), 1e-30)) for r, g in zip(ref_end, got_end, strict=True))
     if copy.fallback is not None:
         raise SystemExit(f"error: the direct copy fell back ({copy.fallback})")
+    if backend.upload.fallback is not None:
+        raise SystemExit(f"error: the direct upload fell back ({backend.upload.fallback})")
     nk = len(sim.engine_scene.engine.kinematic_names)
     kin = np.zeros((a.batch, 64, max(nk, 1), 6))
     steps = [np.full(a.batch, 1e-4), np.full(a.batch, 2e-4)]   # alternating, so that dt is sent every time

@@ -57,9 +57,10 @@ class HostCopy:
     ``fallback`` says why.
 
     On CUDA the wait for the GPU is the driver's ``cuCtxSynchronize`` through ctypes, which releases the GIL;
-    Taichi's own ``ti.sync()`` (then immediate) holds it. Holding it for a frame end's ~20 ms wait kept the
-    process's other threads (the extraction hand-off's stager and feeder, the store writer) from running until
-    the wait was over, and then they took their turns in the gap before the next launch, with the GPU idle.
+    Taichi's own ``ti.sync()`` (then immediate) holds it for the whole wait (~20 ms at a frame end). Released,
+    the process's other threads (the extraction hand-off's stager and feeder, the store writer) run while the GPU
+    works rather than in the gap before the next launch; two pairs of 512-run datasets on an H100 measured no
+    difference beyond noise (``docs/gpu-throughput.md``, stop 45).
     """
 
     def __init__(self, arch: str):
