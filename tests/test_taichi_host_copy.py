@@ -6,8 +6,9 @@ import pytest
 
 ti = pytest.importorskip("taichi")
 
+from fake_cuda_copies import fake_later_copies  # noqa: E402
 from invphys_anisompm.backends.taichi_backend import ensure_taichi  # noqa: E402
-from invphys_anisompm.backends.taichi_host_copy import HostCopy, HostUpload  # noqa: E402
+from invphys_anisompm.backends.taichi_host_copy import HostCopy, HostUpload, LaterCopies  # noqa: E402
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -77,7 +78,7 @@ def test_other_archs_use_to_numpy() -> None:
 
 
 def test_the_wait_for_the_device_lets_other_threads_run() -> None:
-    """On CUDA ``wait`` (every copy's) blocks in the driver's ``cuCtxSynchronize`` through ctypes, which
+    """On CUDA ``wait`` (every copy's) blocks in the driver's ``cuStreamSynchronize`` through ctypes, which
     releases the GIL, so that the process's other threads (extraction hand-off, stores) run while the GPU
     works rather than in the gap before the next launch. Here a ctypes ``usleep`` of 0.3 s stands in for the
     driver's wait: a pure-Python thread keeps stamping the time through the middle of it (a wait that held
@@ -196,3 +197,49 @@ def test_a_correct_direct_upload_is_checked_once_then_trusted() -> None:
         upload(arr, np.full(5, v))
         assert np.array_equal(arr.to_numpy(), np.full(5, v))
     assert upload.fallback is None and upload._checked and calls == [20, 20, 20]
+
+
+def _later(corrupt: bool = False, capacity: int = 1 << 16):
+    later = LaterCopies("cpu", HostCopy("cpu"), capacity=capacity)
+    assert later.fallback == "synchronous reads on arch 'cpu'"
+    return fake_later_copies(HostCopy("cpu"), capacity, corrupt)
+
+
+def test_later_reads_give_new_arrays_equal_to_synchronous_reads() -> None:
+    rng = np.random.default_rng(2)
+    x = _filled(ti.math.vec3, (3, 50), rng.normal(size=(3, 50, 3)).astype(np.float32))
+    d = _filled(ti.f32, (3, 50), rng.random((3, 50)).astype(np.float32))
+    later, fake = _later()
+    first = later.start((x, d))     # the first read is checked against a synchronous one, then returned
+    assert later.fallback is None and np.array_equal(first.result()[0], x.to_numpy())
+    n = len(fake.calls)
+    read = later.start((x, d))
+    assert fake.calls[n:] == ["record", "wait_event", "copy", "copy"]   # queued after the event, not waited for
+    xs, ds = read.result()
+    assert fake.calls[-1] == "sync"
+    assert np.array_equal(xs, x.to_numpy()) and np.array_equal(ds, d.to_numpy())
+    assert xs.dtype == np.float32 and xs.shape == (3, 50, 3) and ds.shape == (3, 50)
+    assert read.result()[0] is xs                              # taken once
+    again = later.start((x, d))
+    assert not np.shares_memory(again.result()[0], xs)        # every read is a new array (records keep views)
+
+
+def test_a_new_later_read_completes_the_one_in_flight_first() -> None:
+    a = _filled(ti.f32, (4,), np.arange(4, dtype=np.float32))
+    later, fake = _later()
+    later.start((a,)).result()
+    pending = later.start((a,))
+    later.settle()                                   # what a gather into the same buffers does first
+    assert fake.calls[-1] == "sync" and pending._arrays is not None
+    assert np.array_equal(pending.result()[0], np.arange(4))
+
+
+def test_later_reads_that_differ_or_do_not_fit_fall_back_to_synchronous_reads() -> None:
+    values = np.arange(10, dtype=np.float32)
+    a = _filled(ti.f32, (10,), values)
+    later, _ = _later(corrupt=True)
+    assert np.array_equal(later.start((a,)).result()[0], values)   # the synchronous read is returned
+    assert later.fallback == "the first read on its own stream differed from a synchronous one"
+    later, fake = _later(capacity=16)
+    assert np.array_equal(later.start((a,)).result()[0], values)
+    assert later.fallback == "a read of 40 bytes exceeds the pinned buffer's 16" and "copy" not in fake.calls

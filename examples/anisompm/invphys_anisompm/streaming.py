@@ -14,13 +14,16 @@ the other runs of the batch. Results stream out as runs finish.
 The host's work is ordered around the GPU: between a frame end (a synchronising read) and the next launch
 it does only what that launch needs (failure checks, the next frames' substeps, the particles a record
 takes); appending the records, building the next frames' kinematic tables and handing finished runs to
-the caller happen after the launch, while the chunk runs (launches are asynchronous on a GPU).
+the caller happen after the launch, while the chunk runs (launches are asynchronous on a GPU). A backend with
+``read_slots_later`` (Taichi) starts a record's particle read at the frame end and finishes it then too
+(on CUDA its copy back runs on a stream of its own).
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 
@@ -42,6 +45,16 @@ from invphys_anisompm.failure import (
     unhealthy,
 )
 from invphys_anisompm.model import Model
+
+
+class _ReadNow:
+    """Particles read at a frame end, already on the host (the handle of a backend without later reads)."""
+
+    def __init__(self, arrays: tuple[np.ndarray, np.ndarray]):
+        self._arrays = arrays
+
+    def result(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._arrays
 
 
 class SlotCounters:
@@ -112,6 +125,7 @@ def _stream_runs(engine, model: Model, frames: int, record_every: int, B: int, m
     n_runs = model.n_envs
     backend = engine.backend(B)
     fresh = bool(getattr(backend, "reads_are_new", False))
+    read_later = getattr(backend, "read_slots_later", None)
     counters = counters if counters is not None else SlotCounters()
     fps, dx = o.fps, o.dx
     frame_dt = 1.0 / fps
@@ -183,18 +197,26 @@ def _stream_runs(engine, model: Model, frames: int, record_every: int, B: int, m
         records are written by :func:`write` while the GPU runs the next chunk."""
         host_of = {b: [r for r in scene.reductions if frame_of[b] % r.every == 0] for b in group}
         need = [b for b in group if recorded_of[b] or host_of[b]]
-        xs: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        reads: dict[int, tuple[Any, int]] = {}
         if need:
-            x, d = backend.read_slots(np.array(need))
-            if not fresh:   # the backend reuses its read buffers
-                x, d = x.copy(), d.copy()
-            xs = {b: (x[j:j + 1], d[j:j + 1]) for j, b in enumerate(need)}
+            if read_later is not None:   # the copy back may finish while the next chunk runs
+                read = read_later(np.array(need))
+            else:
+                x, d = backend.read_slots(np.array(need))
+                if not fresh:   # the backend reuses its read buffers
+                    x, d = x.copy(), d.copy()
+                read = _ReadNow((x, d))
+            reads = {b: (read, j) for j, b in enumerate(need)}
         pending.extend((records[b], frame_of[b], stats_prev[b].copy(), last_force[b].copy(), work[b].copy(),
-                        xs.get(b), host_of[b], recorded_of[b]) for b in group)
+                        reads.get(b), host_of[b], recorded_of[b]) for b in group)
 
     def write() -> None:
         """Append the pending frames to their records (a run that failed since keeps no particle frames)."""
-        for rec, frame, st, force, wk, xb, reductions, recorded in pending:
+        for rec, frame, st, force, wk, read, reductions, recorded in pending:
+            xb = None
+            if read is not None:
+                (x, d), j = read[0].result(), read[1]
+                xb = (x[j:j + 1], d[j:j + 1])
             s = rec.series
             s.setdefault("max_speed", []).append(float(st[STAT_VMAX]))
             s.setdefault("kinetic_energy", []).append(float(st[STAT_KE]))

@@ -17,7 +17,7 @@ import taichi as ti
 from invphys.core.errors import DeviceUnavailableError, InvphysError
 from invphys_anisompm.backends import quiet_library
 from invphys_anisompm.backends.particle_order import ORDERS
-from invphys_anisompm.backends.taichi_host_copy import HostCopy, HostUpload
+from invphys_anisompm.backends.taichi_host_copy import HostCopy, HostUpload, LaterCopies
 from invphys_anisompm.failure import BODY0, n_stats
 from invphys_anisompm.materials import M_ALPHA, M_DMG, M_ETA, M_KF, M_LAM, M_MU, M_RES, M_RHO, M_SC, N_MAT
 
@@ -890,6 +890,9 @@ class TaichiBackend:
         o = scene.options
         self.options = o
         self.batch = int(batch)
+        #: particle reads copied back while the next chunk runs (``read_slots_later``; CUDA), into a pinned buffer
+        #: of a whole batch's positions and damage
+        self.later = LaterCopies(self.arch, self.host_copy, capacity=self.batch * scene.n_particles * 16)
         serial = bool(o.deterministic and self.arch == "cpu")
         #: particle matrices component-major (``MATRIX_STATE``): on CUDA unless asked otherwise
         self.component_major = bool(self.arch == "cuda" if component_major is None else component_major)
@@ -1160,6 +1163,19 @@ class TaichiBackend:
     def read_slots(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Positions (n, N, 3) and damage (n, N) of runs ``slots`` only, in the scene's particle order (a
         device gather, then one copy into new host arrays)."""
+        xo, do = self._gather_slots(slots)
+        return self.host_copy(xo), self.host_copy(do)
+
+    def read_slots_later(self, slots: np.ndarray):
+        """:meth:`read_slots` as a handle whose ``result()`` gives ``(x, d)``: on CUDA the copy back runs on a
+        stream of its own while the host launches the next chunk (``LaterCopies``); elsewhere it is read now."""
+        xo, do = self._gather_slots(slots)
+        return self.later.start((xo, do))
+
+    def _gather_slots(self, slots: np.ndarray) -> tuple:
+        """Gather runs ``slots``' positions and damage, in the scene's order, into the device buffers of that
+        many runs (after the read in flight from them, if any, is complete)."""
+        self.later.settle()
         slots = np.asarray(slots, np.int32)
         n, N = len(slots), self.scene.n_particles
         if n not in self._gather_bufs:
@@ -1167,7 +1183,7 @@ class TaichiBackend:
         idx, xo, do = self._gather_bufs[n]
         self.upload(idx, slots)
         self._gather(idx, self.sid, self.x, self.d, xo, do)
-        return self.host_copy(xo), self.host_copy(do)
+        return xo, do
 
     def frame_stats(self, lo: float, hi: float, slots: np.ndarray | None = None) -> np.ndarray:
         """(B, n_stats) statistics of the current state (columns: :mod:`invphys_anisompm.failure`); with

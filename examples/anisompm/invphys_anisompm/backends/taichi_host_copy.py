@@ -23,16 +23,18 @@ from taichi.lang.util import to_numpy_type
 
 
 def _cuda_driver_calls():
-    """The driver's ``cuMemcpyDtoH`` (dst host pointer, src device address, bytes) -> CUresult and
-    ``cuCtxSynchronize()`` -> CUresult, as ctypes functions (a ctypes call releases the GIL)."""
+    """The driver's ``cuMemcpyDtoH`` (dst host pointer, src device address, bytes) -> CUresult and a wait for
+    Taichi's stream, ``cuStreamSynchronize(NULL)`` -> CUresult (what ``ti.sync()`` does: Taichi launches on the
+    legacy default stream; :class:`LaterCopies`' own stream is not waited for), as ctypes functions (a ctypes
+    call releases the GIL)."""
     lib = ctypes.CDLL("libcuda.so.1")
     dtoh = lib.cuMemcpyDtoH_v2
     dtoh.argtypes = [ctypes.c_void_p, ctypes.c_uint64, ctypes.c_size_t]
     dtoh.restype = ctypes.c_int
-    sync = lib.cuCtxSynchronize
-    sync.argtypes = []
-    sync.restype = ctypes.c_int
-    return dtoh, sync
+    stream_sync = lib.cuStreamSynchronize
+    stream_sync.argtypes = [ctypes.c_void_p]
+    stream_sync.restype = ctypes.c_int
+    return dtoh, lambda: stream_sync(None)
 
 
 def _cuda_memcpy_htod():
@@ -56,7 +58,7 @@ class HostCopy:
     driver refuses (no CUDA context current in this thread, say), uses ``to_numpy`` from then on, and
     ``fallback`` says why.
 
-    On CUDA the wait for the GPU is the driver's ``cuCtxSynchronize`` through ctypes, which releases the GIL;
+    On CUDA the wait for the GPU is the driver's ``cuStreamSynchronize`` through ctypes, which releases the GIL;
     Taichi's own ``ti.sync()`` (then immediate) holds it for the whole wait (~20 ms at a frame end). Released,
     the process's other threads (the extraction hand-off's stager and feeder, the store writer) run while the GPU
     works rather than in the gap before the next launch; two pairs of 512-run datasets on an H100 measured no
@@ -152,4 +154,142 @@ class HostUpload:
         return status == 0
 
 
-__all__ = ["HostCopy", "HostUpload"]
+class ReadyCopy:
+    """A read whose host arrays are already there (``result()`` returns them)."""
+
+    def __init__(self, arrays: tuple[np.ndarray, ...]):
+        self._arrays = arrays
+
+    def result(self) -> tuple[np.ndarray, ...]:
+        return self._arrays
+
+
+class _CudaLater:
+    """The driver calls of :class:`LaterCopies` on CUDA (ctypes; each releases the GIL)."""
+
+    NON_BLOCKING, NO_TIMING = 0x1, 0x2
+
+    def __init__(self) -> None:
+        lib = ctypes.CDLL("libcuda.so.1")
+        ptr, vp, u64, size, uint = ctypes.POINTER(ctypes.c_void_p), ctypes.c_void_p, ctypes.c_uint64, \
+            ctypes.c_size_t, ctypes.c_uint
+        spec = {"cuStreamCreate": [ptr, uint], "cuEventCreate": [ptr, uint], "cuEventRecord": [vp, vp],
+                "cuStreamWaitEvent": [vp, vp, uint], "cuMemHostAlloc": [ptr, size, uint],
+                "cuMemcpyDtoHAsync_v2": [vp, u64, size, vp], "cuStreamSynchronize": [vp]}
+        for name, argtypes in spec.items():
+            fn = getattr(lib, name)
+            fn.argtypes, fn.restype = argtypes, ctypes.c_int
+            setattr(self, name.removesuffix("_v2"), fn)
+
+    def check(self, status: int, what: str) -> None:
+        if status != 0:
+            raise OSError(f"{what} returned CUresult {status}")
+
+
+class LaterCopies:
+    """Device-to-host copies that finish while the GPU goes on (issue 16: a frame end's particle reads).
+
+    ``start(arrays)`` queues copies of Taichi ndarrays ``arrays``, ordered after every kernel launched so far,
+    and returns a handle whose ``result()`` gives new host arrays (as :class:`HostCopy` would). On CUDA the
+    copies run on a stream of their own, after an event on Taichi's stream, into one pinned host buffer
+    (``capacity`` bytes), so that the host can launch the next chunk at once and take the arrays later while the
+    chunk runs; ``result()`` waits for the copies only, then copies the pinned bytes into new arrays. Until a
+    handle's ``result()`` the ndarrays must not be written (the caller's gather buffers). One read is in flight
+    at a time: ``start`` completes the previous one first. Elsewhere, and on CUDA when the driver refuses a call,
+    a copy exceeds ``capacity``, or the first read differs from a synchronous one (checked bit for bit),
+    ``start`` reads synchronously (``fallback`` says why).
+    """
+
+    def __init__(self, arch: str, host_copy: HostCopy, capacity: int):
+        self.fallback: str | None = None if arch == "cuda" else f"synchronous reads on arch {arch!r}"
+        self._host_copy = host_copy
+        self._capacity = int(capacity)
+        self._cuda: _CudaLater | None = None
+        self._stream = self._event = self._pinned = None
+        self._checked = False
+        self._last: _LaterRead | None = None
+
+    def _setup(self) -> None:
+        cu = _CudaLater()
+        stream, event, pinned = ctypes.c_void_p(), ctypes.c_void_p(), ctypes.c_void_p()
+        cu.check(cu.cuStreamCreate(ctypes.byref(stream), cu.NON_BLOCKING), "cuStreamCreate")
+        cu.check(cu.cuEventCreate(ctypes.byref(event), cu.NO_TIMING), "cuEventCreate")
+        cu.check(cu.cuMemHostAlloc(ctypes.byref(pinned), max(self._capacity, 1), 0), "cuMemHostAlloc")
+        self._cuda, self._stream, self._event, self._pinned = cu, stream, event, pinned
+
+    def settle(self) -> None:
+        """Complete the read in flight, if any (before its ndarrays are written again)."""
+        if self._last is not None:
+            self._last.result()
+            self._last = None
+
+    def start(self, arrays: tuple) -> ReadyCopy | _LaterRead:
+        self.settle()   # its bytes leave the pinned buffer before new ones arrive
+        specs = [(tuple(a.arr.total_shape()), np.dtype(to_numpy_type(a.dtype))) for a in arrays]
+        nbytes = sum(int(np.prod(shape)) * dt.itemsize for shape, dt in specs)
+        if self.fallback is None and nbytes > self._capacity:
+            self.fallback = f"a read of {nbytes} bytes exceeds the pinned buffer's {self._capacity}"
+        if self.fallback is None:
+            try:
+                if self._cuda is None:
+                    self._setup()
+                read = self._start(arrays, specs)
+            except (OSError, AttributeError) as exc:
+                self.fallback = f"no copies on a stream of their own: {exc}"
+            else:
+                if not self._checked:   # the first one against a synchronous read of the same arrays
+                    self._checked = True
+                    later = read.result()
+                    now = tuple(self._host_copy(a) for a in arrays)
+                    if all(x.tobytes() == y.tobytes() for x, y in zip(later, now, strict=True)):
+                        return ReadyCopy(later)
+                    self.fallback = "the first read on its own stream differed from a synchronous one"
+                    return ReadyCopy(now)
+                self._last = read
+                return read
+        return ReadyCopy(tuple(self._host_copy(a) for a in arrays))
+
+    def _start(self, arrays: tuple, specs: list) -> _LaterRead:
+        cu = self._cuda
+        assert cu is not None and self._pinned is not None and self._pinned.value is not None
+        cu.check(cu.cuEventRecord(self._event, None), "cuEventRecord")   # Taichi launches on the legacy stream
+        cu.check(cu.cuStreamWaitEvent(self._stream, self._event, 0), "cuStreamWaitEvent")
+        offset, views = 0, []
+        for a, (shape, dt) in zip(arrays, specs, strict=True):
+            n = int(np.prod(shape)) * dt.itemsize
+            cu.check(cu.cuMemcpyDtoHAsync(self._pinned.value + offset, _data_ptr(a), n, self._stream),
+                     "cuMemcpyDtoHAsync")
+            views.append((offset, shape, dt))
+            offset += n
+        return _LaterRead(self, arrays, views)
+
+    def _wait_and_take(self, views: list) -> tuple[np.ndarray, ...]:
+        cu = self._cuda
+        assert cu is not None and self._pinned is not None and self._pinned.value is not None
+        cu.check(cu.cuStreamSynchronize(self._stream), "cuStreamSynchronize")
+        total = sum(int(np.prod(shape)) * dt.itemsize for _, shape, dt in views)
+        buf = (ctypes.c_char * total).from_address(self._pinned.value)
+        return tuple(np.frombuffer(buf, dt, int(np.prod(shape)), off).reshape(shape).copy()
+                     for off, shape, dt in views)
+
+
+class _LaterRead:
+    """A :class:`LaterCopies` read in flight; ``result()`` waits for it once and returns new host arrays."""
+
+    def __init__(self, owner: LaterCopies, sources: tuple, views: list):
+        self._owner, self._sources, self._views = owner, sources, views
+        self._arrays: tuple[np.ndarray, ...] | None = None
+
+    def result(self) -> tuple[np.ndarray, ...]:
+        if self._arrays is None:
+            try:
+                self._arrays = self._owner._wait_and_take(self._views)
+            except OSError as exc:   # the sources are still intact: read them synchronously
+                self._owner.fallback = f"no copies on a stream of their own: {exc}"
+                self._arrays = tuple(self._owner._host_copy(a) for a in self._sources)
+            if self._owner._last is self:
+                self._owner._last = None
+        return self._arrays
+
+
+__all__ = ["HostCopy", "HostUpload", "LaterCopies", "ReadyCopy"]
