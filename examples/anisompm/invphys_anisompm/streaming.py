@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from invphys_anisompm.backends import ReadyRead
 from invphys_anisompm.engine import (
     RunRecord,
     frame_plan,
@@ -45,16 +46,6 @@ from invphys_anisompm.failure import (
     unhealthy,
 )
 from invphys_anisompm.model import Model
-
-
-class _ReadNow:
-    """Particles read at a frame end, already on the host (the handle of a backend without later reads)."""
-
-    def __init__(self, arrays: tuple[np.ndarray, np.ndarray]):
-        self._arrays = arrays
-
-    def result(self) -> tuple[np.ndarray, np.ndarray]:
-        return self._arrays
 
 
 class SlotCounters:
@@ -205,7 +196,7 @@ def _stream_runs(engine, model: Model, frames: int, record_every: int, B: int, m
                 x, d = backend.read_slots(np.array(need))
                 if not fresh:   # the backend reuses its read buffers
                     x, d = x.copy(), d.copy()
-                read = _ReadNow((x, d))
+                read = ReadyRead((x, d))
             reads = {b: (read, j) for j, b in enumerate(need)}
         pending.extend((records[b], frame_of[b], stats_prev[b].copy(), last_force[b].copy(), work[b].copy(),
                         reads.get(b), host_of[b], recorded_of[b]) for b in group)

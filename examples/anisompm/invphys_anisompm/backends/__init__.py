@@ -5,7 +5,9 @@ A backend implements ``load(table, friction)``, ``set_frame(dt, nsub, kin, damag
 continuous batching also uses ``load_slots``, ``read_slots``, ``frame_stats(lo, hi, slots)``,
 ``kinematic_sums(slots)`` and ``frame_end(lo, hi, slots)`` (both of those at once). Its attribute
 ``reads_are_new`` says whether ``read``/``read_slots`` return new host arrays that no later call changes
-(then the engine keeps views of them instead of copying each run's particles).
+(then the engine keeps views of them instead of copying each run's particles). A backend may also offer
+``read_slots_later(slots)``: a handle whose ``result()`` gives ``read_slots``' arrays, taken after the next
+launch (:class:`ReadyRead` is the handle of a read already done).
 :func:`load_backend` imports one lazily, so that nothing else pays for taichi or warp.
 """
 
@@ -21,6 +23,16 @@ from invphys.core.errors import InvphysError, PluginLoadError, did_you_mean
 
 BACKENDS = {"taichi": "invphys_anisompm.backends.taichi_backend:TaichiBackend",
             "warp": "invphys_anisompm.backends.warp_backend:WarpBackend"}
+
+
+class ReadyRead:
+    """The handle of a read whose host arrays are already there: ``result()`` returns them."""
+
+    def __init__(self, arrays: tuple[Any, ...]):
+        self._arrays = arrays
+
+    def result(self) -> tuple[Any, ...]:
+        return self._arrays
 
 
 @contextlib.contextmanager

@@ -1030,10 +1030,10 @@ class TaichiBackend:
         B = self.batch
         # each host -> device copy costs a round trip on CUDA: per-run values that did not change since
         # the last frame or chunk (damping, damage switch, dt) are not sent again
-        self._upload("damp", np.broadcast_to(np.asarray(damping, np.float32), (B,)).copy())
-        self._upload("don", (np.broadcast_to(np.asarray(damage_on), (B,)) != 0).astype(np.int32)
-                     * np.int32(self.options.damage))
-        self._upload("dt", dt.astype(np.float32))
+        self._upload_if_changed("damp", np.broadcast_to(np.asarray(damping, np.float32), (B,)).copy())
+        self._upload_if_changed("don", (np.broadcast_to(np.asarray(damage_on), (B,)) != 0).astype(np.int32)
+                                * np.int32(self.options.damage))
+        self._upload_if_changed("dt", dt.astype(np.float32))
         self.upload(self.nsub, nsub)
         B, K = kin.shape[:2]
         table = np.zeros((B, K, self.nk1, 6), np.float32)
@@ -1058,7 +1058,7 @@ class TaichiBackend:
             values = values.reshape(values.shape[0], values.shape[1], 9).transpose(0, 2, 1)
         getattr(self, name).from_numpy(np.ascontiguousarray(values))
 
-    def _upload(self, name: str, values: np.ndarray) -> None:
+    def _upload_if_changed(self, name: str, values: np.ndarray) -> None:
         last = self._uploaded.get(name)
         if last is None or not np.array_equal(last, values):
             self.upload(getattr(self, name), values)

@@ -21,6 +21,8 @@ import numpy as np
 import taichi as ti
 from taichi.lang.util import to_numpy_type
 
+from invphys_anisompm.backends import ReadyRead
+
 
 def _cuda_driver_calls():
     """The driver's ``cuMemcpyDtoH`` (dst host pointer, src device address, bytes) -> CUresult and a wait for
@@ -154,16 +156,6 @@ class HostUpload:
         return status == 0
 
 
-class ReadyCopy:
-    """A read whose host arrays are already there (``result()`` returns them)."""
-
-    def __init__(self, arrays: tuple[np.ndarray, ...]):
-        self._arrays = arrays
-
-    def result(self) -> tuple[np.ndarray, ...]:
-        return self._arrays
-
-
 class _CudaLater:
     """The driver calls of :class:`LaterCopies` on CUDA (ctypes; each releases the GIL)."""
 
@@ -223,7 +215,7 @@ class LaterCopies:
             self._last.result()
             self._last = None
 
-    def start(self, arrays: tuple) -> ReadyCopy | _LaterRead:
+    def start(self, arrays: tuple) -> ReadyRead | _LaterRead:
         self.settle()   # its bytes leave the pinned buffer before new ones arrive
         specs = [(tuple(a.arr.total_shape()), np.dtype(to_numpy_type(a.dtype))) for a in arrays]
         nbytes = sum(int(np.prod(shape)) * dt.itemsize for shape, dt in specs)
@@ -242,12 +234,12 @@ class LaterCopies:
                     later = read.result()
                     now = tuple(self._host_copy(a) for a in arrays)
                     if all(x.tobytes() == y.tobytes() for x, y in zip(later, now, strict=True)):
-                        return ReadyCopy(later)
+                        return ReadyRead(later)
                     self.fallback = "the first read on its own stream differed from a synchronous one"
-                    return ReadyCopy(now)
+                    return ReadyRead(now)
                 self._last = read
                 return read
-        return ReadyCopy(tuple(self._host_copy(a) for a in arrays))
+        return ReadyRead(tuple(self._host_copy(a) for a in arrays))
 
     def _start(self, arrays: tuple, specs: list) -> _LaterRead:
         cu = self._cuda
@@ -292,4 +284,4 @@ class _LaterRead:
         return self._arrays
 
 
-__all__ = ["HostCopy", "HostUpload", "LaterCopies", "ReadyCopy"]
+__all__ = ["HostCopy", "HostUpload", "LaterCopies"]
