@@ -15,8 +15,8 @@ The host's work is ordered around the GPU: between a frame end (a synchronising 
 it does only what that launch needs (failure checks, the next frames' substeps, the particles a record
 takes); appending the records, building the next frames' kinematic tables and handing finished runs to
 the caller happen after the launch, while the chunk runs (launches are asynchronous on a GPU). A backend with
-``read_slots_later`` (Taichi) starts a record's particle read at the frame end and finishes it then too
-(on CUDA its copy back runs on a stream of its own).
+``read_slots_later`` (Taichi) starts a record's particle read at the frame end and the stream takes its
+arrays after the next launch (on CUDA the copy back runs meanwhile, on a stream of its own).
 """
 
 from __future__ import annotations

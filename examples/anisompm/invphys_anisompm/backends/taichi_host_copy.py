@@ -47,6 +47,12 @@ def _cuda_memcpy_htod():
     return htod
 
 
+def _host_layout(arr) -> tuple[tuple[int, ...], np.dtype, int]:
+    """Taichi ndarray ``arr``'s host form, as ``to_numpy`` gives it: shape, dtype and size in bytes."""
+    shape, dtype = tuple(arr.arr.total_shape()), np.dtype(to_numpy_type(arr.dtype))
+    return shape, dtype, int(np.prod(shape)) * dtype.itemsize
+
+
 def _data_ptr(arr) -> int:
     """The address of Taichi ndarray ``arr``'s memory (device memory on CUDA, host memory on the CPU)."""
     return ti.lang.impl.get_runtime().prog.get_ndarray_data_ptr_as_int(arr.arr)
@@ -82,7 +88,8 @@ class HostCopy:
     def __call__(self, arr) -> np.ndarray:
         if self.fallback is not None:
             return arr.to_numpy()
-        out = np.empty(tuple(arr.arr.total_shape()), to_numpy_type(arr.dtype))
+        shape, dtype, _ = _host_layout(arr)
+        out = np.empty(shape, dtype)
         return out if self._copy_into(out, arr) else arr.to_numpy()
 
     def wait(self) -> None:
@@ -130,8 +137,8 @@ class HostUpload:
             self.fallback = f"no direct copy on arch {arch!r}"
 
     def __call__(self, arr, values: np.ndarray) -> None:
-        shape = tuple(arr.arr.total_shape())
-        values = np.ascontiguousarray(values, dtype=to_numpy_type(arr.dtype))
+        shape, dtype, _ = _host_layout(arr)
+        values = np.ascontiguousarray(values, dtype=dtype)
         if values.shape != shape:
             raise ValueError(f"values of shape {values.shape} for an ndarray of shape {shape}")
         if self.fallback is None and self._copy_into(arr, values):
@@ -217,8 +224,8 @@ class LaterCopies:
 
     def start(self, arrays: tuple) -> ReadyRead | _LaterRead:
         self.settle()   # its bytes leave the pinned buffer before new ones arrive
-        specs = [(tuple(a.arr.total_shape()), np.dtype(to_numpy_type(a.dtype))) for a in arrays]
-        nbytes = sum(int(np.prod(shape)) * dt.itemsize for shape, dt in specs)
+        specs = [_host_layout(a) for a in arrays]
+        nbytes = sum(n for _, _, n in specs)
         if self.fallback is None and nbytes > self._capacity:
             self.fallback = f"a read of {nbytes} bytes exceeds the pinned buffer's {self._capacity}"
         if self.fallback is None:
@@ -247,8 +254,7 @@ class LaterCopies:
         cu.check(cu.cuEventRecord(self._event, None), "cuEventRecord")   # Taichi launches on the legacy stream
         cu.check(cu.cuStreamWaitEvent(self._stream, self._event, 0), "cuStreamWaitEvent")
         offset, views = 0, []
-        for a, (shape, dt) in zip(arrays, specs, strict=True):
-            n = int(np.prod(shape)) * dt.itemsize
+        for a, (shape, dt, n) in zip(arrays, specs, strict=True):
             cu.check(cu.cuMemcpyDtoHAsync(self._pinned.value + offset, _data_ptr(a), n, self._stream),
                      "cuMemcpyDtoHAsync")
             views.append((offset, shape, dt))
@@ -259,8 +265,8 @@ class LaterCopies:
         cu = self._cuda
         assert cu is not None and self._pinned is not None and self._pinned.value is not None
         cu.check(cu.cuStreamSynchronize(self._stream), "cuStreamSynchronize")
-        total = sum(int(np.prod(shape)) * dt.itemsize for _, shape, dt in views)
-        buf = (ctypes.c_char * total).from_address(self._pinned.value)
+        offset, shape, dt = views[-1]
+        buf = (ctypes.c_char * (offset + int(np.prod(shape)) * dt.itemsize)).from_address(self._pinned.value)
         return tuple(np.frombuffer(buf, dt, int(np.prod(shape)), off).reshape(shape).copy()
                      for off, shape, dt in views)
 
