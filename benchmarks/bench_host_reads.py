@@ -52,8 +52,8 @@ def _args(argv: list[str] | None) -> argparse.Namespace:
 def _timed(fn, forced: str | None, backend) -> float:
     """Seconds for ``fn()`` with the backend's host copies and uploads forced to ``to_numpy``/``from_numpy``
     (``forced``) or direct."""
-    backend.host_copy.fallback = forced
-    backend.upload.fallback = forced
+    backend.host_copy._fallback = forced
+    backend.upload._fallback = forced
     backend.sync()
     t0 = time.perf_counter()
     fn()
@@ -88,9 +88,9 @@ def main(argv: list[str] | None = None) -> int:
     def end():
         return backend.frame_end(lo, hi, slots)
 
-    backend.host_copy.fallback = "forced"
+    backend.host_copy._fallback = "forced"
     ref, ref_end = read(), end()
-    backend.host_copy.fallback = None
+    backend.host_copy._fallback = None
     got, got_end = read(), end()
     idx, xo, do = backend._gather_bufs[len(slots)]
     copy = backend.host_copy
@@ -135,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
         for name, c in cases.items():
             for k, (fn, forced) in c.items():
                 times[name][k].append(_timed(fn, forced, backend))
-    backend.host_copy.fallback = backend.upload.fallback = None
+    backend.host_copy._fallback = backend.upload._fallback = None
     mb = sum(r.nbytes for r in ref) / 1e6
     summary = {name: {k: {"median_ms": float(np.median(v)) * 1e3, "ms": [x * 1e3 for x in v]} for k, v in t.items()}
                for name, t in times.items()}

@@ -54,7 +54,7 @@ def test_a_copy_sees_the_kernels_launched_before_it() -> None:
         assert np.array_equal(copy(arr), v + np.arange(1000, dtype=np.float32))
 
 
-def test_a_refused_copy_falls_back_to_to_numpy_for_good() -> None:
+def test_a_refused_copy_falls_back_to_to_numpy_for_good_and_says_so_once(caplog) -> None:
     calls = []
 
     def refuse(dst, src, nbytes):
@@ -68,11 +68,13 @@ def test_a_refused_copy_falls_back_to_to_numpy_for_good() -> None:
     assert np.array_equal(copy(arr), values)
     assert copy.fallback == "cuMemcpyDtoH returned CUresult 201"
     assert np.array_equal(copy(arr), values) and calls == [48]   # not tried again
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert warned == ["HostCopy falls back to Taichi's own path: cuMemcpyDtoH returned CUresult 201"]
 
 
-def test_other_archs_use_to_numpy() -> None:
+def test_other_archs_use_to_numpy_without_a_warning(caplog) -> None:
     copy = HostCopy("vulkan")
-    assert copy.fallback == "no direct copy on arch 'vulkan'"
+    assert copy.fallback == "no direct copy on arch 'vulkan'" and not caplog.records
     values = np.ones((2, 3), np.float32)
     assert np.array_equal(copy(_filled(ti.f32, (2, 3), values)), values)
 

@@ -6,7 +6,8 @@
 #   bash benchmarks/device/dataset_util.sh <tag> <runs> name[=dir] ...
 # ``dir`` holds a copy of examples/anisompm (e.g. .gpu/old from `git archive HEAD examples/anisompm`); ``new``
 # (no dir) is this tree. Results under $OUT: dataset_<tag>_<name>.json, util_<tag>_<name>.csv (timestamp,
-# utilisation %) and util_<tag>_<name>.window (start and end, seconds since the epoch).
+# utilisation %), util_<tag>_<name>.window (start and end, seconds since the epoch) and log_<tag>_<name>.txt
+# (the benchmark's output: a direct copy or upload that fell back says so there).
 set -e
 bash benchmarks/device/ensure_staged.sh >/dev/null
 OUTDIR=${OUT:-/tmp/dataset_util_out}; mkdir -p "$OUTDIR"
@@ -24,7 +25,9 @@ for spec in "$@"; do
     --scheduling continuous --executors local --extract-workers 4 --warmup 2 --time-split \
     --simulator-type invphys_orange_peel.simulator:OrangePeelSimulator \
     --features-type invphys_orange_peel.features:OrangePeelFeatures \
-    --out "$OUTDIR/dataset_${TAG}_${name}.json" 2>&1 | grep -oE '"wall_s": [0-9.]+, "ok": [0-9]+|sim_s_per_run": [0-9.]+' | head -2
+    --out "$OUTDIR/dataset_${TAG}_${name}.json" > "$OUTDIR/log_${TAG}_${name}.txt" 2>&1 || true
+  grep -oE '"wall_s": [0-9.]+, "ok": [0-9]+|sim_s_per_run": [0-9.]+' "$OUTDIR/log_${TAG}_${name}.txt" | head -2
+  grep -E "falls back|Error|error:" "$OUTDIR/log_${TAG}_${name}.txt" | head -3 || true
   date +%s.%N >> "$OUTDIR/util_${TAG}_${name}.window"
   kill $sampler
 done

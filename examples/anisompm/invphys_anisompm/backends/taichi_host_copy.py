@@ -16,12 +16,15 @@ back. :class:`HostUpload` copies the values into the ndarray's memory once inste
 from __future__ import annotations
 
 import ctypes
+import logging
 
 import numpy as np
 import taichi as ti
 from taichi.lang.util import to_numpy_type
 
 from invphys_anisompm.backends import ReadyRead
+
+log = logging.getLogger(__name__)
 
 
 def _cuda_driver_calls():
@@ -53,12 +56,29 @@ def _host_layout(arr) -> tuple[tuple[int, ...], np.dtype, int]:
     return shape, dtype, int(np.prod(shape)) * dtype.itemsize
 
 
+class _MayFallBack:
+    """``fallback``: None while the direct path is used, else why not; the first reason is logged as a warning
+    (the slower Taichi path is then taken for good), unless it is only the arch's (set ``_fallback`` then)."""
+
+    _fallback: str | None = None
+
+    @property
+    def fallback(self) -> str | None:
+        return self._fallback
+
+    @fallback.setter
+    def fallback(self, why: str | None) -> None:
+        if why is not None and self._fallback is None:
+            log.warning("%s falls back to Taichi's own path: %s", type(self).__name__, why)
+        self._fallback = why
+
+
 def _data_ptr(arr) -> int:
     """The address of Taichi ndarray ``arr``'s memory (device memory on CUDA, host memory on the CPU)."""
     return ti.lang.impl.get_runtime().prog.get_ndarray_data_ptr_as_int(arr.arr)
 
 
-class HostCopy:
+class HostCopy(_MayFallBack):
     """``copy(arr)``: a new host array (``to_numpy``'s shape and dtype) holding Taichi ndarray ``arr``'s values,
     taken after every launched kernel has finished (``ti.sync()``).
 
@@ -74,7 +94,6 @@ class HostCopy:
     """
 
     def __init__(self, arch: str):
-        self.fallback: str | None = None
         self._dtoh = None
         self._ctx_sync = None
         if arch == "cuda":
@@ -83,7 +102,7 @@ class HostCopy:
             except (OSError, AttributeError) as exc:
                 self.fallback = f"no cuMemcpyDtoH in the CUDA driver: {exc}"
         elif arch != "cpu":
-            self.fallback = f"no direct copy on arch {arch!r}"
+            self._fallback = f"no direct copy on arch {arch!r}"
 
     def __call__(self, arr) -> np.ndarray:
         if self.fallback is not None:
@@ -113,7 +132,7 @@ class HostCopy:
         return status == 0
 
 
-class HostUpload:
+class HostUpload(_MayFallBack):
     """``upload(arr, values)``: Taichi ndarray ``arr`` takes host ``values`` (``to_numpy``'s shape; converted to
     its dtype), as ``arr.from_numpy(values)`` would, in one copy made after every launched kernel has finished
     (a chunk under way may still read ``arr``).
@@ -124,7 +143,6 @@ class HostUpload:
     """
 
     def __init__(self, arch: str, host_copy: HostCopy):
-        self.fallback: str | None = None
         self._host_copy = host_copy
         self._htod = None
         self._checked = arch == "cpu"
@@ -134,7 +152,7 @@ class HostUpload:
             except (OSError, AttributeError) as exc:
                 self.fallback = f"no cuMemcpyHtoD in the CUDA driver: {exc}"
         elif arch != "cpu":
-            self.fallback = f"no direct copy on arch {arch!r}"
+            self._fallback = f"no direct copy on arch {arch!r}"
 
     def __call__(self, arr, values: np.ndarray) -> None:
         shape, dtype, _ = _host_layout(arr)
@@ -185,7 +203,7 @@ class _CudaLater:
             raise OSError(f"{what} returned CUresult {status}")
 
 
-class LaterCopies:
+class LaterCopies(_MayFallBack):
     """Device-to-host copies that finish while the GPU goes on (issue 16: a frame end's particle reads).
 
     ``start(arrays)`` queues copies of Taichi ndarrays ``arrays``, ordered after every kernel launched so far,
@@ -200,7 +218,7 @@ class LaterCopies:
     """
 
     def __init__(self, arch: str, host_copy: HostCopy, capacity: int):
-        self.fallback: str | None = None if arch == "cuda" else f"synchronous reads on arch {arch!r}"
+        self._fallback = None if arch == "cuda" else f"synchronous reads on arch {arch!r}"
         self._host_copy = host_copy
         self._capacity = int(capacity)
         self._cuda: _CudaLater | None = None
