@@ -66,11 +66,20 @@ def split_points(backend: str):
     return split
 
 
+def _host_stalls():
+    """A :class:`HostStalls` (``_host_stalls.py`` beside this file): the main thread sampled, gc pauses timed."""
+    if str(Path(__file__).parent) not in sys.path:
+        sys.path.insert(0, str(Path(__file__).parent))
+    from _host_stalls import HostStalls
+
+    return HostStalls()
+
+
 def bench(preset: str, n: int, batch_size: int, executors: list[str], workers: int, frames: int | None,
           backend: str, seed: int, arch: str = "cpu", scheduling: str | None = None,
           extract_workers: list[int] | None = None, simulator_type: str = "orange_peel",
           features_type: str | None = None, warmup: int = 0, min_chunk: int | None = None,
-          time_split: bool = False) -> dict:
+          time_split: bool = False, host_profile: bool = False) -> dict:
     import pandas as pd
 
     from invphys.core.generate import generate_dataset
@@ -104,7 +113,8 @@ def bench(preset: str, n: int, batch_size: int, executors: list[str], workers: i
             out["warmup"] = {"n": warmup, "wall_s": round(time.perf_counter() - t0, 2)}
     features: dict[str, np.ndarray] = {}
     for name, block in variants:
-        with tempfile.TemporaryDirectory() as tmp, (split_points(backend) if time_split else nullcontext()) as split:
+        with tempfile.TemporaryDirectory() as tmp, (split_points(backend) if time_split else nullcontext()) as split, \
+                (_host_stalls() if host_profile else nullcontext()) as stalls:
             t0 = time.perf_counter()
             summary = generate_dataset(Path(tmp) / "ds", sim, features=feat_block, n=n, batch_size=batch_size, seed=seed,
                                        executor=block, progress=False)
@@ -128,6 +138,8 @@ def bench(preset: str, n: int, batch_size: int, executors: list[str], workers: i
                                                                       / np.maximum(np.abs(np.nanmean(b, 0)), 1e-12)))
         if split is not None:
             res["time_split"] = split.report(wall)
+        if stalls is not None:
+            res["host_profile"] = stalls.report()
         out["results"][name] = res
         print(json.dumps(res), flush=True)
     return out
@@ -154,12 +166,14 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=0, help="untimed runs first (kernel compilation)")
     ap.add_argument("--time-split", action="store_true",
                     help="orange peel, local executor: record where each variant's wall goes (time_split)")
+    ap.add_argument("--host-profile", action="store_true",
+                    help="sample the main thread's stack every 5 ms and time gc pauses (host_profile)")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     ew = [int(x) for x in args.extract_workers.split(",")] if args.extract_workers else None
     data = bench(args.preset, args.n, args.batch_size, args.executors.split(","), args.workers, args.frames,
                  args.backend, args.seed, args.arch, args.scheduling, ew, args.simulator_type, args.features_type,
-                 args.warmup, args.min_chunk, args.time_split)
+                 args.warmup, args.min_chunk, args.time_split, args.host_profile)
     path = args.out or Path(__file__).parent / "results" / f"dataset_{args.preset}_{platform.node()}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(data, indent=2) + "\n")

@@ -67,3 +67,35 @@ def test_bench_dataset_time_split_on_a_real_tiny_stream():
     from invphys_anisompm.backends.taichi_backend import TaichiBackend
 
     assert not hasattr(TaichiBackend.advance, "__wrapped__")   # patches undone
+
+
+def _slow_part(seconds: float) -> None:
+    time.sleep(seconds)
+
+
+def test_host_stalls_finds_where_the_main_thread_waits_and_times_gc_pauses(monkeypatch):
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    import gc
+
+    from _host_stalls import HostStalls
+
+    junk = [[i] for i in range(200_000)]   # tracked containers: a full collection has work to do
+    with HostStalls(interval=0.002) as stalls:
+        _slow_part(0.3)
+        gc.collect()
+    del junk
+    report = stalls.report()
+    top = report["top"][0]
+    assert "_slow_part" in top["where"] and top["s"] == pytest.approx(0.3, abs=0.1)
+    assert report["sampled_s"] >= 0.3 and report["samples"] > 50
+    assert report["gc"]["2"]["count"] >= 1 and report["gc"]["2"]["max_s"] > 0
+    assert gc.callbacks.count(stalls._on_gc) == 0 and not stalls._thread.is_alive()   # undone
+
+
+def test_bench_dataset_host_profile_on_a_real_tiny_stream():
+    pytest.importorskip("taichi")
+    bench = load("bench_dataset")
+    out = bench.bench("tiny", 2, 2, ["local"], 1, 6, "taichi", 0, arch="cpu", scheduling="continuous",
+                      extract_workers=[0], host_profile=True)
+    prof = out["results"]["local"]["host_profile"]
+    assert prof["samples"] > 10 and any("streaming.py" in t["where"] for t in prof["top"])

@@ -1,0 +1,96 @@
+"""Where the main thread's time goes, sampled, and the garbage collector's pauses (``bench_dataset.py
+--host-profile``).
+
+A dataset's time split (``_time_split.py``) names the calls it wraps; the rest of the host's time between a
+chunk's synchronising read and the next launch is unnamed (issue 16: ~6 ms per chunk, and a timeline showed
+~1 s gaps). :class:`HostStalls` samples the main thread's stack from a thread of its own every ``interval``
+seconds (a statistical profile: seconds per innermost frames) and times every collection of :mod:`gc` through
+``gc.callbacks``. A sample is taken when the sampler gets the GIL, so a C call that holds it delays the sample
+rather than hiding the time: the delay is counted against the frames found then, and long delays are listed.
+"""
+
+from __future__ import annotations
+
+import gc
+import sys
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+
+def _where(frame: Any, depth: int) -> str:
+    """The ``depth`` innermost frames of a stack, innermost first, as ``file:function:line``."""
+    parts = []
+    while frame is not None and len(parts) < depth:
+        code = frame.f_code
+        parts.append(f"{Path(code.co_filename).name}:{code.co_name}:{frame.f_lineno}")
+        frame = frame.f_back
+    return " < ".join(parts)
+
+
+class HostStalls:
+    """Sample the calling thread's stack and time the garbage collector until the ``with`` block exits."""
+
+    def __init__(self, interval: float = 0.005, depth: int = 4, long_s: float = 0.05):
+        self.interval, self.depth, self.long_s = interval, depth, long_s
+        self.seconds: Counter[str] = Counter()
+        self.samples = 0
+        self.long_samples: list[dict[str, Any]] = []
+        self.gc_pauses: list[tuple[int, float, float]] = []   # (generation, start offset s, pause s)
+        self._target = threading.get_ident()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._sample, name="host-stalls", daemon=True)
+        self._gc_start: float | None = None
+        self._t0 = 0.0
+
+    def _on_gc(self, phase: str, info: dict[str, int]) -> None:
+        now = time.perf_counter()
+        if phase == "start":
+            self._gc_start = now
+        elif self._gc_start is not None:
+            self.gc_pauses.append((int(info.get("generation", -1)), self._gc_start - self._t0, now - self._gc_start))
+            self._gc_start = None
+
+    def _sample(self) -> None:
+        last = time.perf_counter()
+        while not self._stop.wait(self.interval):
+            now = time.perf_counter()
+            frame = sys._current_frames().get(self._target)
+            if frame is None:
+                continue
+            where = _where(frame, self.depth)
+            self.seconds[where] += now - last
+            self.samples += 1
+            if now - last > self.long_s:
+                self.long_samples.append({"at_s": round(last - self._t0, 3), "s": round(now - last, 3), "where": where})
+            last = now
+
+    def __enter__(self) -> HostStalls:
+        self._t0 = time.perf_counter()
+        gc.callbacks.append(self._on_gc)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+        gc.callbacks.remove(self._on_gc)
+
+    def report(self, top: int = 25) -> dict[str, Any]:
+        """The ``top`` places by sampled seconds, the long samples, and the collector's pauses by generation."""
+        by_gen: dict[str, dict[str, float]] = {}
+        for gen, _, pause in self.gc_pauses:
+            g = by_gen.setdefault(str(gen), {"count": 0, "total_s": 0.0, "max_s": 0.0})
+            g["count"] += 1
+            g["total_s"] += pause
+            g["max_s"] = max(g["max_s"], pause)
+        return {"interval_s": self.interval, "samples": self.samples,
+                "sampled_s": round(sum(self.seconds.values()), 3),
+                "top": [{"s": round(s, 3), "where": w} for w, s in self.seconds.most_common(top)],
+                "long_samples": sorted(self.long_samples, key=lambda x: -x["s"])[:top],
+                "gc": {k: {"count": v["count"], "total_s": round(v["total_s"], 4), "max_s": round(v["max_s"], 4)}
+                       for k, v in sorted(by_gen.items())},
+                "gc_pauses_over_long_s": [{"generation": g, "at_s": round(t, 3), "s": round(p, 4)}
+                                          for g, t, p in self.gc_pauses if p > self.long_s]}
