@@ -7,12 +7,18 @@ chunk's synchronising read and the next launch is unnamed (issue 16: ~6 ms per c
 seconds (a statistical profile: seconds per innermost frames) and times every collection of :mod:`gc` through
 ``gc.callbacks``. A sample is taken when the sampler gets the GIL, so a C call that holds it delays the sample
 rather than hiding the time: the delay is counted against the frames found then, and long delays are listed.
+
+The stack is read as text by :func:`faulthandler.dump_traceback`, which takes no reference to a frame: a
+sampler holding a frame object could be the last owner of a finished function's locals and free them in its
+own thread (a Taichi ndarray freed outside the thread of its CUDA context aborts the process).
 """
 
 from __future__ import annotations
 
+import faulthandler
 import gc
-import sys
+import re
+import tempfile
 import threading
 import time
 from collections import Counter
@@ -20,14 +26,25 @@ from pathlib import Path
 from typing import Any
 
 
-def _where(frame: Any, depth: int) -> str:
-    """The ``depth`` innermost frames of a stack, innermost first, as ``file:function:line``."""
-    parts = []
-    while frame is not None and len(parts) < depth:
-        code = frame.f_code
-        parts.append(f"{Path(code.co_filename).name}:{code.co_name}:{frame.f_lineno}")
-        frame = frame.f_back
-    return " < ".join(parts)
+_FRAME_LINE = re.compile(r'File "(.*)", line (\d+) in (\S+)')
+
+
+def _where(dump: str, thread: int, depth: int) -> str | None:
+    """The ``depth`` innermost frames of ``thread`` in a :func:`faulthandler.dump_traceback` text, innermost
+    first, as ``file:function:line`` (None if the thread is not in it)."""
+    head = f"0x{thread:016x}"
+    parts: list[str] = []
+    inside = False
+    for line in dump.splitlines():
+        if line.startswith(("Thread ", "Current thread ")):
+            if inside:
+                break
+            inside = head in line
+        elif inside and len(parts) < depth:
+            m = _FRAME_LINE.search(line)
+            if m:
+                parts.append(f"{Path(m.group(1)).name}:{m.group(3)}:{m.group(2)}")
+    return " < ".join(parts) if parts else None
 
 
 class HostStalls:
@@ -55,17 +72,24 @@ class HostStalls:
 
     def _sample(self) -> None:
         last = time.perf_counter()
-        while not self._stop.wait(self.interval):
-            now = time.perf_counter()
-            frame = sys._current_frames().get(self._target)
-            if frame is None:
-                continue
-            where = _where(frame, self.depth)
-            self.seconds[where] += now - last
-            self.samples += 1
-            if now - last > self.long_s:
-                self.long_samples.append({"at_s": round(last - self._t0, 3), "s": round(now - last, 3), "where": where})
-            last = now
+        with tempfile.TemporaryFile("w+") as buf:
+            while not self._stop.wait(self.interval):
+                now = time.perf_counter()
+                buf.seek(0)
+                buf.truncate()
+                faulthandler.dump_traceback(buf, all_threads=True)
+                buf.seek(0)
+                where = _where(buf.read(), self._target, self.depth)
+                if where is None:
+                    continue
+                self._count(where, now - last, last)
+                last = now
+
+    def _count(self, where: str, seconds: float, since: float) -> None:
+        self.seconds[where] += seconds
+        self.samples += 1
+        if seconds > self.long_s:
+            self.long_samples.append({"at_s": round(since - self._t0, 3), "s": round(seconds, 3), "where": where})
 
     def __enter__(self) -> HostStalls:
         self._t0 = time.perf_counter()

@@ -99,3 +99,35 @@ def test_bench_dataset_host_profile_on_a_real_tiny_stream():
                       extract_workers=[0], host_profile=True)
     prof = out["results"]["local"]["host_profile"]
     assert prof["samples"] > 10 and any("streaming.py" in t["where"] for t in prof["top"])
+
+
+class _FreedIn:
+    """Records the thread in which it is freed (a Taichi ndarray must be freed in its CUDA context's thread)."""
+
+    threads: set[int] = set()
+
+    def __del__(self) -> None:
+        import threading
+
+        _FreedIn.threads.add(threading.get_ident())
+
+
+def _short_call() -> None:
+    local = _FreedIn()   # noqa: F841 - freed when the call's frame goes
+    time.sleep(0.0002)
+
+
+def test_host_stalls_never_frees_the_sampled_threads_locals(monkeypatch):
+    """A sampler that kept a frame object could be the last owner of a returned call's locals and free them
+    in its own thread (it aborted a CUDA run); the stack is read as text instead."""
+    import threading
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    from _host_stalls import HostStalls
+
+    _FreedIn.threads.clear()
+    with HostStalls(interval=0.0005) as stalls:
+        for _ in range(3000):
+            _short_call()
+    assert stalls.samples > 100 and any("_short_call" in t["where"] for t in stalls.report()["top"])
+    assert _FreedIn.threads == {threading.get_ident()}
