@@ -25,7 +25,6 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
-
 _FRAME_LINE = re.compile(r'File "(.*)", line (\d+) in (\S+)')
 
 
