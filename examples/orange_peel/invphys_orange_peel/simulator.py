@@ -123,6 +123,7 @@ class OrangePeelSimulator(Simulator):
     def __init__(self, config: PluginConfig | dict[str, Any] | None = None, **settings: Any) -> None:
         super().__init__(config, **settings)
         self._scene: Scene | None = None
+        self._scene_separation: float | None = None
         self._engine_scene: OrangeScene | None = None
         self._engine: Any = None
         self._cuda_probed: bool | None = None   # arch "auto": whether a CUDA GPU was found (probed once)
@@ -144,6 +145,13 @@ class OrangePeelSimulator(Simulator):
         if self._scene is None:
             self._scene = build_scene(self.preset)
         return self._scene
+
+    @property
+    def scene_separation(self) -> float:
+        """:meth:`Scene.separation` of :attr:`scene` (every run's features' baseline), computed once."""
+        if self._scene_separation is None:
+            self._scene_separation = self.scene.separation()
+        return self._scene_separation
 
     @property
     def engine_scene(self) -> OrangeScene:
@@ -319,7 +327,7 @@ class OrangePeelSimulator(Simulator):
                 "gripped": scene.gripped.copy(),
                 "dx": scene.dx, "radius": scene.radius, "skin_thickness": scene.skin_thickness,
                 # skin-interior centroid distance of the built scene, before settling (final_separation's baseline)
-                "scene_separation": scene.separation(),
+                "scene_separation": self.scene_separation,
                 "centre": scene.centre.copy(), "domain": scene.domain, "frames": self.frames,
                 "record_every": self.record_every, "preset": self.preset.name,
                 # frames 1..frames, as before the engine (frame 0 is the settled state)
