@@ -6,7 +6,8 @@ chunk's synchronising read and the next launch is unnamed (issue 16: ~6 ms per c
 ~1 s gaps). :class:`HostStalls` samples the main thread's stack from a thread of its own every ``interval``
 seconds (a statistical profile: seconds per innermost frames) and times every collection of :mod:`gc` through
 ``gc.callbacks``. A sample is taken when the sampler gets the GIL, so a C call that holds it delays the sample
-rather than hiding the time: the delay is counted against the frames found then, and long delays are listed.
+rather than hiding the time: the delay is counted against the frames found then, and long delays are listed,
+as are stretches of consecutive samples at one place (a host stall of ~1 s shows as one).
 
 The stack is read as text by :func:`faulthandler.dump_traceback`, which takes no reference to a frame: a
 sampler holding a frame object could be the last owner of a finished function's locals and free them in its
@@ -49,8 +50,10 @@ def _where(dump: str, thread: int, depth: int) -> str | None:
 class HostStalls:
     """Sample the calling thread's stack and time the garbage collector until the ``with`` block exits."""
 
-    def __init__(self, interval: float = 0.005, depth: int = 4, long_s: float = 0.05):
-        self.interval, self.depth, self.long_s = interval, depth, long_s
+    def __init__(self, interval: float = 0.005, depth: int = 4, long_s: float = 0.05, stretch_s: float = 0.2):
+        self.interval, self.depth, self.long_s, self.stretch_s = interval, depth, long_s, stretch_s
+        self.stretches: list[dict[str, Any]] = []   # consecutive samples at one place, > stretch_s in all
+        self._run: list[Any] = [None, 0.0, 0.0]     # the current stretch: where, start, seconds
         self.seconds: Counter[str] = Counter()
         self.samples = 0
         self.long_samples: list[dict[str, Any]] = []
@@ -85,10 +88,19 @@ class HostStalls:
                 last = now
 
     def _count(self, where: str, seconds: float, since: float) -> None:
+        if where != self._run[0]:
+            self._close_stretch()
+            self._run = [where, since, 0.0]
+        self._run[2] += seconds
         self.seconds[where] += seconds
         self.samples += 1
         if seconds > self.long_s:
             self.long_samples.append({"at_s": round(since - self._t0, 3), "s": round(seconds, 3), "where": where})
+
+    def _close_stretch(self) -> None:
+        where, start, seconds = self._run
+        if where is not None and seconds > self.stretch_s:
+            self.stretches.append({"at_s": round(start - self._t0, 3), "s": round(seconds, 3), "where": where})
 
     def __enter__(self) -> HostStalls:
         self._t0 = time.perf_counter()
@@ -99,6 +111,7 @@ class HostStalls:
     def __exit__(self, *exc: object) -> None:
         self._stop.set()
         self._thread.join()
+        self._close_stretch()
         gc.callbacks.remove(self._on_gc)
 
     def report(self, top: int = 25) -> dict[str, Any]:
@@ -113,6 +126,7 @@ class HostStalls:
                 "sampled_s": round(sum(self.seconds.values()), 3),
                 "top": [{"s": round(s, 3), "where": w} for w, s in self.seconds.most_common(top)],
                 "long_samples": sorted(self.long_samples, key=lambda x: -x["s"])[:top],
+                "stretches": sorted(self.stretches, key=lambda x: -x["s"])[:top],
                 "gc": {k: {"count": v["count"], "total_s": round(v["total_s"], 4), "max_s": round(v["max_s"], 4)}
                        for k, v in sorted(by_gen.items())},
                 "gc_pauses_over_long_s": [{"generation": g, "at_s": round(t, 3), "s": round(p, 4)}

@@ -89,6 +89,8 @@ def test_host_stalls_finds_where_the_main_thread_waits_and_times_gc_pauses(monke
     assert "_slow_part" in top["where"] and top["s"] == pytest.approx(0.3, abs=0.1)
     assert report["sampled_s"] >= 0.3 and report["samples"] > 50
     assert report["gc"]["2"]["count"] >= 1 and report["gc"]["2"]["max_s"] > 0
+    stretch = report["stretches"][0]   # the 0.3 s sleep as one stretch at one place
+    assert "_slow_part" in stretch["where"] and stretch["s"] == pytest.approx(0.3, abs=0.1)
     assert gc.callbacks.count(stalls._on_gc) == 0 and not stalls._thread.is_alive()   # undone
 
 
