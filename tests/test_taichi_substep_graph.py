@@ -55,29 +55,3 @@ def test_a_run_past_its_substeps_is_left_as_it_was():
     assert np.array_equal(short.x.to_numpy()[1], x0)     # run 1 had no substeps in this frame
     assert not np.array_equal(short.x.to_numpy()[0], long_.x.to_numpy()[0])
 
-
-def test_kinematic_tables_are_kept_by_shape_and_a_stream_of_chunks_equals_fresh_tables():
-    """Chunks alternating between lengths reuse their tables (bounded by KIN_TABLES); the state after them
-    equals that of a backend whose tables were freshly made for each chunk, bit for bit (CPU)."""
-    from invphys_anisompm.backends import taichi_backend as tb
-
-    rng = np.random.default_rng(1)
-    lengths = [4, 8, 4, 8, 16, 4]
-    kins = [rng.normal(scale=1e-3, size=(2, k, 1, 6)) for k in lengths]
-    kept, fresh = _loaded(1, [1, 1]), _loaded(1, [1, 1])
-    seen = {}
-    for k, kin in zip(lengths, kins, strict=True):
-        for backend in (kept, fresh):
-            if backend is fresh:
-                backend._kin_by_shape.clear()   # as before: a new table whenever the length changes
-            backend.set_frame(np.full(2, 2e-5), np.array([k, k - 1]), kin, damage_on=True)
-            backend.advance(k)
-        table = kept.kin
-        assert np.array_equal(table.to_numpy()[:, :, :1], kin.astype(np.float32))
-        assert seen.setdefault(k, table) is table   # the same ndarray each time this length comes back
-    kept.sync(), fresh.sync()
-    for name in STATE:
-        assert np.array_equal(getattr(kept, name).to_numpy(), getattr(fresh, name).to_numpy()), name
-    for k in range(1, tb.KIN_TABLES + 3):
-        kept.set_frame(np.full(2, 2e-5), np.array([k, k]), np.zeros((2, k, 1, 6)), damage_on=True)
-    assert len(kept._kin_by_shape) == tb.KIN_TABLES and kept.kin is kept._kin_by_shape[(2, tb.KIN_TABLES + 2, kept.nk1, 6)]

@@ -841,7 +841,6 @@ _STAGE_ARGS = {
 _BOUND_ARGS = tuple(dict.fromkeys(n for names in _STAGE_ARGS.values() for n in names if n != "k"))
 #: substeps per graph launch in ``advance`` (a frame's remainder goes one substep at a time)
 GRAPH_SUBSTEPS = 8
-KIN_TABLES = 8   # kinematic tables kept by shape (TaichiBackend.set_frame)
 
 
 def _element_type(arr):
@@ -960,10 +959,6 @@ class TaichiBackend:
         self.nsub = ti.ndarray(ti.i32, (B,))
         self.dt = ti.ndarray(ti.f32, (B,))
         self.kin = ti.ndarray(ti.f32, (B, 1, NK1, 6))
-        # the last KIN_TABLES kinematic tables by shape: a stream's chunks alternate between a few lengths
-        # (powers of two) and reuse them instead of allocating (a device allocation, a zero fill, and Taichi
-        # records a Python traceback for every new ndarray)
-        self._kin_by_shape: dict[tuple[int, ...], object] = {tuple(self.kin.shape): self.kin}
         self.stats_out = ti.ndarray(ti.f32, (B, self.nstats))
         # partial rows of the frame statistics (see the kernels): 256 on a GPU, 1 (the plain sum) on the CPU
         R = int(stats_partials or (256 if self.arch == "cuda" else 1))
@@ -1043,12 +1038,8 @@ class TaichiBackend:
         B, K = kin.shape[:2]
         table = np.zeros((B, K, self.nk1, 6), np.float32)
         table[:, :, :kin.shape[2]] = kin
-        if tuple(self.kin.shape) != table.shape:
-            if table.shape not in self._kin_by_shape:
-                if len(self._kin_by_shape) >= KIN_TABLES:
-                    self._kin_by_shape.pop(next(iter(self._kin_by_shape)))
-                self._kin_by_shape[table.shape] = ti.ndarray(ti.f32, table.shape)
-            self.kin = self._kin_by_shape[table.shape]
+        if self.kin.shape != table.shape:
+            self.kin = ti.ndarray(ti.f32, table.shape)
         self.upload(self.kin, table)
 
     def particle_array(self, name: str) -> np.ndarray:
