@@ -51,7 +51,7 @@ def _args(argv: list[str] | None) -> argparse.Namespace:
 
 def _timed(fn, forced: str | None, backend) -> float:
     """Seconds for ``fn()`` with the backend's host copies and uploads forced to ``to_numpy``/``from_numpy``
-    (``forced``) or direct."""
+    (``forced``) or direct (``_fallback`` set directly: a forced path is not a fallback worth a warning)."""
     backend.host_copy._fallback = forced
     backend.upload._fallback = forced
     backend.sync()

@@ -54,4 +54,3 @@ def test_a_run_past_its_substeps_is_left_as_it_was():
     long_.advance(1)
     assert np.array_equal(short.x.to_numpy()[1], x0)     # run 1 had no substeps in this frame
     assert not np.array_equal(short.x.to_numpy()[0], long_.x.to_numpy()[0])
-
