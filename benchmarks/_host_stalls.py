@@ -11,7 +11,9 @@ as are stretches of consecutive samples at one place (a host stall of ~1 s shows
 
 The stack is read as text by :func:`faulthandler.dump_traceback`, which takes no reference to a frame: a
 sampler holding a frame object could be the last owner of a finished function's locals and free them in its
-own thread (a Taichi ndarray freed outside the thread of its CUDA context aborts the process).
+own thread (a Taichi ndarray freed outside the thread of its CUDA context aborts the process). faulthandler
+lists at most 100 threads, newest first: in a process with more, the sampled thread (usually the oldest) is
+missing from the dump, and those samples are counted as missed (``missed_samples``), not attributed.
 """
 
 from __future__ import annotations
@@ -56,6 +58,7 @@ class HostStalls:
         self._run: list[Any] = [None, 0.0, 0.0]     # the current stretch: where, start, seconds
         self.seconds: Counter[str] = Counter()
         self.samples = 0
+        self.missed, self.missed_s = 0, 0.0   # samples (and their seconds) that did not find the thread
         self.long_samples: list[dict[str, Any]] = []
         self.gc_pauses: list[tuple[int, float, float]] = []   # (generation, start offset s, pause s)
         self._target = threading.get_ident()
@@ -82,9 +85,11 @@ class HostStalls:
                 faulthandler.dump_traceback(buf, all_threads=True)
                 buf.seek(0)
                 where = _where(buf.read(), self._target, self.depth)
-                if where is None:
-                    continue
-                self._count(where, now - last, last)
+                if where is None:   # not in the dump: faulthandler lists at most 100 threads, newest first
+                    self.missed += 1
+                    self.missed_s += now - last
+                else:
+                    self._count(where, now - last, last)
                 last = now
 
     def _count(self, where: str, seconds: float, since: float) -> None:
@@ -124,6 +129,7 @@ class HostStalls:
             g["max_s"] = max(g["max_s"], pause)
         return {"interval_s": self.interval, "samples": self.samples,
                 "sampled_s": round(sum(self.seconds.values()), 3),
+                "missed_samples": self.missed, "missed_s": round(self.missed_s, 3),
                 "top": [{"s": round(s, 3), "where": w} for w, s in self.seconds.most_common(top)],
                 "long_samples": sorted(self.long_samples, key=lambda x: -x["s"])[:top],
                 "stretches": sorted(self.stretches, key=lambda x: -x["s"])[:top],

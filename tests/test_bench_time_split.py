@@ -69,67 +69,106 @@ def test_bench_dataset_time_split_on_a_real_tiny_stream():
     assert not hasattr(TaichiBackend.advance, "__wrapped__")   # patches undone
 
 
-def _slow_part(seconds: float) -> None:
-    time.sleep(seconds)
+
+def _in_a_fresh_process(code: str) -> dict:
+    """Run ``code`` (with benchmarks/ importable) in a new interpreter and return the JSON it prints last: a
+    sampler reads the stack through faulthandler, which lists at most 100 threads, and a test worker may hold
+    more (threads other tests left)."""
+    import json
+    import subprocess
+    import sys
+    import textwrap
+
+    done = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], cwd=BENCHMARKS, capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def test_host_stalls_finds_where_the_main_thread_waits_and_times_gc_pauses(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    import gc
+def test_host_stalls_finds_where_the_main_thread_waits_and_times_gc_pauses():
+    report = _in_a_fresh_process("""
+        import gc, json, time
+        from _host_stalls import HostStalls
 
-    from _host_stalls import HostStalls
+        def _slow_part(seconds):
+            time.sleep(seconds)
 
-    junk = [[i] for i in range(200_000)]   # tracked containers: a full collection has work to do
-    with HostStalls(interval=0.002) as stalls:
-        _slow_part(0.3)
-        gc.collect()
-    del junk
-    report = stalls.report()
+        junk = [[i] for i in range(200_000)]   # tracked containers: a full collection has work to do
+        with HostStalls(interval=0.002) as stalls:
+            _slow_part(0.3)
+            gc.collect()
+        undone = gc.callbacks.count(stalls._on_gc) == 0 and not stalls._thread.is_alive()
+        print(json.dumps({**stalls.report(), "undone": undone}))
+    """)
     top = report["top"][0]
     assert "_slow_part" in top["where"] and top["s"] == pytest.approx(0.3, abs=0.1)
-    assert report["sampled_s"] >= 0.3 and report["samples"] > 50
+    assert report["sampled_s"] >= 0.3 and report["samples"] > 50 and report["missed_samples"] == 0
     assert report["gc"]["2"]["count"] >= 1 and report["gc"]["2"]["max_s"] > 0
     stretch = report["stretches"][0]   # the 0.3 s sleep as one stretch at one place
     assert "_slow_part" in stretch["where"] and stretch["s"] == pytest.approx(0.3, abs=0.1)
-    assert gc.callbacks.count(stalls._on_gc) == 0 and not stalls._thread.is_alive()   # undone
+    assert report["undone"]
 
 
-def test_bench_dataset_host_profile_on_a_real_tiny_stream():
+def test_host_stalls_counts_samples_that_miss_the_thread_instead_of_misplacing_them():
+    """With over 100 threads newer than it, the sampled thread is not in faulthandler's dump: its samples are
+    missed, and the time is not put on the place found next."""
+    report = _in_a_fresh_process("""
+        import json, threading, time
+        from _host_stalls import HostStalls
+
+        release = threading.Event()
+        threads = [threading.Thread(target=release.wait) for _ in range(120)]
+        with HostStalls(interval=0.002) as stalls:
+            for t in threads:
+                t.start()
+            time.sleep(0.3)
+            release.set()
+            for t in threads:
+                t.join()
+            time.sleep(0.05)
+        print(json.dumps(stalls.report()))
+    """)
+    assert report["missed_samples"] > 20 and report["missed_s"] == pytest.approx(0.3, abs=0.15)
+    assert all(t["s"] < 0.15 for t in report["top"])   # the missed 0.3 s went nowhere
+
+
+def test_bench_dataset_host_profile_on_a_real_tiny_stream(tmp_path):
     pytest.importorskip("taichi")
-    bench = load("bench_dataset")
-    out = bench.bench("tiny", 2, 2, ["local"], 1, 6, "taichi", 0, arch="cpu", scheduling="continuous",
-                      extract_workers=[0], host_profile=True)
-    prof = out["results"]["local"]["host_profile"]
+    import json
+    import subprocess
+    import sys
+
+    out = tmp_path / "profile.json"
+    subprocess.run([sys.executable, str(BENCHMARKS / "bench_dataset.py"), "--preset", "tiny", "--n", "2",
+                    "--batch-size", "2", "--executors", "local", "--extract-workers", "0", "--frames", "6",
+                    "--scheduling", "continuous", "--host-profile", "--out", str(out)],
+                   check=True, capture_output=True, timeout=600)
+    prof = json.loads(out.read_text())["results"]["local"]["host_profile"]
     assert prof["samples"] > 10 and any("streaming.py" in t["where"] for t in prof["top"])
 
 
-class _FreedIn:
-    """Records the thread in which it is freed (a Taichi ndarray must be freed in its CUDA context's thread)."""
-
-    threads: set[int] = set()
-
-    def __del__(self) -> None:
-        import threading
-
-        _FreedIn.threads.add(threading.get_ident())
-
-
-def _short_call() -> None:
-    local = _FreedIn()   # noqa: F841 - freed when the call's frame goes
-    time.sleep(0.0002)
-
-
-def test_host_stalls_never_frees_the_sampled_threads_locals(monkeypatch):
+def test_host_stalls_never_frees_the_sampled_threads_locals():
     """A sampler that kept a frame object could be the last owner of a returned call's locals and free them
     in its own thread (it aborted a CUDA run); the stack is read as text instead."""
-    import threading
+    report = _in_a_fresh_process("""
+        import json, threading, time
+        from _host_stalls import HostStalls
 
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    from _host_stalls import HostStalls
+        freed_in = set()
 
-    _FreedIn.threads.clear()
-    with HostStalls(interval=0.0005) as stalls:
-        for _ in range(3000):
-            _short_call()
-    assert stalls.samples > 100 and any("_short_call" in t["where"] for t in stalls.report()["top"])
-    assert _FreedIn.threads == {threading.get_ident()}
+        class FreedIn:   # records the thread it is freed in (a Taichi ndarray must be freed in its CUDA thread)
+            def __del__(self):
+                freed_in.add(threading.get_ident())
+
+        def _short_call():
+            local = FreedIn()
+            time.sleep(0.0002)
+
+        with HostStalls(interval=0.0005) as stalls:
+            for _ in range(3000):
+                _short_call()
+        print(json.dumps({"samples": stalls.samples, "top": stalls.report()["top"],
+                          "freed_elsewhere": sorted(freed_in - {threading.get_ident()})}))
+    """)
+    assert report["samples"] > 100 and any("_short_call" in t["where"] for t in report["top"])
+    assert report["freed_elsewhere"] == []
