@@ -111,7 +111,8 @@ def test_host_stalls_finds_where_the_main_thread_waits_and_times_gc_pauses():
 
 def test_host_stalls_counts_samples_that_miss_the_thread_instead_of_misplacing_them():
     """With over 100 threads newer than it, the sampled thread is not in faulthandler's dump: its samples are
-    missed, and the time is not put on the place found next."""
+    missed, and the time is not put on the place found next. Bounds come from the phases' own clocks (a loaded
+    CI machine makes starting and joining 120 threads slow)."""
     report = _in_a_fresh_process("""
         import json, threading, time
         from _host_stalls import HostStalls
@@ -119,17 +120,24 @@ def test_host_stalls_counts_samples_that_miss_the_thread_instead_of_misplacing_t
         release = threading.Event()
         threads = [threading.Thread(target=release.wait) for _ in range(120)]
         with HostStalls(interval=0.002) as stalls:
+            t_a = time.perf_counter()
             for t in threads:
                 t.start()
-            time.sleep(0.3)
+            t_b = time.perf_counter()
+            time.sleep(0.3)              # 121 threads: the main thread is not in the dump
             release.set()
+            t_c = time.perf_counter()
             for t in threads:
                 t.join()
+            t_d = time.perf_counter()
             time.sleep(0.05)
-        print(json.dumps(stalls.report()))
+        print(json.dumps({**stalls.report(), "start_s": t_b - t_a, "hidden_s": t_c - t_b, "join_s": t_d - t_c}))
     """)
-    assert report["missed_samples"] > 20 and report["missed_s"] == pytest.approx(0.3, abs=0.15)
-    assert all(t["s"] < 0.15 for t in report["top"])   # the missed 0.3 s went nowhere
+    # a starved sampler takes few samples, and the one after the hidden time may hold part of it: loose bounds
+    assert report["missed_samples"] >= 5 and report["missed_s"] >= 0.5 * report["hidden_s"], report
+    # the old attribution put all the hidden time on the first place found after it (the join or the last sleep)
+    visible_phase_s = max(report["start_s"], report["join_s"], 0.05)
+    assert all(t["s"] <= visible_phase_s + 0.15 for t in report["top"]), (report["top"], visible_phase_s)
 
 
 def test_bench_dataset_host_profile_on_a_real_tiny_stream(tmp_path):
