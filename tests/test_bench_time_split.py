@@ -91,21 +91,23 @@ def test_host_stalls_finds_where_the_main_thread_waits_and_times_gc_pauses():
         from _host_stalls import HostStalls
 
         def _slow_part(seconds):
+            t = time.perf_counter()
             time.sleep(seconds)
+            return time.perf_counter() - t
 
         junk = [[i] for i in range(200_000)]   # tracked containers: a full collection has work to do
         with HostStalls(interval=0.002) as stalls:
-            _slow_part(0.3)
+            slept = _slow_part(0.3)
             gc.collect()
         undone = gc.callbacks.count(stalls._on_gc) == 0 and not stalls._thread.is_alive()
-        print(json.dumps({**stalls.report(), "undone": undone}))
+        print(json.dumps({**stalls.report(), "undone": undone, "slept_s": slept}))
     """)
-    top = report["top"][0]
-    assert "_slow_part" in top["where"] and top["s"] == pytest.approx(0.3, abs=0.1)
-    assert report["sampled_s"] >= 0.3 and report["samples"] > 50 and report["missed_samples"] == 0
+    top, slept = report["top"][0], report["slept_s"]   # the sleep's own clock: a loaded machine oversleeps
+    assert "_slow_part" in top["where"] and top["s"] == pytest.approx(slept, abs=0.1)
+    assert report["sampled_s"] >= slept - 0.05 and report["samples"] > 10 and report["missed_samples"] == 0
     assert report["gc"]["2"]["count"] >= 1 and report["gc"]["2"]["max_s"] > 0
     stretch = report["stretches"][0]   # the 0.3 s sleep as one stretch at one place
-    assert "_slow_part" in stretch["where"] and stretch["s"] == pytest.approx(0.3, abs=0.1)
+    assert "_slow_part" in stretch["where"] and stretch["s"] == pytest.approx(slept, abs=0.1)
     assert report["undone"]
 
 
