@@ -5,6 +5,7 @@ extractor that raises in a worker becomes that run's recorded failure."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from test_dataset_toy import FEATURES, SIM, ToyFeatures, ToyOscillator
 
 from invphys.core.interfaces import PluginConfig
@@ -22,6 +23,20 @@ class PickyFeatures(ToyFeatures):
         if abs(float(trajectory.positions[-1, 0, 0])) > self.config.limit:
             raise ValueError("picky: amplitude too large")
         return super().extract(trajectory)
+
+
+class DyingFeatures(PickyFeatures):
+    """The toy's features; the process extracting a run that PickyFeatures refuses dies (as a crash in native
+    code, or a kill for memory, would end it)."""
+
+    name = "dying_toy_features"
+
+    def extract(self, trajectory):
+        if abs(float(trajectory.positions[-1, 0, 0])) > self.config.limit:
+            import os
+
+            os._exit(3)
+        return ToyFeatures.extract(self, trajectory)
 
 
 class PidFeatures(ToyFeatures):
@@ -198,6 +213,44 @@ def test_an_extractor_error_through_shared_memory_is_that_runs_failure() -> None
     failed = [i for i, r in shared.items() if not r.ok and "picky" in r.failure]
     assert 0 < len(failed) < 11
     assert [shared[i].failure for i in range(12)] == [pickled[i].failure for i in range(12)]
+
+
+@pytest.mark.parametrize("min_shared_bytes", [None, 0], ids=["pickled", "shared"])
+def test_a_worker_that_dies_fails_only_the_run_that_killed_it(min_shared_bytes) -> None:
+    """A dead worker broke the pool and failed every later run until the pool was replaced and the runs it
+    held retried alone; now only the runs that kill a process fail, and the rest keep their features."""
+    picky, _ = _stream_through({"min_shared_bytes": None}, {"type": "test_extract_pool:PickyFeatures", "limit": 0.05})
+    dying, _ = _stream_through({"min_shared_bytes": min_shared_bytes},   # every block given back (checked there)
+                               {"type": "test_extract_pool:DyingFeatures", "limit": 0.05})
+    killers = {i for i, r in picky.items() if not r.ok and "picky" in r.failure}
+    assert 0 < len(killers) < 11 and sorted(dying) == list(range(12))
+    for i in range(12):
+        if i in killers:
+            assert not dying[i].ok and "ExtractionWorkerDied" in dying[i].failure, dying[i].failure
+        else:
+            assert dying[i].ok == picky[i].ok and dying[i].failure == picky[i].failure, dying[i].failure
+            if picky[i].ok:
+                np.testing.assert_array_equal(dying[i].features, picky[i].features)
+
+
+def test_a_worker_that_dies_in_the_validator_is_that_rows_failure_and_the_pool_goes_on() -> None:
+    from invphys.plugins.validators.simulator import SimulatorValidator
+
+    sim = ToyOscillator(substeps=1)
+    unit = sim.parameter_space().normalize(_params(12))
+    inline = SimulatorValidator(batch_size=5).simulate_features(unit, sim, ToyFeatures(), keep_trajectories=True)
+    killers = {r for r, t in enumerate(inline.trajectories) if t is not None and abs(float(t.positions[-1, 0, 0])) > 0.05}
+    assert 0 < len(killers) < 11
+    val = SimulatorValidator(batch_size=5, extract_workers=2)
+    for _ in range(2):   # the validator keeps its pool between calls: the replaced one serves the second
+        got = val.simulate_features(unit, sim, DyingFeatures(limit=0.05))
+        for r in range(12):
+            if r in killers:
+                assert "process died on this run" in got.failures[r] and np.isnan(got.features[r]).all()
+            else:
+                assert got.failures[r] == inline.failures[r]
+                np.testing.assert_array_equal(got.features[r], inline.features[r])
+    assert next(iter(val._pools.values())).renewed >= 1
 
 
 def test_pack_round_trips_arrays_as_views_of_a_reused_block() -> None:

@@ -12,18 +12,29 @@ A trajectory whose arrays hold at least ``min_shared_bytes`` travels through sha
 (:mod:`._shared_blocks`): a stager thread copies its arrays into a reusable block (the GIL released) and
 sends the worker only the pickle of the rest, so neither the caller nor the pool's feeder thread spends
 GIL-held time copying 20 MB per run; without a free block it is pickled as before.
+
+A worker that dies (the extractor crashed in native code, or the process was killed, e.g. for memory)
+breaks a process pool and fails every run it held. The pool is replaced for the runs still to come, and
+each run the broken pool held is retried alone in a fresh process: the runs that did not kill it keep
+their features, and the one that did fails alone (:class:`ExtractionWorkerDied`, a recorded failure).
 """
 
 from __future__ import annotations
 
+import logging
+import threading
 import weakref
-from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
+from collections.abc import Callable
+from concurrent.futures import Future, InvalidStateError, ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 import numpy as np
 
-from invphys.core.errors import InvphysError
+from invphys.core.errors import InvphysError, SimulationFailed
 from invphys.core.results import SimulationResult
+
+_LOG = logging.getLogger(__name__)
 
 _WORKER_EXTRACTOR: Any = None
 
@@ -48,16 +59,30 @@ def _extract_shared(data: bytes, name: str, spans: list[tuple[int, int]]) -> np.
     return _extract(unpack(data, name, spans))
 
 
+class ExtractionWorkerDied(SimulationFailed):
+    """The process extracting one run's features died, also when the run was retried alone in a fresh one:
+    the extractor crashes on it (or the process keeps being killed, e.g. for memory). That run's failure."""
+
+
+def _settle(outer: Future, result: Any = None, exc: BaseException | None = None) -> None:
+    """Give ``outer`` a result or an exception, unless it is already done (cancelled meanwhile)."""
+    try:
+        if exc is not None:
+            outer.set_exception(exc)
+        else:
+            outer.set_result(result)
+    except InvalidStateError:
+        pass
+
+
 def _chain(inner: Future, outer: Future) -> None:
     """Give ``outer`` the worker future ``inner``'s outcome."""
-    if outer.done():
-        return
     if inner.cancelled():
-        outer.set_exception(RuntimeError("feature extraction was cancelled"))
+        _settle(outer, exc=RuntimeError("feature extraction was cancelled"))
     elif inner.exception() is not None:
-        outer.set_exception(inner.exception())
+        _settle(outer, exc=inner.exception())
     else:
-        outer.set_result(inner.result())
+        _settle(outer, inner.result())
 
 
 class ExtractionPool:
@@ -69,9 +94,15 @@ class ExtractionPool:
         if workers < 1:
             raise InvphysError(f"extract_workers must be >= 1 for a pool, got {workers}")
         self.workers = int(workers)
-        self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                         initializer=_init_worker,
-                                         initargs=(dict(extractor) if isinstance(extractor, dict) else extractor,))
+        self._pool_kwargs: dict[str, Any] = dict(
+            mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker,
+            initargs=(dict(extractor) if isinstance(extractor, dict) else extractor,))
+        self._pool = ProcessPoolExecutor(self.workers, **self._pool_kwargs)
+        self._pool_lock = threading.Lock()
+        # runs a broken pool held, retried one at a time, each alone in a fresh process (no thread until used)
+        self._isolator = ThreadPoolExecutor(1, thread_name_prefix="extract-isolator")
+        #: pools replaced after a worker died, and runs retried alone since
+        self.renewed, self.retried = 0, 0
         #: trajectories with at least this many bytes of arrays go through shared memory (None: never)
         self.min_shared_bytes = min_shared_bytes
         self._blocks: Any = None
@@ -102,7 +133,7 @@ class ExtractionPool:
         """Extract one trajectory's features in a worker (the future raises what the extractor raised).
         Returns at once: with shared memory on, a stager thread packs the trajectory and submits it."""
         if self._stager is None:
-            return self._pool.submit(_extract, trajectory)
+            return self._run(_extract, trajectory)
         outer: Future = Future()
         self._stager.submit(self._stage, trajectory, outer)
         return outer
@@ -117,11 +148,11 @@ class ExtractionPool:
         try:
             packed = pack(trajectory, self._blocks, int(self.min_shared_bytes or 0))
             if packed is None:
-                inner = self._pool.submit(_extract, trajectory)
+                inner = self._run(_extract, trajectory)
             else:
                 data, block, spans = packed
                 try:
-                    inner = self._pool.submit(_extract_shared, data, block.name, spans)
+                    inner = self._run(_extract_shared, data, block.name, spans)
                 except Exception:
                     self._blocks.release(block)
                     raise
@@ -130,6 +161,53 @@ class ExtractionPool:
             outer.set_exception(exc)
             return
         inner.add_done_callback(lambda f: _chain(f, outer))
+
+    def _run(self, fn: Callable[..., np.ndarray], *args: Any) -> Future:
+        """``fn(*args)`` in a worker, as a future that outlives the worker's death (see the module's text);
+        cancelling it cancels the work if no worker has taken it yet."""
+        outer: Future = Future()
+        with self._pool_lock:
+            try:
+                inner = self._pool.submit(fn, *args)
+            except BrokenProcessPool:   # a worker died: a fresh pool for this run and those after it
+                self._pool.shutdown(wait=False, cancel_futures=True)
+                self._pool = ProcessPoolExecutor(self.workers, **self._pool_kwargs)
+                self.renewed += 1
+                inner = self._pool.submit(fn, *args)
+        outer.add_done_callback(lambda o: inner.cancel() if o.cancelled() else None)
+        inner.add_done_callback(lambda f: self._done(f, fn, args, outer))
+        return outer
+
+    def _done(self, inner: Future, fn: Callable[..., np.ndarray], args: tuple, outer: Future) -> None:
+        """In the pool's thread: chain ``inner``'s outcome into ``outer``, or queue the run to be retried
+        alone when the pool broke under it (without taking ``_pool_lock``: a submitter may hold it)."""
+        if inner.cancelled() or not isinstance(inner.exception(), BrokenProcessPool):
+            _chain(inner, outer)
+            return
+        try:
+            self._isolator.submit(self._alone, fn, args, outer)
+        except RuntimeError as exc:   # the pool is closing: nothing retries any more
+            _settle(outer, exc=exc)
+
+    def _alone(self, fn: Callable[..., np.ndarray], args: tuple, outer: Future) -> None:
+        """Retry a run alone in a fresh one-worker process: its features, or its own failure if it dies."""
+        if outer.done():
+            return
+        self.retried += 1
+        if self.retried == 1:
+            _LOG.warning("a feature-extraction worker process died; the pool was restarted and each run it held "
+                         "is retried alone in a fresh process")
+        try:
+            with ProcessPoolExecutor(1, **self._pool_kwargs) as solo:
+                result = solo.submit(fn, *args).result()
+        except BrokenProcessPool:
+            _settle(outer, exc=ExtractionWorkerDied(
+                "the feature-extraction process died on this run, also when retried alone in a fresh process "
+                "(the extractor crashed on it, or the process was killed, e.g. for memory)"))
+        except BaseException as exc:
+            _settle(outer, exc=exc)
+        else:
+            _settle(outer, result)
 
     @staticmethod
     def resolve(res: SimulationResult, fut: Future | None) -> SimulationResult:
@@ -150,7 +228,10 @@ class ExtractionPool:
     def close(self) -> None:
         if self._stager is not None:
             self._stager.shutdown(wait=True)  # every trajectory handed over reaches the pool (or fails there)
-        self._pool.shutdown(wait=True, cancel_futures=True)
+        with self._pool_lock:
+            pool = self._pool
+        pool.shutdown(wait=True, cancel_futures=True)
+        self._isolator.shutdown(wait=True)   # retries already queued finish: their runs' features are kept
         if self._blocks is not None:
             self._blocks.close()
 
