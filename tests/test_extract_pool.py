@@ -39,6 +39,25 @@ class DyingFeatures(PickyFeatures):
         return ToyFeatures.extract(self, trajectory)
 
 
+def _die_in_a_child(parent_pid: int):
+    import os
+
+    if os.getpid() != parent_pid:
+        os._exit(5)   # a worker that dies while it starts (unpickling its extractor)
+    return UnstartableFeatures()
+
+
+class UnstartableFeatures(ToyFeatures):
+    """The toy's features, as an instance that kills any other process that unpickles it."""
+
+    name = "unstartable_toy_features"
+
+    def __reduce__(self):
+        import os
+
+        return _die_in_a_child, (os.getpid(),)
+
+
 class PidFeatures(ToyFeatures):
     """The id of the process that extracted the run (to see where extraction happens)."""
 
@@ -251,6 +270,34 @@ def test_a_worker_that_dies_in_the_validator_is_that_rows_failure_and_the_pool_g
                 assert got.failures[r] == inline.failures[r]
                 np.testing.assert_array_equal(got.features[r], inline.features[r])
     assert next(iter(val._pools.values())).renewed >= 1
+
+
+def test_an_extractor_registered_only_here_stops_extraction_in_workers_with_one_clear_error() -> None:
+    """A plugin registered by hand is not in a spawned worker's registry; that used to fail every run as a
+    broken pool (and, retried alone, as a death of each run). It is the user's to fix: one InvphysError."""
+    from invphys import registry
+    from invphys.core.errors import InvphysError
+
+    class HandRegisteredFeatures(ToyFeatures):
+        name = "hand_registered_toy_features"
+
+    with registry.registered(HandRegisteredFeatures):
+        assert len(_run(0, {"type": "hand_registered_toy_features"})) == 12   # fine in this process
+        with pytest.raises(InvphysError, match=r"cannot build the extractor .*hand_registered_toy_features.*"
+                                               r"registered by hand"):
+            _run(2, {"type": "hand_registered_toy_features"})
+
+
+def test_workers_that_die_while_starting_stop_extraction_instead_of_failing_each_run() -> None:
+    from invphys.core.errors import InvphysError
+    from invphys.plugins.executors._batch import stream_rows
+    from invphys.plugins.executors._extract_pool import ExtractionPool
+
+    sim = ToyOscillator(substeps=1)
+    with ExtractionPool(UnstartableFeatures(), 2, min_shared_bytes=None) as pool:
+        with pytest.raises(InvphysError, match="died starting"):
+            dict(stream_rows(sim, ToyFeatures(), _params(12), 4, pool=pool))
+    assert pool.retried <= 2 * 2 + 2   # the runs the broken pool held at most, not all twelve
 
 
 def test_pack_round_trips_arrays_as_views_of_a_reused_block() -> None:

@@ -37,18 +37,35 @@ from invphys.core.results import SimulationResult
 _LOG = logging.getLogger(__name__)
 
 _WORKER_EXTRACTOR: Any = None
+_WORKER_INIT_ERROR: InvphysError | None = None   # why this worker could not build the extractor
+
+_CANNOT_BUILD = ("the feature-extraction processes cannot build the extractor ({}); a plugin registered by hand in "
+                 "this process is not seen there (name it 'module:Class' or by an entry point), or set "
+                 "extract_workers: 0 to extract in this process")
 
 
 def _init_worker(extractor: Any) -> None:
-    global _WORKER_EXTRACTOR
-    if isinstance(extractor, dict):
-        from invphys import registry
+    """Build the worker's extractor; a failure is kept and raised for each run (a raising initializer would
+    break the pool, which then reads as a worker that died)."""
+    global _WORKER_EXTRACTOR, _WORKER_INIT_ERROR
+    try:
+        if isinstance(extractor, dict):
+            from invphys import registry
 
-        extractor = registry.create("feature_extractor", dict(extractor))
-    _WORKER_EXTRACTOR = extractor
+            extractor = registry.create("feature_extractor", dict(extractor))
+        _WORKER_EXTRACTOR = extractor
+    except Exception as exc:
+        _WORKER_INIT_ERROR = InvphysError(_CANNOT_BUILD.format(f"{type(exc).__name__}: {exc}"))
+
+
+def _ready() -> None:
+    """Nothing, in a worker that has built its extractor (else that worker's error)."""
+    if _WORKER_INIT_ERROR is not None:
+        raise _WORKER_INIT_ERROR
 
 
 def _extract(trajectory: Any) -> np.ndarray:
+    _ready()
     return np.asarray(_WORKER_EXTRACTOR.extract(trajectory), dtype=np.float64)
 
 
@@ -103,6 +120,7 @@ class ExtractionPool:
         self._isolator = ThreadPoolExecutor(1, thread_name_prefix="extract-isolator")
         #: pools replaced after a worker died, and runs retried alone since
         self.renewed, self.retried = 0, 0
+        self._cannot_start: InvphysError | None = None   # a fresh process died before building the extractor
         #: trajectories with at least this many bytes of arrays go through shared memory (None: never)
         self.min_shared_bytes = min_shared_bytes
         self._blocks: Any = None
@@ -190,8 +208,12 @@ class ExtractionPool:
             _settle(outer, exc=exc)
 
     def _alone(self, fn: Callable[..., np.ndarray], args: tuple, outer: Future) -> None:
-        """Retry a run alone in a fresh one-worker process: its features, or its own failure if it dies."""
+        """Retry a run alone in a fresh one-worker process: its features, or its own failure if it dies.
+        A process that dies before it has built its extractor is no run's fault: that stops the caller."""
         if outer.done():
+            return
+        if self._cannot_start is not None:
+            _settle(outer, exc=self._cannot_start)
             return
         self.retried += 1
         if self.retried == 1:
@@ -199,6 +221,11 @@ class ExtractionPool:
                          "is retried alone in a fresh process")
         try:
             with ProcessPoolExecutor(1, **self._pool_kwargs) as solo:
+                try:
+                    solo.submit(_ready).result()
+                except BrokenProcessPool as exc:
+                    self._cannot_start = InvphysError(_CANNOT_BUILD.format(f"a fresh process died starting: {exc}"))
+                    raise self._cannot_start from exc
                 result = solo.submit(fn, *args).result()
         except BrokenProcessPool:
             _settle(outer, exc=ExtractionWorkerDied(
