@@ -17,6 +17,8 @@ A worker that dies (the extractor crashed in native code, or the process was kil
 breaks a process pool and fails every run it held. The pool is replaced for the runs still to come, and
 each run the broken pool held is retried alone in a fresh process: the runs that did not kill it keep
 their features, and the one that did fails alone (:class:`ExtractionWorkerDied`, a recorded failure).
+Processes that cannot build the extractor, or die before they have, are no run's fault: an
+:class:`InvphysError` stops the caller.
 """
 
 from __future__ import annotations
@@ -222,10 +224,11 @@ class ExtractionPool:
         try:
             with ProcessPoolExecutor(1, **self._pool_kwargs) as solo:
                 try:
-                    solo.submit(_ready).result()
+                    solo.submit(_ready).result()   # raises the process's own error if it cannot build one
                 except BrokenProcessPool as exc:
                     self._cannot_start = InvphysError(_CANNOT_BUILD.format(f"a fresh process died starting: {exc}"))
-                    raise self._cannot_start from exc
+                    _settle(outer, exc=self._cannot_start)
+                    return
                 result = solo.submit(fn, *args).result()
         except BrokenProcessPool:
             _settle(outer, exc=ExtractionWorkerDied(
