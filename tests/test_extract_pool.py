@@ -236,8 +236,8 @@ def test_an_extractor_error_through_shared_memory_is_that_runs_failure() -> None
 
 @pytest.mark.parametrize("min_shared_bytes", [None, 0], ids=["pickled", "shared"])
 def test_a_worker_that_dies_fails_only_the_run_that_killed_it(min_shared_bytes) -> None:
-    """A dead worker broke the pool and failed every later run until the pool was replaced and the runs it
-    held retried alone; now only the runs that kill a process fail, and the rest keep their features."""
+    """A dead worker used to break the pool for good, failing every later run; now the pool is replaced, the
+    runs it held are retried alone, only the runs that kill a process fail, and the rest keep their features."""
     picky, _ = _stream_through({"min_shared_bytes": None}, {"type": "test_extract_pool:PickyFeatures", "limit": 0.05})
     dying, _ = _stream_through({"min_shared_bytes": min_shared_bytes},   # every block given back (checked there)
                                {"type": "test_extract_pool:DyingFeatures", "limit": 0.05})
