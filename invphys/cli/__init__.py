@@ -14,7 +14,7 @@ import typer
 
 from invphys.cli.common import configure_logging, debug_enabled, exit_code_for, set_debug
 
-COMMAND_MODULES: tuple[str, ...] = ("core", "dataset", "simulate", "render", "invert")
+COMMAND_MODULES: tuple[str, ...] = ("core", "dataset", "simulate", "render", "invert", "export")
 
 app = typer.Typer(
     name="invphys",
