@@ -1,0 +1,169 @@
+"""User-like recovery: a bundle's answers to fresh simulations it never saw, validated on the simulator.
+
+    python benchmarks/bench_user_targets.py --bundle inverters/orange_peel_paper \\
+        --targets uniform=datasets/orange_peel_paper_fresh_uniform edge=datasets/orange_peel_paper_fresh_edge \\
+        --all-data datasets/orange_peel_paper datasets/orange_peel_paper_adaptive \\
+                   datasets/orange_peel_paper_adaptive_seed3 datasets/orange_peel_paper_seed1_v030 \\
+        --methods npe_best64 lookup --validate --out benchmarks/results/user_targets_paper.json
+
+The evaluation protocol's user-like sets (docs/evaluation.md): each target store holds fresh simulations
+(true parameters and features); every answer goes through the user's path (``Inverter.invert_many``, then
+``Inverter.validate``: the bundle's recorded simulator re-runs it), next to
+
+* ``nearest_neighbour_all``: a 1-NN lookup (R_gt metric) over ALL the rows the ``--all-data`` stores hold
+  (the baseline every answer must beat), and
+* ``truth``: the targets' own parameters re-simulated (the noise floor).
+
+Per set and method: mean R_actual with a bootstrap 95 % interval, the worst answer, the paired difference
+against ``nearest_neighbour_all``, and how the answers' warnings rank failures (R_actual < 0.8): recall on
+failing targets and the alarm rate on the others. Without ``--validate`` only the surrogate's R is scored
+(no simulator: a quick check of the plumbing).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+FAIL_BELOW = 0.8
+
+
+def _device() -> str:
+    try:
+        import torch
+
+        if torch.cuda.is_available():
+            return torch.cuda.get_device_name(0)
+    except ImportError:
+        pass
+    return f"cpu ({platform.processor() or platform.machine()})"
+
+
+def _store_rows(path: str) -> Any:
+    from invphys.core.dataset import DatasetStore
+
+    arrays = DatasetStore(path).arrays(ok_only=True)
+    if len(arrays.y) == 0:
+        raise SystemExit(f"error: {path} holds no successful rows")
+    return arrays
+
+
+def _lookup_all(inv: Any, stores: list[str], targets: np.ndarray) -> tuple[np.ndarray, int]:
+    """1-NN over every row the stores hold (same parameter and feature names as the bundle)."""
+    from invphys.plugins.baselines.nearest_neighbour import NearestNeighbour
+
+    blocks = [_store_rows(s) for s in stores]
+    for s, a in zip(stores, blocks, strict=True):
+        if tuple(a.feature_names) != inv.feature_names or tuple(a.param_names) != inv.parameter_names:
+            raise SystemExit(f"error: {s} holds other parameters or features than the bundle")
+    theta = np.concatenate([a.theta for a in blocks])
+    y = np.concatenate([a.y for a in blocks])
+    nn = NearestNeighbour({"k": 1, "metric": "r_gt"})
+    nn.fit(theta, y, inv.bundle.scales)
+    return nn.answer(targets).theta, len(theta)
+
+
+def _answers(inv: Any, arrays: Any, methods: list[str], all_data: list[str], seed: int) -> dict[str, list[Any]]:
+    """InversionResults per method label for every target of one set."""
+    y = arrays.y
+    out: dict[str, list[Any]] = {}
+    for m in methods:
+        t0 = time.perf_counter()
+        out[m] = inv.invert_many(y, method=m, seed=seed)
+        print(f"  {m}: {len(y)} answers in {time.perf_counter() - t0:.2f} s", file=sys.stderr)
+    if all_data:
+        theta_nn, _ = _lookup_all(inv, all_data, y)
+        out["nearest_neighbour_all"] = [inv.evaluate(theta=t, target=v, label="nearest_neighbour_all")
+                                        for t, v in zip(theta_nn, y, strict=True)]
+    out["truth"] = [inv.evaluate(theta=t, target=v, label="truth") for t, v in zip(arrays.theta, y, strict=True)]
+    return out
+
+
+def _score(results: list[Any], validated: bool) -> np.ndarray:
+    if not validated:
+        return np.array([r.r_surrogate for r in results], dtype=np.float64)
+    return np.array([0.0 if r.r_actual is None else float(r.r_actual) for r in results], dtype=np.float64)
+
+
+def _warning_rank(results: list[Any], r: np.ndarray) -> dict[str, Any]:
+    warned = np.array([bool(res.warnings) for res in results])
+    failing = r < FAIL_BELOW
+    return {"failing": int(failing.sum()), "warned": int(warned.sum()),
+            "recall_on_failing": float(warned[failing].mean()) if failing.any() else None,
+            "alarm_rate_on_others": float(warned[~failing].mean()) if (~failing).any() else None}
+
+
+def summarise(answers: dict[str, list[Any]], validated: bool, reference: str = "nearest_neighbour_all"
+              ) -> dict[str, Any]:
+    from invphys.evaluation.stats import bootstrap_mean_ci, paired_difference
+
+    scores = {m: _score(res, validated) for m, res in answers.items()}
+    out: dict[str, Any] = {}
+    for m, r in scores.items():
+        _, lo, hi = bootstrap_mean_ci(r)
+        row: dict[str, Any] = {"n": len(r), "r_mean": float(np.mean(r)), "r_ci95": [float(lo), float(hi)],
+                               "r_worst": float(np.min(r)), "below_0_8": int(np.sum(r < FAIL_BELOW)),
+                               "r_surrogate_mean": float(np.mean([x.r_surrogate for x in answers[m]]))}
+        if reference in scores and m != reference:
+            diff = paired_difference(r, scores[reference])
+            row[f"vs_{reference}"] = {"mean_diff": float(diff["mean_diff"]), "ci95": list(map(float, diff["ci95"]))}
+        if validated and m not in ("truth", reference):
+            row["warnings"] = _warning_rank(answers[m], r)
+        out[m] = row
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--bundle", required=True)
+    p.add_argument("--targets", nargs="+", required=True, help="NAME=STORE: a set of fresh simulations")
+    p.add_argument("--all-data", nargs="*", default=[], help="every store of the bundle's simulator version")
+    p.add_argument("--methods", nargs="+", default=None, help="bundle methods (default: the bundle's default)")
+    p.add_argument("--validate", action="store_true", help="re-simulate every answer (a GPU for the paper preset)")
+    p.add_argument("--sim-option", nargs="*", default=[], help="KEY=VALUE simulator overrides (e.g. arch=cpu)")
+    p.add_argument("--sim-batch", type=int, default=64)
+    p.add_argument("--limit", type=int, default=None, help="first N targets of each set (a quick check)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True)
+    a = p.parse_args(argv)
+
+    from invphys.inverter import load_inverter
+
+    inv = load_inverter(a.bundle)
+    methods = a.methods or [inv.default_method]
+    overrides = dict(kv.split("=", 1) for kv in a.sim_option)
+    result: dict[str, Any] = {"benchmark": "user_targets", "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+                              "device": _device(), "bundle": a.bundle,
+                              "bundle_id": inv.bundle.manifest.get("bundle_id"),
+                              "simulator": inv.bundle.manifest["simulator"], "validated": a.validate,
+                              "fail_below": FAIL_BELOW, "sets": {}}
+    for spec in a.targets:
+        name, _, path = spec.partition("=")
+        arrays = _store_rows(path)
+        if a.limit:
+            arrays.y, arrays.theta = arrays.y[: a.limit], arrays.theta[: a.limit]
+        print(f"{name}: {len(arrays.y)} targets from {path}", file=sys.stderr)
+        answers = _answers(inv, arrays, methods, a.all_data, a.seed)
+        t0 = time.perf_counter()
+        if a.validate:
+            inv.validate([r for res in answers.values() for r in res], overrides=overrides, batch_size=a.sim_batch)
+        result["sets"][name] = {"store": path, "n_targets": len(arrays.y), "validate_s": time.perf_counter() - t0,
+                                "methods": summarise(answers, a.validate)}
+    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(a.out).write_text(json.dumps(result, indent=1) + "\n")
+    for name, s in result["sets"].items():
+        for m, row in s["methods"].items():
+            print(f"{name:8s} {m:24s} R {row['r_mean']:.3f} [{row['r_ci95'][0]:.3f}, {row['r_ci95'][1]:.3f}] "
+                  f"worst {row['r_worst']:.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
