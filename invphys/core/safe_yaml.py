@@ -1,13 +1,16 @@
-"""The one safe way invphys reads YAML (and the text files it comes in).
+"""The one safe way invphys parses YAML: specs, and (through :mod:`invphys.core.safe_read`) every
+YAML file a user or a shared artifact hands it.
 
-:func:`read_text` refuses what is not a regular file (``/dev/zero``, a FIFO, a directory), files larger
-than :data:`MAX_BYTES`, text that is not UTF-8 and text with NUL bytes. :func:`load` parses with
-PyYAML's safe loader and then refuses, before building any Python object:
+:func:`read_text` reads a spec through the bounded reader :func:`invphys.core.safe_read.read_user_text`
+(regular files only: not ``/dev/zero``, a FIFO, a directory; at most :data:`MAX_BYTES`; UTF-8 without
+NUL bytes, a BOM dropped). :func:`load` parses with PyYAML's safe loader and then refuses, before
+building any Python object:
 
 * more than one document, nesting deeper than :data:`MAX_DEPTH`;
 * aliases that expand to more than :data:`MAX_NODES` nodes (the "billion laughs" bomb) or refer to
   themselves;
-* a key given twice in one mapping (naming both lines; YAML would silently keep the last).
+* a key given twice in one mapping (naming both lines; YAML would silently keep the last);
+* an integer too large for a float (more than about 1e308), naming its line.
 
 Every refusal is an :class:`~invphys.core.errors.InvphysError` (by default a
 :class:`~invphys.core.errors.SpecError`) whose message starts with the source name::
@@ -18,8 +21,6 @@ Every refusal is an :class:`~invphys.core.errors.InvphysError` (by default a
 from __future__ import annotations
 
 import os
-import stat
-from pathlib import Path
 from typing import Any
 
 import yaml
@@ -32,6 +33,9 @@ MAX_BYTES = 1 << 20
 MAX_DEPTH = 40
 #: most nodes a document may expand to, aliases expanded
 MAX_NODES = 100_000
+#: most digits of an integer (a float holds at most ~1e308)
+MAX_INT_DIGITS = 330
+INT_TAG = "tag:yaml.org,2002:int"
 
 
 def max_bytes() -> int:
@@ -44,55 +48,42 @@ def max_bytes() -> int:
 
 def read_text(path: str | os.PathLike[str], what: str = "spec", error: type[InvphysError] = SpecError,
               limit: int | None = None) -> str:
-    """The UTF-8 text of the regular file ``path`` (at most ``limit`` bytes), or ``error`` saying why not."""
-    p = Path(path)
-    limit = max_bytes() if limit is None else limit
+    """The UTF-8 text of the regular file ``path`` (at most ``limit`` bytes), or ``error`` saying why not
+    (:func:`invphys.core.safe_read.read_user_text`: the one bounded reader)."""
+    from invphys.core.safe_read import UserFileError, read_user_text
+
     try:
-        st = os.stat(p)
-    except OSError as exc:
-        raise error(f"cannot read {what} {str(p)!r}: {exc.strerror or exc}") from None
-    if stat.S_ISDIR(st.st_mode):
-        raise error(f"cannot read {what} {str(p)!r}: it is a directory, not a file")
-    if not stat.S_ISREG(st.st_mode):
-        raise error(f"cannot read {what} {str(p)!r}: not a regular file (a device, pipe or socket)")
-    if st.st_size > limit:
-        raise error(f"{what} {str(p)!r} is {st.st_size:,} bytes, over the {limit:,}-byte limit")
-    try:
-        with open(p, "rb") as fh:
-            data = fh.read(limit + 1)
-    except OSError as exc:
-        raise error(f"cannot read {what} {str(p)!r}: {exc.strerror or exc}") from None
-    if len(data) > limit:
-        raise error(f"{what} {str(p)!r} is over the {limit:,}-byte limit")
-    return decode(data, f"{what} {str(p)!r}", error)
+        return read_user_text(path, what=what, max_bytes=max_bytes() if limit is None else limit)
+    except UserFileError as exc:
+        raise error(str(exc)) from None
 
 
 def decode(data: bytes, source: str, error: type[InvphysError] = SpecError) -> str:
     """``data`` as UTF-8 text (a leading BOM dropped), refusing binary content with its line."""
-    if data.startswith(b"\xef\xbb\xbf"):
-        data = data[3:]
-    nul = data.find(b"\x00")
-    if nul >= 0:
-        line = data.count(b"\n", 0, nul) + 1
-        raise error(f"{source}: not a text file (a NUL byte on line {line})")
+    from invphys.core.safe_read import text_of
+
     try:
-        return data.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        line = data.count(b"\n", 0, exc.start) + 1
-        raise error(f"{source}: not UTF-8 text (byte 0x{data[exc.start]:02x} on line {line})") from None
+        return text_of(data)
+    except InvphysError as exc:
+        raise error(f"{source}: {exc}") from None
 
 
-def load(text: str, source: str = "<yaml>", error: type[InvphysError] = SpecError) -> tuple[Any, yaml.Node | None]:
-    """Parse one YAML document safely: returns ``(data, node)`` (``node`` for line numbers)."""
-    if len(text) > max_bytes():
-        raise error(f"{source}: {len(text):,} characters, over the {max_bytes():,}-byte limit")
+def load(text: str, source: str = "<yaml>", error: type[InvphysError] = SpecError, limit: int | None = None,
+         max_nodes: int = MAX_NODES) -> tuple[Any, yaml.Node | None]:
+    """Parse one YAML document safely: returns ``(data, node)`` (``node`` for line numbers).
+
+    ``limit`` (characters; default: the spec limit, :func:`max_bytes`) and ``max_nodes`` bound the text
+    and the values it expands to; data files (targets, manifests) pass their own."""
+    limit = max_bytes() if limit is None else limit
+    if len(text) > limit:
+        raise error(f"{source}: {len(text):,} characters, over the {limit:,}-byte limit")
     loader: yaml.SafeLoader | None = None
     try:
         loader = yaml.SafeLoader(text)
         node = loader.get_single_node()
         if node is None:
             return None, None
-        check_node(node, source, error)
+        check_node(node, source, error, max_nodes)
         return loader.construct_document(node), node
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
@@ -107,8 +98,10 @@ def load(text: str, source: str = "<yaml>", error: type[InvphysError] = SpecErro
             loader.dispose()
 
 
-def check_node(root: yaml.Node, source: str, error: type[InvphysError] = SpecError) -> None:
-    """Refuse deep nesting, self-referring or exploding aliases and duplicate keys (see module doc)."""
+def check_node(root: yaml.Node, source: str, error: type[InvphysError] = SpecError,
+               max_nodes: int = MAX_NODES) -> None:
+    """Refuse deep nesting, self-referring or exploding aliases, duplicate keys and integers too large
+    for a float (see module doc)."""
     sizes: dict[int, int] = {}
     active: set[int] = set()
 
@@ -123,7 +116,9 @@ def check_node(root: yaml.Node, source: str, error: type[InvphysError] = SpecErr
                         f"{node.start_mark.line + 1})")
         total = 1
         active.add(key)
-        if isinstance(node, yaml.MappingNode):
+        if isinstance(node, yaml.ScalarNode) and node.tag == INT_TAG:
+            check_int(node, source, error)
+        elif isinstance(node, yaml.MappingNode):
             seen: dict[str, int] = {}
             for k, v in node.value:
                 if isinstance(k, yaml.ScalarNode) and k.value != "<<":
@@ -133,18 +128,32 @@ def check_node(root: yaml.Node, source: str, error: type[InvphysError] = SpecErr
                                     f"{seen[k.value]} and {line})")
                     seen[k.value] = line
                 total += size(k, depth + 1) + size(v, depth + 1)
-                if total > MAX_NODES:
+                if total > max_nodes:
                     break
         elif isinstance(node, yaml.SequenceNode):
             for item in node.value:
                 total += size(item, depth + 1)
-                if total > MAX_NODES:
+                if total > max_nodes:
                     break
         active.discard(key)
-        if total > MAX_NODES:
-            raise error(f"{source}: expands to more than {MAX_NODES:,} values (aliases expanded): "
-                        "too large for a spec")
+        if total > max_nodes:
+            raise error(f"{source}: expands to more than {max_nodes:,} values (aliases expanded): too large")
         sizes[key] = total
         return total
 
     size(root, 0)
+
+
+def check_int(node: yaml.ScalarNode, source: str, error: type[InvphysError] = SpecError) -> None:
+    """Refuse an integer a float cannot hold (more than about 1e308), naming its line."""
+    import sys
+
+    digits = sum(c.isalnum() for c in node.value)
+    try:
+        value = None if digits > MAX_INT_DIGITS else yaml.constructor.SafeConstructor().construct_yaml_int(node)
+    except ValueError:
+        value = None
+    if value is None or abs(value) > sys.float_info.max:
+        text = node.value if len(node.value) <= 16 else node.value[:12] + "..."
+        raise error(f"{source}: the integer {text} on line {node.start_mark.line + 1} is too large for a number "
+                    "(at most ~1e308)")
