@@ -200,6 +200,41 @@ class Inverter:
         self._plugins[label] = (plugin, entry)
         return self._plugins[label]
 
+    # -- posterior ----------------------------------------------------------------------------------
+    def posterior_method(self, method: str | None = None) -> str:
+        """The label of a method with a posterior: ``method``, else the default's or the first one's."""
+        from invphys.inverter.draws import has_posterior
+
+        labels = [method] if method else [self.bundle.default_method or "", *self.methods]
+        for label in labels:
+            if not label:
+                continue
+            entry = self._entry(label)[1]
+            if self._is_baseline(entry) and has_posterior(self._plugin(label, entry)[0]):
+                return label
+            if method:
+                raise InvphysError(f"method {label!r} has no posterior (it answers with a point)")
+        raise InvphysError(f"bundle {self.bundle.root} has no method with a posterior (e.g. npe)")
+
+    def posterior(self, targets: Any, n: int = 1000, seed: int = 0, method: str | None = None,
+                  partial: bool = False) -> Any:
+        """Posterior draws of every target: a :class:`~invphys.inverter.draws.PosteriorDraws` whose
+        ``samples`` are (B, n, d) in normalised units ([0, 1]^d, the space's order; physical units:
+        ``inv.parameter_space.denormalize``). Draws lie in the box by rejection (``outside_fraction``),
+        each target's from its own stream (seed, method, target), so they do not depend on the batch."""
+        from invphys.inverter.draws import completions, sample_posterior
+        from invphys.inverter.seeds import check_seed, target_seed
+
+        seed = check_seed(seed)
+        t = self.targets(targets, partial)
+        label = self.posterior_method(method)
+        plugin = self._plugin(label, self._entry(label)[1])[0]
+        mean = np.asarray(self.bundle.manifest["features"]["mean"], dtype=np.float64)
+        train_y = None if t.mask.all() else self.bundle.data("train")[1]
+        conds = [completions(t.values[i], t.mask[i], train_y, mean, self.bundle.scales) for i in range(len(t))]
+        seeds = [target_seed(seed, label, t.values[i], t.mask[i], "posterior") for i in range(len(t))]
+        return sample_posterior(plugin, conds, seeds, int(n))
+
     # -- inversion ----------------------------------------------------------------------------------
     def invert(self, target: Any, method: str | None = None, top_k: int = 1, refine: int = 0,
                partial: bool = False, seed: int = 0) -> InversionResult:

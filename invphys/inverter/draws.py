@@ -1,0 +1,134 @@
+"""Posterior draws of a bundle's amortised posterior (sbi's NPE), truncated to the parameter box.
+
+Each target is sampled alone, under its own seeded torch stream (:func:`~invphys.inverter.seeds.target_seed`),
+in rounds of :data:`ROUND` raw draws per completion of the target: draws outside [0, 1]^d are rejected
+(the box is the prior's support, so the truncated posterior is the posterior under that prior); after
+:data:`CAP_FACTOR` x S raw draws without S inside, the missing draws are the outside ones clipped to
+the box, and ``clipped`` says how many. Because the rounds have a fixed size, the first K of S draws are
+the same for every S >= K, and no draw depends on other targets or on the batch.
+
+A partial target (missing features) is answered by the mixture over completions: the missing features
+take the values of the :data:`COMPLETIONS` training rows nearest in the given features (scaled), each
+completion getting an equal share of every round, which approximates p(theta | given features).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from invphys.core.errors import InvphysError
+
+#: raw draws per round and completion (fixed, so that draws are prefix-stable in S)
+ROUND = 256
+#: give up rejecting after this many raw draws per requested draw
+CAP_FACTOR = 50
+#: completions of a partial target's missing features (training rows nearest in the given features)
+COMPLETIONS = 16
+_LOG = logging.getLogger("invphys.inverter")
+
+
+@dataclass
+class PosteriorDraws:
+    """Draws for B targets: ``samples`` (B, S, d) in [0, 1]^d (normalised units, space order);
+    ``outside_fraction`` (B,): share of raw draws that fell outside the box and were rejected;
+    ``clipped`` (B,): draws that had to be clipped because the cap was hit (0 normally);
+    ``raw_draws`` (B,): raw draws made; ``completions`` (B,): 1, or the completions of a partial target."""
+
+    samples: np.ndarray
+    outside_fraction: np.ndarray
+    clipped: np.ndarray
+    raw_draws: np.ndarray
+    completions: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.samples)
+
+
+def has_posterior(plugin: Any) -> bool:
+    """True for a plugin holding a trained sbi posterior (its ``_posterior.posterior_estimator``)."""
+    return getattr(getattr(plugin, "_posterior", None), "posterior_estimator", None) is not None
+
+
+@contextlib.contextmanager
+def _torch_stream(seed: int) -> Iterator[None]:
+    """torch's global RNG seeded with ``seed`` inside, restored after; one CPU thread."""
+    import torch
+
+    threads = torch.get_num_threads()
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        torch.set_num_threads(1)
+        try:
+            yield
+        finally:
+            torch.set_num_threads(threads)
+
+
+def completions(values: np.ndarray, mask: np.ndarray, train_y: np.ndarray | None, mean: np.ndarray,
+                scales: np.ndarray) -> np.ndarray:
+    """(K, M) conditions for one target: itself when complete; else K copies whose missing features
+    come from the training rows nearest in the given features (the training mean without rows)."""
+    values, mask = np.asarray(values, dtype=np.float64), np.asarray(mask, dtype=bool)
+    if mask.all():
+        return values[None, :]
+    if train_y is None or not len(train_y):
+        return np.where(mask, values, mean)[None, :]
+    y = train_y[np.all(np.isfinite(train_y), axis=1)]
+    z = (y[:, mask] - values[mask]) / np.maximum(scales[mask], 1e-12)
+    d2 = (z * z).sum(axis=1)
+    k = min(COMPLETIONS, len(y))
+    idx = np.lexsort((np.arange(len(y)), d2))[:k]  # nearest first, ties by row (deterministic)
+    return np.where(mask[None, :], values[None, :], y[idx])
+
+
+def sample_posterior(plugin: Any, conditions: Sequence[np.ndarray], seeds: Sequence[int], n: int
+                     ) -> PosteriorDraws:
+    """``n`` truncated draws per target; ``conditions[i]`` (K_i, M) from :func:`completions`."""
+    if not has_posterior(plugin):
+        raise InvphysError(f"{getattr(plugin, 'name', plugin)!r} holds no posterior to draw from")
+    if n < 1:
+        raise InvphysError(f"posterior draws must be >= 1, got {n}")
+    est = plugin._posterior.posterior_estimator
+    logit = getattr(getattr(plugin, "config", None), "transform", "none") == "logit"
+    rows = [_one(est, c, int(s), n, logit) for c, s in zip(conditions, seeds, strict=True)]
+    return PosteriorDraws(samples=np.stack([r[0] for r in rows]),
+                          outside_fraction=np.array([r[1] for r in rows], dtype=np.float64),
+                          clipped=np.array([r[2] for r in rows], dtype=np.int64),
+                          raw_draws=np.array([r[3] for r in rows], dtype=np.int64),
+                          completions=np.array([len(c) for c in conditions], dtype=np.int64))
+
+
+def _one(est: Any, cond: np.ndarray, seed: int, n: int, logit: bool) -> tuple[np.ndarray, float, int, int]:
+    """(draws (n, d), outside fraction, clipped, raw draws) for one target."""
+    import torch
+
+    x = torch.as_tensor(np.atleast_2d(cond), dtype=torch.float32)
+    k = x.shape[0]
+    per_round = max(1, ROUND // k)
+    inside: list[np.ndarray] = []
+    outside: list[np.ndarray] = []
+    got = raw = 0
+    with _torch_stream(seed), torch.no_grad():
+        while got < n and raw < CAP_FACTOR * n:
+            s = est.sample(torch.Size([per_round]), condition=x).numpy().astype(np.float64)  # (R, K, d)
+            s = s.reshape(-1, s.shape[-1])
+            if logit:
+                s = 1.0 / (1.0 + np.exp(-s))
+            ok = np.all((s >= 0.0) & (s <= 1.0), axis=1)
+            inside.append(s[ok])
+            outside.append(s[~ok])
+            got += int(ok.sum())
+            raw += len(s)
+    draws = np.concatenate(inside)[:n]
+    clipped = n - len(draws)
+    if clipped:
+        extra = np.clip(np.concatenate(outside)[:clipped], 0.0, 1.0)
+        draws = np.concatenate([draws, extra])
+        _LOG.info("posterior draws: %d of %d raw draws inside the box; %d draws clipped", got, raw, clipped)
+    return draws, 1.0 - got / max(raw, 1), clipped, raw
