@@ -4,7 +4,9 @@ metadata file, a writer killed between writing a part and recording it; verify, 
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -202,3 +204,122 @@ def test_corrupt_store_in_a_real_subprocess(store) -> None:
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
     assert "corrupt" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+
+
+# -- repair never follows links, never leaves the store; huge parts are never read whole -----------------
+def tree_bytes(root) -> dict[str, bytes | str]:
+    """Every entry under ``root`` (links not followed): a file's bytes, a link's target."""
+    out: dict[str, bytes | str] = {}
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in dirnames + filenames:
+            p = os.path.join(dirpath, name)
+            rel = os.path.relpath(p, root)
+            if os.path.islink(p):
+                out[rel] = "-> " + os.readlink(p)
+            elif os.path.isfile(p):
+                out[rel] = open(p, "rb").read()
+    return out
+
+
+def test_repair_refuses_a_symlinked_quarantine_and_moves_nothing_out(store, tmp_path) -> None:
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    (store.path / "_quarantine").symlink_to(outside)
+    victim = store.parts()[0]
+    victim.write_bytes(b"\0" * victim.stat().st_size)
+    before = tree_bytes(store.path)
+    one_line_error(cli("dataset", "verify", str(store.path), "--repair"), "_quarantine", "symbolic link")
+    from invphys.core.dataset import UnsafeStoreError
+
+    with pytest.raises(UnsafeStoreError):
+        store.repair()
+    assert list(outside.iterdir()) == [] and tree_bytes(store.path) == before
+
+
+def test_a_symlinked_part_is_never_read_and_repair_moves_only_the_link(store, tmp_path) -> None:
+    # a listed part moved out of the store and linked back in: readers must not follow it
+    outside = tmp_path / "outside.parquet"
+    victim = store.parts()[1]
+    victim.rename(outside)
+    victim.symlink_to(outside)
+    kept = outside.read_bytes()
+    problems = store.verify().problems
+    assert [(p.part, p.kind) for p in problems] == [(victim.name, "corrupt")], problems
+    assert "symbolic link" in problems[0].detail
+    one_line_error(cli("dataset", "info", str(store.path)), victim.name, "symbolic link")
+    report = store.repair()
+    moved = store.path / "_quarantine" / victim.name
+    assert report.ok and moved.is_symlink() and not victim.exists()
+    assert outside.read_bytes() == kept and len(store.frame()) == N - BATCH
+
+
+@contextlib.contextmanager
+def unwritable(path):
+    """``path`` made unwritable even for root (an immutable directory when running as root)."""
+    if os.geteuid() == 0:
+        if subprocess.run(["chattr", "+i", str(path)], capture_output=True).returncode != 0:
+            pytest.skip("running as root without chattr: cannot make a read-only directory")
+        undo = ["chattr", "-i", str(path)]
+    else:
+        os.chmod(path, 0o555)
+        undo = ["chmod", "755", str(path)]
+    try:
+        yield path
+    finally:
+        subprocess.run(undo, check=True)
+
+
+@pytest.mark.parametrize("with_lock_file", [True, False])
+def test_repair_of_a_read_only_store_is_one_line_and_changes_nothing(store, with_lock_file) -> None:
+    victim = store.parts()[0]
+    victim.write_bytes(victim.read_bytes()[:300])
+    lock = store.path / ".lock"
+    if with_lock_file:
+        lock.touch()
+    else:
+        lock.unlink(missing_ok=True)
+    before = tree_bytes(store.path)
+    with unwritable(store.path):
+        one_line_error(cli("dataset", "verify", str(store.path), "--repair"), "cannot change", "nothing was changed")
+        assert tree_bytes(store.path) == before
+        assert not store.verify().ok  # reading a read-only store still works
+    assert tree_bytes(store.path) == before
+
+
+def test_a_huge_stray_part_is_refused_without_being_read(store) -> None:
+    """A 4 GB sparse file among the parts, and a listed part grown to 4 GB: verified in a process that
+    cannot hold 1 GB (reading either whole fails with MemoryError there)."""
+    stray = store.path / "part-000099-deadbeef.parquet"
+    with open(stray, "wb") as fh:
+        fh.truncate(4 << 30)
+    grown = store.parts()[0]
+    with open(grown, "r+b") as fh:
+        fh.truncate(4 << 30)
+    code = ("import resource, json, sys; resource.setrlimit(resource.RLIMIT_AS, (800 << 20, 800 << 20));"
+            "from invphys.core.dataset import DatasetStore;"
+            "print(json.dumps(DatasetStore(sys.argv[1]).verify().to_dict()))")
+    proc = subprocess.run([sys.executable, "-c", code, str(store.path)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    problems = {p["part"]: p for p in json.loads(proc.stdout)["problems"]}
+    assert set(problems) == {stray.name, grown.name}
+    assert problems[stray.name]["kind"] == "corrupt" and "not read" in problems[stray.name]["detail"]
+    assert problems[grown.name]["kind"] == "corrupt" and "manifest says" in problems[grown.name]["detail"]
+    assert len(store.repair().actions) == 2 and store.verify().ok and len(store.frame()) == N - BATCH
+
+
+def test_stray_files_that_are_not_parquet_are_not_read_and_parts_respect_the_size_limit(store, monkeypatch) -> None:
+    stray = store.path / "part-000098-cafebabe.parquet"
+    stray.write_bytes(b"x" * 5000)
+    (problem,) = store.verify().problems
+    assert problem.part == stray.name and "do not start and end like a Parquet file" in problem.detail
+    stray.unlink()
+    # a writer never makes a part its readers would refuse: a batch over the limit is split
+    monkeypatch.setenv("INVPHYS_MAX_PART_BYTES", "9000")
+    limited = store.path.parent / "limited"
+    generate_dataset(limited, {"type": SIM, "substeps": 1}, n=N, batch_size=N, seed=1, progress=False)
+    parts = DatasetStore(limited).parts()
+    assert len(parts) > 1 and all(p.stat().st_size <= 9000 for p in parts)
+    assert DatasetStore(limited).verify().ok and len(DatasetStore(limited).frame()) == N
+    monkeypatch.setenv("INVPHYS_MAX_PART_BYTES", "1000")
+    (problem, *_) = DatasetStore(limited).verify().problems
+    assert problem.kind == "corrupt" and "INVPHYS_MAX_PART_BYTES" in problem.detail

@@ -30,7 +30,7 @@ import hashlib
 import json
 import os
 import re
-import shutil
+import stat
 import uuid
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field
@@ -52,6 +52,9 @@ QUARANTINE_DIR = "_quarantine"
 LOCK_FILE = ".lock"
 #: largest ``_metadata.json`` / ``_manifest.json`` read (bytes)
 MAX_JSON_BYTES = 64 << 20
+#: largest Parquet part written or read (bytes); ``INVPHYS_MAX_PART_BYTES`` overrides it. A part holds one
+#: flushed batch (a few MB at most in practice); a larger file is refused before it is read
+MAX_PART_BYTES = 1 << 30
 #: Parquet schema-metadata key holding the store's provenance in each part
 SCHEMA_KEY = b"invphys"
 KEY_DECIMALS = 10
@@ -63,6 +66,22 @@ MAX_REASON_CHARS = 500
 
 class DatasetError(InvphysError):
     """A dataset path is missing, unreadable, locked, or incompatible with the requested simulator."""
+
+
+class StoreNotWritableError(DatasetError):
+    """A store that must change (repair, append) is read-only or cannot be written; nothing was changed."""
+
+
+class UnsafeStoreError(DatasetError):
+    """A store's layout would make a change leave the store (a symbolic-link ``_quarantine``); refused."""
+
+
+def max_part_bytes() -> int:
+    """The part size limit in force (:data:`MAX_PART_BYTES` or ``INVPHYS_MAX_PART_BYTES``)."""
+    try:
+        return max(1, int(os.environ.get("INVPHYS_MAX_PART_BYTES", MAX_PART_BYTES)))
+    except ValueError:
+        return MAX_PART_BYTES
 
 
 @dataclass(frozen=True)
@@ -367,16 +386,21 @@ class DatasetStore:
         if not self.exists and self.path.is_dir() and any(not p.name.startswith(".") for p in self.path.iterdir()):
             raise DatasetError(f"{str(self.path)!r} exists and is not an invphys dataset; "
                                "choose an empty or new directory")
-        self.path.mkdir(parents=True, exist_ok=True)
         lock = FileLock(str(self.path / LOCK_FILE))
         try:
+            self.path.mkdir(parents=True, exist_ok=True)
             lock.acquire(timeout=0)
         except Timeout:
             raise DatasetError(f"another process is writing to {str(self.path)!r}") from None
+        except OSError as exc:
+            raise StoreNotWritableError(_not_writable(self.path, exc)) from None
         self._lock = lock
         try:
-            for tmp in [*self.path.glob(".part-*.tmp"), *self.path.glob(".*.json.*.tmp")]:
-                tmp.unlink(missing_ok=True)  # left by a killed writer; never visible to readers
+            try:
+                for tmp in [*self.path.glob(".part-*.tmp"), *self.path.glob(".*.json.*.tmp")]:
+                    tmp.unlink(missing_ok=True)  # left by a killed writer; never visible to readers
+            except OSError as exc:
+                raise StoreNotWritableError(_not_writable(self.path, exc)) from None
             yield self
         finally:
             self._lock, self._keys = None, None
@@ -403,9 +427,6 @@ class DatasetStore:
             return None
         if self._lock is None:
             raise DatasetError("DatasetStore.append needs the write lock: use `with store.writer():`")
-        import pyarrow as pa
-        import pyarrow.parquet as pq
-
         if self._keys is None:
             self._recover()
         assert self._keys is not None
@@ -414,6 +435,15 @@ class DatasetStore:
             raise DatasetError(f"refusing to store a row key twice in {str(self.path)!r}")
         meta = self.metadata
         table = rows_to_table(rows, tuple(meta["param_names"]), tuple(meta["feature_names"]))
+        return self._append_table(table, meta)
+
+    def _append_table(self, table: Any, meta: dict[str, Any]) -> Path:
+        """Write ``table`` as one part (two or more when it would exceed :func:`max_part_bytes`, so
+        that readers never refuse a part this store wrote) and record it in the manifest."""
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        assert self._keys is not None
         manifest = self.manifest or {"parts": []}
         seq = 1 + max((int(p["name"].split("-")[1]) for p in manifest["parts"]), default=-1)
         name = f"part-{seq:06d}-{uuid.uuid4().hex[:8]}.parquet"
@@ -421,10 +451,15 @@ class DatasetStore:
         sink = pa.BufferOutputStream()
         pq.write_table(table, sink, compression="zstd")
         data = sink.getvalue().to_pybytes()
+        if len(data) > max_part_bytes() and table.num_rows > 1:
+            half = table.num_rows // 2
+            self._append_table(table.slice(0, half), meta)
+            return self._append_table(table.slice(half), meta)
         atomic_write_bytes(self.path / name, data, tmp_name=f".{name}.tmp")
-        entry = {"name": name, "rows": len(rows), "bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+        entry = {"name": name, "rows": table.num_rows, "bytes": len(data),
+                 "sha256": hashlib.sha256(data).hexdigest()}
         self._write_manifest([*manifest["parts"], entry])
-        self._keys.update(keys)
+        self._keys.update(table.column("key").to_pylist())
         return self.path / name
 
     def content_fingerprint(self, first_ok: int | None = None) -> str:
@@ -469,6 +504,8 @@ class DatasetStore:
         import pyarrow.parquet as pq
 
         try:
+            if not stat.S_ISREG(os.lstat(self.path / name).st_mode):
+                raise OSError("not a regular file")
             status = pq.read_table(self.path / name, columns=["status"], use_threads=False,
                                    pre_buffer=False).column("status")
         except Exception as exc:  # missing or corrupt: the reader names it (and how to repair it)
@@ -485,8 +522,18 @@ class DatasetStore:
                             has_manifest=scan.has_manifest)
 
     def repair(self) -> VerifyReport:
-        """Move missing/corrupt/foreign/duplicate parts' files to ``_quarantine/``, adopt good unlisted
-        parts, and rewrite the manifest from what remains. Returns the report, with ``actions``."""
+        """Move corrupt/foreign/duplicate parts' files to ``_quarantine/``, drop missing ones from the
+        manifest, adopt good unlisted parts, and rewrite the manifest from what remains. Returns the
+        report, with ``actions``.
+
+        Files move only by renaming inside the store directory: a ``_quarantine`` that is a symbolic
+        link (or not a directory) raises :class:`UnsafeStoreError`, a store that cannot be written
+        :class:`StoreNotWritableError`; either before anything changed. A symbolic-link part is moved
+        as the link itself, never its target."""
+        qdir = self.path / QUARANTINE_DIR
+        _check_quarantine(qdir)
+        if not self.exists:
+            _ = self.metadata  # raises the reader's message (no store, or a file); nothing is created
         with self.writer():
             actions: list[str] = []
             try:
@@ -496,23 +543,23 @@ class DatasetStore:
                     raise
                 scan = self._scan(use_manifest=False)  # a malformed manifest: rebuilt from the parts
                 actions.append("replaced the malformed manifest")
-            qdir = self.path / QUARANTINE_DIR
-            for problem in scan.problems:
-                if problem.kind == "missing":
-                    actions.append(f"dropped {problem.part} from the manifest (file missing)")
-                elif problem.kind == "unlisted":
-                    actions.append(f"adopted {problem.part} into the manifest")
-                else:
-                    qdir.mkdir(exist_ok=True)
-                    target = qdir / problem.part
-                    if target.exists():
-                        target = qdir / f"{problem.part}.{uuid.uuid4().hex[:6]}"
-                    shutil.move(str(self.path / problem.part), str(target))
-                    actions.append(f"moved {problem.part} ({problem.kind}) to {QUARANTINE_DIR}/")
-            if scan.problems or not scan.has_manifest:
+            if not scan.problems and scan.has_manifest and not actions:
+                return self.verify()
+            _probe_writable(self.path)
+            try:
+                for problem in scan.problems:
+                    if problem.kind == "missing":
+                        actions.append(f"dropped {problem.part} from the manifest (file missing)")
+                    elif problem.kind == "unlisted":
+                        actions.append(f"adopted {problem.part} into the manifest")
+                    else:
+                        _quarantine(self.path, qdir, problem.part)
+                        actions.append(f"moved {problem.part} ({problem.kind}) to {QUARANTINE_DIR}/")
                 self._write_manifest([_entry(p) for p in scan.parts])
-                if not scan.has_manifest and not actions:
-                    actions.append("wrote a manifest")
+            except OSError as exc:
+                raise StoreNotWritableError(_not_writable(self.path, exc, actions)) from None
+            if not scan.has_manifest and not actions:
+                actions.append("wrote a manifest")
             report = self.verify()
             report.actions = actions
             return report
@@ -530,11 +577,10 @@ class DatasetStore:
         sha_of: dict[str, str] = {}
 
         def load(name: str, expect: dict[str, Any] | None) -> _Part | None:
-            path = files[name]
-            if not path.is_file():
-                problems.append(PartProblem(name, "corrupt", "not a regular file"))
+            data, why = _read_part(files[name], expect)
+            if data is None:
+                problems.append(PartProblem(name, "corrupt", why, expect["rows"] if expect else None))
                 return None
-            data = path.read_bytes()
             digest = hashlib.sha256(data).hexdigest()
             if expect is not None and (digest != expect["sha256"] or len(data) != expect.get("bytes", len(data))):
                 problems.append(PartProblem(name, "corrupt", f"{len(data)} bytes that differ from the "
@@ -548,9 +594,9 @@ class DatasetStore:
             except Exception as exc:
                 problems.append(PartProblem(name, "corrupt", f"not readable as Parquet: {_short(exc)}"))
                 return None
-            why = _foreign(table, meta, schema)
-            if why:
-                problems.append(PartProblem(name, "foreign", why, table.num_rows))
+            alien = _foreign(table, meta, schema)
+            if alien:
+                problems.append(PartProblem(name, "foreign", alien, table.num_rows))
                 return None
             table = table.select(schema.names).cast(schema)
             keys = table.column("key").to_pylist()
@@ -589,7 +635,7 @@ class DatasetStore:
         """The Parquet part files present, in write order (listed or not)."""
         if not self.path.is_dir():
             return []
-        return sorted(p for p in self.path.glob("part-*.parquet") if p.is_file())
+        return sorted(p for p in self.path.glob("part-*.parquet") if p.is_file() and not p.is_symlink())
 
     def _table(self) -> Any:
         """Every stored row as one Arrow table, after checking the store (refuses any problem but an
@@ -708,6 +754,96 @@ _PART_RE = re.compile(r"^part-[0-9]{6}-[0-9a-f]{8}\.parquet$")
 
 def _entry(part: _Part) -> dict[str, Any]:
     return {"name": part.name, "rows": int(part.table.num_rows), "bytes": part.nbytes, "sha256": part.sha256}
+
+
+def _read_part(path: Path, expect: dict[str, Any] | None) -> tuple[bytes | None, str]:
+    """The bytes of the part file ``path``, or None and why not; nothing is read whole before its size
+    is checked: against the manifest's ``bytes`` (``expect``), and against :func:`max_part_bytes`. A file
+    the manifest does not list is read only when it starts and ends like a Parquet file. A symbolic link
+    is never followed."""
+    try:
+        st = os.lstat(path)
+    except OSError as exc:
+        return None, f"cannot stat it: {exc.strerror or exc}"
+    if stat.S_ISLNK(st.st_mode):
+        return None, "a symbolic link, not a part file (never followed)"
+    if not stat.S_ISREG(st.st_mode):
+        return None, "not a regular file"
+    size, limit = st.st_size, max_part_bytes()
+    want = expect.get("bytes") if expect is not None else None
+    if isinstance(want, int) and size != want:
+        return None, f"{size:,} bytes where the manifest says {want:,} (truncated or changed; not read)"
+    if size > limit:
+        return None, f"{size:,} bytes, over the {limit:,}-byte part limit (INVPHYS_MAX_PART_BYTES); not read"
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0))
+        with os.fdopen(fd, "rb") as fh:
+            if expect is None and not _parquet_marks(fh, size):
+                return None, f"{size:,} bytes that do not start and end like a Parquet file; not read"
+            data = fh.read(size + 1)  # never more than the size checked above (it may grow meanwhile)
+    except OSError as exc:
+        return None, f"cannot read it: {exc.strerror or exc}"
+    if len(data) != size:
+        return None, f"changed while being read ({size:,} bytes, then {len(data):,})"
+    return data, ""
+
+
+def _parquet_marks(fh: Any, size: int) -> bool:
+    """Whether the open file ``fh`` (of ``size`` bytes) starts and ends with ``PAR1``; rewinds it."""
+    if size < 12:
+        return False
+    head = fh.read(4)
+    fh.seek(size - 4)
+    tail = fh.read(4)
+    fh.seek(0)
+    return bool(head == b"PAR1" and tail == b"PAR1")
+
+
+def _check_quarantine(qdir: Path) -> None:
+    """Refuse a ``_quarantine`` that is a symbolic link or not a directory (moves would leave the store)."""
+    if os.path.islink(qdir):
+        raise UnsafeStoreError(f"{qdir} is a symbolic link; repair moves files only inside the store: "
+                               f"remove the link (or make {QUARANTINE_DIR} a directory) and repair again")
+    if os.path.lexists(qdir) and not os.path.isdir(qdir):
+        raise UnsafeStoreError(f"{qdir} is not a directory; move it away and repair again")
+
+
+def _quarantine(store: Path, qdir: Path, name: str) -> None:
+    """Rename the store's entry ``name`` (a link as the link itself) into ``qdir``, never replacing a file
+    there; both directories are opened without following links, so nothing leaves the store."""
+    if not os.path.lexists(qdir):
+        os.mkdir(qdir)
+    _check_quarantine(qdir)
+    src_fd = os.open(store, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        dst_fd = os.open(qdir, os.O_RDONLY | os.O_DIRECTORY | getattr(os, "O_NOFOLLOW", 0))
+        try:
+            target = name
+            while os.path.lexists(qdir / target):
+                target = f"{name}.{uuid.uuid4().hex[:6]}"
+            os.rename(name, target, src_dir_fd=src_fd, dst_dir_fd=dst_fd)
+        finally:
+            os.close(dst_fd)
+    finally:
+        os.close(src_fd)
+
+
+def _probe_writable(path: Path) -> None:
+    """Raise :class:`StoreNotWritableError` unless a file can be created (and removed) in ``path``."""
+    probe = path / f".part-probe-{uuid.uuid4().hex[:8]}.tmp"  # a writer clears any left behind
+    try:
+        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+        os.unlink(probe)
+    except OSError as exc:
+        raise StoreNotWritableError(_not_writable(path, exc)) from None
+
+
+def _not_writable(path: Path, exc: OSError, done: Sequence[str] = ()) -> str:
+    why = exc.strerror or str(exc)
+    if done:
+        return (f"cannot change the dataset at {str(path)!r}: {why}; done before that: {'; '.join(done)}; "
+                f"`invphys dataset verify {path}` shows where it stands")
+    return f"cannot change the dataset at {str(path)!r}: {why} (is it read-only?); nothing was changed"
 
 
 def _read_json(path: Path) -> Any:
