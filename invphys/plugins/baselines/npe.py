@@ -86,13 +86,7 @@ class NPEBaseline(DatasetBaseline):
             torch.set_num_threads(c.torch_threads)
         try:
             torch.manual_seed(c.seed)
-            d = theta.shape[1]
-            if c.transform == "logit":  # the prior of logit(U(0, 1)) is the standard logistic
-                base = torch.distributions.Uniform(torch.zeros(d), torch.ones(d))
-                prior = torch.distributions.Independent(torch.distributions.TransformedDistribution(
-                    base, [torch.distributions.transforms.SigmoidTransform().inv]), 1)
-            else:
-                prior = sbi.utils.BoxUniform(torch.zeros(d), torch.ones(d))
+            prior = self._prior(theta.shape[1])
             kwargs = {"hidden_features": c.hidden_features}
             if c.estimator != "mdn":
                 kwargs["num_transforms"] = c.num_transforms
@@ -165,28 +159,167 @@ class NPEBaseline(DatasetBaseline):
                                      "uncertainty_penalty": self.config.uncertainty_penalty})
 
     def save(self, directory: str | Path) -> Path:
-        """Pickle the trained posterior and the config under ``directory``."""
-        import torch
-
+        """Write the trained flow as tensors (``npe_weights.npz``) and ``npe.json`` (config, architecture,
+        feature scales, metrics) under ``directory``; nothing is pickled (see :meth:`load`)."""
         d = Path(directory)
         d.mkdir(parents=True, exist_ok=True)
-        torch.save({"posterior": self._posterior, "scales": self._scales, "metrics": self.metrics}, d / "npe.pt")
-        (d / "npe.json").write_text(json.dumps({"config": self.config.model_dump()}, indent=1))
+        est = self._posterior.posterior_estimator
+        arrays = {k: v.detach().cpu().numpy() for k, v in est.state_dict().items()}
+        with open(d / WEIGHTS_FILE, "wb") as fh:  # a handle keeps the name (np.savez appends no ".npz")
+            np.savez(fh, **arrays)  # type: ignore[arg-type]
+        arch = {"estimator": self.config.estimator, "hidden_features": self.config.hidden_features,
+                "num_transforms": self.config.num_transforms, "transform": self.config.transform,
+                "theta_dim": int(est.input_shape[0]), "x_dim": int(est.condition_shape[0]),
+                "sbi_version": _sbi_version()}
+        meta = {"format": SAVE_FORMAT, "config": self.config.model_dump(), "architecture": arch,
+                "scales": None if self._scales is None else np.asarray(self._scales, np.float64).tolist(),
+                "metrics": self.metrics}
+        (d / CONFIG_FILE).write_text(json.dumps(meta, indent=1))
+        legacy = d / LEGACY_FILE
+        if legacy.exists():  # a re-save over an older (pickled) save
+            legacy.unlink()
         return d
 
     @classmethod
     def load(cls, directory: str | Path) -> NPEBaseline:
+        """Rebuild a posterior saved by :meth:`save`: the network from code (sbi's builder, the saved
+        architecture), its weights from ``npe_weights.npz`` (``allow_pickle=False``, strict shapes), the
+        prior from the config. Nothing is unpickled; an older pickled save is refused."""
+        d = Path(directory)
+        if not (d / CONFIG_FILE).is_file():
+            raise InvphysError(f"no saved npe baseline in {d}")
+        meta = _read_json(d / CONFIG_FILE)
+        if not (d / WEIGHTS_FILE).is_file():
+            if (d / LEGACY_FILE).is_file():
+                raise LegacyPickleError(d / LEGACY_FILE)
+            raise InvphysError(f"no saved npe baseline in {d} (no {WEIGHTS_FILE})")
+        try:
+            plugin = cls(meta["config"])
+            arch = meta["architecture"]
+            dims = int(arch["theta_dim"]), int(arch["x_dim"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InvphysError(f"{d / CONFIG_FILE}: not an npe save this invphys reads ({exc})") from None
+        state = read_weights(d / WEIGHTS_FILE)
+        plugin._posterior = plugin._rebuild(*dims, state, d / WEIGHTS_FILE)
+        scales = meta.get("scales")
+        plugin._scales = None if scales is None else np.asarray(scales, dtype=np.float64)
+        plugin.metrics = dict(meta.get("metrics") or {})
+        plugin.fitted = True
+        return plugin
+
+    def _rebuild(self, theta_dim: int, x_dim: int, state: dict[str, np.ndarray], where: Path) -> Any:
+        """The posterior of a saved flow: sbi's builder on dummy data of the saved shapes, the saved
+        weights loaded strictly, and the prior the estimator was trained with."""
+        import torch
+
+        sbi = self._imports()
+        c = self.config
+        kwargs = {"hidden_features": c.hidden_features}
+        if c.estimator != "mdn":
+            kwargs["num_transforms"] = c.num_transforms
+        gen = torch.Generator().manual_seed(0)  # dummy data for the builder; its z-scores are overwritten
+        dummy_theta = torch.randn(64, theta_dim, generator=gen)
+        dummy_x = torch.randn(64, x_dim, generator=gen)
+        rng_state = torch.get_rng_state()  # building draws permutations and prior samples: keep the caller's RNG
+        try:
+            est = sbi.neural_nets.posterior_nn(model=c.estimator, **kwargs)(dummy_theta, dummy_x)
+            check_state(est.state_dict(), state, where)
+            est.load_state_dict({k: torch.from_numpy(np.array(v)) for k, v in state.items()}, strict=True)
+            est.eval()
+            with warnings.catch_warnings():  # the logistic prior's moments are estimated (for MAP only)
+                warnings.filterwarnings("ignore", message=".*no mean or stddev attribute.*")
+                return sbi.inference.posteriors.DirectPosterior(posterior_estimator=est,
+                                                                prior=self._prior(theta_dim))
+        finally:
+            torch.set_rng_state(rng_state)
+
+    def _prior(self, d: int) -> Any:
+        """The prior of the trained variable: U(0, 1)^d, or its logit (the standard logistic) for ``logit``."""
+        import torch
+
+        if self.config.transform == "logit":
+            base = torch.distributions.Uniform(torch.zeros(d), torch.ones(d))
+            return torch.distributions.Independent(torch.distributions.TransformedDistribution(
+                base, [torch.distributions.transforms.SigmoidTransform().inv]), 1)
+        return self._imports().utils.BoxUniform(torch.zeros(d), torch.ones(d))
+
+    @classmethod
+    def load_legacy_pickle(cls, directory: str | Path) -> NPEBaseline:
+        """Load an older save (``npe.pt``, a pickled sbi posterior). RUNS CODE stored in the file: only
+        for files you trust (``invphys export --upgrade ... --trust-pickles`` calls this once and writes
+        the tensor format)."""
         import torch
 
         d = Path(directory)
-        if not (d / "npe.pt").is_file():
-            raise InvphysError(f"no saved npe baseline in {d}")
         cls._imports()
-        blob = torch.load(d / "npe.pt", weights_only=False)
-        plugin = cls(json.loads((d / "npe.json").read_text())["config"])
+        blob = torch.load(d / LEGACY_FILE, weights_only=False)
+        plugin = cls(_read_json(d / CONFIG_FILE)["config"])
         plugin._posterior, plugin._scales, plugin.metrics = blob["posterior"], blob["scales"], blob["metrics"]
         plugin.fitted = True
         return plugin
+
+
+WEIGHTS_FILE = "npe_weights.npz"
+CONFIG_FILE = "npe.json"
+LEGACY_FILE = "npe.pt"
+#: 2: weights as tensors + architecture (no pickle); 1 (no "format" key): a pickled posterior in npe.pt
+SAVE_FORMAT = 2
+
+
+class LegacyPickleError(InvphysError):
+    """A saved part in an older format that only unpickling (running code from the file) could load."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        super().__init__(f"{path} is a pickled object from an older invphys; loading it would run code stored "
+                         f"in the file, so it is refused")
+
+
+def _sbi_version() -> str:
+    from importlib import metadata
+
+    try:
+        return metadata.version("sbi")
+    except metadata.PackageNotFoundError:
+        return ""
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise InvphysError(f"{path}: not readable JSON ({type(exc).__name__})") from None
+
+
+def read_weights(path: Path) -> dict[str, np.ndarray]:
+    """Every array of a weights ``.npz`` (``allow_pickle=False``); anything else is an InvphysError
+    naming the file (a pickle, an object array, a damaged archive)."""
+    import zipfile
+
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if not hasattr(data, "files"):
+                raise ValueError("a single array, not an .npz archive")
+            return {k: data[k] for k in data.files}
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile, KeyError) as exc:
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise InvphysError(f"{path}: not a weights archive invphys loads without running code ({reason})") from None
+
+
+def check_state(expected: dict[str, Any], saved: dict[str, np.ndarray], where: Path) -> None:
+    """Refuse saved weights whose names or shapes differ from the rebuilt network's (one line, naming
+    the first differing tensor)."""
+    missing = [k for k in expected if k not in saved]
+    extra = [k for k in saved if k not in expected]
+    if missing or extra:
+        what = f"lacks {missing[0]}" if missing else f"has an unexpected tensor {extra[0]}"
+        raise InvphysError(f"{where}: the weights do not fit the saved architecture ({what})")
+    for k, t in expected.items():
+        if tuple(t.shape) != tuple(saved[k].shape):
+            raise InvphysError(f"{where}: the weights do not fit the saved architecture ({k} has shape "
+                               f"{tuple(saved[k].shape)}, the network needs {tuple(t.shape)})")
+        if saved[k].dtype.kind not in "fiub":
+            raise InvphysError(f"{where}: tensor {k} has dtype {saved[k].dtype}, not numbers")
 
 
 class _NoTracker:
