@@ -323,3 +323,21 @@ def test_stray_files_that_are_not_parquet_are_not_read_and_parts_respect_the_siz
     monkeypatch.setenv("INVPHYS_MAX_PART_BYTES", "1000")
     (problem, *_) = DatasetStore(limited).verify().problems
     assert problem.kind == "corrupt" and "INVPHYS_MAX_PART_BYTES" in problem.detail
+
+
+def test_entries_that_are_not_parts_are_reported_never_read_nor_moved(store) -> None:
+    """What another program wrote into the store (a run directory, notes) breaks pandas.read_parquet(DIR):
+    verify says so; invphys's own readers are unaffected and repair moves none of it."""
+    (store.path / "run").mkdir()
+    (store.path / "run" / "summary.json").write_text("{}")
+    (store.path / "notes.txt").write_text("mine")
+    with pytest.raises(Exception):
+        pd.read_parquet(store.path)
+    report = store.verify()
+    assert not report.ok and sorted((p.part, p.kind) for p in report.problems) == [("notes.txt", "stray"),
+                                                                                   ("run", "stray")]
+    assert len(store.frame()) == N  # invphys readers read parts only
+    repaired = store.repair()
+    assert not repaired.ok and all("left" in a for a in repaired.actions) and len(repaired.actions) == 2
+    assert (store.path / "notes.txt").read_text() == "mine" and (store.path / "run" / "summary.json").is_file()
+    assert not (store.path / "_quarantine").exists()

@@ -225,8 +225,10 @@ class PartProblem:
 
     ``kind`` is ``missing`` (listed, absent), ``corrupt`` (unreadable, or bytes differ from the
     manifest), ``foreign`` (another store's or another program's rows), ``duplicate`` (rows already
-    stored by another part) or ``unlisted`` (a good part the manifest does not name: a writer killed
-    between writing it and recording it).
+    stored by another part), ``unlisted`` (a good part the manifest does not name: a writer killed
+    between writing it and recording it) or ``stray`` (an entry that is no part, such as a directory
+    another program wrote into the store: never read, never moved; readers through invphys ignore it,
+    other Parquet readers would not).
     """
 
     part: str
@@ -410,7 +412,7 @@ class DatasetStore:
         """Under the lock: adopt good unlisted parts (a killed writer's), build a missing manifest,
         refuse any other problem; load the stored keys."""
         scan = self._scan()
-        bad = [p for p in scan.problems if p.kind != "unlisted"]
+        bad = [p for p in scan.problems if p.kind not in _HARMLESS]
         if bad:
             raise DatasetError(_problems_message(self.path, bad))
         if scan.problems or not scan.has_manifest:
@@ -552,6 +554,8 @@ class DatasetStore:
                         actions.append(f"dropped {problem.part} from the manifest (file missing)")
                     elif problem.kind == "unlisted":
                         actions.append(f"adopted {problem.part} into the manifest")
+                    elif problem.kind == "stray":
+                        actions.append(f"left {problem.part} in place (not the store's to move: move it out)")
                     else:
                         _quarantine(self.path, qdir, problem.part)
                         actions.append(f"moved {problem.part} ({problem.kind}) to {QUARANTINE_DIR}/")
@@ -628,6 +632,8 @@ class DatasetStore:
             if manifest is not None:
                 problems.append(PartProblem(name, "unlisted", "a good part the manifest does not name",
                                             part.table.num_rows))
+        problems += [PartProblem(name, "stray", "not part of the store; pandas.read_parquet(DIR) and pyarrow.dataset "
+                                 "would try to read it: move it out of the store") for name in _strays(self.path, files)]
         return _Scan(parts=good, problems=problems, has_manifest=manifest is not None, schema=schema)
 
     # -- reading -------------------------------------------------------------------------------
@@ -641,7 +647,7 @@ class DatasetStore:
         """Every stored row as one Arrow table, after checking the store (refuses any problem but an
         unlisted good part, whose rows are not read)."""
         scan = self._scan()
-        bad = [p for p in scan.problems if p.kind != "unlisted"]
+        bad = [p for p in scan.problems if p.kind not in _HARMLESS]
         if bad:
             raise DatasetError(_problems_message(self.path, bad))
         parts = [p.table for p in scan.parts if p.name not in {q.part for q in scan.problems}]
@@ -750,6 +756,14 @@ class _Scan:
 
 
 _PART_RE = re.compile(r"^part-[0-9]{6}-[0-9a-f]{8}\.parquet$")
+#: problems that readers through invphys tolerate (they read neither): verify and repair report them
+_HARMLESS = ("unlisted", "stray")
+
+
+def _strays(path: Path, parts: Any) -> list[str]:
+    """Entries of the store directory that are neither parts nor hidden (``.``/``_``): other readers
+    (pandas, pyarrow.dataset) would read them; listed by name only, never opened."""
+    return sorted(n for n in os.listdir(path) if not n.startswith((".", "_")) and n not in parts)
 
 
 def _entry(part: _Part) -> dict[str, Any]:
