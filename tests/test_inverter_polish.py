@@ -10,6 +10,8 @@ import pytest
 from test_inverter_support import toy_run
 from typer.testing import CliRunner
 
+from invphys.core.errors import InvphysError
+
 
 @pytest.fixture(scope="module")
 def bundle(tmp_path_factory):
@@ -109,13 +111,62 @@ def test_the_log_replays_a_polish(inv, sim_rows, tmp_path) -> None:
     assert sim_rows[0] == 24 and more[0].polish["call"]["replayed_runs"] == 48
     assert all(m.r_actual >= a.r_actual for m, a in zip(more, first, strict=True))
     sim_rows[0] = 0
-    inv.polish(copy.deepcopy(base), budget=16, log=log, batch_size=5, sigma0=0.02)  # other settings: afresh
-    assert sim_rows[0] == 48
+    kept = log.read_bytes()
+    with pytest.raises(InvphysError, match="made for another bundle, target set or polish settings"):
+        inv.polish(copy.deepcopy(base), budget=16, log=log, batch_size=5, sigma0=0.02)  # other settings: refused
+    assert log.read_bytes() == kept and sim_rows[0] == 0  # refused before the polish simulated anything
+    inv.polish(copy.deepcopy(base), budget=16, log=tmp_path / "other.npz", batch_size=5, sigma0=0.02)  # afresh
+    assert sim_rows[0] == 48 and log.read_bytes() == kept
+
+
+def test_the_log_never_overwrites_a_file_that_is_not_a_polish_log(inv, sim_rows, tmp_path) -> None:
+    """A user's CSV named as the log is refused and kept byte for byte (it became an npz before); so is a
+    truncated log (its batches cost simulator time: it is not silently replaced)."""
+    _, y = inv.bundle.data("test")
+    base = inv.validate(inv.invert_many(y[:2]))
+    sim_rows[0] = 0
+    mine = tmp_path / "targets.csv"
+    mine.write_text("a,b\n1,2\n")
+    with pytest.raises(InvphysError, match="not a polish log written by invphys; refusing to overwrite it"):
+        inv.polish(copy.deepcopy(base), budget=8, log=mine)
+    assert mine.read_text() == "a,b\n1,2\n" and sim_rows[0] == 0
+    log = tmp_path / "polish.npz"
+    inv.polish(copy.deepcopy(base), budget=8, log=log)
+    good = log.read_bytes()
+    log.write_bytes(good[: len(good) // 2])
+    with pytest.raises(InvphysError, match="polish log .*polish.npz.*truncated or corrupt"):
+        inv.polish(copy.deepcopy(base), budget=8, log=log)
+    assert log.read_bytes() == good[: len(good) // 2]
+
+
+def test_check_polish_log_refuses_bad_places_before_anything_runs(tmp_path) -> None:
+    import os
+
+    from invphys.plugins.evaluators.polish import BatchLog, check_polish_log
+
+    (tmp_path / "file").write_text("x")
+    for path, needle in ((tmp_path / "file" / "p.npz", "is a file, not a directory"),
+                         (tmp_path / "file" / "deeper" / "p.npz", "is a file, not a directory"),
+                         (tmp_path, "it is a directory"),
+                         (tmp_path / "file", "not a polish log written by invphys")):
+        with pytest.raises(InvphysError, match=needle):
+            check_polish_log(path)
+    assert check_polish_log(tmp_path / "new" / "dir" / "p.npz") == [] and not (tmp_path / "new").exists()
+    os.symlink(tmp_path / "file", tmp_path / "link.npz")
+    with pytest.raises(InvphysError, match="symbolic link"):
+        check_polish_log(tmp_path / "link.npz")
+    os.mkfifo(tmp_path / "fifo.npz")
+    with pytest.raises(InvphysError, match="not a regular file"):
+        check_polish_log(tmp_path / "fifo.npz")
+    if os.geteuid() != 0:  # root writes anywhere
+        ro = tmp_path / "ro"
+        ro.mkdir()
+        ro.chmod(0o500)
+        with pytest.raises(InvphysError, match="cannot write in"):
+            check_polish_log(ro / "p.npz")
 
 
 def test_bad_settings_raise(inv) -> None:
-    from invphys.core.errors import InvphysError
-
     res = inv.evaluate(theta=[0.5, 0.5, 0.5], target=inv.bundle.data("test")[1][0])
     for kw, msg in (({"budget": -1}, "budget"), ({"popsize": 1}, "popsize"), ({"sigma0": 0.0}, "sigma0"),
                     ({"below": 0.0}, "below"), ({"below": 1.5}, "below")):

@@ -37,12 +37,14 @@ def _simulator(name: str | None, header: dict[str, Any]) -> Any:
     from invphys.cli.simulate import default_simulator
 
     recorded = header.get("simulator") or {}
+    if not isinstance(recorded, dict) or not isinstance(recorded.get("simulator"), str):
+        recorded = {}  # a header that records no usable simulator: as an older file's
     if not name and recorded.get("simulator") and recorded["simulator"] not in registry.names("simulator"):
         return None
     name = name or recorded.get("simulator") or default_simulator(None)
     block: dict[str, Any] = {"type": name}
-    if recorded.get("simulator") == name:
-        block.update(recorded.get("config") or {})
+    if recorded.get("simulator") == name and isinstance(recorded.get("config"), dict):
+        block.update(recorded["config"])
     try:
         return registry.create("simulator", block)
     except ValidationError:  # the recorded config no longer fits this version: defaults still draw
@@ -51,15 +53,17 @@ def _simulator(name: str | None, header: dict[str, Any]) -> Any:
 
 def render_run(source: Path, out: Path, *, simulator: str | None = None, max_frames: int = DEFAULT_MAX_FRAMES,
                animation: str = "gif", options: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Render a run directory (holding ``trajectory.npz``) or a trajectory ``.npz`` into ``out``."""
-    from invphys.core.trajectory_io import load_trajectory, read_header
+    """Render a run directory (holding ``trajectory.npz``) or a trajectory ``.npz`` into ``out``; a
+    missing, truncated or corrupt file is one :class:`InvphysError` line naming it."""
+    from invphys.core.atomic import output_directory
+    from invphys.core.trajectory_io import load_with_header
 
     if animation not in ("gif", "mp4", "none"):
         raise InvphysError(f"--animation must be gif, mp4 or none, not {animation!r}")
     if max_frames < 1:
         raise InvphysError(f"--max-frames must be at least 1, not {max_frames}")
-    traj = load_trajectory(source)
-    header = read_header(source)
+    traj, header = load_with_header(source)
+    out = output_directory(out, "--out")
     sim = _simulator(simulator, header)
     if sim is None:
         from invphys.core.trajectory_plot import render_trajectory

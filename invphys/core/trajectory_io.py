@@ -104,39 +104,50 @@ def save_trajectory(traj: Trajectory, path: str | Path, simulator: dict[str, Any
 
 def read_header(path: str | Path) -> dict[str, Any]:
     """The JSON header of a trajectory file (``{}`` for files older than the format)."""
-    path = _resolve(path)
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            return json.loads(str(data["header"])) if "header" in data.files else {}
-    except (ValueError, OSError) as exc:
-        raise TrajectoryFileError(f"{path} is not a trajectory file: {exc}") from None
+    return load_with_header(path)[1]
 
 
 def load_trajectory(path: str | Path) -> Trajectory:
     """Read a trajectory file (``path`` may be a run directory holding ``trajectory.npz``)."""
+    return load_with_header(path)[0]
+
+
+def load_with_header(path: str | Path, max_bytes: int | None = None) -> tuple[Trajectory, dict[str, Any]]:
+    """The trajectory in a file (or a run directory's ``trajectory.npz``) and its header (``{}`` for older
+    files), read by the bounded reader (:func:`invphys.core.safe_read.load_user_npz`: a regular file of at
+    most ``max_bytes``, default :data:`~invphys.core.safe_read.NPZ_MAX_BYTES`, no pickles). A truncated,
+    corrupt or inconsistent file is a :class:`TrajectoryFileError` naming it."""
+    from invphys.core import safe_read
+
     path = _resolve(path)
     try:
-        with np.load(path, allow_pickle=False) as data:
-            if "header" in data.files:
-                return _load_v1(data, path)
-            return _load_legacy(data)
+        data = safe_read.load_user_npz(path, what="trajectory", max_bytes=max_bytes or safe_read.NPZ_MAX_BYTES)
+    except safe_read.UserFileError as exc:
+        raise TrajectoryFileError(f"{path} is not a trajectory file: {exc.problem}") from None
+    try:
+        if "header" in data:
+            header = safe_read.loads_user_json(str(data["header"]), source="its header")
+            if not isinstance(header, dict):
+                raise TrajectoryFileError(f"{path} is not a trajectory file: its header is not a JSON object")
+            return _load_v1(data, header, path).check(), header
+        return _load_legacy(data).check(), {}
     except TrajectoryFileError:
         raise
-    except (KeyError, ValueError, OSError, TypeError) as exc:
-        raise TrajectoryFileError(f"{path} is not a trajectory file: {exc}") from None
+    except (InvphysError, KeyError, ValueError, TypeError, AttributeError, IndexError) as exc:
+        problem = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise TrajectoryFileError(f"{path} is not a trajectory file: {problem}") from None
 
 
 def _resolve(path: str | Path) -> Path:
     path = Path(path)
     if path.is_dir():
         path = path / TRAJECTORY_FILE
-    if not path.is_file():
+    if not path.exists() and not path.is_symlink():
         raise TrajectoryFileError(f"no trajectory at {path} (expected a run directory or a .npz file)")
     return path
 
 
-def _load_v1(data: Any, path: Path) -> Trajectory:
-    header = json.loads(str(data["header"]))
+def _load_v1(data: dict[str, Any], header: dict[str, Any], path: Path) -> Trajectory:
     if header.get("format") != FORMAT:
         raise TrajectoryFileError(f"{path}: unknown trajectory format {header.get('format')!r}")
     if int(header.get("version", 0)) > FORMAT_VERSION:
@@ -147,18 +158,21 @@ def _load_v1(data: Any, path: Path) -> Trajectory:
               for i, s in enumerate(header["series"])}
     extra: dict[str, Any] = dict(header.get("extra", {}))
     extra.update({name: data[f"extra_{i}"] for i, name in enumerate(header.get("extra_arrays", []))})
-    opt = {k: (data[k] if k in data.files else None) for k in ("frame_indices", "positions", "damage", "labels")}
+    opt = {k: data.get(k) for k in ("frame_indices", "positions", "damage", "labels")}
     return Trajectory(series=series, fields={n: data[f"field_{i}"] for i, n in enumerate(header["fields"])},
                       fps=header.get("fps"), extra=extra, **opt)
 
 
-def _load_legacy(data: Any) -> Trajectory:
+def _load_legacy(data: dict[str, Any]) -> Trajectory:
     """Files older than the format: the orange peel's ``trajio`` and the validate stage's last frames."""
-    if "frame" in data.files:  # one last frame: positions (N, 3), damage (N,)
+    if "frame" in data:  # one last frame: positions (N, 3), damage (N,)
         return Trajectory(positions=data["positions"][None], damage=data["damage"][None], labels=data["labels"],
                           frame_indices=np.array([int(data["frame"])]), fps=float(data["fps"]))
-    extra: dict[str, Any] = json.loads(str(data["extra_json"])) if "extra_json" in data.files else {}
-    for key in data.files:
+    from invphys.core.safe_read import loads_user_json
+
+    extra: dict[str, Any] = dict(loads_user_json(str(data["extra_json"]), source="its extra_json")
+                                 if "extra_json" in data else {})
+    for key in data:
         if key.startswith("extra_") and key != "extra_json":
             extra[key[len("extra_"):]] = data[key]
     return Trajectory(positions=data["positions"], damage=data["damage"], labels=data["labels"],

@@ -12,13 +12,12 @@ File shapes accepted (JSON and YAML alike)::
     {targets: [{id: firm, final_separation: -1.9, ...}]}  # several, with labels
 
 A CSV file has a header of feature names (and optionally an ``id`` column) and one target per row;
-an empty cell is a missing feature.
+an empty cell is a missing feature. Files are read by :mod:`invphys.core.safe_read`: a UTF-8 BOM (as
+spreadsheets save) is accepted; a key or column given twice is refused naming both places.
 """
 
 from __future__ import annotations
 
-import csv
-import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -69,6 +68,8 @@ def _number(value: Any, feature: str, where: str) -> float:
             raise TargetError(f"{where}: {feature} = {value!r} is not a number") from None
     try:
         x = float(value)
+    except OverflowError:
+        raise TargetError(f"{where}: {feature} is an integer too large for a number (at most ~1e308)") from None
     except (TypeError, ValueError):
         raise TargetError(f"{where}: {feature} = {value!r} is not a number") from None
     if not math.isfinite(x):
@@ -139,50 +140,43 @@ def _rows_of(data: Any, source: str) -> list[Any]:
                       f"{{targets: [...]}}; got {type(data).__name__}")
 
 
-def read_target_file(path: str | Path, feature_names: Sequence[str], partial: bool = False) -> UserTargets:
-    """Targets from a JSON, YAML or CSV file (see the module docstring for the shapes)."""
+def read_target_file(path: str | Path, feature_names: Sequence[str], partial: bool = False,
+                     max_bytes: int | None = None) -> UserTargets:
+    """Targets from a JSON, YAML or CSV file (see the module docstring for the shapes), read by the
+    bounded reader :mod:`invphys.core.safe_read` (regular files of at most ``max_bytes``, default
+    :data:`~invphys.core.safe_read.DEFAULT_MAX_BYTES`, YAML :data:`~invphys.core.safe_read.YAML_MAX_BYTES`;
+    a UTF-8 BOM accepted; duplicate keys or columns and integers too large for a float refused)."""
+    from invphys.core import safe_read
+
     p = Path(path)
     suffix = p.suffix.lower()
     if suffix not in FILE_TYPES:
         raise TargetError(f"target file {str(p)!r}: unsupported type {suffix or '(none)'!r}; use "
                           f"{', '.join(FILE_TYPES)}")
-    try:
-        text = p.read_text()
-    except OSError as exc:
-        raise TargetError(f"cannot read target file {str(p)!r}: {exc.strerror or exc}") from None
-    except UnicodeDecodeError:
-        raise TargetError(f"target file {str(p)!r} is not text") from None
     source = p.name
-    if suffix == ".csv":
-        return from_mappings(_csv_rows(text, source), feature_names, partial, source)
-    if suffix == ".json":
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise TargetError(f"{source}: not valid JSON (line {exc.lineno}: {exc.msg})") from None
-    else:
-        import yaml
-
-        try:
-            data = yaml.safe_load(text)
-        except yaml.YAMLError as exc:
-            mark = getattr(exc, "problem_mark", None)
-            where = f" (line {mark.line + 1})" if mark is not None else ""
-            raise TargetError(f"{source}: not valid YAML{where}") from None
+    try:
+        if suffix == ".csv":
+            table = safe_read.read_user_csv(p, what="target file", max_bytes=max_bytes or safe_read.DEFAULT_MAX_BYTES)
+            return from_mappings(_csv_rows(table, source), feature_names, partial, source)
+        if suffix == ".json":
+            data = safe_read.load_user_json(p, what="target file", max_bytes=max_bytes or safe_read.DEFAULT_MAX_BYTES)
+        else:
+            data = safe_read.load_user_yaml(p, what="target file", max_bytes=max_bytes or safe_read.YAML_MAX_BYTES)
+    except safe_read.UserFileError as exc:
+        raise TargetError(str(exc)) from None
     return from_mappings(_rows_of(data, source), feature_names, partial, source)
 
 
-def _csv_rows(text: str, source: str) -> list[dict[str, str]]:
-    reader = csv.DictReader(text.splitlines())
-    if not reader.fieldnames:
-        raise TargetError(f"{source}: empty CSV (expected a header of feature names)")
+def _csv_rows(table: Any, source: str) -> list[dict[str, str]]:
+    """The rows of a :class:`~invphys.core.safe_read.CsvTable` as mappings of its header's names."""
     rows = []
-    for n, row in enumerate(reader, start=2):
-        if None in row:
+    width = len(table.header)
+    for row, n in zip(table.rows, table.lines, strict=True):
+        if len(row) > width:
             raise TargetError(f"{source} line {n}: more values than header columns")
-        if any(v is None for v in row.values()):
+        if len(row) < width:
             raise TargetError(f"{source} line {n}: fewer values than header columns")
-        rows.append({k.strip(): v for k, v in row.items()})
+        rows.append(dict(zip(table.header, row, strict=True)))
     return rows
 
 

@@ -20,12 +20,101 @@ from __future__ import annotations
 
 import io
 import json
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from invphys.core.errors import InvphysError
+from invphys.core.safe_read import UserFileError
+
+#: what a polish log says it is (files written before it are recognised by their arrays)
+POLISH_LOG_FORMAT = "invphys.polish_log"
+POLISH_LOG_VERSION = 1
+_LOG_ARRAYS = {"key", "meta", "theta", "y"}
+
+
+def _log_error(path: Path, problem: str) -> UserFileError:
+    return UserFileError("polish log", path, problem)
+
+
+def check_polish_log(path: str | Path, key: str | None = None, replace_other: bool = False) -> list[dict[str, Any]]:
+    """Check, before anything is simulated, that ``path`` can be a polish log; return its logged batches.
+
+    Refused with one :class:`~invphys.core.errors.InvphysError` line naming the file: a directory, a
+    symbolic link, a parent that is a file or not writable, a read-only file, and an existing file that is
+    not a polish log written by invphys (a user's CSV is never overwritten) or is truncated or corrupt.
+    ``key`` (None: not checked yet): a log made for another bundle, target set or settings is refused too,
+    unless ``replace_other`` (a log in invphys's own stage directory), when it counts as empty.
+    """
+    p = Path(path)
+    if p.is_symlink():
+        raise _log_error(p, "it is a symbolic link; name a regular file (e.g. polish.npz)")
+    if p.is_dir():
+        raise _log_error(p, "it is a directory; name a file (e.g. polish.npz)")
+    _check_parent(p)
+    if not p.exists():
+        return []
+    if not os.access(p, os.W_OK):
+        raise _log_error(p, "it is read-only; name another file")
+    batches, logged_key = _read_log(p)
+    if key is None or logged_key == key:
+        return batches
+    if replace_other:
+        return []
+    raise _log_error(p, "it was made for another bundle, target set or polish settings; name another file, "
+                        "or remove this one to polish afresh")
+
+
+def _check_parent(p: Path) -> None:
+    """The nearest existing folder above ``p`` is a folder the log (and its folders) can be written in."""
+    parent = p.absolute().parent
+    while not parent.exists() and not parent.is_symlink() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise _log_error(p, f"{str(parent)!r} is a file, not a directory")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise _log_error(p, f"cannot write in {str(parent)!r} (permission denied)")
+
+
+def _read_log(p: Path) -> tuple[list[dict[str, Any]], str]:
+    """The batches and key of the polish log ``p`` (bounded reader); anything else is refused."""
+    from invphys.core import safe_read
+
+    safe_read.check_regular_file(p, what="polish log", max_bytes=safe_read.NPZ_MAX_BYTES)
+    try:
+        with open(p, "rb") as fh:
+            magic = fh.read(4)
+    except OSError as exc:
+        raise _log_error(p, f"cannot read it: {exc.strerror or exc}") from None
+    if magic != b"PK\x03\x04":  # not even a zip archive: somebody's own file
+        raise _log_error(p, "it exists and is not a polish log written by invphys; refusing to overwrite it "
+                            "(name another file)")
+    z = safe_read.load_user_npz(p, what="polish log")
+    if not _LOG_ARRAYS <= set(z) <= _LOG_ARRAYS | {"format", "version"} or (
+            "format" in z and str(z["format"]) != POLISH_LOG_FORMAT):
+        raise _log_error(p, "it exists and is not a polish log written by invphys; refusing to overwrite it "
+                            "(name another file)")
+    try:
+        if "version" in z and int(z["version"]) > POLISH_LOG_VERSION:
+            raise _log_error(p, f"format version {int(z['version'])} is newer than this invphys reads; upgrade")
+        meta = safe_read.loads_user_json(str(z["meta"]), source="meta")
+        runs = [int(m["runs"]) for m in meta]
+        theta, y = np.asarray(z["theta"], np.float64), np.asarray(z["y"], np.float64)
+        if theta.ndim != 2 or y.ndim != 2 or len(theta) != sum(runs) or len(y) != len(theta) or min(runs, default=1) < 0:
+            raise ValueError("its arrays do not match its batches")
+        cuts = np.cumsum(runs)[:-1]
+        batches = [{"runs": r, "seconds": float(m["seconds"]), "device": str(m["device"]), "theta": t, "y": v}
+                   for r, m, t, v in zip(runs, meta, np.split(theta, cuts), np.split(y, cuts), strict=True)]
+    except UserFileError:
+        raise
+    except (InvphysError, ValueError, TypeError, KeyError) as exc:
+        raise _log_error(p, f"corrupt polish log ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__}); "
+                            "move it away or name another file") from None
+    return batches, str(z["key"])
 
 
 class BatchLog:
@@ -34,40 +123,30 @@ class BatchLog:
     ``evaluator`` is a :class:`~invphys.plugins.evaluators.simulator_loop.SimulatorEvaluator` (or
     anything with ``__call__``, ``wall_time_s`` and ``device``). Batch ``i`` of a run is replayed when
     the logged batch ``i`` has the same points (within ``atol``); the first mismatch drops the rest of
-    the log (the search diverged) and simulates from there. ``key`` names what the log was made for:
-    another key starts an empty log. ``chunk``: a call with more points is simulated and logged in
-    chunks of that many (a stop loses at most one chunk). ``on_batch(runs, replayed)`` is called after
-    each batch (progress bars).
+    the log (the search diverged) and simulates from there. ``key`` names what the log was made for: a
+    log made for another key is refused (:func:`check_polish_log`; with ``replace_other``, e.g. a log
+    in a pipeline stage's own directory, it starts an empty log instead). An existing file that is not
+    a polish log, or a truncated one, is refused and never overwritten; the log is written atomically.
+    ``chunk``: a call with more points is simulated and logged in chunks of that many (a stop loses at
+    most one chunk). ``on_batch(runs, replayed)`` is called after each batch (progress bars).
     """
 
     def __init__(self, path: Path | None, key: str, evaluator: Any,
                  log: Callable[[str], None] | None = None, atol: float = 1e-9, chunk: int | None = None,
-                 on_batch: Callable[[int, bool], None] | None = None) -> None:
+                 on_batch: Callable[[int, bool], None] | None = None, replace_other: bool = False) -> None:
         self.path, self.key, self.evaluator, self.atol, self.chunk = path, key, evaluator, atol, chunk
         self._log = log or (lambda _msg: None)
         self._on_batch = on_batch or (lambda _runs, _replayed: None)
-        self.batches: list[dict[str, Any]] = self._load()
+        self.batches: list[dict[str, Any]] = []
+        if path is not None:
+            self.batches = check_polish_log(path, key, replace_other=replace_other)
+            if replace_other and Path(path).is_file() and not self.batches:
+                self._log(f"{Path(path).name} was made for other settings; polishing afresh")
         self.calls = 0
         self.runs = 0
         self.replayed_runs = 0
         self.seconds = 0.0
         self.device = ""
-
-    def _load(self) -> list[dict[str, Any]]:
-        if self.path is None or not Path(self.path).is_file():
-            return []
-        try:
-            with np.load(self.path) as z:
-                if str(z["key"]) != self.key:
-                    self._log(f"{Path(self.path).name} was made for other settings; polishing afresh")
-                    return []
-                meta = json.loads(str(z["meta"]))
-                cuts = np.cumsum([m["runs"] for m in meta])[:-1]
-                thetas, ys = np.split(z["theta"], cuts), np.split(z["y"], cuts)
-        except (OSError, ValueError, KeyError) as exc:
-            self._log(f"{Path(self.path).name} is unreadable ({exc}); polishing afresh")
-            return []
-        return [{**m, "theta": t, "y": y} for m, t, y in zip(meta, thetas, ys, strict=True)]
 
     def _save(self) -> None:
         if self.path is None:
@@ -76,10 +155,14 @@ class BatchLog:
 
         meta = [{k: b[k] for k in ("runs", "seconds", "device")} for b in self.batches]
         buf = io.BytesIO()
-        np.savez_compressed(buf, key=np.array(self.key), meta=np.array(json.dumps(meta)),
+        np.savez_compressed(buf, format=np.array(POLISH_LOG_FORMAT), version=np.array(POLISH_LOG_VERSION),
+                            key=np.array(self.key), meta=np.array(json.dumps(meta)),
                             theta=np.concatenate([b["theta"] for b in self.batches]),
                             y=np.concatenate([b["y"] for b in self.batches]))
-        atomic_write_bytes(Path(self.path), buf.getvalue())
+        try:
+            atomic_write_bytes(Path(self.path), buf.getvalue())
+        except OSError as exc:
+            raise _log_error(Path(self.path), f"cannot write it: {exc.strerror or exc}") from None
 
     def __call__(self, theta: np.ndarray) -> np.ndarray:
         theta = np.atleast_2d(np.asarray(theta, dtype=np.float64))
@@ -270,7 +353,6 @@ def confirm(pol: Polished, targets: np.ndarray, scales: np.ndarray, evaluate: An
     ``score`` must be the polish's (default R_gt with ``kappa``); targets may hold NaN for features
     that ``score`` ignores. Cost: ``repeats`` x (number of candidates) runs per target.
     """
-    from invphys.core.errors import InvphysError
     from invphys.core.objectives import recovery_reward
 
     if repeats < 1 or candidates < 1:
