@@ -9,7 +9,7 @@ Both modes simulate the same fixed parameter vectors (``--n`` uniform draws in t
     python benchmarks/bench_backends.py parity --preset tiny --n 16 --batch 4 --out benchmarks/results
 
     # GPU speed at the paper preset, each backend in its own process (writes backends_gpu.json)
-    python benchmarks/bench_backends.py gpu --preset paper --n 16 --repeats 3 --out $OUT
+    python benchmarks/bench_backends.py gpu --preset paper --n 16 --repeats 3 --out benchmarks/results
 
 ``gpu`` runs Taichi ``--taichi-repeats`` times and Warp ``--repeats`` times (run-to-run spread), while
 ``--budget-s`` allows; it also times one run alone for 24 frames (Warp with and without CUDA graphs).

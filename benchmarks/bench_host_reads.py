@@ -16,7 +16,7 @@ Also times ``frame_end`` (the statistics of a frame end: a mask upload, a kernel
 equal bit for bit (``same_arrays``); ``frame_end``'s statistics are float sums whose order GPU atomics vary
 between calls, so their largest relative difference is recorded instead.
 
-    python benchmarks/bench_host_reads.py --preset paper --batch 64 --slots 60 --out $OUT/host_reads_paper.json
+    python benchmarks/bench_host_reads.py --preset paper --batch 64 --slots 60 --out benchmarks/results/host_reads_uploads_paper_h100.json
 """
 
 from __future__ import annotations

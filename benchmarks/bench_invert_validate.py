@@ -1,7 +1,7 @@
 """``invphys invert --validate`` against the pipeline's validate path, on the same parameters.
 
     python benchmarks/bench_invert_validate.py --bundle inverters/orange_peel_paper \
-        --targets benchmarks/results/invert_validate_paper_targets.json \
+        --targets benchmarks/data/invert_validate_paper_targets.json \
         --out benchmarks/results/invert_validate_paper_cuda.json
 
 1. runs ``invphys invert BUNDLE --target TARGETS --validate --json`` in a fresh process (what a user runs);

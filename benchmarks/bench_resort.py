@@ -10,7 +10,7 @@ untimed two-run pass), the ratio to the paper's 156 s, the re-sorts done, and th
 with the first setting.
 
     python benchmarks/bench_resort.py --preset paper --runs 128 --batch 64 --every 0 128 32 \\
-        --out $OUT/resort_paper.json
+        --out benchmarks/results/resort_paper_h100.json
 """
 
 from __future__ import annotations

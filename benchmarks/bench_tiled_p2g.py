@@ -14,7 +14,7 @@ parameter vectors (seed 0) of the orange peel at ``--preset``:
    90th percentile and worst relative difference per feature, and of the feature means) of tiled against
    atomic, next to atomic against atomic (GPU float atomics alone make two atomic runs differ).
 
-    python benchmarks/bench_tiled_p2g.py --preset paper --runs 64 --batch 64 --out $OUT/tiled_p2g_paper.json
+    python benchmarks/bench_tiled_p2g.py --preset paper --runs 64 --batch 64 --out benchmarks/results/tiled_p2g_fixed_point_sums_paper_h100.json
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ a random batch (a deformed, fractured state), then launches ``--steps`` substeps
 each one, for every active run, that the box is exactly the nodes its particles' scatter touches (computed on
 the host from the positions) and that no node outside it holds anything.
 
-    python benchmarks/check_grid_box.py --preset paper --batch 16 --frames 60 --out $OUT/grid_box_paper.json
+    python benchmarks/check_grid_box.py --preset paper --batch 16 --frames 60 --out grid_box_paper.json
 """
 
 from __future__ import annotations

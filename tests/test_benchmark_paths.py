@@ -1,7 +1,5 @@
-"""Device comparisons run an older engine beside this tree's by listing its copy first on PYTHONPATH
-(``benchmarks/device/old_vs_new.sh``, ``variants.sh``): a benchmark must not put this tree's packages in front of
-it. Until stop 39 ``bench_host_share.py`` and ``bench_continuous_gpu.py`` did, and their old/new pairs compared
-the new code with itself (``docs/gpu-throughput.md``)."""
+"""Comparing an older engine with this tree's means listing the older copy first on PYTHONPATH: a benchmark
+must not put this tree's packages in front of it, or an old/new pair compares the new code with itself."""
 
 from __future__ import annotations
 
@@ -21,8 +19,7 @@ def test_no_benchmark_prepends_the_tree_unconditionally():
     assert offenders == []
 
 
-@pytest.mark.parametrize("script", ["bench_host_share.py", "bench_continuous_gpu.py", "bench_kernel_forms.py",
-                                    "bench_active_runs.py"])
+@pytest.mark.parametrize("script", ["bench_continuous_gpu.py", "bench_resort.py", "bench_tiled_p2g.py"])
 def test_an_engine_listed_first_on_pythonpath_is_the_one_imported(tmp_path, script):
     old = tmp_path / "old"
     (old / "invphys_anisompm").mkdir(parents=True)
