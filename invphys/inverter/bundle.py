@@ -3,10 +3,16 @@
 Networks are served by their NumPy inference forms when the bundle has them (no torch import) and
 otherwise by their plugins' own ``load`` through the registry. :meth:`Bundle.check_installation`
 compares the bundle's simulator and features with the installed plugins.
+
+Every part is reached through :meth:`Bundle.part` (a file) or :meth:`Bundle._plugin_load` (a directory):
+the path must stay inside the bundle and every file it holds must be listed (hashed) in the manifest;
+NumPy files are read with ``allow_pickle=False`` and each network's input and output sizes are checked
+on load, so a bad part is one :class:`BundleError` naming it, never a traceback.
 """
 
 from __future__ import annotations
 
+import json
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -16,7 +22,14 @@ import numpy as np
 
 from invphys.core.errors import InvphysError
 from invphys.core.params import Parameter, ParameterSpace
-from invphys.inverter.manifest import BundleError, python_mismatch, read_manifest
+from invphys.inverter.manifest import (
+    UPGRADE_HINT,
+    BundleError,
+    check_covered,
+    part_path,
+    python_mismatch,
+    read_manifest,
+)
 from invphys.inverter.numeric import Program
 
 
@@ -26,7 +39,8 @@ class FastSurrogate:
     def __init__(self, bundle: Bundle) -> None:
         self._bundle = bundle
         rel = bundle.manifest["components"]["surrogate"].get("inference")
-        self._program = Program.load(bundle.root / rel) if rel else None
+        self._program = bundle.program(rel, "the surrogate's NumPy form", bundle.space.dim,
+                                       (None, 1, len(bundle.feature_names))) if rel else None
 
     def members(self, theta: np.ndarray) -> np.ndarray:
         """(K, B, M) member predictions (K = 1 for a single network)."""
@@ -53,8 +67,11 @@ class FastLatent:
         self._bundle, self.label = bundle, label
         self.latent_dim = int(entry["latent_dim"])
         self.latent_bound = float(entry["bound"])
-        self._decoder = Program.load(bundle.root / entry["decoder"]) if entry.get("decoder") else None
-        self._head = Program.load(bundle.root / entry["head"]) if entry.get("head") else None
+        k, what = self.latent_dim, f"latent model {label!r}"
+        self._decoder = bundle.program(entry["decoder"], f"the decoder of {what}", k,
+                                       (1, bundle.space.dim)) if entry.get("decoder") else None
+        self._head = bundle.program(entry["head"], f"the feature head of {what}", k,
+                                    (1, len(bundle.feature_names))) if entry.get("head") else None
 
     def decode(self, z: np.ndarray) -> np.ndarray:
         if self._decoder is not None:
@@ -73,9 +90,9 @@ class FastLatent:
 class Bundle:
     """The contents of an inverter bundle directory (see :mod:`invphys.inverter.writer`)."""
 
-    def __init__(self, root: str | Path, registry: Any = None, verify: bool = True) -> None:
+    def __init__(self, root: str | Path, registry: Any = None, verify: bool = True, allow_legacy: bool = False) -> None:
         self.root = Path(root)
-        self.manifest = read_manifest(self.root, verify=verify)
+        self.manifest = read_manifest(self.root, verify=verify, allow_legacy=allow_legacy)
         self._registry = registry
         self._cache: dict[str, Any] = {}
         m = self.manifest
@@ -96,9 +113,30 @@ class Bundle:
         self.train_max = np.asarray(f.get("train_max", [np.inf] * len(self.feature_names)), dtype=np.float64)
         if len(self.scales) != len(self.feature_names):
             raise BundleError(f"{self.root}: {len(self.scales)} feature scales for {len(self.feature_names)} features")
+        self._check_parts()
         msg = python_mismatch(m.get("system_info") or {})
         if msg:
             warnings.warn(msg, stacklevel=3)
+
+    def _check_parts(self) -> None:
+        """Every part the manifest names (components, inference forms, methods' saves) stays inside the
+        bundle and is listed in ``files``; a latent entry has its sizes."""
+        comps, files = self.manifest["components"], self.manifest["files"]
+        parts = [("components.surrogate." + k, comps["surrogate"].get(k)) for k in ("path", "inference")]
+        for label, entry in (comps.get("latents") or {}).items():
+            if not isinstance(entry, dict) or "latent_dim" not in entry or "bound" not in entry:
+                raise BundleError(f"{self.root / 'manifest.yaml'}: the manifest lacks components.latents.{label}."
+                                  f"latent_dim or .bound")
+            parts += [(f"components.latents.{label}.{k}", entry.get(k)) for k in ("path", "decoder", "head")]
+        for label, entry in self.methods.items():
+            parts += [(f"methods.{label}.{k}", entry.get(k)) for k in ("path", "inference")]
+        for what, rel in parts:
+            if rel is not None:
+                check_covered(self.root, rel, files, what)
+
+    def part(self, rel: str, what: str) -> Path:
+        """The bundle file ``rel`` (inside the bundle and listed in the manifest's files)."""
+        return check_covered(self.root, rel, self.manifest["files"], what)
 
     # -- registry and installation checks ---------------------------------------------------------
     @property
@@ -156,8 +194,25 @@ class Bundle:
 
     # -- components -------------------------------------------------------------------------------
     def _plugin_load(self, kind: str, entry: dict[str, Any]) -> Any:
+        """A component's plugin ``load`` on its directory, after checking that every file there is listed
+        and that no ``.npz`` in it holds pickled objects; an older pickled save is refused with the
+        upgrade command."""
+        from invphys.models.base import LegacyPickleError
+
         cls = self.registry.get(kind, entry["type"])
-        return cls.load(self.root / entry["path"])
+        what = f"{kind} {entry['type']!r}"
+        if not isinstance(entry.get("path"), str):
+            raise BundleError(f"bundle {str(self.root)!r}: {what} has no saved path in the manifest")
+        directory = check_covered(self.root, entry["path"], self.manifest["files"], what)
+        for f in sorted(directory.rglob("*.npz")) if directory.is_dir() else []:
+            self._npz(f.relative_to(self.root).as_posix(), what)
+        try:
+            return cls.load(directory)
+        except LegacyPickleError as exc:
+            rel = Path(exc.path).relative_to(self.root).as_posix() if self.root in Path(exc.path).parents else exc.path
+            raise BundleError(f"bundle {str(self.root)!r} holds {rel}, a pickled part written by an older invphys: "
+                              f"loading it would run code stored in the file, so it is refused; "
+                              + UPGRADE_HINT.format(root=str(self.root))) from None
 
     def surrogate_model(self) -> Any:
         """The surrogate plugin itself (torch), loaded on first use."""
@@ -211,15 +266,64 @@ class Bundle:
         """(theta, y) of the bundle's training or held-out partition."""
         key = f"data:{split}"
         if key not in self._cache:
-            path = self.root / "data" / f"{split}.npz"
-            if not path.is_file():
-                raise BundleError(f"bundle {self.root} has no {split} data ({path.name})")
-            with np.load(path, allow_pickle=False) as d:
-                self._cache[key] = (d["theta"].astype(np.float64), d["y"].astype(np.float64))
+            rel = f"data/{split}.npz"
+            if not part_path(self.root, rel, f"the {split} data").is_file():
+                raise BundleError(f"bundle {self.root} has no {split} data ({split}.npz)")
+            arrays = self._npz(self.part(rel, f"the {split} data").relative_to(self.root).as_posix(),
+                               f"the {split} data")
+            theta, y = arrays.get("theta"), arrays.get("y")
+            d, m = self.space.dim, len(self.feature_names)
+            if theta is None or y is None or theta.ndim != 2 or y.ndim != 2 or theta.shape[1] != d \
+                    or y.shape[1] != m or len(theta) != len(y) or theta.dtype.kind != "f" or y.dtype.kind != "f":
+                raise BundleError(f"bundle {str(self.root)!r}: {rel} does not fit the bundle (needs float arrays "
+                                  f"theta (N, {d}) and y (N, {m}))")
+            self._cache[key] = (theta.astype(np.float64), y.astype(np.float64))
         return self._cache[key]
 
-    def program(self, rel: str) -> Program:
+    def _npz(self, rel: str, what: str) -> dict[str, np.ndarray]:
+        """Every array of the bundle's ``.npz`` file ``rel``, read without pickles (else a BundleError)."""
+        import zipfile
+
+        path = self.part(rel, what)
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                if not hasattr(z, "files"):
+                    raise ValueError("a single array, not an .npz archive")
+                return {k: z[k] for k in z.files}
+        except (ValueError, OSError, EOFError, zipfile.BadZipFile, KeyError) as exc:
+            reason = next((ln.strip() for ln in str(exc).splitlines() if ln.strip()), type(exc).__name__)
+            raise BundleError(f"bundle {str(self.root)!r}: {rel} ({what}) is not a NumPy archive invphys loads "
+                              f"without running code ({reason})") from None
+
+    def program(self, rel: str, what: str = "a NumPy form", n_in: int | None = None,
+                out_shape: tuple[int | None, ...] | None = None) -> Program:
+        """The NumPy program ``rel``; with ``n_in`` it is run once on one row of that width and its output
+        must have ``out_shape`` (None: any size), else a BundleError naming the part."""
         key = f"program:{rel}"
         if key not in self._cache:
-            self._cache[key] = Program.load(self.root / rel)
+            from invphys.inverter.numeric import PROGRAM_KEY
+
+            arrays = self._npz(rel, what)
+            try:
+                ops = json.loads(str(arrays.pop(PROGRAM_KEY)))
+                prog = Program(ops, arrays)
+            except (KeyError, ValueError, TypeError, AttributeError) as exc:
+                raise BundleError(f"bundle {str(self.root)!r}: {rel} ({what}) is not a NumPy program "
+                                  f"({type(exc).__name__})") from None
+            if n_in is not None:
+                self._fits(prog, rel, what, n_in, out_shape)
+            self._cache[key] = prog
         return self._cache[key]
+
+    def _fits(self, prog: Program, rel: str, what: str, n_in: int, out_shape: tuple[int | None, ...] | None) -> None:
+        try:
+            out = np.asarray(prog(np.full((1, n_in), 0.5)))
+        except Exception as exc:  # a program whose arrays do not chain (wrong shapes, missing names, bad ops)
+            reason = next((ln.strip() for ln in str(exc).splitlines() if ln.strip()), type(exc).__name__)
+            raise BundleError(f"bundle {str(self.root)!r}: {rel} ({what}) does not fit the bundle: it cannot "
+                              f"map {n_in} inputs ({reason})") from None
+        if out_shape is not None and (out.ndim != len(out_shape) or any(
+                want is not None and got != want for got, want in zip(out.shape, out_shape, strict=True))):
+            want = tuple("K" if w is None else w for w in out_shape)
+            raise BundleError(f"bundle {str(self.root)!r}: {rel} ({what}) does not fit the bundle: one row of "
+                              f"{n_in} inputs gives shape {out.shape}, the bundle needs {want}")

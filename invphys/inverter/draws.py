@@ -132,3 +132,21 @@ def _one(est: Any, cond: np.ndarray, seed: int, n: int, logit: bool) -> tuple[np
         draws = np.concatenate([draws, extra])
         _LOG.info("posterior draws: %d of %d raw draws inside the box; %d draws clipped", got, raw, clipped)
     return draws, 1.0 - got / max(raw, 1), clipped, raw
+
+
+def log_prob(plugin: Any, draws: np.ndarray, cond: np.ndarray) -> np.ndarray:
+    """The posterior's log-density (K,) of ``draws`` (K, d) in [0, 1]^d given one condition (M,)
+    (up to the truncation's constant, which does not change their order)."""
+    import torch
+
+    est = plugin._posterior.posterior_estimator
+    u = np.asarray(draws, dtype=np.float64)
+    logit = getattr(getattr(plugin, "config", None), "transform", "none") == "logit"
+    z = np.log(np.clip(u, 1e-12, 1)) - np.log1p(-np.clip(u, 0, 1 - 1e-12)) if logit else u
+    x = torch.as_tensor(np.atleast_2d(cond), dtype=torch.float32)
+    with torch.no_grad():
+        lp = est.log_prob(torch.as_tensor(z, dtype=torch.float32)[:, None, :], condition=x)
+    out = lp.numpy().astype(np.float64).reshape(-1)
+    if logit:
+        out = out - np.log(np.clip(u * (1.0 - u), 1e-300, None)).sum(axis=1)
+    return out

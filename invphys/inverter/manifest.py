@@ -4,24 +4,48 @@ Load order (:func:`read_manifest`): the manifest parses -> ``format_version`` (n
 older: named migrations) -> every file listed under ``files`` exists and has its sha256. Unknown keys
 are kept, so a manifest written by a newer minor version still loads. Simulator and feature checks
 against the installed plugins happen in :mod:`invphys.inverter.bundle`.
+
+What loading may touch: only files inside the bundle directory that the manifest lists under ``files``
+(:func:`part_path` refuses ``..``, absolute paths and symlinks that leave the bundle), read as JSON,
+YAML, NumPy ``.npz`` without pickles or torch tensors with ``weights_only=True``. Format 2 holds no
+pickled part; a format-1 bundle that still holds one (:data:`LEGACY_PICKLES`) is refused with the command
+that converts it (:data:`UPGRADE_HINT`).
 """
 
 from __future__ import annotations
 
 import hashlib
+import os
 import platform
+import stat
 import sys
 from collections.abc import Callable
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 from invphys.core.errors import InvphysError
 
 MANIFEST_FILE = "manifest.yaml"
-FORMAT_VERSION = 1
-#: format_version -> function upgrading a manifest dict of that version to the next one
-MIGRATIONS: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {}
+#: 2: no pickled parts (NPE flows and PPO policies as tensors); 1: npe.pt and policy.zip were pickles
+FORMAT_VERSION = 2
 REQUIRED = ("format_version", "parameter_space", "features", "simulator", "components", "methods", "files")
+#: sub-keys every manifest needs (dotted), checked before anything else reads them
+REQUIRED_KEYS = ("parameter_space.names", "parameter_space.low", "parameter_space.high",
+                 "parameter_space.log_scale", "parameter_space.units", "features.names", "features.scales",
+                 "simulator.name", "components.surrogate", "components.surrogate.type", "components.surrogate.path")
+#: parts of format-1 bundles that only unpickling (running code stored in the file) could load
+LEGACY_PICKLES = ("npe.pt", "policy.zip")
+UPGRADE_HINT = ("if you trust where it came from, convert it once (this runs the pickled code): "
+                "invphys export --upgrade {root} --out NEW_DIR --trust-pickles")
+
+
+def _migrate_1(data: dict[str, Any]) -> dict[str, Any]:
+    """1 -> 2: the layout is the same; pickled parts (refused by :func:`legacy_pickles`) need --upgrade."""
+    return {**data, "format_version": 2}
+
+
+#: format_version -> function upgrading a manifest dict of that version to the next one
+MIGRATIONS: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {1: _migrate_1}
 
 
 class BundleError(InvphysError):
@@ -56,9 +80,15 @@ def system_info() -> dict[str, str]:
 
 
 def file_hashes(root: Path) -> dict[str, str]:
-    """sha256 of every file under ``root`` except the manifest, by POSIX relative path."""
-    return {p.relative_to(root).as_posix(): sha256_file(p) for p in sorted(root.rglob("*"))
-            if p.is_file() and p.name != MANIFEST_FILE}
+    """sha256 of every file under ``root`` except the manifest, by POSIX relative path (a symlink or
+    another non-regular file in the bundle is refused: a bundle holds plain files only)."""
+    out: dict[str, str] = {}
+    for p in sorted(root.rglob("*")):
+        if p.is_symlink() or not (p.is_dir() or p.is_file()):
+            raise BundleError(f"{p}: not a plain file or directory; a bundle holds plain files only")
+        if p.is_file() and p.relative_to(root).as_posix() != MANIFEST_FILE:
+            out[p.relative_to(root).as_posix()] = sha256_file(p)
+    return out
 
 
 def write_manifest(root: Path, manifest: dict[str, Any]) -> Path:
@@ -73,10 +103,10 @@ def write_manifest(root: Path, manifest: dict[str, Any]) -> Path:
     return root / MANIFEST_FILE
 
 
-def read_manifest(root: str | Path, verify: bool = True) -> dict[str, Any]:
-    """The manifest of the bundle at ``root``, migrated to :data:`FORMAT_VERSION` and file-checked."""
-    import yaml
-
+def read_manifest(root: str | Path, verify: bool = True, allow_legacy: bool = False) -> dict[str, Any]:
+    """The manifest of the bundle at ``root``, migrated to :data:`FORMAT_VERSION` and checked: required
+    keys, every listed file inside the bundle, no pickled part (unless ``allow_legacy``: the upgrade
+    only), and with ``verify`` every file's sha256."""
     root = Path(root)
     if not root.exists():
         raise BundleError(f"no inverter bundle at {str(root)!r} (no such directory)")
@@ -86,14 +116,9 @@ def read_manifest(root: str | Path, verify: bool = True) -> dict[str, Any]:
     if not path.is_file():
         hint = " (a run directory? its bundle is in inverter/)" if (root / "inverter" / MANIFEST_FILE).is_file() else ""
         raise BundleError(f"{str(root)!r} is not an inverter bundle: it has no {MANIFEST_FILE}{hint}")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise BundleError(f"{path}: the manifest is not valid YAML ({type(exc).__name__})") from None
-    if not isinstance(data, dict):
-        raise BundleError(f"{path}: the manifest is not a mapping")
+    data = _parse(path)
     version = data.get("format_version")
-    if not isinstance(version, int):
+    if not isinstance(version, int) or isinstance(version, bool):
         raise BundleError(f"{path}: no integer format_version; not an invphys inverter bundle")
     if version > FORMAT_VERSION:
         made = data.get("invphys_version", "a newer invphys")
@@ -108,15 +133,110 @@ def read_manifest(root: str | Path, verify: bool = True) -> dict[str, Any]:
     missing = [k for k in REQUIRED if k not in data]
     if missing:
         raise BundleError(f"{path}: the manifest lacks {', '.join(missing)}")
+    check_keys(data, path)
+    files = data["files"]
+    for rel in files:
+        part_path(root, rel, f"files entry {rel!r}")
+    legacy = [rel for rel in files if PurePosixPath(rel).name in LEGACY_PICKLES]
+    if legacy and not allow_legacy:
+        raise BundleError(f"bundle {str(root)!r} holds {legacy[0]}, a pickled part written by an older invphys: "
+                          f"loading it would run code stored in the file, so it is refused; "
+                          + UPGRADE_HINT.format(root=str(root)))
     if verify:
-        for rel, digest in (data.get("files") or {}).items():
+        for rel, digest in files.items():
             f = root / rel
-            if not f.is_file():
+            if not f.exists():
                 raise BundleError(f"bundle {str(root)!r} is missing part {rel}")
+            if not stat.S_ISREG(f.stat().st_mode):
+                raise BundleError(f"bundle {str(root)!r}: {rel} is not a regular file")
             if sha256_file(f) != digest:
                 raise BundleError(f"bundle {str(root)!r}: {rel} has changed since the bundle was written "
                                   f"(sha256 mismatch); re-export the bundle")
     return data
+
+
+def _parse(path: Path) -> dict[str, Any]:
+    """The manifest's YAML as a mapping (safe loader; every failure a BundleError naming the file)."""
+    import yaml
+
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as exc:
+        raise BundleError(f"{path}: the manifest is not valid YAML ({type(exc).__name__})") from None
+    if not isinstance(data, dict):
+        raise BundleError(f"{path}: the manifest is not a mapping")
+    return data
+
+
+def check_keys(data: dict[str, Any], path: Path) -> None:
+    """Refuse a manifest without a required sub-key or with one of the wrong shape, naming the key."""
+    for dotted in REQUIRED_KEYS:
+        node: Any = data
+        for i, key in enumerate(dotted.split(".")):
+            if not isinstance(node, dict):
+                raise BundleError(f"{path}: {'.'.join(dotted.split('.')[:i])} is not a mapping")
+            if key not in node:
+                raise BundleError(f"{path}: the manifest lacks {dotted}")
+            node = node[key]
+    ps = data["parameter_space"]
+    for key in ("names", "low", "high", "log_scale", "units"):
+        if not isinstance(ps[key], list) or len(ps[key]) != len(ps["names"]) or not ps["names"]:
+            raise BundleError(f"{path}: parameter_space.{key} must be a list with one entry per parameter")
+    names = data["features"]["names"]
+    if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
+        raise BundleError(f"{path}: features.names must be a non-empty list of feature names")
+    if not isinstance(data["files"], dict) or not all(isinstance(k, str) and isinstance(v, str)
+                                                       for k, v in data["files"].items()):
+        raise BundleError(f"{path}: files must map relative paths to sha256 digests")
+    if not isinstance(data["methods"], dict):
+        raise BundleError(f"{path}: methods must be a mapping of method labels to entries")
+    for label, entry in data["methods"].items():
+        for key in ("type", "kind", "space"):
+            if not isinstance(entry, dict) or not isinstance(entry.get(key), str):
+                raise BundleError(f"{path}: the manifest lacks methods.{label}.{key}")
+    if not isinstance(data["components"].get("latents") or {}, dict):
+        raise BundleError(f"{path}: components.latents must be a mapping")
+
+
+def part_path(root: Path, rel: Any, what: str) -> Path:
+    """``root / rel`` for a relative POSIX path that stays inside the bundle (no absolute path, no ``..``,
+    no symlink leading out); anything else is a BundleError naming ``what``."""
+    if not isinstance(rel, str) or not rel or "\\" in rel or "\0" in rel:
+        raise BundleError(f"bundle {str(root)!r}: {what} is not a relative path inside the bundle ({rel!r})")
+    pure = PurePosixPath(rel)
+    if pure.is_absolute() or ".." in pure.parts or rel.startswith("~"):
+        raise BundleError(f"bundle {str(root)!r}: {what} = {rel!r} points outside the bundle "
+                          f"(absolute paths and '..' are refused)")
+    full = root / pure
+    base = os.path.realpath(root)
+    if os.path.commonpath([os.path.realpath(full), base]) != base:
+        raise BundleError(f"bundle {str(root)!r}: {what} = {rel!r} leads outside the bundle through a symlink")
+    return full
+
+
+def check_covered(root: Path, rel: str, files: dict[str, str], what: str) -> Path:
+    """The file or directory ``rel`` of the bundle, every file of which is listed (and so hashed) in the
+    manifest's ``files``: a BundleError names an unlisted file or a symlink inside it."""
+    full = part_path(root, rel, what)
+    if full.is_symlink():
+        raise BundleError(f"bundle {str(root)!r}: {what} = {rel!r} is a symlink; a bundle holds plain files only")
+    if full.is_file():
+        if rel not in files and PurePosixPath(rel).as_posix() not in files:
+            raise BundleError(f"bundle {str(root)!r}: {rel} ({what}) is not listed in the manifest's files, "
+                              f"so nothing checks it; refusing to load it")
+        return full
+    if not full.is_dir():
+        raise BundleError(f"bundle {str(root)!r} is missing part {rel} ({what})")
+    for dirpath, dirnames, filenames in os.walk(full):
+        for name in sorted(dirnames + filenames):
+            p = Path(dirpath) / name
+            sub = p.relative_to(root).as_posix()
+            if p.is_symlink():
+                raise BundleError(f"bundle {str(root)!r}: {sub} is a symlink; a bundle holds plain files only")
+            if name in filenames and sub not in files:
+                raise BundleError(f"bundle {str(root)!r}: {sub} is not listed in the manifest's files, so nothing "
+                                  f"checks it; refusing to load {what}")
+    return full
 
 
 def python_mismatch(info: dict[str, Any]) -> str | None:

@@ -48,25 +48,54 @@ class PolicyRunner:
         entry = bundle.methods[label]
         if "rollout" not in entry:
             raise InvphysError(f"method {label!r} of the bundle has no rollout description")
-        r = entry["rollout"]
         self.label, self.bundle = label, bundle
-        self.horizon, self.step_scale = int(r["horizon"]), float(r["step_scale"])
-        self.kappa = float(r.get("kappa", bundle.kappa))
-        sp = r["space"]
-        self.low, self.high, self.dim = float(sp["low"]), float(sp["high"]), int(sp["dim"])
-        self.mean = np.asarray(r["feature_mean"], dtype=np.float64)
-        self.std = np.maximum(np.asarray(r["feature_std"], dtype=np.float64), 1e-12)
-        self.start = np.asarray(r["start"], dtype=np.float64)
-        self.start_features = np.asarray(r["start_features"], dtype=np.float64)
+        self._read_rollout(entry["rollout"])
         self.space_label = entry["space"]
         self.evaluator = entry.get("evaluator", "shared")
         self.space = bundle.search_space(self.space_label)
         if self.space.dim != self.dim:
             raise InvphysError(f"policy {label!r} acts in {self.dim} dimensions, its space {self.space_label!r} "
                                f"has {self.space.dim}")
-        self._program = bundle.program(entry["inference"]) if entry.get("inference") else None
-        self._log_std = None if self._program is None else np.asarray(self._program.arrays["log_std"], np.float64)
+        self._program = None
+        if entry.get("inference"):
+            m = len(bundle.feature_names)
+            self._program = bundle.program(entry["inference"], f"the actor of policy {label!r}",
+                                           self.dim + 2 * m + 2, (1, self.dim))
+        self._log_std = None if self._program is None else self._program_log_std(entry["inference"])
         self._plugin: Any = None
+
+    def _read_rollout(self, r: Any) -> None:
+        """The episode's description from the manifest (a malformed one: one BundleError naming the key)."""
+        from invphys.inverter.manifest import BundleError
+
+        m = len(self.bundle.feature_names)
+        try:
+            self.horizon, self.step_scale = int(r["horizon"]), float(r["step_scale"])
+            self.kappa = float(r.get("kappa", self.bundle.kappa))
+            sp = r["space"]
+            self.low, self.high, self.dim = float(sp["low"]), float(sp["high"]), int(sp["dim"])
+            self.mean = np.asarray(r["feature_mean"], dtype=np.float64).reshape(m)
+            self.std = np.maximum(np.asarray(r["feature_std"], dtype=np.float64).reshape(m), 1e-12)
+            self.start = np.asarray(r["start"], dtype=np.float64).reshape(self.dim)
+            self.start_features = np.asarray(r["start_features"], dtype=np.float64).reshape(m)
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise BundleError(f"bundle {str(self.bundle.root)!r}: methods.{self.label}.rollout is malformed "
+                              f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+        if self.horizon < 1 or not self.low < self.high:
+            raise BundleError(f"bundle {str(self.bundle.root)!r}: methods.{self.label}.rollout has horizon "
+                              f"{self.horizon} and space [{self.low}, {self.high}]")
+
+    def _program_log_std(self, rel: str) -> np.ndarray | None:
+        from invphys.inverter.manifest import BundleError
+
+        assert self._program is not None
+        log_std = self._program.arrays.get("log_std")
+        if log_std is None:
+            return None  # a deterministic actor only: sampled rollouts say so when asked for
+        if np.shape(log_std) != (self.dim,):
+            raise BundleError(f"bundle {str(self.bundle.root)!r}: {rel} (the actor of policy {self.label!r}) "
+                              f"has log_std of shape {np.shape(log_std)}, the policy acts in {self.dim} dimensions")
+        return np.asarray(log_std, np.float64)
 
     # -- actor ------------------------------------------------------------------------------------
     def _actions(self, obs: np.ndarray, stochastic: np.ndarray | None, rng: np.random.Generator) -> np.ndarray:

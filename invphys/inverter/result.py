@@ -1,4 +1,6 @@
-"""What an inversion returns: candidates with parameters by name and unit, predictions and scores."""
+"""What an inversion returns: candidates with parameters by name and unit, predictions and scores, and
+how sure the answer is (:class:`~invphys.inverter.uncertainty.Uncertainty`: posterior draws and their
+intervals, a lookup's neighbours, or none)."""
 
 from __future__ import annotations
 
@@ -6,6 +8,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+
+from invphys.core.errors import InvphysError
+from invphys.inverter.uncertainty import Uncertainty, at_bound
 
 
 @dataclass
@@ -32,7 +37,8 @@ class InversionResult:
     ``parameters``, ``theta``, ``predicted``, ``r_surrogate`` and ``uncertainty`` describe the best
     candidate; ``candidates`` holds all (``top_k``). Mappings are keyed by name in the bundle's order;
     parameters are in physical units (``units``), features in the features' units. ``polish``: what
-    :meth:`~invphys.inverter.Inverter.polish` did (None when it did not run).
+    :meth:`~invphys.inverter.Inverter.polish` did (None when it did not run). ``parameter_uncertainty``: the
+    posterior draws (``samples``, :meth:`interval`, ``identified``) or what the method has instead.
     """
 
     label: str
@@ -49,6 +55,47 @@ class InversionResult:
     warnings: list[str] = field(default_factory=list)
     bundle_id: str = ""
     polish: dict[str, Any] | None = None
+    parameter_uncertainty: Uncertainty = field(default_factory=Uncertainty)
+    space: Any = None
+
+    @property
+    def posterior(self) -> str:
+        """"posterior" (draws from a posterior), "neighbours" (a lookup's nearest rows) or "none"."""
+        return self.parameter_uncertainty.kind
+
+    @property
+    def samples(self) -> dict[str, np.ndarray] | None:
+        """The draws (posterior, or a lookup's nearest rows) in physical units, ``{name: (S,)}``; None
+        for a method that answers with a point."""
+        u = self.parameter_uncertainty
+        if not u.has_draws or u.draws is None:
+            return None
+        phys = self._physical(u.draws)
+        return {n: phys[:, j] for j, n in enumerate(self.parameter_names)}
+
+    def interval(self, level: float | None = None) -> dict[str, tuple[float, float, float]]:
+        """Per parameter ``(low, median, high)`` in physical units: the central ``level`` interval
+        (default: the level the answer was made with, 0.9 unless set). Raises for a point answer."""
+        lo, med, hi = self.parameter_uncertainty.quantiles(level)
+        q = self._physical(np.stack([lo, med, hi]))
+        return {n: (float(q[0, j]), float(q[1, j]), float(q[2, j])) for j, n in enumerate(self.parameter_names)}
+
+    @property
+    def identified(self) -> dict[str, bool] | None:
+        """Per parameter: pinned down by this target (see :mod:`~invphys.inverter.uncertainty`); None
+        without a posterior."""
+        ok = self.parameter_uncertainty.identified()
+        return None if ok is None else dict(zip(self.parameter_names, map(bool, ok), strict=True))
+
+    @property
+    def at_bound(self) -> list[str]:
+        """Parameters whose answer sits on a bound of the parameter box."""
+        return [n for n, e in zip(self.parameter_names, at_bound(self.theta), strict=True) if e]
+
+    def _physical(self, theta: np.ndarray) -> np.ndarray:
+        if self.space is None:
+            raise InvphysError("this result has no parameter space to convert draws to physical units")
+        return np.asarray(self.space.denormalize(np.clip(theta, 0.0, 1.0)), dtype=np.float64)
 
     @property
     def best(self) -> Candidate:
@@ -119,7 +166,28 @@ class InversionResult:
             data["polish"] = {k: _f(v) if isinstance(v, float) else v for k, v in self.polish.items()}
         if len(self.candidates) > 1:
             data["spread"] = {k: _f(v) for k, v in self.spread().items()}
+        data.update(self._uncertainty_dict())
         return data
+
+    def _uncertainty_dict(self) -> dict[str, Any]:
+        """``posterior`` (intervals, or None for a point answer), ``neighbours`` for a lookup, ``at_bound``."""
+        u = self.parameter_uncertainty
+        out: dict[str, Any] = {"posterior": None, "at_bound": self.at_bound}
+        if not u.has_draws or u.draws is None:
+            out["uncertainty"] = {"kind": u.kind, "note": u.note}
+            return out
+        iv, ident = self.interval(), self.identified
+        params = {n: {"median": _f(m), "low": _f(lo), "high": _f(hi), "unit": unit,
+                      **({} if ident is None else {"identified": ident[n]})}
+                  for (n, (lo, m, hi)), unit in zip(iv.items(), self.parameter_units, strict=True)}
+        block: dict[str, Any] = {"level": u.level, "draws": len(u.draws), "parameters": params}
+        if u.kind == "posterior":
+            block.update(outside_fraction=_f(u.outside_fraction), clipped=int(u.clipped), completions=u.completions)
+            out["posterior"] = block
+        else:
+            out[u.kind] = {**block, "note": u.note}
+            out["uncertainty"] = {"kind": u.kind, "note": u.note}
+        return out
 
 
 def _f(v: Any) -> float | None:

@@ -27,7 +27,7 @@ def check_seed(seed: Any) -> int:
 
 
 def target_seed(seed: int, method: str, values: np.ndarray, mask: np.ndarray, stream: str = "") -> int:
-    """A 63-bit seed for one target's ``stream`` under ``method`` and the user's ``seed``.
+    """A 32-bit seed (what every optimiser accepts) for one target's ``stream`` under ``method`` and the user's ``seed``.
 
     The target enters as its float64 bytes (missing features as 0.0, -0.0 as 0.0) and its mask, so
     two targets that differ in any given feature, or in which features are given, get other streams.
@@ -39,7 +39,7 @@ def target_seed(seed: int, method: str, values: np.ndarray, mask: np.ndarray, st
     h.update(method.encode() + b"\0" + stream.encode() + b"\0")
     h.update(np.ascontiguousarray(vals, dtype="<f8").tobytes())
     h.update(np.packbits(mask).tobytes() + len(mask).to_bytes(4, "little"))
-    return int.from_bytes(h.digest()[:8], "little") & MAX_SEED
+    return int.from_bytes(h.digest()[:4], "little")
 
 
 def target_rng(seed: int, method: str, values: np.ndarray, mask: np.ndarray, stream: str = "") -> np.random.Generator:

@@ -17,6 +17,7 @@ sees half a bundle.
 
 from __future__ import annotations
 
+import os
 import shutil
 import time
 import uuid
@@ -236,18 +237,162 @@ def write_bundle(parts: BundleParts, dest: str | Path) -> Path:
         }
         (tmp / README_FILE).write_text(readme(manifest))
         write_manifest(tmp, manifest)
-        if dest.exists():
-            old = dest.with_name(f".{dest.name}.old{uuid.uuid4().hex[:6]}")
-            dest.rename(old)
-            tmp.rename(dest)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            tmp.rename(dest)
+        install_dir(tmp, dest)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return dest
+
+
+def install_dir(tmp: Path, dest: Path) -> None:
+    """Move the finished directory ``tmp`` to ``dest`` (a sibling); a previous ``dest`` is moved aside first
+    and removed only once the new one is in place (put back if the move fails)."""
+    if not dest.exists():
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        tmp.rename(dest)
+        return
+    old = dest.with_name(f".{dest.name}.old{uuid.uuid4().hex[:6]}")
+    dest.rename(old)
+    try:
+        tmp.rename(dest)
+    except BaseException:
+        old.rename(dest)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+
+
+# -- export and upgrade ------------------------------------------------------------------------------
+def export_destination(src: Path, out: Path, force: bool) -> bool:
+    """Check that ``out`` may receive a copy of the bundle ``src``; True when an existing bundle there is to
+    be replaced (``force``). Never allowed: ``out`` equal to, inside, or containing the source; inside
+    another bundle; under a regular file; a symlink or a symlink loop; an existing file; a non-empty
+    directory that is not a bundle (even with ``force``)."""
+    from invphys.inverter.manifest import MANIFEST_FILE
+
+    where = f"--out {str(out)!r}"
+    try:
+        real_out, real_src = Path(os.path.realpath(out, strict=False)), src.resolve(strict=True)
+        anc = next((a for a in [out, *out.parents] if os.path.lexists(a)), Path("."))
+        if anc.is_symlink() and anc == out:
+            raise InvphysError(f"{where} is a symlink; name the directory itself")
+        Path(anc).resolve(strict=True)
+    except (OSError, RuntimeError) as exc:  # a symlink loop, or a path the system cannot resolve
+        raise InvphysError(f"{where}: cannot resolve the path ({getattr(exc, 'strerror', None) or exc})") from None
+    if not anc.is_dir():
+        raise InvphysError(f"{where}: {str(anc)!r} is a file, not a directory")
+    if real_out == real_src or real_src in real_out.parents:
+        raise InvphysError(f"{where} is inside the bundle being exported ({src}); name a directory outside it")
+    if real_out in real_src.parents:
+        raise InvphysError(f"{where} contains the bundle being exported ({src}); replacing it would delete the "
+                           f"source: name another directory")
+    inside = next((a for a in real_out.parents if (a / MANIFEST_FILE).is_file()), None)
+    if inside is not None:
+        raise InvphysError(f"{where} is inside the inverter bundle {str(inside)!r}; name a directory outside it")
+    if not os.path.lexists(out):
+        return False
+    if not out.is_dir():
+        raise InvphysError(f"{where} exists and is a file; refusing to replace it")
+    if not any(out.iterdir()):
+        return False
+    if not force:
+        raise InvphysError(f"{where} exists and is not empty; pass --force to replace the bundle there")
+    if not (out / MANIFEST_FILE).is_file():
+        raise InvphysError(f"{where} is not an inverter bundle; refusing to replace it")
+    return True
+
+
+def copy_bundle(src: Path, out: Path, files: Any) -> Path:
+    """Copy the manifest and the listed ``files`` of the bundle ``src`` to ``out`` through a temporary sibling
+    (a failed copy leaves ``out`` as it was); the copy must load before it replaces anything."""
+    from invphys.inverter.bundle import Bundle
+    from invphys.inverter.manifest import MANIFEST_FILE
+
+    def fill(tmp: Path) -> None:
+        shutil.copy2(src / MANIFEST_FILE, tmp / MANIFEST_FILE)
+        for rel in files:
+            (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(src / rel, tmp / rel)
+        Bundle(tmp)  # the copy verifies
+
+    return _build_then_install(out, fill)
+
+
+def _build_then_install(out: Path, fill: Any) -> Path:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.tmp{uuid.uuid4().hex[:6]}")
+    tmp.mkdir()
+    try:
+        fill(tmp)
+        install_dir(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
+def upgrade_bundle(src: Path, out: Path, trust_pickles: bool, registry: Any = None) -> dict[str, Any]:
+    """Write the format-1 bundle ``src`` as a current one at ``out``: each pickled part (an NPE posterior's
+    ``npe.pt``, a PPO policy's ``policy.zip``) is loaded once through its plugin's ``load_legacy_pickle`` --
+    which RUNS CODE stored in the file, hence ``trust_pickles`` -- and saved as tensors; the converted part
+    must answer exactly as the pickled one. Returns {label: what was converted}."""
+    from invphys.inverter.manifest import LEGACY_PICKLES, BundleError, read_manifest
+
+    manifest = read_manifest(src, verify=True, allow_legacy=True)
+    legacy = {rel.rsplit("/", 1)[0]: rel for rel in manifest["files"] if rel.rsplit("/", 1)[-1] in LEGACY_PICKLES}
+    if legacy and not trust_pickles:
+        raise BundleError(f"bundle {str(src)!r} holds pickled parts ({', '.join(sorted(legacy.values()))}); "
+                          f"converting them runs code stored in them: pass --trust-pickles only if you trust "
+                          f"where the bundle came from")
+    owners = {entry.get("path"): label for label, entry in manifest["methods"].items()}
+    unknown = sorted(d for d in legacy if d not in owners)
+    if unknown:
+        raise BundleError(f"bundle {str(src)!r}: {legacy[unknown[0]]} belongs to no method; cannot convert it")
+    if registry is None:
+        from invphys import registry as reg_module
+
+        registry = reg_module.default_registry()
+    converted: dict[str, str] = {}
+
+    def fill(tmp: Path) -> None:
+        from invphys.inverter.bundle import Bundle
+
+        for rel in manifest["files"]:
+            (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(src / rel, tmp / rel)
+        for directory, rel in sorted(legacy.items()):
+            label = owners[directory]
+            cls = registry.get("optimizer", manifest["methods"][label]["type"])
+            if not hasattr(cls, "load_legacy_pickle"):
+                raise BundleError(f"bundle {str(src)!r}: {rel} has no converter in plugin {cls.name!r}")
+            old = cls.load_legacy_pickle(tmp / directory)
+            old.save(tmp / directory)
+            _same_answers(old, cls.load(tmp / directory), src / "data" / "test.npz", rel)
+            converted[label] = f"{rel} -> {', '.join(sorted(p.name for p in (tmp / directory).iterdir()))}"
+        write_manifest(tmp, {**manifest, "format_version": FORMAT_VERSION,
+                             "upgraded": {"from_format": 1, "utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                                          "converted": sorted(legacy.values())}})
+        Bundle(tmp)  # the converted bundle loads
+
+    _build_then_install(out, fill)
+    return converted
+
+
+def _same_answers(old: Any, new: Any, data: Path, rel: str) -> None:
+    """Refuse a conversion whose tensors do not reproduce the pickled part exactly (same seed)."""
+    from invphys.inverter.manifest import BundleError
+
+    if hasattr(old, "posterior_samples"):
+        with np.load(data, allow_pickle=False) as z:
+            y = z["y"][:4]
+        a, b = old.posterior_samples(y), new.posterior_samples(y)
+    elif getattr(old, "model", None) is not None and hasattr(old.model, "predict"):
+        obs = np.random.default_rng(0).normal(0, 1, (32, old.model.observation_space.shape[0])).astype(np.float32)
+        a, b = (old.model.predict(obs, deterministic=True)[0],), (new.model.predict(obs, deterministic=True)[0],)
+    else:
+        return
+    if not all(np.array_equal(x, z, equal_nan=True) for x, z in zip(a, b, strict=True)):
+        raise BundleError(f"converting {rel}: the tensor copy does not answer exactly as the pickled part; "
+                          f"nothing was written")
 
 
 def _save(program: Any, root: Path, rel: str) -> str | None:

@@ -1,0 +1,235 @@
+"""One answering object per kind of method, the way sbi separates posteriors from their trainers.
+
+* :class:`PosteriorAnswers`: a trained posterior (sbi's NPE): truncated draws, the method's answer among them;
+* :class:`LookupAnswers`: a dataset baseline without a posterior (nearest rows, local fits);
+* :class:`PolicyAnswers`: a bundle's goal-conditioned policy, rolled out;
+* :class:`SearchAnswers`: an optimiser searching the surrogate (CMA-ES, warm start, nevergrad, ...).
+
+Each answers ONE target at a time from random streams of its own
+(:func:`~invphys.inverter.seeds.target_seed`): an answer never depends on the other targets of a batch.
+``answer`` returns the candidate pool (thetas, sources, evaluations spent) and the :class:`Uncertainty`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import warnings
+from collections.abc import Iterator
+from typing import Any, ClassVar
+
+import numpy as np
+
+from invphys.core.errors import InvphysError
+from invphys.inverter.objective import MaskedRecovery
+from invphys.inverter.seeds import target_seed
+from invphys.inverter.uncertainty import NEIGHBOUR_ROWS, Uncertainty
+
+#: candidate thetas (P, d), their sources, evaluations spent
+Pool = tuple[np.ndarray, list[str], int]
+#: most candidates a policy or a search gives per target (each a rollout set or a whole search)
+MAX_TOP_K = 64
+
+
+@contextlib.contextmanager
+def quiet_cma() -> Iterator[None]:
+    """Silence cma's warning about an injected start point (a warm start injects one on purpose)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="orphanated injected solution")
+        yield
+
+
+class MethodAnswers:
+    """Base: a bundle method (``label``, its manifest ``entry``) answering targets through ``inv``."""
+
+    kind: ClassVar[str] = ""
+
+    def __init__(self, inv: Any, label: str, entry: dict[str, Any]) -> None:
+        self.inv, self.label, self.entry = inv, label, entry
+        self.bundle = inv.bundle
+
+    def max_top_k(self) -> int:
+        return MAX_TOP_K
+
+    def check_top_k(self, top_k: int) -> None:
+        most = self.max_top_k()
+        if top_k > most:
+            raise InvphysError(f"top_k {top_k} is more than method {self.label!r} can give: at most {most} "
+                               f"distinct candidates per target ({self.kind})")
+
+    def seed(self, seed: int, values: np.ndarray, mask: np.ndarray, stream: str) -> int:
+        return target_seed(seed, self.label, values, mask, stream)
+
+    def goal(self, values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """The target with missing features as the training mean (what amortised methods condition on)."""
+        return np.where(mask, values, np.asarray(self.bundle.manifest["features"]["mean"], dtype=np.float64))
+
+    def answer(self, values: np.ndarray, mask: np.ndarray, top_k: int, seed: int, draws: int
+               ) -> tuple[Pool, Uncertainty]:
+        raise NotImplementedError
+
+
+class PosteriorAnswers(MethodAnswers):
+    """A dataset baseline holding a posterior: ``draws`` truncated draws per target (at least the
+    method's own ``samples``); the answer is chosen among the first ``samples`` as the method says."""
+
+    kind = "posterior"
+
+    def __init__(self, inv: Any, label: str, entry: dict[str, Any], plugin: Any) -> None:
+        super().__init__(inv, label, entry)
+        self.plugin = plugin
+        self.k = int(getattr(plugin.config, "samples", 64))
+
+    def max_top_k(self) -> int:
+        return self.k
+
+    def answer(self, values: np.ndarray, mask: np.ndarray, top_k: int, seed: int, draws: int
+               ) -> tuple[Pool, Uncertainty]:
+        from invphys.inverter.draws import completions, sample_posterior
+
+        train_y = None if mask.all() else self.bundle.data("train")[1]
+        mean = np.asarray(self.bundle.manifest["features"]["mean"], dtype=np.float64)
+        cond = completions(values, mask, train_y, mean, self.bundle.scales)
+        d = sample_posterior(self.plugin, [cond], [self.seed(seed, values, mask, "posterior")], max(self.k, draws))
+        s = d.samples[0]
+        first = s[:self.k]
+        theta, spent = self._choose(first, cond[0], self.goal(values, mask))
+        pool = theta[None, :] if top_k == 1 and mask.all() else np.concatenate([theta[None, :], first])
+        unc = Uncertainty("posterior", s, outside_fraction=float(d.outside_fraction[0]), clipped=int(d.clipped[0]),
+                          completions=int(d.completions[0]))
+        return (pool, [self.label] * len(pool), spent), unc
+
+    def _choose(self, first: np.ndarray, cond: np.ndarray, goal: np.ndarray) -> tuple[np.ndarray, int]:
+        """The method's answer among its draws (mean, best log-prob, best by the surrogate) and the
+        evaluations spent (as the baseline counts them: its candidates and the answer)."""
+        how = getattr(self.plugin.config, "answer", "best_surrogate")
+        if how == "mean":
+            return first.mean(axis=0), 1
+        if how == "best_log_prob":
+            from invphys.inverter.draws import log_prob
+
+            return first[int(np.argmax(log_prob(self.plugin, first, cond)))], 1
+        from invphys.plugins.baselines._base import best_by_surrogate
+
+        sur = self.bundle.surrogate
+        lam = float(getattr(self.plugin.config, "uncertainty_penalty", 0.0) or 0.0)
+        predict, penalty = sur.predict, None
+        if lam > 0:
+            from invphys.plugins.evaluators.uncertainty import UncertaintyPenalty
+
+            pen = UncertaintyPenalty(sur, self.bundle.scales, lam)
+            predict, penalty = pen.predict, pen.penalty
+        best, _ = best_by_surrogate(first[None], goal[None], self.bundle.scales, predict, penalty)
+        return first[int(best[0])], len(first) + 1
+
+
+class LookupAnswers(MethodAnswers):
+    """A dataset baseline without a posterior, asked one target at a time; a seeded baseline gets the
+    target's own seed. Its spread: the parameters of the nearest training rows (when it has them)."""
+
+    kind = "lookup"
+
+    def __init__(self, inv: Any, label: str, entry: dict[str, Any], plugin: Any) -> None:
+        super().__init__(inv, label, entry)
+        self.plugin = plugin
+
+    def max_top_k(self) -> int:
+        return max(1, int(self.plugin.evaluation_budget))
+
+    def answer(self, values: np.ndarray, mask: np.ndarray, top_k: int, seed: int, draws: int
+               ) -> tuple[Pool, Uncertainty]:
+        from invphys.plugins.baselines import answer_with_penalty
+
+        goal = self.goal(values, mask)[None, :]
+        cfg = self.plugin.config
+        if "seed" in type(cfg).model_fields:
+            self.plugin.config = cfg.model_copy(update={"seed": self.seed(seed, values, mask, "lookup")})
+        try:
+            sur = self.bundle.surrogate
+            ans = answer_with_penalty(self.plugin, goal, sur.predict, sur, self.bundle.scales, f"method {self.label!r}")
+        finally:
+            self.plugin.config = cfg
+        spent = int(ans.evaluations[0]) + 1
+        if top_k == 1 and mask.all():
+            pool = ans.theta[:1]
+        else:
+            pool = np.concatenate([ans.theta[:1], ans.candidates[0]])
+        return (pool, [self.label] * len(pool), spent), self._spread(goal)
+
+    def _spread(self, goal: np.ndarray) -> Uncertainty:
+        if not hasattr(self.plugin, "neighbours") or getattr(self.plugin, "_theta", None) is None:
+            return Uncertainty("none", note=f"{self.label} answers with a point")
+        cfg = self.plugin.config
+        self.plugin.config = cfg.model_copy(update={"k": NEIGHBOUR_ROWS})
+        try:
+            idx, _ = self.plugin.neighbours(goal)
+        finally:
+            self.plugin.config = cfg
+        return Uncertainty("neighbours", np.asarray(self.plugin._theta[idx[0]], dtype=np.float64),
+                           note=f"the parameters of the {idx.shape[1]} training rows nearest the target")
+
+
+class PolicyAnswers(MethodAnswers):
+    """A bundle policy: its deterministic rollout (top_k 1), or with stochastic rollouts and the bundle's
+    other policies the visited states as candidates; every rollout of one target alone."""
+
+    kind = "policy"
+
+    def answer(self, values: np.ndarray, mask: np.ndarray, top_k: int, seed: int, draws: int
+               ) -> tuple[Pool, Uncertainty]:
+        runner = self.inv._runner(self.label)
+        none = Uncertainty("none", note=f"{self.label} is a policy: it answers with a point")
+        goal = np.where(mask, values, runner.mean)[None, :]
+        if top_k == 1:
+            points, _, _ = runner.rollout(goal, mask[None, :]).best()
+            return (runner.space.to_theta(points), [self.label], runner.horizon), none
+        rollouts = max(8, 4 * top_k)
+        ro = runner.rollout(goal, mask[None, :], rollouts=rollouts, seed=self.seed(seed, values, mask, "rollout"))
+        theta = runner.space.to_theta(ro.points.reshape(-1, runner.dim))
+        srcs = [f"{self.label} (rollout {r + 1})" for r in range(rollouts) for _ in range(runner.horizon)]
+        thetas, spent = [theta], rollouts * runner.horizon
+        for other in self.inv._policy_labels():
+            if other == self.label:
+                continue
+            r2 = self.inv._runner(other)
+            pts = r2.rollout(np.where(mask, values, r2.mean)[None, :], mask[None, :],
+                             seed=target_seed(seed, other, values, mask, "rollout")).points
+            thetas.append(r2.space.to_theta(pts.reshape(-1, r2.dim)))
+            srcs += [other] * len(thetas[-1])
+            spent += r2.horizon
+        return (np.concatenate(thetas), srcs, spent), none
+
+
+class SearchAnswers(MethodAnswers):
+    """An optimiser on the surrogate: ``top_k`` searches per target, each from its own seed."""
+
+    kind = "search"
+
+    def __init__(self, inv: Any, label: str, entry: dict[str, Any], plugin: Any) -> None:
+        super().__init__(inv, label, entry)
+        self.plugin = plugin
+
+    def answer(self, values: np.ndarray, mask: np.ndarray, top_k: int, seed: int, draws: int
+               ) -> tuple[Pool, Uncertainty]:
+        from invphys.core.spaces import build_problem
+
+        entry = self.entry
+        space = self.bundle.search_space(entry["space"])
+        predict = self.bundle.predictor(entry["space"], entry.get("evaluator", "shared"))
+        latent = None if entry["space"] == "raw" else self.bundle.latent(entry["space"])
+        budget = int(getattr(self.plugin, "evaluation_budget", 0) or getattr(self.plugin.config, "budget", 0) or 5000)
+        m = self.bundle.manifest["features"]
+        mean, std = np.asarray(m["mean"]), np.asarray(m["std"])
+        goal = np.where(mask, values, mean)
+        objective = MaskedRecovery(goal, self.bundle.scales, mask, self.bundle.kappa)
+        thetas, srcs, spent = [], [], 0
+        for r in range(top_k):
+            s = self.seed(seed, values, mask, f"search:{r}")
+            problem = build_problem(space, objective, budget, surrogate=self.bundle.surrogate, latent=latent,
+                                    predict=predict, target=goal, seed=s, feature_mean=mean, feature_std=std)
+            with quiet_cma():
+                res = self.plugin.optimize(problem)
+            thetas.append(np.clip(np.asarray(res.theta, dtype=np.float64), 0.0, 1.0))
+            srcs.append(self.label if top_k == 1 else f"{self.label} (search {r + 1})")
+            spent += int(res.evaluations)
+        return (np.array(thetas), srcs, spent), Uncertainty("none", note=f"{self.label} is a search: "
+                                                                          f"it answers with a point")
