@@ -134,7 +134,7 @@ def test_the_log_never_overwrites_a_file_that_is_not_a_polish_log(inv, sim_rows,
     inv.polish(copy.deepcopy(base), budget=8, log=log)
     good = log.read_bytes()
     log.write_bytes(good[: len(good) // 2])
-    with pytest.raises(InvphysError, match="polish log .*polish.npz.*truncated or corrupt"):
+    with pytest.raises(InvphysError, match=r"polish log .*polish\.npz.*truncated or corrupt"):
         inv.polish(copy.deepcopy(base), budget=8, log=log)
     assert log.read_bytes() == good[: len(good) // 2]
 
@@ -142,7 +142,7 @@ def test_the_log_never_overwrites_a_file_that_is_not_a_polish_log(inv, sim_rows,
 def test_check_polish_log_refuses_bad_places_before_anything_runs(tmp_path) -> None:
     import os
 
-    from invphys.plugins.evaluators.polish import BatchLog, check_polish_log
+    from invphys.plugins.evaluators.polish import check_polish_log
 
     (tmp_path / "file").write_text("x")
     for path, needle in ((tmp_path / "file" / "p.npz", "is a file, not a directory"),
@@ -206,6 +206,25 @@ def test_cli_polish_json_and_bad_values(inv, bundle, tmp_path, monkeypatch) -> N
         lines = [ln for ln in bad.output.strip().splitlines() if ln.strip()]
         assert bad.exit_code == 2 and len(lines) == 1 and lines[0].startswith("error:"), bad.output
         assert needle in lines[0], lines[0]
+
+
+def test_cli_polish_log_keeps_a_users_file_and_refuses_bad_places(inv, bundle, tmp_path, monkeypatch) -> None:
+    """`--polish-log targets.csv` turned the user's CSV into an npz (exit 0); a log under a file or a
+    truncated log was an internal error. Now: exit 2, one line naming the file, the file byte-identical."""
+    _, y = inv.bundle.data("test")
+    feats = [a for n, v in zip(inv.feature_names, y[2], strict=True) for a in ("--feature", f"{n}={v}")]
+    monkeypatch.chdir(tmp_path)
+    mine = tmp_path / "targets.csv"
+    mine.write_bytes(b"a,b\n1,2\n")
+    (tmp_path / "log.npz").write_bytes(b"PK\x03\x04 half an archive")
+    for log, needle in ((mine, "not a polish log written by invphys"), (mine / "p.npz", "is a file, not a directory"),
+                        (tmp_path / "log.npz", "truncated or corrupt")):
+        bad = _invoke("invert", str(bundle), *feats, "--polish", "4", "--polish-popsize", "4", "--polish-log", str(log))
+        errors = [ln for ln in bad.output.splitlines() if ln.startswith("error:")]  # (after progress bars, if any)
+        assert bad.exit_code == 2 and len(errors) == 1 and "Traceback" not in bad.output, bad.output
+        assert needle in errors[0] and "polish log" in errors[0], errors[0]
+    assert mine.read_bytes() == b"a,b\n1,2\n" and (tmp_path / "log.npz").read_bytes() == b"PK\x03\x04 half an archive"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["log.npz", "targets.csv"]
 
 
 # -- confirm: re-simulate the best candidates and answer with the best mean R ------------------------------
