@@ -97,7 +97,8 @@ def test_a_partial_target_picks_the_draw_that_best_fits_the_given_features(run, 
     r = masked_recovery(inv.bundle.surrogate.predict(draws[0]), t.values[0], inv.bundle.scales, t.mask[0],
                         inv.bundle.kappa)
     worst = int(np.argmin(r))  # the baseline "answers" with the draw that fits the given features worst
-    from invphys.inverter import answers, draws as draws_mod
+    from invphys.inverter import answers
+    from invphys.inverter import draws as draws_mod
 
     monkeypatch.setattr(draws_mod, "sample_posterior", lambda plugin, conds, seeds, n: draws_mod.PosteriorDraws(
         np.repeat(draws, len(conds), 0), np.zeros(1), np.zeros(1, int), np.full(1, n), np.ones(1, int)))

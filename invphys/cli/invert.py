@@ -61,22 +61,41 @@ def invert(
     polish_confirm_candidates: int | None = typer.Option(
         None, "--polish-confirm-candidates", help="candidates per target that --polish-confirm re-simulates "
         "(default 4; cost: candidates x K runs per target)"),
-    seed: int = typer.Option(0, "--seed", help="seed of stochastic rollouts and optimisers"),
+    seed: int = typer.Option(0, "--seed", help="seed of every random draw (with the target and the method it "
+                             "decides the answer; a target's position in the file does not)"),
+    level: float = typer.Option(0.9, "--level", help="level of the central intervals (posterior methods)"),
+    samples: int | None = typer.Option(None, "--samples", help="posterior draws per target to save "
+                                       "(needs --samples-out)"),
+    samples_out: Path | None = typer.Option(None, "--samples-out", help="new .npz or .csv file for the draws"),
+    plot: Path | None = typer.Option(None, "--plot", help="new .png/.pdf/.svg file: pairplot of the draws with the "
+                                     "answer marked (several targets: one file each, numbered)"),
+    csv_out: Path | None = typer.Option(None, "--csv", help="new .csv file: one row per target (answer, "
+                                        "intervals, identifiability)"),
     allow_mismatch: bool = typer.Option(False, "--allow-mismatch",
                                         help="load a bundle made with another simulator version"),
     as_json: bool = typer.Option(False, "--json", help="machine-readable output on stdout"),
 ) -> None:
     """Answer targets (features by name) with material parameters from a trained inverter bundle."""
     from invphys.inverter import load_inverter
+    from invphys.inverter.inverter import INTERVAL_DRAWS
+    from invphys.inverter.seeds import check_seed
     from invphys.inverter.targets import cli_targets
+    from invphys.inverter.uncertainty import check_level
 
+    check_seed(seed)
+    check_level(level)
     polish_settings = _polish_settings(polish, polish_below, polish_sigma, polish_popsize, polish_log,
                                        polish_confirm, polish_confirm_candidates)
+    files = _output_files(samples, samples_out, plot, csv_out)
     inv = load_inverter(bundle, strict=not allow_mismatch)
     for note in inv.notes:
         console.print(f"[yellow]warning:[/] {escape(note)}", soft_wrap=True)
     targets = cli_targets(inv, target, feature or [], observed or [], partial)
-    results = inv.invert_many(targets, method=method, top_k=top_k, refine=refine, seed=seed)
+    results = inv.invert_many(targets, method=method, top_k=top_k, refine=refine, seed=seed, level=level,
+                              draws=max(samples or 0, INTERVAL_DRAWS))
+    if samples and not results[0].parameter_uncertainty.has_draws:
+        raise InvphysError(f"--samples: method {results[0].method!r} has no posterior draws "
+                           f"(posterior: {results[0].posterior})")
     for r in results:
         for w in r.warnings:
             console.print(f"[yellow]warning:[/] target {escape(r.label)}: {escape(w)}", soft_wrap=True)
@@ -85,7 +104,9 @@ def invert(
         _validate(inv, results, overrides, sim_batch)
     if polish_settings:
         _polish(inv, results, overrides, seed, batch_size=sim_batch, **polish_settings)
-    data = {"bundle": str(bundle), "method": results[0].method, "results": [r.to_dict() for r in results]}
+    _write_files(results, samples, files)
+    data = {"bundle": str(bundle), "method": results[0].method, "seed": seed, "level": level,
+            "results": [r.to_dict() for r in results]}
 
     def render(_: Any) -> None:
         for r in results:
@@ -104,10 +125,16 @@ def _validate(inv: Any, results: list[Any], overrides: dict[str, Any], batch_siz
         inv.validate(results, overrides=overrides, batch_size=batch_size, on_run=lambda _i: bar.advance(task))
 
 
+_POLISH_NAMES = {"budget": "--polish", "below": "--polish-below", "sigma0": "--polish-sigma",
+                 "popsize": "--polish-popsize", "confirm": "--polish-confirm",
+                 "confirm_candidates": "--polish-confirm-candidates"}
+
+
 def _polish_settings(budget: int | None, below: float | None, sigma: float | None, popsize: int | None,
                      log: Path | None, confirm: int | None = None, candidates: int | None = None) -> dict[str, Any]:
-    """The ``--polish*`` options as :meth:`Inverter.polish` arguments ({} without ``--polish``)."""
-    import math
+    """The ``--polish*`` options as :meth:`Inverter.polish` arguments ({} without ``--polish``), checked
+    by the inverter's :class:`~invphys.inverter.settings.PolishSettings`; the log before anything runs."""
+    from invphys.inverter.settings import PolishSettings
 
     if budget is None:
         given = [n for n, v in (("--polish-below", below), ("--polish-sigma", sigma), ("--polish-popsize", popsize),
@@ -116,40 +143,61 @@ def _polish_settings(budget: int | None, below: float | None, sigma: float | Non
         if given:
             raise InvphysError(f"{', '.join(given)} needs --polish N (simulator runs per target)")
         return {}
-    if budget < 0:
-        raise InvphysError(f"--polish must be >= 0 simulator runs per target, got {budget}")
-    if sigma is not None and not (math.isfinite(sigma) and sigma > 0):
-        raise InvphysError(f"--polish-sigma must be > 0 (a step in the normalised [0, 1] cube), got {sigma}")
-    if below is not None and not 0 < below <= 1:
-        raise InvphysError(f"--polish-below must be in (0, 1], got {below}")
-    if popsize is not None and popsize < 2:
-        raise InvphysError(f"--polish-popsize must be >= 2, got {popsize}")
-    if log is not None and log.is_dir():
-        raise InvphysError(f"--polish-log {log} is a directory; name a file (e.g. polish.npz)")
-    if confirm is not None and confirm < 0:
-        raise InvphysError(f"--polish-confirm must be >= 0 re-runs per candidate, got {confirm}")
-    if candidates is not None and candidates < 1:
-        raise InvphysError(f"--polish-confirm-candidates must be >= 1, got {candidates}")
     if candidates is not None and not confirm:
         raise InvphysError("--polish-confirm-candidates needs --polish-confirm K (re-runs per candidate)")
-    out: dict[str, Any] = {"budget": budget, "log": log}
-    for key, value in (("below", below), ("sigma0", sigma), ("popsize", popsize), ("confirm", confirm or None),
-                       ("confirm_candidates", candidates)):
-        if value is not None:
-            out[key] = value
-    return out
+    settings = PolishSettings.checked(names=_POLISH_NAMES, budget=budget, below=below, sigma0=sigma, popsize=popsize,
+                                      confirm=confirm, confirm_candidates=candidates)
+    if log is not None:
+        from invphys.plugins.evaluators.polish import check_polish_log
+
+        check_polish_log(log)
+    return {"settings": settings, "log": log}
+
+
+def _output_files(samples: int | None, samples_out: Path | None, plot: Path | None, csv_out: Path | None
+                  ) -> dict[str, Path]:
+    """The files asked for, checked before anything is computed (new files in existing folders)."""
+    from invphys.inverter.output import check_new_file
+
+    if samples is not None and not 1 <= samples <= 100_000:
+        raise InvphysError(f"--samples must be in 1 .. 100000 draws per target, got {samples}")
+    if (samples is None) != (samples_out is None):
+        raise InvphysError("--samples N and --samples-out FILE go together (the draws are saved to FILE)")
+    files = {}
+    if samples_out is not None:
+        files["samples"] = check_new_file(samples_out, "--samples-out", (".npz", ".csv"))
+    if plot is not None:
+        files["plot"] = check_new_file(plot, "--plot", (".png", ".pdf", ".svg"))
+    if csv_out is not None:
+        files["csv"] = check_new_file(csv_out, "--csv", (".csv",))
+    return files
+
+
+def _write_files(results: list[Any], samples: int | None, files: dict[str, Path]) -> None:
+    from invphys.inverter.output import check_new_file, pairplot, write_samples, write_table
+
+    if "samples" in files and samples:
+        console.print(f"draws: {escape(str(write_samples(results, samples, files['samples'])))}", soft_wrap=True)
+    if "csv" in files:
+        console.print(f"table: {escape(str(write_table(results, files['csv'])))}", soft_wrap=True)
+    if "plot" in files:
+        p = files["plot"]
+        paths = [p] if len(results) == 1 else [check_new_file(p.with_name(f"{p.stem}-{i + 1}{p.suffix}"), "--plot",
+                                                              (p.suffix.lower(),)) for i in range(len(results))]
+        for r, path in zip(results, paths, strict=True):
+            console.print(f"pairplot: {escape(str(pairplot(r, path)))}", soft_wrap=True)
 
 
 def _polish(inv: Any, results: list[Any], overrides: dict[str, Any], seed: int, **settings: Any) -> None:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    below = settings.get("below", 1.0)
+    ps = settings["settings"]
+    below = ps.below
     starts = [max((c.r_actual for c in r.candidates if c.r_actual is not None and c.r_actual == c.r_actual),
                   default=float("nan")) for r in results]
-    total = sum(settings["budget"] for r0 in starts if not r0 >= below)
-    if settings.get("confirm"):  # at most: every candidate of a polished target, the answer of the others
-        total += settings["confirm"] * sum(settings.get("confirm_candidates", 4) if not r0 >= below and
-                                           settings["budget"] else 1 for r0 in starts)
+    total = sum(ps.budget for r0 in starts if not r0 >= below)
+    if ps.confirm:  # at most: every candidate of a polished target, the answer of the others
+        total += ps.confirm * sum(ps.confirm_candidates if not r0 >= below and ps.budget else 1 for r0 in starts)
     with Progress(TextColumn("polishing"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=console, transient=False) as bar:
         task = bar.add_task("polishing", total=total)
@@ -159,7 +207,7 @@ def _polish(inv: Any, results: list[Any], overrides: dict[str, Any], seed: int, 
     for r in results:
         p = r.polish
         if not p["polished"]:
-            why = "--polish 0" if settings["budget"] == 0 else f"R_actual >= {below:g}"
+            why = "--polish 0" if ps.budget == 0 else f"R_actual >= {below:g}"
             console.print(f"polish {escape(r.label)}: R_actual {_r(p['start_r_actual'])}, not polished ({why})",
                           soft_wrap=True)
             continue
@@ -208,10 +256,7 @@ def _render(result: Any) -> None:
             head += (f", R_actual {c['r_actual']:.3f}, gap {c['gap']:+.3f}" if c["r_actual"] is not None
                      else f", validation failed: {escape(str(c.get('failure')))}")
         out_console.print(head)
-        params = Table("parameter", "value", "unit")
-        for name, p in c["parameters"].items():
-            params.add_row(name, f"{p['value']:.5g}", p["unit"] or "-")
-        out_console.print(params)
+        out_console.print(_parameter_table(d, c))
         feats = Table("feature", "target", "predicted", "± std", "unit", *(["actual"] if "r_actual" in c else []))
         for name, f in c["features"].items():
             row = [name, "-" if f["target"] is None else f"{f['target']:.5g}", f"{f['predicted']:.5g}",
@@ -220,7 +265,42 @@ def _render(result: Any) -> None:
                 row.append("-" if f.get("actual") is None else f"{f['actual']:.5g}")
             feats.add_row(*row)
         out_console.print(feats)
+    _uncertainty_line(d)
     if "spread" in d:
         wide = [k for k, v in d["spread"].items() if v > 0.25]
         if wide:
             out_console.print(f"candidates disagree on (normalised spread > 0.25): {', '.join(wide)}")
+
+
+def _parameter_table(d: dict[str, Any], c: dict[str, Any]) -> Any:
+    """The candidate's parameters; for the answer (rank 1) with draws, their interval and marks."""
+    from rich.table import Table
+
+    block = d.get("posterior") or d.get("neighbours") if c["rank"] == 1 else None
+    if not block:
+        params = Table("parameter", "value", "unit")
+        for name, p in c["parameters"].items():
+            params.add_row(name, f"{p['value']:.5g}", p["unit"] or "-")
+        return params
+    pct = f"{block['level']:.0%}"
+    cols = ["parameter", "value", "median", f"{pct} low", f"{pct} high", "unit"]
+    posterior = "posterior" in d and d["posterior"] is not None
+    table = Table(*cols, *(["identified"] if posterior else []))
+    for name, p in c["parameters"].items():
+        b = block["parameters"][name]
+        mark = [] if not posterior else ["yes" if b.get("identified") else "[yellow]no[/]"]
+        value = f"{p['value']:.5g}" + (" [yellow](bound)[/]" if name in d.get("at_bound", []) else "")
+        table.add_row(name, value, f"{b['median']:.5g}", f"{b['low']:.5g}", f"{b['high']:.5g}", p["unit"] or "-", *mark)
+    return table
+
+
+def _uncertainty_line(d: dict[str, Any]) -> None:
+    post = d.get("posterior")
+    if post is not None:
+        out_console.print(f"posterior: {post['draws']} draws in the parameter box "
+                          f"({post['outside_fraction']:.0%} of raw draws fell outside and were rejected"
+                          f"{'; ' + str(post['clipped']) + ' clipped' if post['clipped'] else ''})")
+    elif "neighbours" in d:
+        out_console.print(f"posterior: none; the interval columns are the spread of {escape(d['neighbours']['note'])}")
+    else:
+        out_console.print(f"posterior: none ({escape(d.get('uncertainty', {}).get('note', ''))})")

@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
+import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -73,9 +74,26 @@ def load_inverter(path: str | Path, strict: bool = True, registry: Any = None, t
     ``strict=False`` turns a simulator-version or feature mismatch into a warning
     (:attr:`Inverter.notes`) instead of an error. ``threads``: BLAS threads while inverting (None: leave).
     """
-    bundle = Bundle(path, registry=registry)
-    notes = bundle.check_installation(strict=strict)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        bundle = Bundle(path, registry=registry)
+    notes = []
+    for w in caught:
+        text = str(w.message)
+        if not text.startswith("bundle written with Python"):
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        elif _python_matters(bundle):
+            notes.append(f"{text}: its policy without a NumPy form is loaded through stable-baselines3")
+        else:  # every part loads from arrays: the Python version cannot change an answer
+            _LOG.debug("%s", text)
+    notes += bundle.check_installation(strict=strict)
     return Inverter(bundle, notes, threads=threads)
+
+
+def _python_matters(bundle: Bundle) -> bool:
+    """Whether a part of the bundle is loaded by a library whose saved files depend on the Python
+    version (a policy with no NumPy program goes through stable-baselines3)."""
+    return any("rollout" in m and not m.get("inference") for m in bundle.methods.values())
 
 
 class Inverter:
