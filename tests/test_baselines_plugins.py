@@ -232,7 +232,7 @@ def test_npe_refuses_pickles_wrong_shapes_and_an_older_pickled_save(npe_fitted, 
 
     import torch
 
-    from invphys.plugins.baselines.npe import LegacyPickleError
+    from invphys.models.base import LegacyPickleError
 
     d = npe_fitted.save(tmp_path / "npe")
     weights = d / "npe_weights.npz"

@@ -36,7 +36,7 @@ def test_stages_write_a_complete_bundle(run) -> None:
 
     root = run / "inverter"
     m = yaml.safe_load((root / "manifest.yaml").read_text())
-    assert m["format_version"] == 1 and m["simulator"]["version"] == "1"
+    assert m["format_version"] == 2 and m["simulator"]["version"] == "1"
     assert m["parameter_space"]["names"] == ["k", "c", "m"]
     assert m["parameter_space"]["units"] == ["N/m", "N s/m", "kg"]
     assert m["features"]["names"] == ["peak_abs", "final_abs", "log_decay", "crossings_per_s", "final_damage"]

@@ -126,6 +126,9 @@ def test_gc_ppo_save_load_gives_identical_inversions(optim_data, tmp_path) -> No
     a = gc.optimize(recovery_problem(optim_data, y, 8))
     b = loaded.optimize(recovery_problem(optim_data, y, 8))
     assert np.array_equal(a.theta, b.theta) and a.score == b.score
+    rollouts = [recovery_problem(optim_data, y, 40, seed=3) for _ in range(2)]  # sampled rollouts agree too
+    a5, b5 = gc.propose(rollouts[0], 5), loaded.propose(rollouts[1], 5)
+    assert np.array_equal(a5.theta, b5.theta) and a5.score == b5.score
     with pytest.raises(InvphysError, match="no saved gc_ppo"):
         GoalConditionedPPO.load(tmp_path / "nothing")
     with pytest.raises(InvphysError, match="prepare"):
@@ -151,3 +154,39 @@ def test_warm_start_is_never_worse_than_its_start_and_counts_540(optim_data) -> 
     assert np.mean(gains) > 0.02  # refinement helps on average
     with pytest.raises(InvphysError, match="no policy"):
         WarmStart().optimize(recovery_problem(optim_data, optim_data["y"][0], 540))
+
+
+def test_gc_ppo_saves_tensors_and_loads_without_unpickling(optim_data, tmp_path) -> None:
+    """The policy is saved as an .npz of tensors (no SB3 zip, no cloudpickle); a planted pickle, weights of
+    the wrong shape and an older save holding only policy.zip are refused in one line naming the file."""
+    import pickle
+
+    from invphys.models.base import LegacyPickleError
+
+    gc = _trained()
+    d = gc.save(tmp_path / "policy")
+    assert sorted(p.name for p in d.iterdir()) == ["gc_ppo.json", "policy.npz"]
+    obs = np.random.default_rng(0).normal(0, 1, (16, gc.model.observation_space.shape[0])).astype(np.float32)
+    loaded = GoalConditionedPPO.load(d)
+    np.testing.assert_array_equal(loaded.model.predict(obs, deterministic=True)[0],
+                                  gc.model.predict(obs, deterministic=True)[0])
+    good = (d / "policy.npz").read_bytes()
+    (d / "policy.npz").write_bytes(pickle.dumps({"x": np.zeros(2)}))
+    with pytest.raises(InvphysError, match=r"policy\.npz: not a weights archive"):
+        GoalConditionedPPO.load(d)
+    (d / "policy.npz").write_bytes(good)
+    with np.load(d / "policy.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["log_std"] = np.zeros(3, np.float32)
+    with (d / "policy.npz").open("wb") as fh:
+        np.savez(fh, **arrays)
+    with pytest.raises(InvphysError, match=r"do not fit the saved config \(log_std has shape \(3,\)"):
+        GoalConditionedPPO.load(d)
+    (d / "policy.npz").unlink()
+    gc.model.save(d / "policy.zip")  # the older format: SB3's cloudpickled zip
+    with pytest.raises(LegacyPickleError, match=r"policy\.zip is a pickled object"):
+        GoalConditionedPPO.load(d)
+    GoalConditionedPPO.load_legacy_pickle(d).save(d)  # the explicit upgrade path: tensors, zip removed
+    assert sorted(p.name for p in d.iterdir()) == ["gc_ppo.json", "policy.npz"]
+    np.testing.assert_array_equal(GoalConditionedPPO.load(d).model.predict(obs, deterministic=True)[0],
+                                  gc.model.predict(obs, deterministic=True)[0])

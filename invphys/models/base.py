@@ -140,13 +140,12 @@ class TorchModel:
     @classmethod
     def load(cls, directory: str | Path, device: str | None = None) -> Any:
         """Rebuild a model saved by :meth:`save` (same predictions); ``device`` overrides the saved one."""
-        import torch
 
         directory = Path(directory)
         meta_path = directory / MODEL_FILE
         if not meta_path.is_file() or not (directory / WEIGHTS_FILE).is_file():
             raise ModelLoadError(f"no saved model in {directory} (expected {MODEL_FILE} and {WEIGHTS_FILE})")
-        meta = json.loads(meta_path.read_text())
+        meta = read_json_mapping(meta_path)
         if meta.get("plugin") != cls.name or meta.get("kind") != cls.kind:
             raise ModelLoadError(
                 f"{directory} holds a {meta.get('kind')} {meta.get('plugin')!r}, not a {cls.kind} {cls.name!r}")
@@ -157,21 +156,99 @@ class TorchModel:
             model = cls(config)  # type: ignore[call-arg]
         except ValidationError as exc:
             raise ModelLoadError(f"{directory}: saved config no longer valid: {exc}") from exc
-        d, m = int(meta["dims"]["d"]), int(meta["dims"]["m"])
+        try:
+            d, m = int(meta["dims"]["d"]), int(meta["dims"]["m"])
+        except (KeyError, TypeError, ValueError):
+            raise ModelLoadError(f"{meta_path}: no integer dims.d and dims.m") from None
         model.dims = (d, m)
         net = model._build_net(d, m)
-        state = torch.load(directory / WEIGHTS_FILE, map_location="cpu", weights_only=True)
+        state = load_torch_weights(directory / WEIGHTS_FILE)
+        check_state(net.state_dict(), state, directory / WEIGHTS_FILE, "the saved config")
         try:
             net.load_state_dict(state)
         except RuntimeError as exc:
-            raise ModelLoadError(f"{directory}: weights do not fit the saved config: {exc}") from exc
+            reason = str(exc).strip().splitlines()[-1].strip()
+            raise ModelLoadError(f"{directory / WEIGHTS_FILE}: weights do not fit the saved config ({reason})") from None
         model._net = net.to(model.device).eval()
         model.metrics = meta.get("metrics", {})
         model.data_fingerprint = meta.get("data_fingerprint")
         model.info = meta.get("info", {})
         hist = directory / HISTORY_FILE
-        model.history = json.loads(hist.read_text()) if hist.is_file() else {}
+        model.history = read_json_mapping(hist) if hist.is_file() else {}
         return model
+
+
+# -- weight files: read without running code ----------------------------------------------------
+class LegacyPickleError(ModelLoadError):
+    """A saved part in an older format that only unpickling (running code stored in the file) could load."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        super().__init__(f"{path} is a pickled object from an older invphys; loading it would run code stored "
+                         f"in the file, so it is refused")
+
+
+def first_line(exc: BaseException) -> str:
+    lines = [ln.strip() for ln in str(exc).strip().splitlines() if ln.strip()]
+    return lines[0] if lines else type(exc).__name__
+
+
+def read_json_mapping(path: Path) -> dict[str, Any]:
+    """A JSON object from ``path``, or a :class:`ModelLoadError` naming the file."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
+        raise ModelLoadError(f"{path}: not readable JSON ({type(exc).__name__})") from None
+    if not isinstance(data, dict):
+        raise ModelLoadError(f"{path}: not a JSON object")
+    return data
+
+
+def load_torch_weights(path: Path) -> dict[str, Any]:
+    """A state dict saved with ``torch.save``, read with ``weights_only=True`` (tensors and plain containers
+    only: a pickle that would run code is refused by torch); every failure is one line naming the file."""
+    import torch
+
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises UnpicklingError, RuntimeError, EOFError, ... for foreign files
+        raise ModelLoadError(f"{path}: not a weights file invphys loads without running code ({first_line(exc)})") from None
+    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+        raise ModelLoadError(f"{path}: not a state dict of tensors")
+    return state
+
+
+def read_weights_npz(path: Path) -> dict[str, np.ndarray]:
+    """Every array of a weights ``.npz``, read with ``allow_pickle=False``; anything else (a pickle, an
+    object array, a damaged archive) is a :class:`ModelLoadError` naming the file."""
+    import zipfile
+
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if not hasattr(data, "files"):
+                raise ValueError("a single array, not an .npz archive")
+            arrays = {k: data[k] for k in data.files}
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile, KeyError) as exc:
+        raise ModelLoadError(f"{path}: not a weights archive invphys loads without running code ({first_line(exc)})") \
+            from None
+    bad = [k for k, v in arrays.items() if v.dtype.kind not in "fiub"]
+    if bad:
+        raise ModelLoadError(f"{path}: array {bad[0]} holds {arrays[bad[0]].dtype}, not numbers")
+    return arrays
+
+
+def check_state(expected: dict[str, Any], saved: dict[str, Any], where: Path, what: str = "the network") -> None:
+    """Refuse saved weights whose names or shapes differ from the rebuilt network's, in one line that names
+    the first differing tensor."""
+    missing = [k for k in expected if k not in saved]
+    extra = [k for k in saved if k not in expected]
+    if missing or extra:
+        part = f"lacks {missing[0]}" if missing else f"has an unexpected tensor {extra[0]}"
+        raise ModelLoadError(f"{where}: the weights do not fit {what} ({part})")
+    for k, t in expected.items():
+        if tuple(t.shape) != tuple(saved[k].shape):
+            raise ModelLoadError(f"{where}: the weights do not fit {what} ({k} has shape {tuple(saved[k].shape)}, "
+                                 f"the network needs {tuple(t.shape)})")
 
 
 def validation_split(theta: np.ndarray, y: np.ndarray, validation: tuple[np.ndarray, np.ndarray] | None,

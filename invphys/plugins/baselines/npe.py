@@ -12,6 +12,13 @@ from pydantic import Field
 
 from invphys.core.errors import InvphysError
 from invphys.core.interfaces import PluginConfig
+from invphys.models.base import (
+    LegacyPickleError,
+    check_state,
+    first_line,
+    read_json_mapping,
+    read_weights_npz,
+)
 from invphys.plugins.baselines._base import PRIOR_STD, BaselineAnswers, DatasetBaseline, best_by_surrogate
 
 
@@ -188,7 +195,7 @@ class NPEBaseline(DatasetBaseline):
         d = Path(directory)
         if not (d / CONFIG_FILE).is_file():
             raise InvphysError(f"no saved npe baseline in {d}")
-        meta = _read_json(d / CONFIG_FILE)
+        meta = read_json_mapping(d / CONFIG_FILE)
         if not (d / WEIGHTS_FILE).is_file():
             if (d / LEGACY_FILE).is_file():
                 raise LegacyPickleError(d / LEGACY_FILE)
@@ -198,8 +205,8 @@ class NPEBaseline(DatasetBaseline):
             arch = meta["architecture"]
             dims = int(arch["theta_dim"]), int(arch["x_dim"])
         except (KeyError, TypeError, ValueError) as exc:
-            raise InvphysError(f"{d / CONFIG_FILE}: not an npe save this invphys reads ({exc})") from None
-        state = read_weights(d / WEIGHTS_FILE)
+            raise InvphysError(f"{d / CONFIG_FILE}: not an npe save this invphys reads ({first_line(exc)})") from None
+        state = read_weights_npz(d / WEIGHTS_FILE)
         plugin._posterior = plugin._rebuild(*dims, state, d / WEIGHTS_FILE)
         scales = meta.get("scales")
         plugin._scales = None if scales is None else np.asarray(scales, dtype=np.float64)
@@ -223,7 +230,7 @@ class NPEBaseline(DatasetBaseline):
         rng_state = torch.get_rng_state()  # building draws permutations and prior samples: keep the caller's RNG
         try:
             est = sbi.neural_nets.posterior_nn(model=c.estimator, **kwargs)(dummy_theta, dummy_x)
-            check_state(est.state_dict(), state, where)
+            check_state(est.state_dict(), state, where, "the saved architecture")
             est.load_state_dict({k: torch.from_numpy(np.array(v)) for k, v in state.items()}, strict=True)
             est.eval()
             with warnings.catch_warnings():  # the logistic prior's moments are estimated (for MAP only)
@@ -253,7 +260,7 @@ class NPEBaseline(DatasetBaseline):
         d = Path(directory)
         cls._imports()
         blob = torch.load(d / LEGACY_FILE, weights_only=False)
-        plugin = cls(_read_json(d / CONFIG_FILE)["config"])
+        plugin = cls(read_json_mapping(d / CONFIG_FILE)["config"])
         plugin._posterior, plugin._scales, plugin.metrics = blob["posterior"], blob["scales"], blob["metrics"]
         plugin.fitted = True
         return plugin
@@ -266,15 +273,6 @@ LEGACY_FILE = "npe.pt"
 SAVE_FORMAT = 2
 
 
-class LegacyPickleError(InvphysError):
-    """A saved part in an older format that only unpickling (running code from the file) could load."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        super().__init__(f"{path} is a pickled object from an older invphys; loading it would run code stored "
-                         f"in the file, so it is refused")
-
-
 def _sbi_version() -> str:
     from importlib import metadata
 
@@ -282,44 +280,6 @@ def _sbi_version() -> str:
         return metadata.version("sbi")
     except metadata.PackageNotFoundError:
         return ""
-
-
-def _read_json(path: Path) -> Any:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise InvphysError(f"{path}: not readable JSON ({type(exc).__name__})") from None
-
-
-def read_weights(path: Path) -> dict[str, np.ndarray]:
-    """Every array of a weights ``.npz`` (``allow_pickle=False``); anything else is an InvphysError
-    naming the file (a pickle, an object array, a damaged archive)."""
-    import zipfile
-
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            if not hasattr(data, "files"):
-                raise ValueError("a single array, not an .npz archive")
-            return {k: data[k] for k in data.files}
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile, KeyError) as exc:
-        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise InvphysError(f"{path}: not a weights archive invphys loads without running code ({reason})") from None
-
-
-def check_state(expected: dict[str, Any], saved: dict[str, np.ndarray], where: Path) -> None:
-    """Refuse saved weights whose names or shapes differ from the rebuilt network's (one line, naming
-    the first differing tensor)."""
-    missing = [k for k in expected if k not in saved]
-    extra = [k for k in saved if k not in expected]
-    if missing or extra:
-        what = f"lacks {missing[0]}" if missing else f"has an unexpected tensor {extra[0]}"
-        raise InvphysError(f"{where}: the weights do not fit the saved architecture ({what})")
-    for k, t in expected.items():
-        if tuple(t.shape) != tuple(saved[k].shape):
-            raise InvphysError(f"{where}: the weights do not fit the saved architecture ({k} has shape "
-                               f"{tuple(saved[k].shape)}, the network needs {tuple(t.shape)})")
-        if saved[k].dtype.kind not in "fiub":
-            raise InvphysError(f"{where}: tensor {k} has dtype {saved[k].dtype}, not numbers")
 
 
 class _NoTracker:

@@ -16,6 +16,13 @@ from invphys.core.interfaces import Problem, SearchSpace
 from invphys.core.objectives import recovery_reward
 from invphys.core.results import OptimizationResult
 from invphys.core.standardiser import Standardiser
+from invphys.models.base import (
+    LegacyPickleError,
+    check_state,
+    first_line,
+    read_json_mapping,
+    read_weights_npz,
+)
 from invphys.plugins.optimizers._base import BuiltinOptimizer, Tracker
 from invphys.plugins.optimizers._rl import PPOSettings, make_ppo, run_rollouts
 
@@ -171,27 +178,99 @@ class GoalConditionedPPO(BuiltinOptimizer):
 
     # -- persistence ---------------------------------------------------------------------------
     def save(self, directory: str | Path) -> Path:
-        """Write ``policy.zip`` (SB3), ``gc_ppo.json`` (config, feature statistics, space, metrics)."""
+        """Write ``policy.npz`` (the SB3 policy's state dict as tensors) and ``gc_ppo.json`` (config, feature
+        statistics, space, metrics). Nothing is pickled; the optimiser's state is not kept (see :meth:`load`)."""
         if self.model is None:
             raise InvphysError("gc_ppo: nothing to save, the policy is not trained")
         d = Path(directory)
         d.mkdir(parents=True, exist_ok=True)
-        self.model.save(d / "policy.zip")
-        (d / "gc_ppo.json").write_text(json.dumps(
-            {"config": self.config.model_dump(), "meta": self.meta, "metrics": self.metrics}, indent=2))
+        arrays = {k: v.detach().cpu().numpy() for k, v in self.model.policy.state_dict().items()}
+        with open(d / POLICY_FILE, "wb") as fh:  # a handle keeps the name (np.savez appends no ".npz")
+            np.savez(fh, **arrays)  # type: ignore[arg-type]
+        (d / CONFIG_FILE).write_text(json.dumps(
+            {"format": SAVE_FORMAT, "config": self.config.model_dump(), "meta": self.meta, "metrics": self.metrics},
+            indent=2))
+        if (d / LEGACY_FILE).exists():  # a re-save over an older (cloudpickled) save
+            (d / LEGACY_FILE).unlink()
         return d
 
     @classmethod
     def load(cls, directory: str | Path) -> GoalConditionedPPO:
-        """A policy saved by :meth:`save` (identical actions)."""
+        """A policy saved by :meth:`save` (identical actions): PPO is rebuilt from the config and the saved
+        space, and only the policy's tensors are loaded (``allow_pickle=False``, strict names and shapes).
+        Nothing is unpickled: an older save holding only SB3's ``policy.zip`` (cloudpickle) is refused.
+        The rebuilt PPO has a fresh optimiser: it acts like the saved one; training it further starts Adam anew.
+        """
+        d = Path(directory)
+        if not (d / CONFIG_FILE).is_file():
+            raise InvphysError(f"no saved gc_ppo policy in {d} (expected {CONFIG_FILE} and {POLICY_FILE})")
+        if not (d / POLICY_FILE).is_file():
+            if (d / LEGACY_FILE).is_file():
+                raise LegacyPickleError(d / LEGACY_FILE)
+            raise InvphysError(f"no saved gc_ppo policy in {d} (expected {CONFIG_FILE} and {POLICY_FILE})")
+        saved = read_json_mapping(d / CONFIG_FILE)
+        try:
+            opt = cls(cls.Config(**saved["config"]))
+            opt.meta = dict(saved["meta"])
+            sp = opt.meta["space"]
+            dim, n_feat = int(sp["dim"]), len(opt.meta["feature_mean"])
+            low, high = float(sp["low"]), float(sp["high"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InvphysError(f"{d / CONFIG_FILE}: not a gc_ppo save this invphys reads ({first_line(exc)})") from None
+        opt.metrics = dict(saved.get("metrics") or {})
+        opt.model = opt._rebuild(dim, n_feat, low, high, read_weights_npz(d / POLICY_FILE), d / POLICY_FILE)
+        return opt
+
+    def _rebuild(self, dim: int, n_feat: int, low: float, high: float, state: dict[str, np.ndarray],
+                 where: Path) -> Any:
+        """A PPO with the trained policy's spaces and architecture, holding the saved tensors."""
+        import torch
+
+        from invphys.envs.task import InverseTask
+        from invphys.envs.vec import InverseVecEnv
+
+        meta, cfg = self.meta, self.config
+
+        def no_predict(*args: Any) -> np.ndarray:
+            raise InvphysError("a loaded gc_ppo policy has no surrogate to train with")
+
+        task = InverseTask(low=low, high=high, dim=dim, predict=no_predict, score=no_predict,
+                           feature_mean=np.asarray(meta["feature_mean"], dtype=np.float64),
+                           feature_std=np.asarray(meta["feature_std"], dtype=np.float64), horizon=cfg.horizon,
+                           step_scale=cfg.step_scale, start=np.asarray(meta["start"], dtype=np.float64),
+                           start_features=np.asarray(meta["start_features"], dtype=np.float64),
+                           goal_sampler=lambda rng, n: np.zeros((n, n_feat)))
+        import random
+
+        threads, states = torch.get_num_threads(), (torch.get_rng_state(), np.random.get_state(), random.getstate())
+        try:  # building PPO seeds the global RNGs and sets torch's threads: leave the caller's as they were
+            model = make_ppo(InverseVecEnv(task, cfg.n_envs, 0), cfg, int(cfg.seed or 0))
+        finally:
+            torch.set_num_threads(threads)
+            torch.set_rng_state(states[0])
+            np.random.set_state(states[1])
+            random.setstate(states[2])
+        check_state(model.policy.state_dict(), state, where, "the saved config")
+        model.policy.load_state_dict({k: torch.from_numpy(np.array(v)) for k, v in state.items()}, strict=True)
+        model.policy.set_training_mode(False)
+        return model
+
+    @classmethod
+    def load_legacy_pickle(cls, directory: str | Path) -> GoalConditionedPPO:
+        """Load an older save (SB3's ``policy.zip``). RUNS CODE stored in the file (cloudpickle): only for
+        files you trust (``invphys export --upgrade ... --trust-pickles`` calls this once, then :meth:`save`)."""
         from stable_baselines3 import PPO
 
         d = Path(directory)
-        if not (d / "gc_ppo.json").is_file() or not (d / "policy.zip").is_file():
-            raise InvphysError(f"no saved gc_ppo policy in {d} (expected gc_ppo.json and policy.zip)")
-        saved = json.loads((d / "gc_ppo.json").read_text())
+        saved = read_json_mapping(d / CONFIG_FILE)
         opt = cls(cls.Config(**saved["config"]))
-        opt.meta = saved["meta"]
-        opt.metrics = saved.get("metrics", {})
-        opt.model = PPO.load(d / "policy.zip", device=opt.config.device)
+        opt.meta, opt.metrics = saved["meta"], saved.get("metrics", {})
+        opt.model = PPO.load(d / LEGACY_FILE, device=opt.config.device)
         return opt
+
+
+POLICY_FILE = "policy.npz"
+CONFIG_FILE = "gc_ppo.json"
+LEGACY_FILE = "policy.zip"
+#: 2: the policy's tensors in policy.npz (no pickle); 1 (no "format" key): SB3's cloudpickled policy.zip
+SAVE_FORMAT = 2
