@@ -54,3 +54,23 @@ def toy_run(base: Path) -> Path:
     out = base / "inverter_toy_run"
     run_spec(validate_spec(spec_dict()), out, progress=False, console=Console(file=io.StringIO()))
     return out
+
+
+def paper_bundle(base: Path) -> Path:
+    """A private copy of the shipped paper bundle (never the shipped one), upgraded to the pickle-free
+    format when the shipped copy still holds an older pickled part."""
+    import shutil
+    import subprocess
+    import sys
+
+    out = base / "paper_bundle"
+    if out.is_dir():
+        return out
+    src = Path(__file__).resolve().parents[1] / "inverters" / "orange_peel_paper"
+    manifest = (src / "manifest.yaml").read_text()
+    if "npe.pt" in manifest or "policy.zip" in manifest:
+        subprocess.run([sys.executable, "-c", "from invphys.cli import main; main()", "export", "--upgrade", str(src), "--out", str(out),
+                        "--trust-pickles"], check=True, capture_output=True)
+    else:
+        shutil.copytree(src, out)
+    return out
