@@ -33,3 +33,20 @@ def test_an_engine_listed_first_on_pythonpath_is_the_one_imported(tmp_path, scri
                          cwd=tmp_path)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip().splitlines()[-1] == "older copy"
+
+
+def test_a_written_result_names_its_script_and_command(tmp_path, monkeypatch, capsys):
+    """``_machine.emit`` starts every result with the script and command that made it (benchmarks/README.md)."""
+    import json
+
+    from benchmark_modules import load
+
+    machine = load("_machine")
+    monkeypatch.setattr(sys, "argv", [str(ROOT / "benchmarks" / "bench_dataset.py"), "--n", "2", "--tag", "a b"])
+    machine.emit({"wall_s": 1.0}, tmp_path / "r" / "out.json")
+    rec = json.loads((tmp_path / "r" / "out.json").read_text())
+    assert rec["script"] == "benchmarks/bench_dataset.py"
+    assert rec["command"] == "python benchmarks/bench_dataset.py --n 2 --tag 'a b'"
+    assert rec["wall_s"] == 1.0
+    machine.emit({"command": "as recorded"}, tmp_path / "own.json")
+    assert json.loads((tmp_path / "own.json").read_text())["command"] == "as recorded"
