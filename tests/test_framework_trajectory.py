@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -98,6 +99,38 @@ def test_trajectory_file_errors_are_one_line(tmp_path) -> None:
         load_trajectory(tmp_path / "future.npz")
     with pytest.raises(ValueError, match="positions must be"):
         save_trajectory(Trajectory(positions=np.zeros((2, 3)), frame_indices=[0, 1], fps=1.0), tmp_path / "x.npz")
+
+
+def test_truncated_corrupt_and_inconsistent_files_are_one_line(tmp_path) -> None:
+    """A truncated trajectory was an internal error (zipfile.BadZipFile) in `invphys render` and
+    `invert --observed`; a file whose arrays disagree loaded and failed later."""
+    from invphys.core.trajectory_io import TrajectoryFileError, load_with_header
+    from invphys.core.user_targets import TargetError
+    from invphys.inverter.targets import load_trajectory as observed
+
+    traj = Trajectory(positions=np.zeros((2, 3, 3)), damage=np.zeros((2, 3)), frame_indices=[0, 1], fps=1.0)
+    data = save_trajectory(traj, tmp_path / "ok.npz").read_bytes()
+    for cut in (len(data) - 1, len(data) // 2, 10):
+        (tmp_path / "cut.npz").write_bytes(data[:cut])
+        with pytest.raises(TrajectoryFileError, match=r"cut\.npz is not a trajectory file: truncated or corrupt"):
+            load_trajectory(tmp_path / "cut.npz")
+        with pytest.raises(TargetError, match=r"cannot read trajectory .*cut\.npz.*truncated or corrupt"):
+            observed(tmp_path / "cut.npz")
+    header = json.dumps({"format": "invphys.trajectory", "version": 1, "fps": 1.0, "series": [], "fields": []})
+    np.savez(tmp_path / "odd.npz", header=np.array(header), positions=np.zeros((2, 3, 3)), damage=np.zeros((4, 4)),
+             frame_indices=np.arange(2))
+    with pytest.raises(TrajectoryFileError, match=r"damage must be \(2, 3\)"):
+        load_trajectory(tmp_path / "odd.npz")
+    for bad, needle in (("[1, 2]", "header is not a JSON object"), ('{"format": 1, "format": 2}', "appears twice"),
+                        ('{"format": "invphys.trajectory", "series": 5, "fields": []}', "not a trajectory file")):
+        np.savez(tmp_path / "h.npz", header=np.array(bad))
+        with pytest.raises(TrajectoryFileError, match=needle):
+            load_trajectory(tmp_path / "h.npz")
+    os.mkfifo(tmp_path / "fifo.npz")
+    with pytest.raises(TrajectoryFileError, match="not a regular file"):
+        load_trajectory(tmp_path / "fifo.npz")
+    back, head = load_with_header(tmp_path / "ok.npz")
+    assert head["format"] == "invphys.trajectory" and back.n_frames == 2
 
 
 def test_legacy_files_still_load(tmp_path) -> None:

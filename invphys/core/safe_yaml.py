@@ -148,6 +148,8 @@ def check_int(node: yaml.ScalarNode, source: str, error: type[InvphysError] = Sp
     """Refuse an integer a float cannot hold (more than about 1e308), naming its line."""
     import sys
 
+    if len(node.value) <= 20:  # well within a float (a sexagesimal 1:2:3 or 0x.. of this length too)
+        return
     digits = sum(c.isalnum() for c in node.value)
     try:
         value = None if digits > MAX_INT_DIGITS else yaml.constructor.SafeConstructor().construct_yaml_int(node)
