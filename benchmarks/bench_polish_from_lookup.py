@@ -15,12 +15,13 @@ Inputs: a protocol ``report.json`` (its 100 targets and the lookup's validated a
 bundle that was trained on the same split (its ``data/train.npz`` holds the lookup rows' stored
 features, so the starts are not simulated again; its recorded simulator config is used, with
 ``--arch`` and ``--sim-batch`` overrides). Every simulated chunk is logged to ``--log`` and replayed by
-a re-run, so a time-limited GPU call resumes where the last one stopped. The JSON records the device,
+a re-run, so a time-limited GPU job resumes where the last one stopped. The JSON records the device,
 simulator version and config hash, the command, mean R_actual with bootstrap intervals, the paired
 difference against the lookup, per set (farthest-point / random), per generation, and the cost.
 
-    python benchmarks/bench_polish_from_lookup.py --report results/orange_peel_paper_protocol/report.json \\
-        --bundle inverters/orange_peel_paper --arch cuda --log runs/polish_lookup/log.npz \\
+    # REPORT, BUNDLE: a protocol run's report/report.json and the bundle trained on the same split
+    python benchmarks/bench_polish_from_lookup.py --report REPORT \\
+        --bundle BUNDLE --arch cuda --log runs/polish_lookup/log.npz \\
         --out benchmarks/results/polish_from_lookup_paper_h100.json
 """
 

@@ -11,9 +11,8 @@ selected (best-of-N) mean, the plain recheck mean and the fresh mean of the re-s
 with bootstrap intervals, paired against the nearest-neighbour lookup; the answers go to
 ``<out>.answers.npz`` (theta, fresh R).
 
-    python benchmarks/bench_robust_reselect.py --polish results/orange_peel_paper_active_polish2/polish_active_again_paper_h100.json \\
-        --log results/orange_peel_paper_active_polish2/log.npz --arch cuda \\
-        --out results/orange_peel_paper_active_polish2/robust_reselect_h100.json
+    # POLISH: a bench_polish_from_lookup.py result made with --recheck; LOG: its --log
+    python benchmarks/bench_robust_reselect.py --polish POLISH --log LOG --arch cuda --out reselect.json
 """
 
 from __future__ import annotations
