@@ -358,3 +358,74 @@ def test_a_pool_never_closed_unlinks_its_blocks_when_the_process_exits(tmp_path)
     assert "leaked" not in run.stderr and "Traceback" not in run.stderr, run.stderr
     with pytest.raises(FileNotFoundError):
         shared_memory.SharedMemory(name=name.strip())
+
+
+class SleepyFeatures(PickyFeatures):
+    """The toy's features; for a run PickyFeatures refuses, extraction never returns (a stuck extractor)."""
+
+    name = "sleepy_toy_features"
+
+    def extract(self, trajectory):
+        if abs(float(trajectory.positions[-1, 0, 0])) > self.config.limit:
+            import time
+
+            while True:
+                time.sleep(3600)
+        return ToyFeatures.extract(self, trajectory)
+
+
+SLEEPY = {"type": "test_extract_pool:SleepyFeatures", "limit": 0.5}   # one of _params(12)'s runs sleeps
+
+
+def _check_only_the_stuck_run_failed(got: dict, stuck_error: str = "took longer than 1 s") -> None:
+    inline = dict(_run(0, {"type": FEATURES}))
+    stuck = {i for i, r in dict(_run(0, {"type": "test_extract_pool:PickyFeatures", "limit": 0.5})).items()
+             if not r.ok and "picky" in r.failure}
+    assert len(stuck) == 1 and sorted(got) == list(range(12))
+    for i in range(12):
+        if i in stuck:
+            assert not got[i].ok and "ExtractionTimedOut" in got[i].failure and stuck_error in got[i].failure
+        else:
+            assert got[i].ok == inline[i].ok and got[i].failure == inline[i].failure, got[i].failure
+            if inline[i].ok:
+                np.testing.assert_array_equal(got[i].features, inline[i].features)
+
+
+def test_an_extractor_that_never_returns_is_stopped_at_the_timeout_and_fails_only_its_run() -> None:
+    """Before, a stuck extractor hung the dataset for good (no per-run timeout); now its process is killed,
+    the run is a recorded failure, the other runs keep their features, and no process is left behind."""
+    import multiprocessing
+    import time
+
+    from invphys.plugins.executors.local import LocalExecutor
+
+    before = set(multiprocessing.active_children())   # another test's validator keeps its pool
+    start = time.monotonic()
+    ex = LocalExecutor(extract_workers=2, extract_timeout_s=1.0)
+    got = dict(ex.run({"type": SIM, "substeps": 1}, SLEEPY, _params(12), 5))
+    assert time.monotonic() - start < 90
+    _check_only_the_stuck_run_failed(got)
+    assert set(multiprocessing.active_children()) <= before   # the stuck process was stopped, not left sleeping
+
+
+@pytest.mark.parametrize("min_shared_bytes", [None, 0], ids=["pickled", "shared"])
+def test_a_stuck_run_in_a_stream_is_stopped_and_the_pool_goes_on(min_shared_bytes) -> None:
+    from invphys.plugins.executors._extract_pool import ExtractionPool
+
+    got, _ = _stream_through({"min_shared_bytes": min_shared_bytes, "timeout_s": 1.0}, SLEEPY)  # blocks given back
+    _check_only_the_stuck_run_failed(got)
+    with ExtractionPool({"type": FEATURES}, 1) as pool:
+        assert pool.timeout_s == 600.0   # the documented default
+
+
+def test_the_extraction_timeout_is_a_setting_with_a_documented_default() -> None:
+    from invphys.core.errors import InvphysError
+    from invphys.plugins.executors._extract_pool import DEFAULT_TIMEOUT_S, ExtractionPool
+    from invphys.plugins.executors.local import LocalExecutor
+
+    assert DEFAULT_TIMEOUT_S == 600.0 and LocalExecutor().config.extract_timeout_s == 600.0
+    assert LocalExecutor(extract_timeout_s=None).config.extract_timeout_s is None
+    with pytest.raises(Exception, match="greater than 0"):
+        LocalExecutor(extract_timeout_s=0)
+    with pytest.raises(InvphysError, match="timeout"):
+        ExtractionPool({"type": FEATURES}, 1, timeout_s=-1)

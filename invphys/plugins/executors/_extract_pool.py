@@ -19,12 +19,23 @@ each run the broken pool held is retried alone in a fresh process: the runs that
 their features, and the one that did fails alone (:class:`ExtractionWorkerDied`, a recorded failure).
 Processes that cannot build the extractor, or die before they have, are no run's fault: an
 :class:`InvphysError` stops the caller.
+
+A run whose extraction takes longer than ``timeout_s`` (default :data:`DEFAULT_TIMEOUT_S`: an extractor
+stuck in a loop, a lock or native code) is stopped where it runs: each worker arms a timer
+(``SIGALRM``, whose default action ends the process even inside native code) when it starts a run and
+disarms it when the run is done, so the clock counts that run's extraction only, never a process's start
+or a queue. The process ends, which is handled as a worker that died: the pool is replaced and the runs
+it held are retried alone; the stuck run, stopped again alone, is a recorded failure
+(:class:`ExtractionTimedOut`). Platforms without ``setitimer`` (Windows) have no timeout.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import signal
 import threading
+import time
 import weakref
 from collections.abc import Callable
 from concurrent.futures import Future, InvalidStateError, ProcessPoolExecutor, ThreadPoolExecutor
@@ -38,18 +49,25 @@ from invphys.core.results import SimulationResult
 
 _LOG = logging.getLogger(__name__)
 
+#: seconds one run's feature extraction may take in a worker process before it is stopped (a failure)
+DEFAULT_TIMEOUT_S = 600.0
+
 _WORKER_EXTRACTOR: Any = None
 _WORKER_INIT_ERROR: InvphysError | None = None   # why this worker could not build the extractor
+_WORKER_TIMEOUT_S: float | None = None
 
 _CANNOT_BUILD = ("the feature-extraction processes cannot build the extractor ({}); a plugin registered by hand in "
                  "this process is not seen there (name it 'module:Class' or by an entry point), or set "
                  "extract_workers: 0 to extract in this process")
 
 
-def _init_worker(extractor: Any) -> None:
+def _init_worker(extractor: Any, timeout_s: float | None = None) -> None:
     """Build the worker's extractor; a failure is kept and raised for each run (a raising initializer would
-    break the pool, which then reads as a worker that died)."""
-    global _WORKER_EXTRACTOR, _WORKER_INIT_ERROR
+    break the pool, which then reads as a worker that died). ``SIGALRM`` ends the process (the timeout)."""
+    global _WORKER_EXTRACTOR, _WORKER_INIT_ERROR, _WORKER_TIMEOUT_S
+    if timeout_s is not None and hasattr(signal, "setitimer"):
+        signal.signal(signal.SIGALRM, signal.SIG_DFL)
+        _WORKER_TIMEOUT_S = timeout_s
     try:
         if isinstance(extractor, dict):
             from invphys import registry
@@ -66,9 +84,23 @@ def _ready() -> None:
         raise _WORKER_INIT_ERROR
 
 
+@contextlib.contextmanager
+def _deadline() -> Any:
+    """In a worker: the process ends (``SIGALRM``) unless the block is done within ``_WORKER_TIMEOUT_S``."""
+    if _WORKER_TIMEOUT_S is None:
+        yield
+        return
+    signal.setitimer(signal.ITIMER_REAL, _WORKER_TIMEOUT_S)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+
+
 def _extract(trajectory: Any) -> np.ndarray:
     _ready()
-    return np.asarray(_WORKER_EXTRACTOR.extract(trajectory), dtype=np.float64)
+    with _deadline():
+        return np.asarray(_WORKER_EXTRACTOR.extract(trajectory), dtype=np.float64)
 
 
 def _extract_shared(data: bytes, name: str, spans: list[tuple[int, int]]) -> np.ndarray:
@@ -81,6 +113,11 @@ def _extract_shared(data: bytes, name: str, spans: list[tuple[int, int]]) -> np.
 class ExtractionWorkerDied(SimulationFailed):
     """The process extracting one run's features died, also when the run was retried alone in a fresh one:
     the extractor crashes on it (or the process keeps being killed, e.g. for memory). That run's failure."""
+
+
+class ExtractionTimedOut(SimulationFailed):
+    """One run's feature extraction took longer than the pool's ``timeout_s``, also when retried alone in a
+    fresh process: its process was stopped (and replaced). That run's failure."""
 
 
 def _settle(outer: Future, result: Any = None, exc: BaseException | None = None) -> None:
@@ -107,15 +144,22 @@ def _chain(inner: Future, outer: Future) -> None:
 class ExtractionPool:
     """``workers`` processes extracting features with ``extractor`` (a plugin block or an instance)."""
 
-    def __init__(self, extractor: Any, workers: int, min_shared_bytes: int | None = 1 << 20) -> None:
+    def __init__(self, extractor: Any, workers: int, min_shared_bytes: int | None = 1 << 20,
+                 timeout_s: float | None = DEFAULT_TIMEOUT_S) -> None:
         import multiprocessing
 
         if workers < 1:
             raise InvphysError(f"extract_workers must be >= 1 for a pool, got {workers}")
+        if timeout_s is not None and not timeout_s > 0:
+            raise InvphysError(f"the extraction timeout must be > 0 seconds (or none), got {timeout_s}")
         self.workers = int(workers)
+        #: seconds one run's extraction may take in a worker (None: no limit); see the module's text
+        self.timeout_s = None if timeout_s is None else float(timeout_s)
+        #: runs stopped for taking longer than ``timeout_s``
+        self.timed_out = 0
         self._pool_kwargs: dict[str, Any] = dict(
             mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker,
-            initargs=(dict(extractor) if isinstance(extractor, dict) else extractor,))
+            initargs=(dict(extractor) if isinstance(extractor, dict) else extractor, self.timeout_s))
         self._pool = ProcessPoolExecutor(self.workers, **self._pool_kwargs)
         self._pool_lock = threading.Lock()
         # runs a broken pool held, retried one at a time, each alone in a fresh process (no thread until used)
@@ -229,7 +273,18 @@ class ExtractionPool:
                     self._cannot_start = InvphysError(_CANNOT_BUILD.format(f"a fresh process died starting: {exc}"))
                     _settle(outer, exc=self._cannot_start)
                     return
-                result = solo.submit(fn, *args).result()
+                procs = list((getattr(solo, "_processes", None) or {}).values())
+                began = time.monotonic()
+                try:
+                    result = solo.submit(fn, *args).result()
+                except BrokenProcessPool:
+                    if self._alarmed(procs, time.monotonic() - began):
+                        self.timed_out += 1
+                        _settle(outer, exc=ExtractionTimedOut(
+                            f"feature extraction took longer than {self.timeout_s:g} s (the extraction "
+                            "timeout), also when retried alone in a fresh process; its process was stopped"))
+                        return
+                    raise
         except BrokenProcessPool:
             _settle(outer, exc=ExtractionWorkerDied(
                 "the feature-extraction process died on this run, also when retried alone in a fresh process "
@@ -238,6 +293,17 @@ class ExtractionPool:
             _settle(outer, exc=exc)
         else:
             _settle(outer, result)
+
+    def _alarmed(self, procs: list[Any], elapsed: float) -> bool:
+        """Whether the process that ran a run alone (``procs``) was ended by its extraction timer: its exit
+        status says so, or it died no sooner than the timeout after the run was handed to it."""
+        if self.timeout_s is None or not hasattr(signal, "SIGALRM"):
+            return False
+        if elapsed >= self.timeout_s:
+            return True
+        for proc in procs:
+            proc.join(timeout=10)
+        return any(proc.exitcode == -signal.SIGALRM for proc in procs)
 
     @staticmethod
     def resolve(res: SimulationResult, fut: Future | None) -> SimulationResult:

@@ -11,6 +11,7 @@ from pydantic import Field
 from invphys.core.interfaces import Executor, PluginConfig
 from invphys.core.results import SimulationResult
 from invphys.plugins.executors._batch import batches, build_plugins, simulate_batch, stream_rows
+from invphys.plugins.executors._extract_pool import DEFAULT_TIMEOUT_S
 
 
 class LocalExecutor(Executor):
@@ -25,6 +26,10 @@ class LocalExecutor(Executor):
         extract_workers: int = Field(
             0, ge=0, le=256, description="extract features in this many worker processes while the simulator "
                                          "goes on (0: in this process, between launches)")
+        extract_timeout_s: float | None = Field(
+            DEFAULT_TIMEOUT_S, gt=0, description="seconds one run's extraction may take in a worker process "
+                                                 "before the process is stopped and the run recorded as failed "
+                                                 "(null: no limit; in-process extraction has none)")
 
     def run(self, simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None,
             params: np.ndarray, batch_size: int) -> Iterator[tuple[int, SimulationResult]]:
@@ -36,7 +41,8 @@ class LocalExecutor(Executor):
         if self.config.extract_workers and extractor_spec:
             from invphys.plugins.executors._extract_pool import ExtractionPool
 
-            pool = ExtractionPool(extractor_spec, self.config.extract_workers)
+            pool = ExtractionPool(extractor_spec, self.config.extract_workers,
+                                  timeout_s=self.config.extract_timeout_s)
         try:
             if getattr(simulator, "native_stream", False):
                 # one stream over every row: the simulator keeps its slots full across batch boundaries

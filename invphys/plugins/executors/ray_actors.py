@@ -18,6 +18,7 @@ from invphys.core.errors import InvphysError
 from invphys.core.interfaces import Executor, PluginConfig
 from invphys.core.results import SimulationResult
 from invphys.plugins.executors import _batch
+from invphys.plugins.executors._extract_pool import DEFAULT_TIMEOUT_S
 from invphys.plugins.executors._ray import connect, import_ray
 
 
@@ -26,8 +27,10 @@ class SimulatorActor:
     spec blocks, :func:`~invphys.plugins.executors._batch.build_plugins`) and keeps them, with their
     compiled kernels and allocated fields, for every chunk it runs."""
 
-    def __init__(self, env: dict[str, str], extract_workers: int = 0) -> None:
+    def __init__(self, env: dict[str, str], extract_workers: int = 0,
+                 extract_timeout_s: float | None = DEFAULT_TIMEOUT_S) -> None:
         os.environ.update(env)
+        self.extract_timeout_s = extract_timeout_s
         self.chunks = 0
         self.rows = 0
         self.busy_s = 0.0
@@ -42,7 +45,8 @@ class SimulatorActor:
         if key not in self._pools:
             from invphys.plugins.executors._extract_pool import ExtractionPool
 
-            self._pools[key] = ExtractionPool(extractor_spec, self.extract_workers)
+            self._pools[key] = ExtractionPool(extractor_spec, self.extract_workers,
+                                              timeout_s=self.extract_timeout_s)
         return self._pools[key]
 
     def run(self, simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None, params: np.ndarray,
@@ -133,6 +137,10 @@ class RayActorsExecutor(Executor):
         extract_workers: int = Field(
             0, ge=0, le=64, description="processes per actor extracting features while its simulator goes on "
                                         "(0: in the actor, between launches); CPUs beyond num_cpus_per_actor")
+        extract_timeout_s: float | None = Field(
+            DEFAULT_TIMEOUT_S, gt=0, description="seconds one run's extraction may take in an actor's worker "
+                                                 "process before the process is stopped and the run recorded "
+                                                 "as failed (null: no limit; in-actor extraction has none)")
         runtime_env: dict[str, Any] | None = Field(None, description="Ray runtime_env of the actors")
         keep_actors: bool = Field(
             False, description="keep the warm actors (and a Ray instance started here) after run for the "
@@ -187,7 +195,8 @@ class RayActorsExecutor(Executor):
             if cfg.runtime_env:
                 options["runtime_env"] = cfg.runtime_env
             actor_cls = ray.remote(SimulatorActor).options(**options)
-            self._actors = [actor_cls.remote(env, cfg.extract_workers) for _ in range(self._size(ray))]
+            self._actors = [actor_cls.remote(env, cfg.extract_workers, cfg.extract_timeout_s)
+                            for _ in range(self._size(ray))]
         return self._actors
 
     def warm(self, simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None,
