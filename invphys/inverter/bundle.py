@@ -282,18 +282,19 @@ class Bundle:
 
     def _npz(self, rel: str, what: str) -> dict[str, np.ndarray]:
         """Every array of the bundle's ``.npz`` file ``rel``, read without pickles (else a BundleError)."""
-        import zipfile
+        from invphys.core.safe_read import UserFileError, load_user_npz
 
         path = self.part(rel, what)
         try:
-            with np.load(path, allow_pickle=False) as z:
-                if not hasattr(z, "files"):
-                    raise ValueError("a single array, not an .npz archive")
-                return {k: z[k] for k in z.files}
-        except (ValueError, OSError, EOFError, zipfile.BadZipFile, KeyError) as exc:
-            reason = next((ln.strip() for ln in str(exc).splitlines() if ln.strip()), type(exc).__name__)
+            arrays = load_user_npz(path, what=what)
+        except UserFileError as exc:
             raise BundleError(f"bundle {str(self.root)!r}: {rel} ({what}) is not a NumPy archive invphys loads "
-                              f"without running code ({reason})") from None
+                              f"without running code ({exc.problem})") from None
+        bad = [k for k, v in arrays.items() if v.dtype.kind not in "fiubU"]
+        if bad:
+            raise BundleError(f"bundle {str(self.root)!r}: {rel} ({what}) holds {arrays[bad[0]].dtype} array "
+                              f"{bad[0]!r}, not numbers")
+        return arrays
 
     def program(self, rel: str, what: str = "a NumPy form", n_in: int | None = None,
                 out_shape: tuple[int | None, ...] | None = None) -> Program:

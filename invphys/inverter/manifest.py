@@ -17,7 +17,6 @@ from __future__ import annotations
 import hashlib
 import os
 import platform
-import stat
 import sys
 from collections.abc import Callable
 from pathlib import Path, PurePosixPath
@@ -33,6 +32,8 @@ REQUIRED = ("format_version", "parameter_space", "features", "simulator", "compo
 REQUIRED_KEYS = ("parameter_space.names", "parameter_space.low", "parameter_space.high",
                  "parameter_space.log_scale", "parameter_space.units", "features.names", "features.scales",
                  "simulator.name", "components.surrogate", "components.surrogate.type", "components.surrogate.path")
+#: largest bundle part hashed or read (bytes)
+PART_MAX_BYTES = 2 << 30
 #: parts of format-1 bundles that only unpickling (running code stored in the file) could load
 LEGACY_PICKLES = ("npe.pt", "policy.zip")
 UPGRADE_HINT = ("if you trust where it came from, convert it once (this runs the pickled code): "
@@ -107,6 +108,8 @@ def read_manifest(root: str | Path, verify: bool = True, allow_legacy: bool = Fa
     """The manifest of the bundle at ``root``, migrated to :data:`FORMAT_VERSION` and checked: required
     keys, every listed file inside the bundle, no pickled part (unless ``allow_legacy``: the upgrade
     only), and with ``verify`` every file's sha256."""
+    from invphys.core.safe_read import check_regular_file
+
     root = Path(root)
     if not root.exists():
         raise BundleError(f"no inverter bundle at {str(root)!r} (no such directory)")
@@ -145,10 +148,12 @@ def read_manifest(root: str | Path, verify: bool = True, allow_legacy: bool = Fa
     if verify:
         for rel, digest in files.items():
             f = root / rel
-            if not f.exists():
+            if not os.path.lexists(f):
                 raise BundleError(f"bundle {str(root)!r} is missing part {rel}")
-            if not stat.S_ISREG(f.stat().st_mode):
-                raise BundleError(f"bundle {str(root)!r}: {rel} is not a regular file")
+            try:
+                check_regular_file(f, what=f"bundle part {rel}", max_bytes=PART_MAX_BYTES)
+            except InvphysError as exc:
+                raise BundleError(f"bundle {str(root)!r}: {exc}") from None
             if sha256_file(f) != digest:
                 raise BundleError(f"bundle {str(root)!r}: {rel} has changed since the bundle was written "
                                   f"(sha256 mismatch); re-export the bundle")
@@ -156,13 +161,14 @@ def read_manifest(root: str | Path, verify: bool = True, allow_legacy: bool = Fa
 
 
 def _parse(path: Path) -> dict[str, Any]:
-    """The manifest's YAML as a mapping (safe loader; every failure a BundleError naming the file)."""
-    import yaml
+    """The manifest's YAML as a mapping, read by the bounded reader (a regular file, size, alias, depth and
+    duplicate-key limits); every failure is a BundleError naming the file."""
+    from invphys.core.safe_read import load_user_yaml
 
     try:
-        data = yaml.safe_load(path.read_text())
-    except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as exc:
-        raise BundleError(f"{path}: the manifest is not valid YAML ({type(exc).__name__})") from None
+        data = load_user_yaml(path, what="bundle manifest")
+    except InvphysError as exc:
+        raise BundleError(str(exc)) from None
     if not isinstance(data, dict):
         raise BundleError(f"{path}: the manifest is not a mapping")
     return data

@@ -10,7 +10,6 @@ Import-light: torch is imported inside methods. A saved model is a directory hol
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from pathlib import Path
@@ -195,10 +194,14 @@ def first_line(exc: BaseException) -> str:
 
 def read_json_mapping(path: Path) -> dict[str, Any]:
     """A JSON object from ``path``, or a :class:`ModelLoadError` naming the file."""
+    from invphys.core.safe_read import load_user_json
+
     try:
-        data = json.loads(Path(path).read_text())
-    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
-        raise ModelLoadError(f"{path}: not readable JSON ({type(exc).__name__})") from None
+        data = load_user_json(path, what="saved model description")
+    except InvphysError as exc:
+        raise ModelLoadError(str(exc)) from None
+    except RecursionError:
+        raise ModelLoadError(f"{path}: JSON nested too deeply") from None
     if not isinstance(data, dict):
         raise ModelLoadError(f"{path}: not a JSON object")
     return data
@@ -209,6 +212,12 @@ def load_torch_weights(path: Path) -> dict[str, Any]:
     only: a pickle that would run code is refused by torch); every failure is one line naming the file."""
     import torch
 
+    from invphys.core.safe_read import NPZ_MAX_BYTES, check_regular_file
+
+    try:
+        check_regular_file(path, what="weights file", max_bytes=NPZ_MAX_BYTES)
+    except InvphysError as exc:
+        raise ModelLoadError(str(exc)) from None
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises UnpicklingError, RuntimeError, EOFError, ... for foreign files
@@ -221,15 +230,12 @@ def load_torch_weights(path: Path) -> dict[str, Any]:
 def read_weights_npz(path: Path) -> dict[str, np.ndarray]:
     """Every array of a weights ``.npz``, read with ``allow_pickle=False``; anything else (a pickle, an
     object array, a damaged archive) is a :class:`ModelLoadError` naming the file."""
-    import zipfile
+    from invphys.core.safe_read import UserFileError, load_user_npz
 
     try:
-        with np.load(path, allow_pickle=False) as data:
-            if not hasattr(data, "files"):
-                raise ValueError("a single array, not an .npz archive")
-            arrays = {k: data[k] for k in data.files}
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile, KeyError) as exc:
-        raise ModelLoadError(f"{path}: not a weights archive invphys loads without running code ({first_line(exc)})") \
+        arrays = load_user_npz(path, what="weights archive")
+    except UserFileError as exc:
+        raise ModelLoadError(f"{path}: not a weights archive invphys loads without running code ({exc.problem})") \
             from None
     bad = [k for k, v in arrays.items() if v.dtype.kind not in "fiub"]
     if bad:
