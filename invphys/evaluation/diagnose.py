@@ -1,0 +1,185 @@
+"""``invphys diagnose``: calibration, out-of-distribution and surrogate error-bar checks of one bundle.
+
+On rows the bundle never trained on (:mod:`~invphys.evaluation.heldout`, picked by key), split in two
+by key: the *fit* half fits the corrections (posterior recalibration, the OOD score and its threshold,
+the surrogate's error-bar factors) and the *check* half measures them, before and after. The result is
+``report`` (everything measured) and ``calibration`` (the numbers answers use, stored as
+``diagnostics/calibration.json`` in a bundle).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from invphys.core.errors import InvphysError
+from invphys.evaluation import calibration as cal
+from invphys.evaluation.heldout import HeldOut, heldout_rows
+from invphys.evaluation.ood import SCORES, auroc, score_components
+from invphys.evaluation.surrogate_errors import error_bar_coverage, fit_error_scales
+
+_LOG = logging.getLogger("invphys.diagnose")
+FORMAT = 1
+#: a parameter is "not identified" when its mean central 90 % interval spans more than this share of its range
+IDENTIFIED_WIDTH = 0.5
+#: a held-out answer "fails" when its RMS normalised error over the identified parameters exceeds this
+FAILURE_ERROR = 0.15
+#: ... or (the second label) when its R_surr is below this
+FAILURE_R = 0.8
+#: the OOD threshold: this quantile of the fit rows' scores (the warning fires on ~10 % of typical rows)
+OOD_QUANTILE = 0.9
+#: recalibrate a parameter when its fit-half coverage is off by more than this at some level, or its SBC p < 0.01
+RECALIBRATE_ABOVE = 0.02
+
+
+@dataclass
+class Diagnosis:
+    report: dict[str, Any]
+    calibration: dict[str, Any]
+    figures: dict[str, Any] = field(default_factory=dict)
+
+
+def posterior_draws(inverter: Any, y: np.ndarray, n: int, seed: int, method: str | None = None) -> Any:
+    """The bundle's posterior draws of complete targets ``y`` (the inverter's public draws API)."""
+    return inverter.posterior(np.asarray(y, dtype=np.float64), n=n, seed=seed, method=method)
+
+
+def _draws_in_chunks(inverter: Any, y: np.ndarray, n: int, seed: int, method: str | None) -> tuple[np.ndarray,
+                                                                                                 np.ndarray]:
+    """(samples (N, n, d), outside_fraction (N,)); each target's draws are its own (chunks only log progress)."""
+    samples, outside = [], []
+    t0 = time.perf_counter()
+    for i in range(0, len(y), 100):
+        d = posterior_draws(inverter, y[i:i + 100], n, seed, method)
+        samples.append(d.samples)
+        outside.append(np.asarray(d.outside_fraction, dtype=np.float64))
+        _LOG.info("posterior draws: %d/%d targets (%.0f s)", min(i + 100, len(y)), len(y), time.perf_counter() - t0)
+    return np.concatenate(samples), np.concatenate(outside)
+
+
+def calibration_block(draws: np.ndarray, theta: np.ndarray, seed: int) -> dict[str, Any]:
+    """Coverage per parameter, TARP and SBC of ``draws`` against ``theta``."""
+    return {"n_rows": len(theta), "coverage": cal.central_coverage(draws, theta, seed=seed),
+            "tarp": cal.tarp(draws, theta, seed=seed), "sbc": cal.sbc(draws, theta)}
+
+
+def _recalibration(draws_fit: np.ndarray, theta_fit: np.ndarray, names: list[str], seed: int
+                   ) -> tuple[list[dict[str, list[float]] | None], list[str]]:
+    """Maps fitted on the fit half, kept only for parameters whose fit-half calibration is off."""
+    block = calibration_block(draws_fit, theta_fit, seed)
+    maps = cal.fit_recalibration(cal.pit_z(draws_fit, theta_fit))
+    keep: list[dict[str, list[float]] | None] = []
+    for j, _ in enumerate(names):
+        off = cal.worst_error(block["coverage"], j) > RECALIBRATE_ABOVE or block["sbc"]["ks_pvalue"][j] < 0.01
+        keep.append(maps[j] if off else None)
+    return keep, [n for n, m in zip(names, keep, strict=True) if m is not None]
+
+
+def _verdicts(after: dict[str, Any], names: list[str]) -> list[dict[str, Any]]:
+    """Parameters whose SBC ranks stay non-uniform (p < 0.01) after recalibration, with their bias."""
+    out = []
+    for j, n in enumerate(names):
+        p, bias = after["sbc"]["ks_pvalue"][j], after["sbc"]["bias"][j]
+        if p < 0.01:
+            out.append({"parameter": n, "ks_pvalue": p, "bias": bias,
+                        "reading": "the truth sits above the posterior's median too often (posterior biased low)"
+                        if bias > 0 else "the truth sits below the posterior's median too often (posterior biased high)"})
+    return out
+
+
+def _surrogate(bundle: Any, held: HeldOut, fit: np.ndarray) -> dict[str, Any]:
+    mean, std = bundle.surrogate.predict_with_uncertainty(held.theta)
+    if not np.any(std > 0):
+        return {"available": False, "note": "the surrogate is a single network: no spread to scale"}
+    scales = fit_error_scales(mean[fit], std[fit], held.y[fit])
+    chk = ~fit
+    return {"available": True, "scales": scales.tolist(), "n_fit": int(fit.sum()), "n_check": int(chk.sum()),
+            "check_before": error_bar_coverage(mean[chk], std[chk], held.y[chk]),
+            "check_after": error_bar_coverage(mean[chk], std[chk], held.y[chk], scales)}
+
+
+def _ood(inverter: Any, held: HeldOut, samples: np.ndarray, outside: np.ndarray, identified: np.ndarray,
+         fit: np.ndarray) -> tuple[dict[str, Any], dict[str, Any]]:
+    """AUROC of every candidate score for failing default answers; the best one (on the fit half) kept."""
+    bundle = inverter.bundle
+    answers = np.asarray(inverter.invert_array(held.y), dtype=np.float64)
+    draws = _Draws(samples, outside)
+    scores = score_components(bundle, held.y, answers, draws, SCORES)
+    cols = identified if identified.any() else np.ones(held.theta.shape[1], dtype=bool)
+    err = np.sqrt(np.mean((answers[:, cols] - held.theta[:, cols]) ** 2, axis=1))
+    r_surr = 1.0 - scores["misfit"]
+    labels = {"parameter_error": err > FAILURE_ERROR, "r_surr": r_surr < FAILURE_R}
+    table = {name: {lab: {"fit": auroc(s[fit], f[fit]), "check": auroc(s[~fit], f[~fit])}
+                    for lab, f in labels.items()} for name, s in scores.items()}
+    best = max(scores, key=lambda n: np.nan_to_num(table[n]["parameter_error"]["fit"], nan=0.0))
+    thr = float(np.quantile(scores[best][fit], OOD_QUANTILE))
+    fires = scores[best][~fit] > thr
+    fails = labels["parameter_error"][~fit]
+    report = {"candidates": table, "chosen": best, "threshold": thr,
+              "failure": {"parameter_error_above": FAILURE_ERROR, "over": "identified parameters",
+                          "r_surr_below": FAILURE_R,
+                          "rate_check": {k: float(v[~fit].mean()) for k, v in labels.items()}},
+              "check": {"fire_rate": float(fires.mean()),
+                        "recall_on_failures": float(fires[fails].mean()) if fails.any() else None,
+                        "fire_rate_on_non_failures": float(fires[~fails].mean()) if (~fails).any() else None},
+              "default_answer": {"method": inverter.default_method, "mean_r_surr": float(r_surr.mean()),
+                                 "mean_error_identified": float(err.mean())},
+              "note": "misfit is 1 - R_surr: its AUROC on the r_surr label is that label itself"}
+    return report, {"score": best, "threshold": thr, "quantile": OOD_QUANTILE, "k": 10}
+
+
+@dataclass
+class _Draws:
+    samples: np.ndarray
+    outside_fraction: np.ndarray
+
+
+def diagnose(inverter: Any, stores: Any = None, rows: int | None = None, draws: int = 1000, seed: int = 0,
+             method: str | None = None) -> Diagnosis:
+    """Measure ``inverter``'s bundle on its held-out rows (at most ``rows``, the first by key)."""
+    bundle = inverter.bundle
+    held = heldout_rows(bundle, stores)
+    if rows is not None:
+        held = held.take(np.arange(min(int(rows), len(held))))
+    if len(held) < 20:
+        raise InvphysError(f"bundle {bundle.root}: only {len(held)} held-out rows found; diagnose needs >= 20 "
+                           f"(point --data at the dataset stores of its simulator)")
+    names = list(bundle.space.names)
+    fit = held.split() == 0
+    samples, outside = _draws_in_chunks(inverter, held.y, draws, seed, method)
+    before_all = calibration_block(samples, held.theta, seed)
+    maps, recalibrated = _recalibration(samples[fit], held.theta[fit], names, seed)
+    before = calibration_block(samples[~fit], held.theta[~fit], seed)
+    after = calibration_block(cal.apply_recalibration(samples[~fit], maps), held.theta[~fit], seed)
+    width90 = np.asarray(before_all["coverage"]["0.9"]["width"])
+    identified = width90 < IDENTIFIED_WIDTH
+    ood_report, ood_cal = _ood(inverter, held, samples, outside, identified, fit)
+    sur = _surrogate(bundle, held, fit)
+    report = {
+        "format": FORMAT, "bundle": str(bundle.root), "bundle_id": bundle.manifest.get("bundle_id"),
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "posterior_method": inverter.posterior_method(method), "draws_per_row": int(draws), "seed": int(seed),
+        "parameters": names, "features": list(bundle.feature_names), "levels": list(cal.LEVELS),
+        "heldout": {**held.info, "rows_used": len(held), "fit_rows": int(fit.sum()), "check_rows": int((~fit).sum()),
+                    "split": "by key: the last 8 hex digits of each row's key, even -> fit, odd -> check"},
+        "outside_box": {"mean_outside_fraction": float(outside.mean()),
+                        "note": "share of raw posterior draws outside the parameter box (rejected, not clipped)"},
+        "identified": {"max_width90": IDENTIFIED_WIDTH, "width90": width90.tolist(),
+                       "not_identified": [n for n, ok in zip(names, identified, strict=True) if not ok]},
+        "all_rows": before_all, "check_before": before, "check_after": after,
+        "recalibrated": recalibrated, "after_recalibration_not_uniform": _verdicts(after, names),
+        "ood": ood_report, "surrogate_error_bars": sur}
+    calib = {"format": FORMAT, "bundle_id": bundle.manifest.get("bundle_id"), "created_utc": report["created_utc"],
+             "posterior": {"method": report["posterior_method"], "parameters": names,
+                           "recalibration": {"knots": cal.KNOTS, "maps": maps}},
+             "ood": ood_cal, "identified": report["identified"]}
+    if sur.get("available"):
+        calib["surrogate_error_scales"] = {"features": list(bundle.feature_names), "scales": sur["scales"],
+                                           "z": 1.6448536269514722, "nominal": 0.9}
+    return Diagnosis(report, calib, {"ranks_before": cal.ranks(samples[~fit], held.theta[~fit]),
+                                     "ranks_after": cal.ranks(cal.apply_recalibration(samples[~fit], maps),
+                                                              held.theta[~fit])})

@@ -1,0 +1,165 @@
+"""Writing a :class:`~invphys.evaluation.diagnose.Diagnosis`: JSON, a Markdown summary and two figures.
+
+Files: ``report.json`` (everything measured), ``calibration.json`` (the numbers answers use),
+``summary.md`` (the table a bundle's README shows), ``rank_histograms.png``, ``coverage.png``.
+:func:`write_into_bundle` puts them in a bundle's ``diagnostics/`` folder, adds the summary to its
+README and re-hashes the manifest's file list (:func:`invphys.inverter.manifest.write_manifest`).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import uuid
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from invphys.core.atomic import atomic_write_bytes
+
+DIAGNOSTICS_DIR = "diagnostics"
+README_HEADING = "## Diagnostics (invphys diagnose)"
+
+
+def _pct(x: float) -> str:
+    return f"{100 * x:.1f} %"
+
+
+def summary_markdown(report: dict[str, Any]) -> str:
+    """The measured summary as Markdown (check half, before and after recalibration)."""
+    names, h = report["parameters"], report["heldout"]
+    lines = [f"Measured on {h['rows_used']} held-out rows the bundle never trained on (picked by key; "
+             f"{h['fit_rows']} fit the corrections, {h['check_rows']} check them), {report['draws_per_row']} "
+             f"posterior draws each from `{report['posterior_method']}`.", "",
+             "Central-interval coverage on the check rows, before -> after recalibration (nominal 50/80/90/95 %):",
+             "", "| parameter | 50 % | 80 % | 90 % | 95 % | 90 % width | SBC p before -> after |",
+             "|---|---|---|---|---|---|---|"]
+    b, a = report["check_before"], report["check_after"]
+    for j, n in enumerate(names):
+        cells = [f"{_pct(b['coverage'][k]['coverage'][j])} -> {_pct(a['coverage'][k]['coverage'][j])}"
+                 for k in ("0.5", "0.8", "0.9", "0.95")]
+        mark = "" if n not in report["identified"]["not_identified"] else " (not identified)"
+        lines.append(f"| {n}{mark} | {' | '.join(cells)} | {b['coverage']['0.9']['width'][j]:.2f} | "
+                     f"{b['sbc']['ks_pvalue'][j]:.2g} -> {a['sbc']['ks_pvalue'][j]:.2g} |")
+    tb, ta = b["tarp"]["levels"], a["tarp"]["levels"]
+    lines.append("| joint (TARP) | " + " | ".join(f"{_pct(tb[k]['rate'])} -> {_pct(ta[k]['rate'])}"
+                                                  for k in ("0.5", "0.8", "0.9", "0.95")) + " | | |")
+    lines += ["", f"Recalibrated: {', '.join(report['recalibrated']) or 'none'}. "
+              f"Not identified (90 % interval wider than {report['identified']['max_width90']:.0%} of the range): "
+              f"{', '.join(report['identified']['not_identified']) or 'none'}. "
+              f"Raw draws outside the box: {_pct(report['outside_box']['mean_outside_fraction'])} (rejected)."]
+    for v in report["after_recalibration_not_uniform"]:
+        lines.append(f"SBC ranks of {v['parameter']} stay non-uniform after recalibration (p {v['ks_pvalue']:.2g}, "
+                     f"bias {v['bias']:+.3f}): {v['reading']}.")
+    o = report["ood"]
+    lines += ["", f"Out-of-distribution score: `{o['chosen']}` (AUROC for failing answers on the check rows "
+              f"{o['candidates'][o['chosen']]['parameter_error']['check']:.2f}); warning above "
+              f"{o['threshold']:.3g}: fires on {_pct(o['check']['fire_rate'])} of check rows."]
+    s = report["surrogate_error_bars"]
+    if s.get("available"):
+        lines.append(f"Surrogate error bars (±1.645 sigma): hold {_pct(s['check_before']['overall'])} of held-out "
+                     f"errors with the raw ensemble spread, {_pct(s['check_after']['overall'])} scaled (nominal 90 %).")
+    return "\n".join(lines) + "\n"
+
+
+def plot_ranks(ranks_before: np.ndarray, ranks_after: np.ndarray, n_draws: int, names: list[str], path: Path) -> Path:
+    """One panel per parameter: SBC rank histograms before and after recalibration, with the uniform band."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from scipy.stats import binom
+
+    d, bins = len(names), 20
+    cols = 3
+    fig, axes = plt.subplots((d + cols - 1) // cols, cols, figsize=(4 * cols, 2.6 * ((d + cols - 1) // cols)))
+    n = len(ranks_before)
+    lo, hi = binom.ppf([0.005, 0.995], n, 1 / bins)
+    for j, ax in enumerate(np.atleast_1d(axes).ravel()):
+        if j >= d:
+            ax.axis("off")
+            continue
+        ax.axhspan(lo, hi, color="0.85")
+        ax.hist(ranks_before[:, j], bins=bins, range=(0, n_draws + 1), histtype="step", color="C3", label="before")
+        ax.hist(ranks_after[:, j], bins=bins, range=(0, n_draws + 1), histtype="step", color="C0", label="after")
+        ax.set_title(names[j], fontsize=9)
+        ax.set_yticks([])
+    np.atleast_1d(axes).ravel()[0].legend(fontsize=7)
+    fig.suptitle("SBC ranks on the check rows (grey: 99 % band of a uniform histogram)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def plot_coverage(report: dict[str, Any], path: Path) -> Path:
+    """Empirical against nominal coverage per parameter and jointly (TARP), check rows, before and after."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.4), sharey=True)
+    levels = [float(k) for k in report["check_before"]["coverage"]]
+    for ax, key, title in ((axes[0], "check_before", "before"), (axes[1], "check_after", "after recalibration")):
+        block = report[key]
+        for j, n in enumerate(report["parameters"]):
+            ax.plot(levels, [block["coverage"][f"{lv:g}"]["coverage"][j] for lv in levels], "o-", lw=1, ms=3, label=n)
+        curve = block["tarp"]["curve"]
+        ax.plot(curve["alpha"], curve["ecp"], "k-", lw=2, label="joint (TARP)")
+        ax.plot([0, 1], [0, 1], ":", color="0.5")
+        ax.set_xlabel("nominal level")
+        ax.set_title(title, fontsize=10)
+    axes[0].set_ylabel("share of rows whose truth is inside")
+    axes[1].legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def write_report(diagnosis: Any, out: Path) -> list[Path]:
+    """Write every file into ``out`` (created); returns their paths."""
+    out.mkdir(parents=True, exist_ok=True)
+    r = diagnosis.report
+    files = [_json(out / "report.json", r), _json(out / "calibration.json", diagnosis.calibration)]
+    md = out / "summary.md"
+    atomic_write_bytes(md, summary_markdown(r).encode())
+    files.append(md)
+    if "ranks_before" in diagnosis.figures:
+        files.append(plot_ranks(diagnosis.figures["ranks_before"], diagnosis.figures["ranks_after"],
+                                r["draws_per_row"], r["parameters"], out / "rank_histograms.png"))
+    files.append(plot_coverage(r, out / "coverage.png"))
+    return files
+
+
+def _json(path: Path, data: Any) -> Path:
+    atomic_write_bytes(path, (json.dumps(data, indent=1, allow_nan=True) + "\n").encode())
+    return path
+
+
+def write_into_bundle(diagnosis: Any, root: Path) -> Path:
+    """Replace ``root/diagnostics`` with this diagnosis, put its summary in the README, re-hash the manifest."""
+    from invphys.inverter.manifest import read_manifest, write_manifest
+
+    manifest = read_manifest(root, verify=True)
+    tmp = root / f".{DIAGNOSTICS_DIR}.tmp{uuid.uuid4().hex[:6]}"
+    old = root / f".{DIAGNOSTICS_DIR}.old{uuid.uuid4().hex[:6]}"
+    try:
+        write_report(diagnosis, tmp)
+        dest = root / DIAGNOSTICS_DIR
+        if dest.exists():
+            dest.rename(old)
+        tmp.rename(dest)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(old, ignore_errors=True)
+    readme = root / "README.md"
+    text = readme.read_text() if readme.is_file() else ""
+    text = text.split("\n" + README_HEADING)[0].rstrip("\n")
+    atomic_write_bytes(readme, (text + "\n\n" + README_HEADING + "\n\n" + summary_markdown(diagnosis.report)).encode())
+    manifest["diagnostics"] = {"path": DIAGNOSTICS_DIR, "created_utc": diagnosis.report["created_utc"],
+                               "rows": diagnosis.report["heldout"]["rows_used"]}
+    write_manifest(root, manifest)
+    return root / DIAGNOSTICS_DIR

@@ -1,0 +1,209 @@
+"""invphys diagnose: coverage, TARP, SBC and recalibration on a posterior whose answer is known; OOD
+scores; surrogate error bars; the command end to end on a tiny trained bundle."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+
+from invphys.evaluation import calibration as cal
+from invphys.evaluation.surrogate_errors import Z90, error_bar_coverage, fit_error_scales
+
+LEVELS = ("0.5", "0.8", "0.9", "0.95")
+
+
+def linear_gaussian(n: int, s: int, width: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """theta ~ N(0.5, 0.1^2) per dimension, x = theta + N(0, 0.07^2): the exact posterior is normal.
+    Returns (draws (n, s, 3) from the posterior with its std times ``width``, theta (n, 3))."""
+    rng = np.random.default_rng(seed)
+    sp, sn = 0.1, 0.07
+    theta = 0.5 + sp * rng.standard_normal((n, 3))
+    x = theta + sn * rng.standard_normal((n, 3))
+    var = 1 / (1 / sp**2 + 1 / sn**2)
+    mean = var * (0.5 / sp**2 + x / sn**2)
+    return mean[:, None, :] + width * np.sqrt(var) * rng.standard_normal((n, s, 3)), theta
+
+
+def test_the_exact_posterior_covers_at_the_nominal_levels_and_an_overconfident_one_is_flagged() -> None:
+    exact, theta = linear_gaussian(1200, 400, 1.0)
+    cov = cal.central_coverage(exact, theta, n_boot=200)
+    for k in LEVELS:
+        assert np.allclose(cov[k]["coverage"], float(k), atol=0.04), (k, cov[k]["coverage"])
+        lo, hi = np.array(cov[k]["ci95"]).T
+        assert np.all(lo <= np.array(cov[k]["coverage"])) and np.all(np.array(cov[k]["coverage"]) <= hi)
+    t = cal.tarp(exact, theta, n_boot=200)
+    assert all(abs(t["levels"][k]["rate"] - float(k)) < 0.04 for k in LEVELS)
+    assert min(cal.sbc(exact, theta)["ks_pvalue"]) > 1e-3
+
+    narrow, _ = linear_gaussian(1200, 400, 0.6)
+    cov = cal.central_coverage(narrow, theta, n_boot=200)
+    assert max(cov["0.9"]["coverage"]) < 0.8  # 90 % intervals of a posterior 0.6x too narrow hold ~ 71 %
+    assert cal.tarp(narrow, theta, n_boot=200)["atc"] < 0  # sbi's reading: under-dispersed
+    assert max(cal.sbc(narrow, theta)["ks_pvalue"]) < 1e-3
+
+
+def test_a_biased_posterior_reports_the_sign_of_its_bias() -> None:
+    draws, theta = linear_gaussian(800, 300, 1.0)
+    report = cal.sbc(draws - 0.05, theta)  # posterior shifted low: the truth sits above its median
+    assert all(b > 0.1 for b in report["bias"]) and max(report["ks_pvalue"]) < 1e-3
+
+
+@pytest.mark.parametrize("width", [0.6, 1.6])
+def test_recalibration_fitted_on_one_split_fixes_coverage_on_another(width: float) -> None:
+    draws, theta = linear_gaussian(2400, 300, width, seed=1)
+    fit = np.arange(len(theta)) % 2 == 0
+    maps = cal.fit_recalibration(cal.pit_z(draws[fit], theta[fit]))
+    before = cal.central_coverage(draws[~fit], theta[~fit], n_boot=50)
+    fixed = cal.apply_recalibration(draws[~fit], maps)
+    after = cal.central_coverage(fixed, theta[~fit], n_boot=50)
+    worst_before = max(cal.worst_error(before, j) for j in range(3))
+    worst_after = max(cal.worst_error(after, j) for j in range(3))
+    assert worst_before > 0.1 and worst_after < 0.04, (worst_before, worst_after)
+    assert np.all((fixed >= 0) & (fixed <= 1))
+    # each draw keeps its rank within its row (the posterior's dependence between parameters is kept)
+    assert np.array_equal(np.argsort(fixed[:5, :, 0], axis=1), np.argsort(draws[~fit][:5, :, 0], axis=1))
+    # the stored form is what an answer applies
+    again = cal.recalibrated_samples(draws[~fit], {"posterior": {"recalibration": {"maps": maps}}})
+    assert np.array_equal(again, fixed)
+    assert cal.recalibrated_samples(draws[~fit], None) is not None
+    assert np.array_equal(cal.recalibrated_samples(draws[~fit], None), draws[~fit])
+
+
+def test_surrogate_error_scales_fitted_on_one_split_hold_ninety_percent_on_another() -> None:
+    rng = np.random.default_rng(0)
+    n, m = 4000, 4
+    std = rng.uniform(0.05, 0.2, size=(n, m))
+    y = rng.standard_normal((n, m))
+    mean = y + np.array([1.7, 1.0, 0.5, 3.0]) * std * rng.standard_normal((n, m))  # spreads too narrow or wide
+    fit = np.arange(n) < n // 2
+    before = error_bar_coverage(mean[~fit], std[~fit], y[~fit])
+    assert before["per_feature"][3] < 0.5 and before["per_feature"][2] > 0.99
+    c = fit_error_scales(mean[fit], std[fit], y[fit])
+    after = error_bar_coverage(mean[~fit], std[~fit], y[~fit], c)
+    assert all(abs(v - 0.9) < 0.03 for v in after["per_feature"]), after
+    assert np.allclose(c, [1.7, 1.0, 0.5, 3.0], rtol=0.1) and Z90 == pytest.approx(1.645, abs=1e-3)
+
+
+def test_auroc_counts_ranks() -> None:
+    from invphys.evaluation.ood import auroc
+
+    assert auroc(np.array([0.1, 0.2, 0.9, 0.8]), np.array([0, 0, 1, 1])) == 1.0
+    assert auroc(np.array([0.9, 0.8, 0.1, 0.2]), np.array([0, 0, 1, 1])) == 0.0
+    assert np.isnan(auroc(np.ones(3), np.zeros(3)))
+
+
+def test_cheese_cut_features_given_to_the_orange_bundle_are_refused_by_name() -> None:
+    from invphys.evaluation.ood import FeatureMismatch, feature_targets
+    from invphys.inverter.bundle import Bundle
+
+    orange = Bundle("inverters/orange_peel_quick", verify=False, allow_legacy=True)
+    cheese = Bundle("inverters/cheese_cut_quick", verify=False, allow_legacy=True)
+    y = cheese.data("test")[1][:3]
+    rows = [dict(zip(cheese.feature_names, r, strict=True)) for r in y.tolist()]
+    with pytest.raises(FeatureMismatch, match="feature mismatch: peak_force"):
+        feature_targets(orange, rows)
+    with pytest.raises(FeatureMismatch, match="13 features"):
+        feature_targets(orange, y)
+    assert feature_targets(orange, orange.data("test")[1][:2]).values.shape == (2, 12)
+
+
+# -- end to end on a tiny trained bundle ------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory):
+    """A dataset + train + invert run of the toy oscillator with a small NPE (its bundle's root)."""
+    pytest.importorskip("sbi")
+    from rich.console import Console
+
+    from invphys.core.spec import validate_spec
+    from invphys.pipeline.runner import run_spec
+
+    spec = {"name": "diagnose-toy", "seed": 5, "simulator": {"type": "test_dataset_toy:ToyOscillator"},
+            "dataset": {"n": 200, "batch_size": 50},
+            "surrogate": {"type": "ensemble", "members": 2, "hidden": [16, 16, 8], "max_epochs": 30, "dropout": 0.0},
+            "optimizers": {"npe_best": {"type": "npe", "estimator": "mdn", "hidden_features": 16, "max_num_epochs": 30,
+                                   "samples": 16, "answer": "best_surrogate"}},
+            "targets": {"n": 2}, "evaluation": {"baselines": {}}, "stages": ["dataset", "train", "invert"]}
+    out = tmp_path_factory.mktemp("diagnose") / "run"
+    run_spec(validate_spec(spec), out, progress=False, console=Console(file=io.StringIO()))
+    return out / "inverter"
+
+
+def _cli():
+    import typer
+
+    from invphys.cli import diagnose
+
+    app = typer.Typer()
+
+    @app.callback()
+    def _root() -> None:
+        pass
+
+    diagnose.register(app)
+    return app
+
+
+def test_held_out_rows_are_picked_by_key_and_exclude_every_training_row(bundle) -> None:
+    from invphys.core.dataset import RunIdentity, row_keys
+    from invphys.evaluation.heldout import heldout_rows
+    from invphys.inverter.bundle import Bundle
+
+    b = Bundle(bundle)
+    held = heldout_rows(b)
+    meta_store = held.info["stores"]
+    assert held.info["training_rows_found"] == held.info["training_rows"] == b.manifest["dataset"]["n_train"]
+    assert len(held) == b.manifest["dataset"]["n_test"] and list(meta_store.values())[0]["training_rows"] > 0
+    from invphys.core.dataset import DatasetStore
+
+    ident = RunIdentity(**DatasetStore(b.manifest["dataset"]["path"]).metadata["identity"])
+    assert not set(held.keys.tolist()) & set(row_keys(b.data("train")[0], ident))
+    assert list(held.keys) == sorted(held.keys)
+    assert np.allclose(np.sort(held.theta, axis=0), np.sort(b.data("test")[0], axis=0))
+
+
+def test_the_ood_score_ranks_a_planted_far_target_above_typical_ones(bundle) -> None:
+    from invphys.evaluation.ood import ood_score, ood_threshold
+    from invphys.inverter.bundle import Bundle
+
+    b = Bundle(bundle)
+    typical = b.data("test")[1]
+    far = np.asarray(b.manifest["features"]["mean"]) + 6 * np.asarray(b.manifest["features"]["std"])
+    scores = ood_score(b, np.vstack([typical, far]), diagnostics={})
+    assert scores[-1] > scores[:-1].max()
+    assert ood_threshold(b, diagnostics={}) is None
+    given = {b.feature_names[0]: float(far[0])}  # a partial target is scored on what it gives
+    assert np.isfinite(ood_score(b, given, diagnostics={})).all()
+
+
+def test_diagnose_writes_its_report_and_stores_it_in_the_bundle(bundle, tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    from invphys.inverter.bundle import Bundle
+
+    runner = CliRunner()
+    out = tmp_path / "diag"
+    res = runner.invoke(_cli(), ["diagnose", str(bundle), "--out", str(out), "--draws", "60", "--json", "--write"])
+    assert res.exit_code == 0, res.output
+    report = json.loads(res.stdout)
+    names = list(Bundle(bundle).space.names)
+    assert report["heldout"]["rows_used"] == Bundle(bundle).manifest["dataset"]["n_test"]
+    assert set(report["check_before"]["coverage"]) == set(LEVELS)
+    assert len(report["check_before"]["sbc"]["ks_pvalue"]) == len(names)
+    assert 0.0 <= report["check_after"]["tarp"]["levels"]["0.9"]["rate"] <= 1.0
+    assert set(report["ood"]["candidates"]) >= {"knn", "misfit", "ensemble_std", "outside_fraction"}
+    for f in ("report.json", "calibration.json", "summary.md", "rank_histograms.png", "coverage.png"):
+        assert (out / f).is_file(), f
+    calib = json.loads((out / "calibration.json").read_text())
+    assert len(calib["posterior"]["recalibration"]["maps"]) == len(names)
+    assert np.isfinite(calib["ood"]["threshold"]) and len(calib["surrogate_error_scales"]["scales"]) == len(Bundle(bundle).feature_names)
+    b = Bundle(bundle)  # re-hashed: still verifies
+    assert "diagnostics/calibration.json" in b.manifest["files"] and b.manifest["diagnostics"]["path"] == "diagnostics"
+    assert "## Diagnostics (invphys diagnose)" in (bundle / "README.md").read_text()
+    again = runner.invoke(_cli(), ["diagnose", str(bundle), "--out", str(out), "--draws", "60"])
+    assert again.exit_code == 2 and "not empty" in again.output
+    assert runner.invoke(_cli(), ["diagnose", str(bundle)]).exit_code == 2
