@@ -51,8 +51,18 @@ class PolishSettings(BaseModel):
             field = str(err["loc"][0]) if err["loc"] else ""
             name = (names or {}).get(field, f"polish {field}")
             desc = cls.model_fields[field].description if field in cls.model_fields else ""
-            raise InvphysError(f"{name} ({desc}): {err['msg'].removeprefix('Value error, ')}, "
-                               f"got {err.get('input')!r}") from None
+            raise InvphysError(f"{name} must be {_rule(field, err)} ({desc}), got {err.get('input')!r}") from None
+
+
+def _rule(field: str, err: Any) -> str:
+    """The broken rule of a field in words (``>= 0``, ``in (0, 1]``, ``a whole number``)."""
+    if field == "below":
+        return "in (0, 1]"
+    ctx = err.get("ctx") or {}
+    for key, sign in (("ge", ">="), ("gt", ">"), ("le", "<="), ("lt", "<")):
+        if key in ctx:
+            return f"{sign} {ctx[key]}"
+    return "a finite number" if err.get("type") == "finite_number" else "a whole number"
 
 
 def check_polish(budget: int, popsize: int, sigma0: float, below: float, confirm: int = 0,
