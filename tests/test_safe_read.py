@@ -199,7 +199,13 @@ def test_npz_truncated_bombs_pickles_and_strangers_are_refused(tmp_path) -> None
     assert (tmp_path / "bomb.npz").stat().st_size < 1_000_000
     refused(load_user_npz, tmp_path / "bomb.npz", what="trajectory", max_unpacked=10_000_000, needle="unpacks to")
     np.savez(tmp_path / "pickle.npz", a=np.array([{"x": 1}], dtype=object))
-    refused(load_user_npz, tmp_path / "pickle.npz", what="trajectory", needle="truncated or corrupt .npz archive")
+    refused(load_user_npz, tmp_path / "pickle.npz", what="trajectory", needle="array 'a' holds pickled objects")
+    buf = io.BytesIO()  # a member whose header claims 800 GB (NumPy would allocate it before reading)
+    with zipfile.ZipFile(buf, "w") as zf, zf.open("a.npy", "w") as fh:
+        np.lib.format.write_array_header_1_0(fh, {"descr": "<f8", "fortran_order": False, "shape": (10**11,)})
+        fh.write(bytes(64))
+    (tmp_path / "claim.npz").write_bytes(buf.getvalue())
+    refused(load_user_npz, tmp_path / "claim.npz", what="trajectory", needle="claims 800,000,000,000 bytes")
     with zipfile.ZipFile(tmp_path / "zip.npz", "w") as zf:
         zf.writestr("run.sh", "echo hi")
     refused(load_user_npz, tmp_path / "zip.npz", what="trajectory", needle="holds other files than arrays")

@@ -312,6 +312,8 @@ def load_user_npz(path: str | os.PathLike[str], *, what: str, max_bytes: int = N
                 raise UserFileError(what, p, f"unpacks to {unpacked:,} bytes, over the {_size(max_unpacked)} limit")
             if not infos or any(not i.filename.endswith(".npy") for i in infos):
                 raise UserFileError(what, p, "not a NumPy .npz archive (it holds other files than arrays)")
+            for info in infos:
+                _check_member(zf, info, what, p)
         with np.load(p, allow_pickle=False) as z:
             return {name: z[name] for name in z.files}
     except UserFileError:
@@ -321,3 +323,22 @@ def load_user_npz(path: str | os.PathLike[str], *, what: str, max_bytes: int = N
     except (ValueError, OSError, EOFError, KeyError, zlib.error) as exc:
         problem = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise UserFileError(what, p, f"truncated or corrupt .npz archive ({problem})") from None
+
+
+def _check_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, what: str, path: Path) -> None:
+    """An array member's header: no pickled objects, and no more data claimed than the member holds
+    (NumPy allocates the claimed shape before reading a member)."""
+    import numpy as np
+
+    with zf.open(info) as fh:
+        version = np.lib.format.read_magic(fh)
+        read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+        shape, _, dtype = read(fh)
+    if dtype.hasobject:
+        raise UserFileError(what, path, f"array {info.filename[:-4]!r} holds pickled objects (never loaded)")
+    count = 1
+    for n in shape:
+        count *= int(n)
+    if count * dtype.itemsize > info.file_size:
+        raise UserFileError(what, path, f"truncated or corrupt .npz archive (array {info.filename[:-4]!r} claims "
+                                        f"{count * dtype.itemsize:,} bytes, holds {info.file_size:,})")
