@@ -82,8 +82,7 @@ def invert(
     from invphys.inverter.targets import cli_targets
     from invphys.inverter.uncertainty import check_level
 
-    check_seed(seed)
-    check_level(level)
+    check_seed(seed), check_level(level)
     polish_settings = _polish_settings(polish, polish_below, polish_sigma, polish_popsize, polish_log,
                                        polish_confirm, polish_confirm_candidates)
     files = _output_files(samples, samples_out, plot, csv_out)
