@@ -122,3 +122,20 @@ def test_chunked_rollouts_answer_like_one_batch(inv, monkeypatch) -> None:
     # stochastic rollouts (top-k) are chunked too and still give ranked, diverse candidates
     res = inv.invert_many(ys[:4], top_k=2)
     assert all(len(r.candidates) == 2 for r in res)
+
+
+def test_one_polish_settings_model_for_the_api_the_cli_and_the_spec() -> None:
+    """Polish settings were checked in three places with three sets of rules; one model checks them all."""
+    from invphys.core.errors import InvphysError
+    from invphys.core.spec import PolishSection
+    from invphys.inverter.inverter import check_polish
+    from invphys.inverter.settings import PolishSettings
+
+    assert set(PolishSection.model_fields) == set(PolishSettings.model_fields)
+    assert PolishSettings.checked(**PolishSection().model_dump()).sigma0 == PolishSection().sigma0
+    for kw, msg in (({"sigma0": float("nan")}, "sigma0 must be a finite number"), ({"popsize": True}, "whole number"),
+                    ({"below": 1.5}, "below must be in (0, 1]"), ({"budget": -1}, "budget must be >= 0")):
+        with pytest.raises(InvphysError, match=msg.replace("(", r"\(").replace(")", r"\)").replace("]", r"\]")):
+            PolishSettings.checked(**kw)
+    with pytest.raises(InvphysError, match="confirm_candidates must be >= 1"):
+        check_polish(4, 8, 0.1, 1.0, 0, 0)

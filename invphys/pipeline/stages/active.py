@@ -265,7 +265,11 @@ def _polish_passes(ctx: StageContext, cfg: Any, key: str, n_rounds: int, feats: 
     """
     from dataclasses import replace
 
+    from invphys.inverter.settings import PolishSettings
+
     passes = cfg if isinstance(cfg, list) else [cfg]
+    for p in passes:  # the inverter's one model of polish settings checks every pass before any simulation
+        PolishSettings.checked(names={f: f"active.polish.{f}" for f in PolishSettings.model_fields}, **p.model_dump())
     current, total, share, summaries = start, None, np.zeros(len(feats)), []
     for k, settings in enumerate(passes):
         pol = _polish(ctx, settings, key, n_rounds, feats, scales, *current, sim, k, passes[:k])
