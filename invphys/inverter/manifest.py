@@ -157,6 +157,11 @@ def read_manifest(root: str | Path, verify: bool = True, allow_legacy: bool = Fa
             if sha256_file(f) != digest:
                 raise BundleError(f"bundle {str(root)!r}: {rel} has changed since the bundle was written "
                                   f"(sha256 mismatch); re-export the bundle")
+    for rel in files:
+        if PurePosixPath(rel).name not in LEGACY_PICKLES and os.path.isfile(root / rel):
+            problem = pickle_problem(root / rel)
+            if problem:
+                raise BundleError(f"bundle {str(root)!r}: {rel} {problem}; refusing to load the bundle")
     return data
 
 
@@ -172,6 +177,68 @@ def _parse(path: Path) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise BundleError(f"{path}: the manifest is not a mapping")
     return data
+
+
+#: the only globals a torch state dict's pickle names (tensors rebuilt from storages, the dict itself)
+TORCH_GLOBALS = ("collections OrderedDict", "torch._utils _rebuild_tensor_v2", "torch._utils _rebuild_parameter")
+#: pickle opcodes that build objects by other means than GLOBAL + REDUCE (never in a torch state dict)
+FOREIGN_OPCODES = ("STACK_GLOBAL", "INST", "OBJ", "NEWOBJ", "NEWOBJ_EX", "EXT1", "EXT2", "EXT4")
+
+
+def pickle_problem(path: Path) -> str | None:
+    """Why the weight file ``path`` could run code when loaded (None: it cannot), read without loading it:
+    a ``.npz`` must hold only ``.npy`` arrays without objects; a ``.pt``/``.pth`` must be a torch zip whose
+    pickle names only tensors, storages and an ordered dict (scanned with :mod:`pickletools`, which runs
+    nothing). Other files are not loaded as pickles by invphys and pass."""
+    import zipfile
+
+    suffix = path.suffix.lower()
+    if suffix not in (".npz", ".npy", ".pt", ".pth", ".pkl", ".pickle"):
+        return None
+    if suffix in (".pkl", ".pickle"):
+        return "is a pickle"
+    try:
+        if suffix == ".npy":
+            with open(path, "rb") as fh:
+                return _npy_problem(fh, path.name)
+        with zipfile.ZipFile(path) as zf:
+            if suffix == ".npz":
+                for name in zf.namelist():
+                    if not name.endswith(".npy"):
+                        return f"holds {name!r}, not a NumPy array"
+                    with zf.open(name) as fh:
+                        problem = _npy_problem(fh, name)
+                    if problem:
+                        return problem
+                return None
+            pkl = [n for n in zf.namelist() if n.endswith("data.pkl")]
+            if len(pkl) != 1:
+                return "is not a torch weights archive (no single data.pkl)"
+            return _torch_pickle_problem(zf.read(pkl[0]))
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+        what = "NumPy archive" if suffix in (".npz", ".npy") else "torch weights archive"
+        return f"is not a {what} ({type(exc).__name__}: it may be a pickle, which invphys never loads)"
+
+
+def _npy_problem(fh: Any, name: str) -> str | None:
+    import numpy as np
+
+    version = np.lib.format.read_magic(fh)
+    header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+    _, _, dtype = header(fh)
+    return f"holds array {name!r} of Python objects (a pickle)" if dtype.hasobject else None
+
+
+def _torch_pickle_problem(data: bytes) -> str | None:
+    import pickletools
+    import re
+
+    for op, arg, _ in pickletools.genops(data):
+        if op.name in FOREIGN_OPCODES:
+            return f"holds pickled code (opcode {op.name}), not plain tensors"
+        if op.name == "GLOBAL" and arg not in TORCH_GLOBALS and not re.fullmatch(r"torch [A-Za-z0-9]*Storage", str(arg)):
+            return f"holds pickled code (a reference to {str(arg).replace(' ', '.')}), not plain tensors"
+    return None
 
 
 def check_keys(data: dict[str, Any], path: Path) -> None:
