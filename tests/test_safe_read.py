@@ -214,6 +214,6 @@ def test_npz_truncated_bombs_pickles_and_strangers_are_refused(tmp_path) -> None
 
 
 def test_limits_are_documented_numbers() -> None:
-    assert safe_read.DEFAULT_MAX_BYTES == 32 << 20 and safe_read.YAML_MAX_BYTES == 8 << 20
+    assert safe_read.DEFAULT_MAX_BYTES == 32 << 20 and safe_read.YAML_MAX_BYTES == 4 << 20
     assert safe_read.NPZ_MAX_BYTES == 2 << 30 and safe_read.NPZ_MAX_UNPACKED == 4 << 30
     assert isinstance(UserFileError("target file", Path("t.csv"), "x"), InvphysError)

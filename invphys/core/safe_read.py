@@ -41,8 +41,8 @@ from invphys.core.errors import InvphysError
 
 #: largest text, JSON or CSV file read (bytes): target files, manifests
 DEFAULT_MAX_BYTES = 32 << 20
-#: largest YAML data file (bytes; YAML parses far slower than JSON or CSV)
-YAML_MAX_BYTES = 8 << 20
+#: largest YAML data file (bytes; YAML parses far slower than JSON or CSV: this one within seconds)
+YAML_MAX_BYTES = 4 << 20
 #: most values a YAML data file may expand to (aliases expanded)
 YAML_MAX_NODES = 1_000_000
 #: largest ``.npz`` file read (bytes): trajectories, polish logs
@@ -152,7 +152,8 @@ def loads_user_yaml(text: str, *, source: str, max_bytes: int = YAML_MAX_BYTES,
     aliases, duplicate keys, huge integers); refusals are :class:`InvphysError` starting with ``source``."""
     from invphys.core import safe_yaml
 
-    data, _ = safe_yaml.load(text, source=source, error=InvphysError, limit=max_bytes, max_nodes=max_nodes)
+    data, _ = safe_yaml.load(text, source=source, error=InvphysError, limit=max_bytes, max_nodes=max_nodes,
+                             fast=True)
     return data
 
 
@@ -163,7 +164,7 @@ def load_user_yaml(path: str | os.PathLike[str], *, what: str, max_bytes: int = 
 
     text = read_user_text(path, what=what, max_bytes=max_bytes)
     try:
-        data, _ = safe_yaml.load(text, source="", error=_Problem, limit=max_bytes, max_nodes=max_nodes)
+        data, _ = safe_yaml.load(text, source="", error=_Problem, limit=max_bytes, max_nodes=max_nodes, fast=True)
     except _Problem as exc:
         raise UserFileError(what, path, str(exc).removeprefix(": ")) from None
     return data
