@@ -208,7 +208,7 @@ def _json(text: str) -> Any:
     except json.JSONDecodeError as exc:
         raise _Problem(f"not valid JSON (line {exc.lineno}: {exc.msg})") from None
     except _Duplicate as dup:
-        lines = _duplicate_lines(text, dup.key)
+        lines = _duplicate_lines(text, dup.key) if len(text) <= 4 << 20 else None  # (a slower second parse)
         where = f" (lines {lines[0]} and {lines[1]})" if lines else ""
         raise _Problem(f"key {dup.key!r} appears twice in one object{where}") from None
     except RecursionError:
