@@ -13,7 +13,9 @@ files with :func:`read_user_text`). Each refuses, with one :class:`UserFileError
 * YAML: the alias, depth and duplicate-key limits of :mod:`invphys.core.safe_yaml` (both lines named);
 * JSON: a key given twice in one object (both lines named);
 * CSV: two header columns of the same name (both columns named);
-* integers too large for a float (more than about 1e308), in YAML and JSON alike.
+* integers too large for a float (more than about 1e308), in YAML and JSON alike;
+* ``.npz`` archives: truncated or corrupt ones, other members than arrays, pickled objects (never
+  loaded), an array header claiming more bytes than its member holds, more unpacked bytes than the limit.
 
 JSON's ``NaN`` and ``Infinity`` literals (which Python's own writer emits) are read as floats: the
 reader's caller decides, as a target refuses any value that is not finite, naming its feature.
