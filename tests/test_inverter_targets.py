@@ -93,6 +93,34 @@ def test_target_files(bundle, tmp_path, name) -> None:
     assert out[1]["candidates"][0]["features"]["peak_abs"]["target"] == 0.5
 
 
+def test_spreadsheet_csv_with_a_bom_is_answered(bundle, tmp_path) -> None:
+    """A CSV saved by a spreadsheet starts with a UTF-8 BOM: its first column is still a feature (it was
+    "unknown feature '\\ufeffpeak_abs'")."""
+    path = tmp_path / "excel.csv"
+    path.write_bytes(b"\xef\xbb\xbf" + (",".join(NAMES) + "\r\n" + ",".join(str(GOOD[k]) for k in NAMES)
+                                          + "\r\n").encode())
+    res = invoke("invert", str(bundle), "--target", str(path), "--json")
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["results"][0]["candidates"][0]["features"]["peak_abs"]["target"] == 0.9
+
+
+@pytest.mark.parametrize(("name", "text", "needle"), [
+    ("dup.csv", ",".join(NAMES) + ",peak_abs\n0.9,0.2,-0.5,1,0.1,0.3\n", "columns 1 and 6 are both named 'peak_abs'"),
+    ("dup.json", '{"peak_abs": 0.9,\n "final_abs": 0.2,\n "peak_abs": 0.5}', "key 'peak_abs' appears twice in one "
+     "object (lines 1 and 3)"),
+    ("dup.yaml", "peak_abs: 0.9\nfinal_abs: 0.2\npeak_abs: 0.5\n", "key 'peak_abs' appears twice in one mapping "
+     "(lines 1 and 3)"),
+    ("big.yaml", "peak_abs: " + "9" * 400 + "\n", "too large for a number"),
+    ("big.json", '{"peak_abs": ' + "9" * 400 + "}", "too large for a number"),
+], ids=["dup-csv", "dup-json", "dup-yaml", "int400-yaml", "int400-json"])
+def test_duplicates_and_huge_integers_are_refused(bundle, tmp_path, name, text, needle) -> None:
+    """Last-wins duplicates were accepted silently; 400-digit integers were an internal error."""
+    path = tmp_path / name
+    path.write_text(text)
+    _one_line_error(invoke("invert", str(bundle), "--target", str(path), "--partial"), needle)
+    assert path.read_text() == text
+
+
 def test_observed_trajectory(bundle, tmp_path) -> None:
     from test_dataset_toy import ToyFeatures, ToyOscillator
 

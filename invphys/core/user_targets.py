@@ -130,6 +130,8 @@ def from_array(values: Any, feature_names: Sequence[str], source: str = "target"
 
 
 def _rows_of(data: Any, source: str) -> list[Any]:
+    if data is None:
+        raise TargetError(f"{source}: empty file (no targets)")
     if isinstance(data, Mapping) and "targets" in data:
         data = data["targets"]
     if isinstance(data, Mapping):
