@@ -1,10 +1,11 @@
-# Everything a fresh machine needs: `make demo` (the orange-peel quick start) and `make test`.
+# Everything a fresh machine needs: `make demo` (the orange-peel demo, a few minutes) and `make test`;
+# `make demo-full` runs the full quick start (10-20 minutes on 2 cores).
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test lint typecheck docs unit bench-cpu clean
+.PHONY: setup demo demo-full test lint typecheck docs unit bench-cpu clean
 
 setup: $(STAMP)
 
@@ -13,11 +14,15 @@ $(STAMP): pyproject.toml examples/orange_peel/pyproject.toml examples/anisompm/p
 	$(BIN)/python -m pip install -q -U pip setuptools wheel
 	# the CPU build of torch first, so that nothing pulls a CUDA build
 	$(BIN)/python -m pip install -q torch==2.13.0
-	$(BIN)/python -m pip install -q -e ".[all]" -e examples/orange_peel -e examples/anisompm -e examples/cheese_cut
+	# the user extras (all), the team's tools (dev), the AnisoMPM engine and the example plugins
+	$(BIN)/python -m pip install -q -e ".[all,dev]" -e examples/anisompm -e examples/orange_peel -e examples/cheese_cut
 	touch $(STAMP)
 
 demo: setup
 	$(BIN)/invphys run examples/orange_peel/invphys_orange_peel/specs/quickstart.yaml --out runs/quickstart
+
+demo-full: setup
+	$(BIN)/invphys run examples/orange_peel/invphys_orange_peel/specs/quickstart_full.yaml --out runs/quickstart_full
 
 lint: setup
 	$(BIN)/ruff check invphys examples tests benchmarks

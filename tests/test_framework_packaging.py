@@ -5,6 +5,7 @@ from __future__ import annotations
 import shutil
 import subprocess
 import sys
+import tomllib
 import zipfile
 from pathlib import Path
 
@@ -43,3 +44,33 @@ def test_the_wheel_ships_every_spec(project: Path, tmp_path: Path) -> None:
     names = set(zipfile.ZipFile(wheel).namelist())
     missing = _source_yaml(project) - names
     assert not missing, f"{wheel.name} lacks {sorted(missing)}: list them in [tool.setuptools.package-data]"
+
+
+USER_EXTRAS = {"torch", "taichi", "warp", "optim", "optuna", "sbi", "rl", "ray", "mlflow"}
+TEAM_TOOLS = {"pytest", "pytest-xdist", "hypothesis", "ruff", "mypy", "mkdocs-material", "mkdocstrings", "types-pyyaml",
+              "jsonschema"}
+
+
+def test_each_need_has_its_extra_and_all_is_the_user_set_without_the_team_tools() -> None:
+    from packaging.utils import canonicalize_name
+    from test_getting_started import _projects, closure
+
+    optional = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    assert USER_EXTRAS | {"dev", "all"} <= set(optional)
+    assert any(r.startswith("optuna>=3.6") for r in optional["optuna"])
+    user, problems = closure(ROOT, {"all"}, _projects())
+    assert problems == []
+    names = {canonicalize_name(r.name) for r in user}
+    assert not names & TEAM_TOOLS, f"invphys[all] pulls the team's tools {sorted(names & TEAM_TOOLS)}"
+    for extra in USER_EXTRAS:  # all = every user extra
+        assert {canonicalize_name(r.name) for r in closure(ROOT, {extra}, _projects())[0]} <= names, extra
+    dev = {canonicalize_name(r.name) for r in closure(ROOT, {"dev"}, _projects())[0]}
+    assert {"pytest", "ruff", "mypy", "mkdocs-material"} <= dev
+
+
+def test_the_examples_extras_name_existing_engine_extras() -> None:
+    from test_getting_started import _projects, closure
+
+    for project in EXAMPLES:
+        extras = set(tomllib.loads((project / "pyproject.toml").read_text())["project"].get("optional-dependencies", {}))
+        assert closure(project, extras, _projects())[1] == [], project.name

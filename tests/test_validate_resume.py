@@ -1,7 +1,7 @@
 """The validate stage is resumable: each run is appended to disk as it finishes, a run killed with
 SIGKILL mid-validate and started again simulates only what is missing and changes no finished row;
 and user targets without ground truth (targets.values) validate and report with render and the
-noise floor left on."""
+noise floor left on; the renders' target runs are the noise floor's runs (simulated once)."""
 
 from __future__ import annotations
 
@@ -13,11 +13,12 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import pytest
 import yaml
-from test_dataset_toy import SIM
+from test_dataset_toy import SIM, ToyOscillator
 
 TESTS = str(Path(__file__).resolve().parent)
 
@@ -259,3 +260,41 @@ def test_checkpoint_finds_records_of_a_legacy_identity(tmp_path) -> None:
     again = SimCheckpoint(path, "identity-v2")  # without the legacy identity the old rows are not found
     again.simulate(theta, simulate, 8, 2)
     assert calls[-1] == 3
+
+
+def test_renders_draw_the_noise_floor_runs_without_simulating_the_targets_again(tmp_path) -> None:
+    """With render and the noise floor on, each target's true parameters are simulated once: the noise
+    floor's run is the target run the renders draw (the demo's validation was a run per target longer)."""
+    data = yaml.safe_load(SPEC.replace("SLEEP", "0.0"))
+    data["simulator"] = {"type": "test_validate_resume:CountingOscillator"}
+    data["targets"] = {"n": 2, "validate": 2}
+    data["evaluation"] = {"baselines": {"nearest_neighbour": {"type": "nearest_neighbour"}}}
+    data["report"] = {"render": True}
+    text = yaml.safe_dump(data)
+    out = tmp_path / "run"
+    _run(text, out, ["dataset", "train", "invert"])
+    CountingOscillator.rows.clear()
+    summary = _run(text, out, ["validate", "report"])["validate"]
+    rows = json.loads((out / "validate" / "validation.json").read_text())
+    assert {r["optimizer"] for r in rows} == {"cma", "nearest_neighbour", "noise_floor"} and len(rows) == 6
+    assert len(CountingOscillator.rows) == summary["simulated"]  # no run beside the validated vectors
+    truth = {tuple(r["theta"]) for r in rows if r["optimizer"] == "noise_floor"}
+    space = CountingOscillator().parameter_space()
+    simulated = [tuple(np.round(p, 9)) for p in CountingOscillator.rows]
+    for theta in truth:
+        assert simulated.count(tuple(np.round(space.denormalize(np.asarray(theta)), 9))) == 1
+    assert sorted(r["target_index"] for r in summary["renders"]) == [0, 1]
+    for k in (0, 1):
+        assert (out / "validate" / "renders" / f"t{k:02d}_target.npz").is_file()
+        assert (out / "report" / "renders" / f"t{k:02d}.png").is_file()
+
+
+class CountingOscillator(ToyOscillator):
+    """The toy oscillator, recording every parameter row it simulates in this process."""
+
+    name = "counting_oscillator"
+    rows: ClassVar[list[np.ndarray]] = []
+
+    def simulate(self, params, on_result=None):
+        CountingOscillator.rows.extend(np.atleast_2d(np.asarray(params, dtype=np.float64)))
+        return super().simulate(params, on_result)

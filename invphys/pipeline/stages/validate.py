@@ -86,6 +86,7 @@ def run(ctx: StageContext) -> dict[str, Any]:
     target_rows = [i for i, r in enumerate(chosen) if r["problem"] == "target"]
     if hasattr(validator, "simulate_features"):
         # keep trajectories only of runs that may be rendered (the first RENDER_TARGETS targets)
+        # (the noise floor's runs among them: they are the targets' own runs that the renders draw)
         keep = {int(inverse[i]) for i in target_rows if chosen[i]["target_index"] < RENDER_TARGETS} if render else False
         assert ckpt is not None
         reused0 = ckpt.reused  # the in-loop replay above counts too
@@ -294,9 +295,7 @@ def _renders(ctx: StageContext, chosen: list[dict[str, Any]], out: list[dict[str
     ks = sorted({r["target_index"] for r in out if r["problem"] == "target"})[:RENDER_TARGETS]
     if not ks:
         return []
-    with _run_bar(ctx, len(ks), "simulating targets for renders") as on_run:
-        truth = validator.simulate_features(np.array([targets["theta"][k] for k in ks]), simulator, extractor,
-                                            keep_trajectories=True, on_run=on_run)
+    truths = _truth_runs(ctx, chosen, inverse, sim, validator, simulator, extractor, targets, ks)
     for n, k in enumerate(ks):
         cands = [(i, r) for i, r in enumerate(chosen) if r["problem"] == "target" and r["target_index"] == k
                  and r.get("role") != "reference"]
@@ -310,12 +309,32 @@ def _renders(ctx: StageContext, chosen: list[dict[str, Any]], out: list[dict[str
         if traj is None:  # simulated by an earlier (resumed) run: simulate it again for its frames
             traj = validator.simulate_features(np.asarray(chosen[best]["theta"])[None, :], simulator, extractor,
                                                keep_trajectories=True).trajectories[0]
-        if traj is None or truth.trajectories[n] is None:
+        if traj is None or truths[n] is None:
             continue
         _save_frame(d / f"t{k:02d}_recovered.npz", traj)
-        _save_frame(d / f"t{k:02d}_target.npz", truth.trajectories[n])
+        _save_frame(d / f"t{k:02d}_target.npz", truths[n])
         rendered.append({"target_index": k, "optimizer": chosen[best]["optimizer"], "r_actual": finite[best]})
     return rendered
+
+
+def _truth_runs(ctx: StageContext, chosen: list[dict[str, Any]], inverse: np.ndarray, sim: Any, validator: Any,
+                simulator: Any, extractor: Any, targets: dict[str, Any], ks: list[int]) -> list[Any]:
+    """The trajectories of targets ``ks``' true parameters: the noise floor's runs where this call kept them
+    (the same vectors: simulated once), else simulated now."""
+    truths: list[Any] = [None] * len(ks)
+    for n, k in enumerate(ks):
+        i = next((i for i, r in enumerate(chosen) if r["optimizer"] == "noise_floor" and r["problem"] == "target"
+                  and r["target_index"] == k), None)
+        if i is not None and np.array_equal(chosen[i]["theta"], targets["theta"][k]):
+            truths[n] = sim.trajectories[int(inverse[i])]
+    todo = [n for n, t in enumerate(truths) if t is None]
+    if todo:
+        with _run_bar(ctx, len(todo), "simulating targets for renders") as on_run:
+            got = validator.simulate_features(np.array([targets["theta"][ks[n]] for n in todo]), simulator,
+                                              extractor, keep_trajectories=True, on_run=on_run)
+        for n, t in zip(todo, got.trajectories, strict=True):
+            truths[n] = t
+    return truths
 
 
 def load_validation(ctx: StageContext) -> list[dict[str, Any]] | None:
