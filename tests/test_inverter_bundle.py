@@ -55,6 +55,19 @@ def test_stages_write_a_complete_bundle(run) -> None:
     assert inv.notes == [] and inv.parameter_names == ("k", "c", "m")
 
 
+def test_a_written_bundle_holds_no_pickle(run) -> None:
+    """Format 2: policies as tensors (policy.npz), no SB3 zip; every weight file passes the pickle scan."""
+    from invphys.inverter.manifest import pickle_problem
+
+    root = run / "inverter"
+    files = yaml.safe_load((root / "manifest.yaml").read_text())["files"]
+    assert {"policies/gc/policy.npz", "policies/gc/gc_ppo.json"} <= set(files)
+    assert not [f for f in files if f.endswith((".zip", ".pkl", ".pickle", "npe.pt"))]
+    assert all(pickle_problem(root / f) is None for f in files)
+    assert sorted(p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file()) == \
+        sorted([*files, "manifest.yaml"])  # nothing in the bundle escapes the checksums
+
+
 def test_bundle_policies_answer_exactly_like_the_invert_stage(run) -> None:
     from invphys.inverter import load_inverter
 
@@ -148,6 +161,13 @@ def test_export_copies_a_loadable_bundle(run, tmp_path) -> None:
     assert res.exit_code == 2 and (other / "notes.txt").read_text() == "mine"
     res = runner.invoke(app, ["export", str(tmp_path / "no-run"), "--out", str(tmp_path / "x")])
     assert res.exit_code == 2 and "no such directory" in res.output
+    # the copy holds exactly the source's listed files (a stray file in the source does not travel)
+    stray = tmp_path / "src"
+    shutil.copytree(run / "inverter", stray)
+    (stray / "notes.txt").write_text("not part of the bundle")
+    assert runner.invoke(app, ["export", str(stray), "--out", str(out), "--force"]).exit_code == 0
+    assert not (out / "notes.txt").exists() and load_inverter(out).default_method
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # no temporary sibling left
 
 
 def test_answering_imports_no_torch(run) -> None:
