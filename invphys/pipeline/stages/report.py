@@ -19,10 +19,17 @@ Writes under ``OUT/report/`` (formats from ``report.formats``):
   particle frames, or a simulator with its own renderer);
 * ``renders/tNN_series.png``: the target's and the recovered run's time series overlaid, one panel per
   series they share.
+
+Parameters are listed in the parameter space's order everywhere (report.csv's ``param_*`` columns,
+report.json's rows). A drawing or figure that fails (a simulator's ``render`` that raises, a plot that
+cannot be made) never fails the stage: it is a warning, logged and listed in report.md (``Warnings``)
+and report.json (``warnings``), and the rest of the report is written. report.md says which targets are
+drawn when not all of them are.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import shutil
 from pathlib import Path
@@ -100,7 +107,8 @@ def _md_table(header: list[str], rows: list[list[Any]]) -> list[str]:
 
 def markdown(ctx_name: str, merged: list[dict[str, Any]], targets: dict[str, Any], plot: str | None,
              renders: list[tuple[int, str, str]], protocol: dict[str, Any] | None = None,
-             protocol_plot: str | None = None) -> str:
+             protocol_plot: str | None = None, warnings: list[str] | None = None,
+             drawn: str | None = None) -> str:
     lines = [f"# Inverse recovery report: {ctx_name}", ""]
     n_t = len(targets["rows"])
     n_v = len({r["target_index"] for r in merged if r["problem"] == "target" and r["validated"]})
@@ -109,12 +117,17 @@ def markdown(ctx_name: str, merged: list[dict[str, Any]], targets: dict[str, Any
               f"optimiser's evaluator (for baselines, the shared surrogate's score of the answer, even where "
               f"the lookup chose it by a stored row), R_actual from the simulator, Delta = R_surr - R_actual "
               f"(over validated targets).", ""]
+    if drawn:
+        lines += [drawn, ""]
+    if warnings:
+        lines += ["## Warnings", "", "Parts of this report that could not be made (the results above and below "
+                  "are complete):", "", *[f"- {w}" for w in warnings], ""]
     summ = summary_table(merged, "target")
     if summ:
         lines += ["## Summary (targets)", ""]
         lines += _md_table(["optimizer", "type", "space", "evaluator", "evaluations", "R_surr (all)",
                             "R_surr (validated)", "R_actual", "Delta", "time (s)", "failed"],
-                           [[s["optimizer"], s["type"], s["space"], s["evaluator"], s["evaluations"],
+                           [[s["optimizer"], s["type"], s["space"], s["evaluator"], _count(s["evaluations"]),
                              s["r_surrogate"], s["r_surrogate_validated"], s["r_actual"], s["gap"], s["time_s"],
                              f"{s['failed']}/{s['validated']}"] for s in summ])
         lines.append("")
@@ -149,25 +162,42 @@ def markdown(ctx_name: str, merged: list[dict[str, Any]], targets: dict[str, Any
 
 
 def plot_recovery(merged: list[dict[str, Any]], path: Path) -> Path | None:
-    """Bar chart of mean R_surr / R_actual per optimiser and best-so-far curves; None without targets."""
+    """Mean R_surr / R_actual per optimiser and best-so-far curves, as a PNG; None without targets."""
+    import matplotlib.pyplot as plt
+
+    fig = recovery_figure(merged)
+    if fig is None:
+        return None
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def recovery_figure(merged: list[dict[str, Any]]) -> Any:
+    """The figure of :func:`plot_recovery` (None without targets): horizontal bars, so that method names
+    of any length and number never overlap (the figure grows with them), and the best-so-far curves on a
+    log axis labelled at 1, 2 and 5 per decade only."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     summ = summary_table(merged, "target")
     if not summ:
         return None
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
-    x = np.arange(len(summ))
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, max(4.0, 1.5 + 0.45 * len(summ))),
+                                   gridspec_kw={"width_ratios": [1, 1.2]})
+    y = np.arange(len(summ))[::-1]   # the first method on top
     surr = [s["r_surrogate_validated"] if s["r_surrogate_validated"] is not None else s["r_surrogate"] for s in summ]
     act = [s["r_actual"] if s["r_actual"] is not None else np.nan for s in summ]
-    ax1.bar(x - 0.2, surr, 0.4, label="R_surr")
-    ax1.bar(x + 0.2, act, 0.4, label="R_actual (simulator)")
-    ax1.set_xticks(x, [s["optimizer"] for s in summ], rotation=30, ha="right")
-    ax1.set_ylim(0, 1)
-    ax1.set_ylabel("mean recovery R_gt")
-    ax1.legend(fontsize=8)
+    ax1.barh(y + 0.2, [np.nan if v is None else v for v in surr], 0.4, label="R_surr")
+    ax1.barh(y - 0.2, act, 0.4, label="R_actual (simulator)")
+    ax1.set_yticks(y, [s["optimizer"] for s in summ])
+    ax1.set_xlim(0, 1)
+    ax1.set_xlabel("mean recovery R_gt")
+    ax1.legend(fontsize=8, loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=2, frameon=False)
     for s in summ:
         curves = [np.array(r["history"], dtype=np.float64) for r in merged
                   if r["optimizer"] == s["optimizer"] and r["problem"] == "target" and r["history"]]
@@ -178,16 +208,26 @@ def plot_recovery(merged: list[dict[str, Any]], path: Path) -> Path | None:
         ax2.plot(grid, vals.mean(axis=0), label=s["optimizer"], marker="." if len(grid) < 20 else None)
     if ax2.lines:
         ax2.set_xscale("log")
+        lo, hi = ax2.get_xlim()
+        decades = np.log10(max(hi, 1.0)) - np.log10(max(lo, 1.0))
+        ax2.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0) if decades <= 2 else (1.0,)))
+        ax2.xaxis.set_major_formatter(FuncFormatter(lambda x, _: _count_label(x)))
+        ax2.xaxis.set_minor_formatter(NullFormatter())
         ax2.legend(fontsize=8)
     else:  # answers without an optimisation history (baselines, simulator-checked answers)
         ax2.text(0.5, 0.5, "no optimiser histories", ha="center", va="center", transform=ax2.transAxes)
     ax2.set_xlabel("surrogate evaluations")
-    ax2.set_ylabel("best-so-far R_surr (mean over targets)")
+    ax2.set_ylabel("best-so-far R_surr\n(mean over targets)")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return fig
+
+
+def _count_label(x: float) -> str:
+    """A short tick label for a count: 20, 500, 2k, 100k, 3M."""
+    for div, suffix in ((1e6, "M"), (1e3, "k")):
+        if x >= div:
+            return f"{x / div:g}{suffix}"
+    return f"{x:g}"
 
 
 def render_final_state(simulator: Any, traj: Any, path: Path, title: str) -> Path | None:
@@ -232,7 +272,9 @@ def side_by_side(left: Path, right: Path, path: Path, titles: tuple[str, str]) -
     return path
 
 
-def _renders(ctx: StageContext, out_dir: Path) -> list[tuple[int, str, str]]:
+def _renders(ctx: StageContext, out_dir: Path, warnings: list[str]) -> list[tuple[int, str, str]]:
+    """The target-vs-recovered drawings of the targets the validate stage kept runs of; a drawing that
+    fails (a simulator's ``render`` that raises, a trajectory file that cannot be read) is a warning."""
     from invphys.core.trajectory_io import load_trajectory
     from invphys.core.trajectory_plot import plot_series
 
@@ -251,17 +293,43 @@ def _renders(ctx: StageContext, out_dir: Path) -> list[tuple[int, str, str]]:
             continue
         d = out_dir / "renders"
         d.mkdir(parents=True, exist_ok=True)
-        target, recovered = load_trajectory(tgt), load_trajectory(rec)
-        a = render_final_state(simulator, target, d / f"t{k:02d}_target_frame.png", f"target {k}")
-        b = render_final_state(simulator, recovered, d / f"t{k:02d}_recovered_frame.png", f"recovered {k}")
-        if a is not None and b is not None:
-            side_by_side(a, b, d / f"t{k:02d}.png", (f"target {k} (ground-truth parameters)",
-                                                     "recovered (best validated optimiser)"))
-            done.append((k, f"renders/t{k:02d}.png", "target vs recovered"))
-        if plot_series({"target": target, "recovered": recovered}, d / f"t{k:02d}_series.png",
-                       title=f"target {k}: time series") is not None:
-            done.append((k, f"renders/t{k:02d}_series.png", "time series, target vs recovered"))
+        try:
+            target, recovered = load_trajectory(tgt), load_trajectory(rec)
+        except Exception as exc:
+            warnings.append(f"target {k}: not drawn: its runs' files cannot be read ({_why(exc)})")
+            continue
+        try:
+            a = render_final_state(simulator, target, d / f"t{k:02d}_target_frame.png", f"target {k}")
+            b = render_final_state(simulator, recovered, d / f"t{k:02d}_recovered_frame.png", f"recovered {k}")
+            if a is not None and b is not None:
+                side_by_side(a, b, d / f"t{k:02d}.png", (f"target {k} (ground-truth parameters)",
+                                                         "recovered (best validated optimiser)"))
+                done.append((k, f"renders/t{k:02d}.png", "target vs recovered"))
+        except Exception as exc:  # a plugin's renderer: its failure must not sink a finished run
+            who = f"the render of simulator {simulator.name!r}" if simulator is not None else "the drawing"
+            warnings.append(f"target {k}: final states not drawn: {who} failed ({_why(exc)})")
+        try:
+            if plot_series({"target": target, "recovered": recovered}, d / f"t{k:02d}_series.png",
+                           title=f"target {k}: time series") is not None:
+                done.append((k, f"renders/t{k:02d}_series.png", "time series, target vs recovered"))
+        except Exception as exc:
+            warnings.append(f"target {k}: time series not drawn ({_why(exc)})")
     return done
+
+
+def _why(exc: BaseException) -> str:
+    """One line naming an exception (for a report's warnings)."""
+    text = " ".join(f"{type(exc).__name__}: {exc}".split())
+    return text if len(text) <= 300 else text[:297] + "..."
+
+
+def _figure(warnings: list[str], name: str, draw: Any, *args: Any, **kwargs: Any) -> Any:
+    """``draw(*args, **kwargs)``, or None and a warning when it fails (a figure never sinks a report)."""
+    try:
+        return draw(*args, **kwargs)
+    except Exception as exc:
+        warnings.append(f"{name} not drawn ({_why(exc)})")
+        return None
 
 
 def run(ctx: StageContext) -> dict[str, Any]:
@@ -280,20 +348,26 @@ def run(ctx: StageContext) -> dict[str, Any]:
     validation = (validation or []) + active_val if (validation or active_val) else None
     merged = _merge(rows, validation)
     out = ctx.stage_dir
-    plot = plot_recovery([r for r in merged if r["role"] != "reference"], out / "recovery.png")
+    warnings: list[str] = []
+    plot = _figure(warnings, "recovery.png", plot_recovery, [r for r in merged if r["role"] != "reference"],
+                   out / "recovery.png")
     protocol = protocol_block(ctx, merged, targets)
     protocol["active"] = rounds
-    protocol_plot = plot_protocol(protocol["optimizers"], out / "protocol.png", ctx.spec.evaluation.reference,
-                                  title=ctx.spec.name)
-    renders = _renders(ctx, out)
+    protocol_plot = _figure(warnings, "protocol.png", plot_protocol, protocol["optimizers"], out / "protocol.png",
+                            ctx.spec.evaluation.reference, title=ctx.spec.name)
+    renders = _renders(ctx, out, warnings)
+    for w in warnings:
+        ctx.log(f"warning: {w}", level=logging.WARNING)
     formats = set(ctx.spec.report.formats)
+    names = list(targets["param_names"])
     flat = [{k: v for k, v in r.items() if k not in ("params", "history", "theta", "spread")}
-            | {f"param_{k}": v for k, v in r["params"].items()} for r in merged]
+            | {f"param_{n}": r["params"][n] for n in _in_space_order(r["params"], names)} for r in merged]
     files = []
     if "md" in formats:
         (out / "report.md").write_text(markdown(ctx.spec.name, merged, targets,
                                                 plot.name if plot else None, renders,
-                                                protocol, protocol_plot.name if protocol_plot else None))
+                                                protocol, protocol_plot.name if protocol_plot else None,
+                                                warnings=warnings, drawn=_drawn_note(ctx, targets, renders)))
         files.append("report.md")
     if "csv" in formats:
         pd.DataFrame(flat).to_csv(out / "report.csv", index=False)
@@ -305,15 +379,38 @@ def run(ctx: StageContext) -> dict[str, Any]:
                                          "parameters": protocol["parameters"],
                                          "uncertainty": protocol["uncertainty"], "summary": summ,
                                          "objectives": summary_table(merged, "objective"),
-                                         "rows": flat, "targets": targets},
-                   indent=None)  # compact: a 100-target report is ~1.8 MB indented, ~1.2 MB compact
-        files.append("report.json")
+                                         "rows": flat, "targets": targets, "warnings": warnings},
+                   indent=None, sort_keys=False)  # compact: 100 targets ~1.8 MB indented, ~1.2 MB compact;
+        files.append("report.json")                # unsorted: parameters in the space's order
     ctx.log(f"wrote {', '.join(files)} to {out}")
     return {"files": files, "plot": plot.name if plot else None, "renders": [p for _, p, _ in renders],
+            "warnings": warnings,
             "protocol_plot": protocol_plot.name if protocol_plot else None, "summary": summ,
             "optimizers": {k: {kk: v[kk] for kk in ("n_validated", "r_actual_mean", "r_actual_ci95",
                                                      f"vs_{ctx.spec.evaluation.reference}")}
                            for k, v in protocol["optimizers"].items()}}
+
+
+def _in_space_order(params: dict[str, Any], names: list[str]) -> list[str]:
+    """The keys of ``params`` in the parameter space's order (``names``), any others after them."""
+    return [n for n in names if n in params] + [n for n in params if n not in names]
+
+
+def _drawn_note(ctx: StageContext, targets: dict[str, Any], renders: list[tuple[int, str, str]]) -> str | None:
+    """Which targets the report draws, when not all of them (None when all are, or drawing is off)."""
+    from invphys.pipeline.stages import validate
+
+    kept = getattr(validate, "RENDER_TARGETS", None)
+    if not ctx.spec.report.render:
+        return None
+    n = len(targets["rows"])
+    drawn = sorted({k for k, _, _ in renders})
+    if len(drawn) == n:
+        return None
+    which = ", ".join(str(k) for k in drawn) if drawn else "none"
+    kept_text = f"the validate stage keeps the runs of its first {kept} targets only, and " if kept else ""
+    return (f"Drawings (target vs recovered): {len(drawn)} of {n} targets ({which}); {kept_text}a target "
+            f"without a validated answer (or whose drawing failed, see Warnings) is not drawn.")
 
 
 def _with_device(ctx: StageContext, rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
