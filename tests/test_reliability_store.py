@@ -342,3 +342,13 @@ def test_entries_that_are_not_parts_are_reported_never_read_nor_moved(store) -> 
     assert not repaired.ok and all("left" in a for a in repaired.actions) and len(repaired.actions) == 2
     assert (store.path / "notes.txt").read_text() == "mine" and (store.path / "run" / "summary.json").is_file()
     assert not (store.path / "_quarantine").exists()
+
+
+def test_verify_reports_a_malformed_manifest_as_damage_instead_of_raising(store) -> None:
+    (store.path / MANIFEST_FILE).write_text('{"parts": 7}')
+    report = store.verify()   # before: DatasetError, so `dataset verify` could only say it as an error
+    assert not report.ok and [(p.part, p.kind) for p in report.problems] == [(MANIFEST_FILE, "corrupt")]
+    assert "malformed" in report.problems[0].detail and report.rows == N
+    out = cli("dataset", "verify", str(store.path), "--json")
+    assert out.exit_code != 0 and json.loads(out.stdout)["problems"][0]["part"] == MANIFEST_FILE
+    assert store.repair().ok and store.verify().ok

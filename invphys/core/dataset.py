@@ -517,8 +517,16 @@ class DatasetStore:
 
     # -- integrity -----------------------------------------------------------------------------
     def verify(self) -> VerifyReport:
-        """Check every part against the manifest and the store's schema; nothing is changed."""
-        scan = self._scan()
+        """Check every part against the manifest and the store's schema; nothing is changed. Damage is
+        reported, not raised: a malformed manifest is a problem of ``_manifest.json`` (the parts are then
+        checked on their own); only a path that holds no readable store raises :class:`DatasetError`."""
+        try:
+            scan = self._scan()
+        except DatasetError as exc:
+            if not self.manifest_path.exists() or _metadata_problem(self.metadata):
+                raise
+            scan = self._scan(use_manifest=False)
+            scan.problems.insert(0, PartProblem(MANIFEST_FILE, "corrupt", f"{_short(exc)}"))
         return VerifyReport(path=str(self.path), parts=len(scan.parts),
                             rows=sum(p.table.num_rows for p in scan.parts), problems=scan.problems,
                             has_manifest=scan.has_manifest)
