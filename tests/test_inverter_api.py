@@ -139,3 +139,22 @@ def test_one_polish_settings_model_for_the_api_the_cli_and_the_spec() -> None:
             PolishSettings.checked(**kw)
     with pytest.raises(InvphysError, match="confirm_candidates must be >= 1"):
         check_polish(4, 8, 0.1, 1.0, 0, 0)
+
+
+def test_a_python_version_note_only_where_it_can_matter(run, tmp_path, recwarn) -> None:
+    """Every part of the toy bundle loads from arrays: another Python cannot change an answer, so loading
+    warns nothing (before, every load warned that the bundle was written with another Python)."""
+    import shutil
+
+    import yaml
+
+    import invphys
+
+    root = tmp_path / "bundle"
+    shutil.copytree(run / "inverter", root)
+    m = yaml.safe_load((root / "manifest.yaml").read_text())
+    m["system_info"]["python"] = "2.7.18"
+    (root / "manifest.yaml").write_text(yaml.safe_dump(m, sort_keys=False))
+    inv = invphys.load_inverter(root)
+    assert not [w for w in recwarn if "Python" in str(w.message)]
+    assert not [n for n in inv.notes if "Python" in n]
