@@ -5,14 +5,17 @@ Layout of a bundle::
     manifest.yaml                 format_version, invphys_version, simulator, dataset, parameter_space,
                                   features, components, methods, default_method, files{path: sha256}
     README.md                     what it is, how it was trained, how to use it
-    surrogate/                    the surrogate as its plugin saved it (model.json, weights.pt)
+    surrogate/                    the surrogate as its plugin saved it (model.json, weights.pt: tensors only)
     latents/<label>/              each latent model, likewise
-    policies/<label>/             each goal-conditioned policy as its plugin saved it (gc_ppo: policy.zip)
+    policies/<label>/             each goal-conditioned policy or fitted baseline as its plugin saved it
+                                  (gc_ppo: gc_ppo.json + policy.npz; npe: npe.json + npe_weights.npz)
     inference/*.npz               verified NumPy forms of the networks (answers without torch)
     data/train.npz, data/test.npz the training and held-out partitions' theta and features
 
 The bundle is assembled in a temporary sibling directory and moved into place, so a reader never
-sees half a bundle.
+sees half a bundle. No part is a pickle (format 2); :func:`upgrade_bundle` converts a format-1 bundle.
+:func:`export_destination` and :func:`copy_bundle` are ``invphys export``: the copy never replaces
+anything but a bundle, never the source or what contains it, and is swapped in only once it loads.
 """
 
 from __future__ import annotations
