@@ -181,3 +181,13 @@ class _VersionedRegistry:
         if kind == "simulator":
             obj.version = "2"
         return obj
+
+
+def test_generating_into_a_symlink_loop_or_through_one_is_one_clear_error(tmp_path) -> None:
+    """Before, an OSError (an internal error, exit 1) from deep in the writer."""
+    (tmp_path / "a").symlink_to(tmp_path / "b")
+    (tmp_path / "b").symlink_to(tmp_path / "a")
+    for out in (tmp_path / "a", tmp_path / "a" / "sub"):
+        with pytest.raises(DatasetError, match="symbolic link that leads nowhere"):
+            generate_dataset(out, {"type": SIM, "substeps": 1}, n=4, batch_size=2, progress=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "b"]

@@ -26,6 +26,7 @@ stored twice. Readers through this API check the store against its manifest on e
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import os
@@ -862,10 +863,14 @@ def _probe_writable(path: Path) -> None:
 
 def _not_writable(path: Path, exc: OSError, done: Sequence[str] = ()) -> str:
     why = exc.strerror or str(exc)
+    if exc.errno == errno.ELOOP or (os.path.islink(path) and not os.path.exists(path)):
+        why = "the path is a symbolic link that leads nowhere (or in a loop)"
+    elif exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+        why += " (is it read-only?)"
     if done:
         return (f"cannot change the dataset at {str(path)!r}: {why}; done before that: {'; '.join(done)}; "
                 f"`invphys dataset verify {path}` shows where it stands")
-    return f"cannot change the dataset at {str(path)!r}: {why} (is it read-only?); nothing was changed"
+    return f"cannot change the dataset at {str(path)!r}: {why}; nothing was changed"
 
 
 def _read_json(path: Path) -> Any:
