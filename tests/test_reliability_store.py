@@ -131,6 +131,7 @@ def test_foreign_part_is_refused(store, tmp_path) -> None:
     ("{", "not valid JSON"), ("[]", "not a JSON object"), ('{"param_names": 5}', "param_names"),
     ('{"param_names": ["a"], "feature_names": ["f", "f"], "identity": {}}', "repeats"),
     ("\x00\x01binary", "not a text file"),
+    ('{"param_names": ["a"],\n "param_names": ["b"]}', "'param_names' appears twice in one object (lines 1 and 2)"),
 ])
 def test_malformed_metadata_is_one_line(store, text: str, needle: str) -> None:
     (store.path / "_metadata.json").write_text(text)

@@ -874,13 +874,14 @@ def _not_writable(path: Path, exc: OSError, done: Sequence[str] = ()) -> str:
 
 
 def _read_json(path: Path) -> Any:
-    from invphys.core.safe_yaml import read_text
+    """A store's JSON file through the bounded reader (:mod:`invphys.core.safe_read`: a regular file of at
+    most :data:`MAX_JSON_BYTES`, UTF-8, no key twice in one object), its refusals as :class:`DatasetError`."""
+    from invphys.core.safe_read import load_user_json
 
-    text = read_text(path, what="dataset file", error=DatasetError, limit=MAX_JSON_BYTES)
     try:
-        return json.loads(text)
-    except (ValueError, RecursionError) as exc:
-        raise DatasetError(f"{path} is not valid JSON: {_short(exc)}") from None
+        return load_user_json(path, what="dataset file", max_bytes=MAX_JSON_BYTES)
+    except InvphysError as exc:
+        raise DatasetError(str(exc)) from None
 
 
 def _metadata_problem(meta: Any) -> str | None:
