@@ -414,3 +414,24 @@ def test_active_polish_confirm_is_key_neutral_off_and_counts_and_replays_its_run
     again = run_spec(on, copy, stages=["active"], **quiet)["active"]["polish"]
     assert again["replayed_runs"] == pol["simulator_runs"] and again["confirm"] == {**c, "replayed_runs":
                                                                                   c["simulator_runs"]}
+
+
+def test_active_polish_with_other_settings_starts_its_own_log_afresh(run_dir, tmp_path) -> None:
+    """The stage's polish log lives in invphys's own folder: other settings replace it (a user's log is
+    refused instead, tests/test_inverter_polish.py)."""
+    import shutil
+
+    from rich.console import Console
+
+    from invphys.core.spec import parse_spec
+    from invphys.pipeline.runner import run_spec
+
+    out, _ = run_dir
+    copy = tmp_path / "run"
+    shutil.copytree(out, copy)
+    base = "active: {polish: {budget: 4, popsize: 4, sigma0: SIGMA, below: 0.999}, rounds: 2,"
+    for sigma in ("0.1", "0.2"):
+        spec = parse_spec(SPEC.replace("active: {rounds: 2,", base.replace("SIGMA", sigma)))
+        summary = run_spec(spec, copy, stages=["active"], progress=False, console=Console(file=io.StringIO()))
+        assert summary["active"]["polish"]["replayed_runs"] == 0  # the second settings' batches are new
+    assert (copy / "active" / "polish.npz").is_file()

@@ -137,14 +137,14 @@ def polish(inv: Any, items: list[InversionResult], ps: PolishSettings, overrides
 
 def _apply(inv: Any, r: InversionResult, start: Candidate, i: int, pol: Any, polished: bool, confirm: bool,
            r0: float) -> bool:
-    """Put target ``i``'s polished (or confirmed) answer first (never worse than its start); True when
-    a new point became the answer."""
+    """Put target ``i``'s polished (or confirmed) answer first (never worse than its start, the best simulated
+    candidate, which leads also where nothing was polished); True when a new point became the answer."""
     new_theta, new_r, new_feats = pol.theta[i], pol.r_actual[i], pol.features[i]
     if confirm:  # the answer is a confirmed candidate: the start, or a point the polish simulated
         moved = bool((pol.confirmed is not None and pol.confirmed.pick[i] >= 0) or polished)
         improved = bool(moved and not np.array_equal(new_theta, start.theta))
-    else:
-        moved = bool(polished)
+    else:  # the answer is the best simulated point: the polished one, else the start (polished or not)
+        moved = True
         improved = bool(polished and np.isfinite(new_r) and not new_r <= r0)
     if improved:
         cand = inv._candidates(new_theta[None, :], [f"{start.source} + polish"], r.target, r.mask)[0]

@@ -304,7 +304,8 @@ def _polish(ctx: StageContext, cfg: Any, key: str, n_rounds: int, feats: np.ndar
     log_key = digest(fields)  # not the budget: a larger budget replays the smaller one's batches
     log_name = POLISH_LOG if index == 0 else f"polish_pass{index + 1}.npz"
     batches = BatchLog(ctx.stage_dir / log_name, log_key, sim, log=ctx.log,
-                       chunk=int((ctx.spec.validator or {}).get("batch_size") or 0) or None)
+                       chunk=int((ctx.spec.validator or {}).get("batch_size") or 0) or None,
+                       replace_other=True)  # the stage's own folder: a log of other settings starts afresh
     t0 = time.perf_counter()
     pol = polish(feats, theta, r_act, actual, scales, batches, cfg.budget, cfg.popsize, cfg.sigma0, cfg.below,
                  seed=ctx.seed * 1000 + 999 + 7919 * index)
