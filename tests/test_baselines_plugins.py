@@ -3,6 +3,8 @@ with one parameter the features cannot see."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from models_data import orange_split
@@ -253,6 +255,12 @@ def test_npe_refuses_pickles_wrong_shapes_and_an_older_pickled_save(npe_fitted, 
         np.savez(fh, **arrays)
     with pytest.raises(InvphysError, match=rf"do not fit the saved architecture \({key} has shape \(3, 3\)"):
         NPEBaseline.load(d)
+    weights.write_bytes(good)
+    meta = json.loads((d / "npe.json").read_text())  # a description far larger than the weights: never built
+    (d / "npe.json").write_text(json.dumps({**meta, "config": {**meta["config"], "hidden_features": 10**6}}))
+    with pytest.raises(InvphysError, match=r"hidden_features 1000000.* does not fit the [0-9,]+ saved numbers"):
+        NPEBaseline.load(d)
+    (d / "npe.json").write_text(json.dumps(meta))
     # an older save: the posterior pickled in npe.pt is refused, loaded only by the explicit legacy call
     weights.unlink()
     torch.save({"posterior": npe_fitted._posterior, "scales": npe_fitted._scales, "metrics": {}}, d / "npe.pt")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import json
 import warnings
 
 import numpy as np
@@ -177,11 +178,25 @@ def test_gc_ppo_saves_tensors_and_loads_without_unpickling(optim_data, tmp_path)
     (d / "policy.npz").write_bytes(good)
     with np.load(d / "policy.npz") as z:
         arrays = {k: z[k] for k in z.files}
-    arrays["log_std"] = np.zeros(3, np.float32)
+    key = next(k for k, v in arrays.items() if v.ndim == 2 and v.shape[0] != v.shape[1])
+    with (d / "policy.npz").open("wb") as fh:  # same numbers, transposed: the shape check names the tensor
+        np.savez(fh, **{**arrays, key: arrays[key].T})
+    with pytest.raises(InvphysError, match=rf"do not fit the saved config \({key} has shape"):
+        GoalConditionedPPO.load(d)
+    with (d / "policy.npz").open("wb") as fh:
+        np.savez(fh, **{**arrays, "log_std": np.zeros(3, np.float32)})
+    with pytest.raises(InvphysError, match=r"do not fit the saved config \(net_arch \[64, 64\] .* the file holds"):
+        GoalConditionedPPO.load(d)
+    # a config that would build a network far larger than the file: refused before anything is allocated
     with (d / "policy.npz").open("wb") as fh:
         np.savez(fh, **arrays)
-    with pytest.raises(InvphysError, match=r"do not fit the saved config \(log_std has shape \(3,\)"):
+    saved = json.loads((d / "gc_ppo.json").read_text())
+    saved["config"]["net_arch"] = [10**6, 10**6]
+    (d / "gc_ppo.json").write_text(json.dumps(saved))
+    with pytest.raises(InvphysError, match=r"needs 2,000,[0-9,]+ numbers"):
         GoalConditionedPPO.load(d)
+    saved["config"]["net_arch"] = [64, 64]
+    (d / "gc_ppo.json").write_text(json.dumps(saved))
     (d / "policy.npz").unlink()
     gc.model.save(d / "policy.zip")  # the older format: SB3's cloudpickled zip
     with pytest.raises(LegacyPickleError, match=r"policy\.zip is a pickled object"):

@@ -48,7 +48,7 @@ class NPEBaseline(DatasetBaseline):
         learning_rate: float = Field(1e-3, gt=0)
         max_num_epochs: int = Field(300, ge=1)
         stop_after_epochs: int = Field(20, ge=1, description="early-stopping patience on sbi's validation split")
-        samples: int = Field(64, ge=1, description="posterior draws per target")
+        samples: int = Field(64, ge=1, le=100_000, description="posterior draws per target")
         answer: Literal["mean", "best_log_prob", "best_surrogate"] = Field("best_log_prob")
         uncertainty_penalty: float = Field(
             0.0, ge=0, description="best_surrogate: score = R - lambda x the ensemble's normalised std (0: plain R)")
@@ -207,12 +207,27 @@ class NPEBaseline(DatasetBaseline):
         except (KeyError, TypeError, ValueError) as exc:
             raise InvphysError(f"{d / CONFIG_FILE}: not an npe save this invphys reads ({first_line(exc)})") from None
         state = read_weights_npz(d / WEIGHTS_FILE)
+        plugin._check_size(*dims, state, d / WEIGHTS_FILE)
         plugin._posterior = plugin._rebuild(*dims, state, d / WEIGHTS_FILE)
-        scales = meta.get("scales")
-        plugin._scales = None if scales is None else np.asarray(scales, dtype=np.float64)
+        try:
+            scales = meta.get("scales")
+            plugin._scales = None if scales is None else np.asarray(scales, dtype=np.float64).reshape(dims[1])
+        except (TypeError, ValueError):
+            raise InvphysError(f"{d / CONFIG_FILE}: scales must be {dims[1]} numbers, one per feature") from None
         plugin.metrics = dict(meta.get("metrics") or {})
         plugin.fitted = True
         return plugin
+
+    def _check_size(self, theta_dim: int, x_dim: int, state: dict[str, np.ndarray], where: Path) -> None:
+        """Refuse, before building anything, an architecture larger than the saved weights can fill: every
+        flow layer holds at least hidden_features^2 numbers (a hostile description cannot make the
+        builder allocate more than the file holds)."""
+        c, size = self.config, sum(int(v.size) for v in state.values())
+        h, t = c.hidden_features, 1 if c.estimator == "mdn" else c.num_transforms
+        if min(theta_dim, x_dim) < 1 or t * h * h > size or (theta_dim + x_dim) * h > size:
+            raise InvphysError(f"{where}: the saved architecture ({c.estimator}, hidden_features {h}, num_transforms "
+                               f"{t}, {theta_dim} parameters, {x_dim} features) does not fit the {size:,} saved "
+                               f"numbers; refusing to build it")
 
     def _rebuild(self, theta_dim: int, x_dim: int, state: dict[str, np.ndarray], where: Path) -> Any:
         """The posterior of a saved flow: sbi's builder on dummy data of the saved shapes, the saved

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import time
 from collections.abc import Callable
@@ -218,8 +219,22 @@ class GoalConditionedPPO(BuiltinOptimizer):
         except (KeyError, TypeError, ValueError) as exc:
             raise InvphysError(f"{d / CONFIG_FILE}: not a gc_ppo save this invphys reads ({first_line(exc)})") from None
         opt.metrics = dict(saved.get("metrics") or {})
-        opt.model = opt._rebuild(dim, n_feat, low, high, read_weights_npz(d / POLICY_FILE), d / POLICY_FILE)
+        state = read_weights_npz(d / POLICY_FILE)
+        opt._check_size(dim, n_feat, state, d / POLICY_FILE)
+        opt.model = opt._rebuild(dim, n_feat, low, high, state, d / POLICY_FILE)
         return opt
+
+    def _check_size(self, dim: int, n_feat: int, state: dict[str, np.ndarray], where: Path) -> None:
+        """Refuse, before building anything, a config whose policy and value networks would not hold exactly
+        the saved numbers (a hostile ``net_arch`` cannot make PPO allocate more than the file holds)."""
+        widths = [dim + 2 * n_feat + 2, *self.config.net_arch]
+        mlp = sum(a * b + b for a, b in itertools.pairwise(widths))
+        need = 2 * mlp + (widths[-1] * dim + dim) + (widths[-1] + 1) + dim  # pi, vf, action and value heads, log_std
+        have = sum(int(v.size) for v in state.values())
+        if dim < 1 or n_feat < 1 or need != have:
+            raise InvphysError(f"{where}: the weights do not fit the saved config (net_arch {self.config.net_arch} "
+                               f"for {dim} actions and {n_feat} features needs {need:,} numbers, the file holds "
+                               f"{have:,})")
 
     def _rebuild(self, dim: int, n_feat: int, low: float, high: float, state: dict[str, np.ndarray],
                  where: Path) -> Any:
@@ -244,7 +259,9 @@ class GoalConditionedPPO(BuiltinOptimizer):
 
         threads, states = torch.get_num_threads(), (torch.get_rng_state(), np.random.get_state(), random.getstate())
         try:  # building PPO seeds the global RNGs and sets torch's threads: leave the caller's as they were
-            model = make_ppo(InverseVecEnv(task, cfg.n_envs, 0), cfg, int(cfg.seed or 0))
+            # acting only: one env and a minimal rollout buffer (a saved n_steps x n_envs is never allocated)
+            small = cfg.model_copy(update={"n_envs": 1, "n_steps": 2, "batch_size": 2})
+            model = make_ppo(InverseVecEnv(task, 1, 0), small, int(cfg.seed or 0))
         finally:
             torch.set_num_threads(threads)
             torch.set_rng_state(states[0])
