@@ -191,3 +191,15 @@ def test_generating_into_a_symlink_loop_or_through_one_is_one_clear_error(tmp_pa
         with pytest.raises(DatasetError, match="symbolic link that leads nowhere"):
             generate_dataset(out, {"type": SIM, "substeps": 1}, n=4, batch_size=2, progress=False)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "b"]
+
+
+def test_a_new_store_inside_another_store_is_refused_before_anything_is_written(tmp_path) -> None:
+    outer = tmp_path / "outer"
+    generate_dataset(outer, {"type": SIM, "substeps": 1}, n=4, batch_size=2, progress=False)
+    before = sorted(p.name for p in outer.iterdir())
+    (tmp_path / "link").symlink_to(outer)
+    for inner in (outer / "inner", outer / "a" / "b", tmp_path / "link" / "inner"):
+        with pytest.raises(DatasetError, match="is inside the dataset at"):
+            generate_dataset(inner, {"type": SIM, "substeps": 1}, n=4, batch_size=2, progress=False)
+    assert sorted(p.name for p in outer.iterdir()) == before
+    assert len(pd.read_parquet(outer)) == 4   # the outer store stays readable by other tools

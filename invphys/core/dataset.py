@@ -389,6 +389,10 @@ class DatasetStore:
         if not self.exists and self.path.is_dir() and any(not p.name.startswith(".") for p in self.path.iterdir()):
             raise DatasetError(f"{str(self.path)!r} exists and is not an invphys dataset; "
                                "choose an empty or new directory")
+        outer = None if self.exists else enclosing_store(self.path)
+        if outer is not None:
+            raise DatasetError(f"{str(self.path)!r} is inside the dataset at {str(outer)!r} (Parquet readers of "
+                               "that store would read it too); choose a directory outside it")
         lock = FileLock(str(self.path / LOCK_FILE))
         try:
             self.path.mkdir(parents=True, exist_ok=True)
@@ -777,6 +781,24 @@ def _strays(path: Path, parts: Any) -> list[str]:
 
 def _entry(part: _Part) -> dict[str, Any]:
     return {"name": part.name, "rows": int(part.table.num_rows), "bytes": part.nbytes, "sha256": part.sha256}
+
+
+def enclosing_store(path: str | os.PathLike[str]) -> Path | None:
+    """The dataset store that ``path`` lies inside (the nearest parent directory, links followed, holding a
+    ``_metadata.json``), or None. Nothing but a store's own files may be written there: pandas and
+    pyarrow read every file of a store's directory tree."""
+    p = Path(path)
+    try:
+        p = p.resolve()
+    except (OSError, RuntimeError):   # a symbolic-link loop: judge the path as written
+        p = Path(os.path.abspath(p))
+    for parent in p.parents:
+        try:
+            if (parent / METADATA_FILE).is_file():
+                return parent
+        except OSError:
+            continue
+    return None
 
 
 def _read_part(path: Path, expect: dict[str, Any] | None) -> tuple[bytes | None, str]:
