@@ -278,6 +278,13 @@ def test_torch_weights_of_the_wrong_shape_name_the_tensor(bundle) -> None:
     with pytest.raises(ModelLoadError, match=rf"surrogate/weights\.pt: the weights do not fit the saved config "
                                              rf"\({key.replace('.', '[.]')} has shape"):
         Bundle(bundle).surrogate_model()
+    # a description far larger than its weights is refused before anything is allocated (meta-device sizes)
+    meta = json.loads((bundle / "surrogate" / "model.json").read_text())
+    meta["config"]["hidden"] = [10**6, 10**6, 10**6]
+    (bundle / "surrogate" / "model.json").write_text(json.dumps(meta))
+    _rehash(bundle)
+    with pytest.raises(ModelLoadError, match=r"surrogate/weights\.pt: the weights do not fit the saved config"):
+        Bundle(bundle).surrogate_model()
 
 
 @pytest.mark.parametrize("key", ["features.names", "parameter_space.low", "simulator.name",

@@ -160,8 +160,11 @@ class TorchModel:
         except (KeyError, TypeError, ValueError):
             raise ModelLoadError(f"{meta_path}: no integer dims.d and dims.m") from None
         model.dims = (d, m)
-        net = model._build_net(d, m)
         state = load_torch_weights(directory / WEIGHTS_FILE)
+        shapes = _meta_shapes(model, d, m)  # sizes first, allocating nothing: a hostile config builds no giant net
+        if shapes is not None:
+            check_state(shapes, state, directory / WEIGHTS_FILE, "the saved config")
+        net = model._build_net(d, m)
         check_state(net.state_dict(), state, directory / WEIGHTS_FILE, "the saved config")
         try:
             net.load_state_dict(state)
@@ -175,6 +178,20 @@ class TorchModel:
         hist = directory / HISTORY_FILE
         model.history = read_json_mapping(hist) if hist.is_file() else {}
         return model
+
+
+def _meta_shapes(model: Any, d: int, m: int) -> dict[str, Any] | None:
+    """The state dict ``model._build_net(d, m)`` would have, built on torch's meta device (no memory);
+    None when the network cannot be built there (then the real build is checked instead)."""
+    import torch
+
+    if min(d, m) < 1:
+        raise ModelLoadError(f"{model.kind} {model.name!r}: saved dims d={d}, m={m} must be >= 1")
+    try:
+        with torch.device("meta"):
+            return dict(model._build_net(d, m).state_dict())
+    except Exception:  # a plugin whose build computes on data: no pre-check
+        return None
 
 
 # -- weight files: read without running code ----------------------------------------------------
