@@ -353,3 +353,16 @@ def test_verify_reports_a_malformed_manifest_as_damage_instead_of_raising(store)
     out = cli("dataset", "verify", str(store.path), "--json")
     assert out.exit_code != 0 and json.loads(out.stdout)["problems"][0]["part"] == MANIFEST_FILE
     assert store.repair().ok and store.verify().ok
+
+
+def test_a_stray_part_far_larger_than_the_listed_ones_is_not_read(store) -> None:
+    """100 MB that start and end like Parquet, named like a part the manifest does not list (sparse: no
+    disk); a killed writer's part is about as large as the others, so this one is reported unread."""
+    stray = store.path / "part-000097-abcdefab.parquet"
+    with open(stray, "wb") as fh:
+        fh.write(b"PAR1")
+        fh.seek(100 << 20)
+        fh.write(b"PAR1")
+    (problem,) = store.verify().problems
+    assert problem.part == stray.name and problem.kind == "corrupt"
+    assert "far more than any part the manifest lists" in problem.detail and "not read" in problem.detail

@@ -56,6 +56,8 @@ MAX_JSON_BYTES = 64 << 20
 #: largest Parquet part written or read (bytes); ``INVPHYS_MAX_PART_BYTES`` overrides it. A part holds one
 #: flushed batch (a few MB at most in practice); a larger file is refused before it is read
 MAX_PART_BYTES = 1 << 30
+#: a part the manifest does not list is read only up to 8 x its largest part, and at least this (bytes)
+STRAY_MIN_BYTES = 64 << 20
 #: Parquet schema-metadata key holding the store's provenance in each part
 SCHEMA_KEY = b"invphys"
 KEY_DECIMALS = 10
@@ -593,8 +595,12 @@ class DatasetStore:
         seen_keys: dict[str, str] = {}
         sha_of: dict[str, str] = {}
 
+        # a file the manifest does not list (a killed writer's part) is about as large as the listed ones
+        biggest = max((p.get("bytes") for p in listed.values() if isinstance(p.get("bytes"), int)), default=0)
+        stray_limit = max(STRAY_MIN_BYTES, 8 * biggest) if biggest else None
+
         def load(name: str, expect: dict[str, Any] | None) -> _Part | None:
-            data, why = _read_part(files[name], expect)
+            data, why = _read_part(files[name], expect, stray_limit)
             if data is None:
                 problems.append(PartProblem(name, "corrupt", why, expect["rows"] if expect else None))
                 return None
@@ -801,11 +807,12 @@ def enclosing_store(path: str | os.PathLike[str]) -> Path | None:
     return None
 
 
-def _read_part(path: Path, expect: dict[str, Any] | None) -> tuple[bytes | None, str]:
+def _read_part(path: Path, expect: dict[str, Any] | None,
+               stray_limit: int | None = None) -> tuple[bytes | None, str]:
     """The bytes of the part file ``path``, or None and why not; nothing is read whole before its size
     is checked: against the manifest's ``bytes`` (``expect``), and against :func:`max_part_bytes`. A file
-    the manifest does not list is read only when it starts and ends like a Parquet file. A symbolic link
-    is never followed."""
+    the manifest does not list is read only when it is at most ``stray_limit`` bytes and starts and ends
+    like a Parquet file. A symbolic link is never followed."""
     try:
         st = os.lstat(path)
     except OSError as exc:
@@ -820,6 +827,9 @@ def _read_part(path: Path, expect: dict[str, Any] | None) -> tuple[bytes | None,
         return None, f"{size:,} bytes where the manifest says {want:,} (truncated or changed; not read)"
     if size > limit:
         return None, f"{size:,} bytes, over the {limit:,}-byte part limit (INVPHYS_MAX_PART_BYTES); not read"
+    if expect is None and stray_limit is not None and size > stray_limit:
+        return None, (f"{size:,} bytes, far more than any part the manifest lists (over {stray_limit:,}); "
+                      "not read")
     try:
         fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0))
         with os.fdopen(fd, "rb") as fh:
