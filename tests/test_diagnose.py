@@ -164,6 +164,24 @@ def test_held_out_rows_are_picked_by_key_and_exclude_every_training_row(bundle) 
     assert np.allclose(np.sort(held.theta, axis=0), np.sort(b.data("test")[0], axis=0))
 
 
+def test_stores_not_sampled_from_the_prior_give_no_held_out_rows(bundle, tmp_path) -> None:
+    import shutil
+
+    from invphys.evaluation.heldout import heldout_rows
+    from invphys.inverter.bundle import Bundle
+
+    b = Bundle(bundle)
+    primary = b.manifest["dataset"]["path"]
+    edge = tmp_path / "edge_store"
+    shutil.copytree(primary, edge)
+    meta = json.loads((edge / "_metadata.json").read_text())
+    meta["sessions"] = [{**s, "sampler": "edge"} for s in meta["sessions"]]
+    (edge / "_metadata.json").write_text(json.dumps(meta))
+    held = heldout_rows(b, [edge])
+    assert "not from the prior" in held.info["skipped"][str(edge)]
+    assert "test split" in held.info["note"]  # nothing usable: the bundle's own test split, said so
+
+
 def test_the_ood_score_ranks_a_planted_far_target_above_typical_ones(bundle) -> None:
     from invphys.evaluation.ood import ood_score, ood_threshold
     from invphys.inverter.bundle import Bundle

@@ -5,8 +5,9 @@ parameters and the store's run identity (:func:`~invphys.core.dataset.row_key`).
 every ok row of the candidate stores (by default the bundle's own dataset and the stores beside it)
 that holds the same problem as the bundle's dataset (:func:`~invphys.core.dataset_union.incompatibility`:
 same parameter space, features, simulator name, version, preset and config) and whose key is not a
-training key. Rows an adaptive design chose (the rounds of a store's ``_design.json``) are left out:
-they are not draws from the prior, and calibration is defined against the prior. Without the stores,
+training key. Rows that are not draws from the prior are left out, since calibration is defined against
+the prior: the rows an adaptive design chose (the rounds of a store's ``_design.json``) and stores
+sampled otherwise (``sampler: edge``). Without the stores,
 the bundle's own test split is used (and said so).
 """
 
@@ -86,8 +87,17 @@ def _simulator_name(bundle: Any) -> str:
         return given
 
 
+#: samplers whose rows are draws from the prior (uniform on the normalised box); ``edge`` is not
+PRIOR_SAMPLERS: frozenset[str] = frozenset({"uniform", "sobol", "lhs"})
+
+
 def _matches_bundle(bundle: Any, meta: dict[str, Any]) -> str | None:
-    """Why a store's rows are not the bundle's problem (None: they are)."""
+    """Why a store's rows are not the bundle's problem or not prior draws (None: they are both)."""
+    sessions = meta.get("sessions")
+    samplers = {str(x.get("sampler")) for x in sessions if isinstance(x, dict)} if isinstance(sessions, list) else set()
+    other = sorted(samplers - PRIOR_SAMPLERS - {"None"})
+    if other:
+        return f"sampled with {', '.join(other)}, not from the prior (calibration is defined against the prior)"
     sim = bundle.manifest["simulator"]
     ident = meta.get("identity") or {}
     preset = (sim.get("config") or {}).get("preset")
