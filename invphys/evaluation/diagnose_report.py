@@ -53,9 +53,13 @@ def summary_markdown(report: dict[str, Any]) -> str:
         lines.append(f"SBC ranks of {v['parameter']} stay non-uniform after recalibration (p {v['ks_pvalue']:.2g}, "
                      f"bias {v['bias']:+.3f}): {v['reading']}.")
     o = report["ood"]
-    lines += ["", f"Out-of-distribution score: `{o['chosen']}` (AUROC for failing answers on the check rows "
-              f"{o['candidates'][o['chosen']]['parameter_error']['check']:.2f}); warning above "
-              f"{o['threshold']:.3g}: fires on {_pct(o['check']['fire_rate'])} of check rows."]
+    auc = o["candidates"][o["chosen"]]
+    lines += ["", f"Out-of-distribution score: `{o['chosen']}`, AUROC on the check rows {auc['r_surr']['check']:.2f} "
+              f"for answers that do not reproduce their target (R_surr < {o['failure']['r_surr_below']:g}), "
+              f"{auc['parameter_error']['check']:.2f} for answers whose error over the identified parameters "
+              f"exceeds {o['failure']['parameter_error_above']:g}; warning above {o['threshold']:.3g}: fires on "
+              f"{_pct(o['check']['fire_rate'])} of check rows and on {_pct(o['check']['recall_r_surr'] or 0)} "
+              f"of those whose answer does not reproduce the target."]
     s = report["surrogate_error_bars"]
     if s.get("available"):
         lines.append(f"Surrogate error bars (±1.645 sigma): hold {_pct(s['check_before']['overall'])} of held-out "
