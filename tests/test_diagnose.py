@@ -103,7 +103,7 @@ def test_cheese_cut_features_given_to_the_orange_bundle_are_refused_by_name() ->
     cheese = Bundle("inverters/cheese_cut_quick", verify=False, allow_legacy=True)
     y = cheese.data("test")[1][:3]
     rows = [dict(zip(cheese.feature_names, r, strict=True)) for r in y.tolist()]
-    with pytest.raises(FeatureMismatch, match="feature mismatch: .*peak_force.* are not features of bundle"):
+    with pytest.raises(FeatureMismatch, match=r"feature mismatch: .*peak_force.* are not features of bundle"):
         feature_targets(orange, rows)
     with pytest.raises(FeatureMismatch, match="13 features"):
         feature_targets(orange, y)
