@@ -3,7 +3,10 @@
 * Built-in plugins (:mod:`invphys.plugins.builtin`) register through the same hooks as third parties.
 * Entry points are discovered lazily, once, on the first lookup; set ``INVPHYS_DISABLE_PLUGIN_AUTOLOAD=1``
   to skip them (the tests do, and register what they need explicitly).
-* ``"package.module:ClassName"`` works wherever a plugin name does (unpackaged code).
+* ``"package.module:ClassName"`` works wherever a plugin name does (unpackaged code); so does
+  ``"module:function"`` for a Python function described as a simulator (``invphys.simulator_from_function``,
+  or a plain function whose spec block gives its ``parameters``: :mod:`invphys.plugins.simulators.function`).
+  A module that is not importable but lies in the current directory is found there, as ``python -m`` would.
 * Two distributions registering the same name for one kind fail at start-up, naming both.
 * Unknown names answer with a did-you-mean and the installed names.
 
@@ -174,6 +177,10 @@ class Registry:
         kind = _check_kind(kind)
         if ":" in name:
             cls = _import_path(name)
+            if not isinstance(cls, type) and callable(cls):
+                from invphys.plugins import builtin
+
+                cls = builtin.plugin_for_callable(kind, cls, name)
             from invphys.core.interfaces import PLUGIN_KINDS
 
             _check_class(cls, kind, PLUGIN_KINDS[kind], "<local>", need_name=False)
@@ -186,7 +193,7 @@ class Registry:
         raise PluginNotFoundError(
             f"No {label} named {name!r}.{did_you_mean(name, table)} "
             f"Installed {label}s: {installed}. (`invphys plugins` lists them; "
-            f"'module:Class' names unpackaged code.)"
+            f"'module:Class' or 'module:function' names unpackaged code.)"
         )
 
     def get(self, kind: str, name: str) -> type[Any]:
@@ -226,7 +233,7 @@ def _check_class(cls: Any, kind: str, base: type, dist: str, need_name: bool = T
 def _import_path(path: str) -> type[Any]:
     module_name, _, attr = path.partition(":")
     try:
-        module = importlib.import_module(module_name)
+        module = _import_module(module_name)
     except ImportError as exc:
         raise PluginLoadError(f"cannot import module {module_name!r} for plugin {path!r}: {exc}") from exc
     try:
@@ -236,6 +243,25 @@ def _import_path(path: str) -> type[Any]:
     except AttributeError as exc:
         raise PluginNotFoundError(f"module {module_name!r} has no attribute {attr!r}") from exc
     return obj  # type: ignore[return-value]
+
+
+def _import_module(module_name: str) -> Any:
+    """``importlib.import_module``; a top-level module that is not on ``sys.path`` but lies in the current
+    directory (``name.py`` or a package) is imported from there, as ``python -m`` would (the directory is
+    appended to ``sys.path``, after everything installed)."""
+    import sys
+    from pathlib import Path
+
+    try:
+        return importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        top = module_name.partition(".")[0]
+        cwd = Path.cwd()
+        here = (cwd / f"{top}.py").is_file() or (cwd / top / "__init__.py").is_file()
+        if exc.name != top or not here or str(cwd) in sys.path or "" in sys.path:
+            raise
+        sys.path.append(str(cwd))
+        return importlib.import_module(module_name)
 
 
 def _entry_points() -> Iterable[EntryPoint]:

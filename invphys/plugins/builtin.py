@@ -43,3 +43,11 @@ def invphys_register_validators() -> list[type]:
     from invphys.plugins.validators import VALIDATORS
 
     return list(VALIDATORS)
+
+
+def plugin_for_callable(kind: str, obj: object, path: str) -> type:
+    """The plugin class a Python function named by ``path`` ("module:function") gives (the registry's
+    escape hatch for functions: :func:`invphys.plugins.simulators.function.plugin_for_callable`)."""
+    from invphys.plugins.simulators.function import plugin_for_callable as for_callable
+
+    return for_callable(kind, obj, path)

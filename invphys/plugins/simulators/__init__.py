@@ -1,0 +1,1 @@
+"""Built-in simulator machinery: a plain Python function as a simulator (:mod:`.function`)."""
