@@ -8,11 +8,10 @@ a short message (``invphys --debug ...`` shows the traceback).
 from __future__ import annotations
 
 import importlib
-import sys
 
 import typer
 
-from invphys.cli.common import configure_logging, debug_enabled, exit_code_for, set_debug
+from invphys.cli.common import configure_logging, debug_enabled, exit_code_for, interrupted, set_debug
 
 COMMAND_MODULES: tuple[str, ...] = ("core", "dataset", "simulate", "render", "invert", "export")
 
@@ -58,9 +57,8 @@ def main() -> None:
     """Console-script entry point: any exception that escapes a command becomes one line (exit 2 or 1)."""
     try:
         app()
-    except KeyboardInterrupt:
-        sys.stderr.write("interrupted\n")
-        raise SystemExit(130) from None
+    except KeyboardInterrupt as exc:
+        raise SystemExit(interrupted(exc)) from None
     except Exception as exc:
         if debug_enabled():
             raise

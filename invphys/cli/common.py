@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import functools
 import json
 import logging
@@ -30,7 +31,7 @@ def _console(stderr: bool) -> Console:
 console = _console(stderr=True)
 out_console = _console(stderr=False)
 
-_state = {"debug": False}
+_state: dict[str, Any] = {"debug": False, "level": logging.INFO}
 
 
 def set_debug(value: bool) -> None:
@@ -41,7 +42,22 @@ def set_debug(value: bool) -> None:
 
 
 def debug_enabled() -> bool:
-    return _state["debug"]
+    return bool(_state["debug"])
+
+
+def log_level() -> int:
+    """The level ``-v``/``-q`` set: INFO by default, WARNING with ``-q``, ERROR with ``-qq``."""
+    return int(_state["level"])
+
+
+def quiet() -> bool:
+    """``-q`` or more: no stage lines, no progress bars, no INFO lines of invphys or its back-ends."""
+    return log_level() >= logging.WARNING
+
+
+def silent() -> bool:
+    """``-qq``: nothing but errors on stderr, and no status-only lines (``finished``, ``valid``) on stdout."""
+    return log_level() >= logging.ERROR
 
 
 def configure_logging(verbose: int = 0, quiet: int = 0) -> int:
@@ -60,6 +76,7 @@ def configure_logging(verbose: int = 0, quiet: int = 0) -> int:
     logger.addHandler(handler)
     logger.setLevel(level)
     logger.propagate = False
+    _state["level"] = level
     return level
 
 
@@ -80,6 +97,11 @@ class _ConsoleHandler(logging.Handler):
 EXIT_USER_ERROR = 2
 #: exit status of a bug: an exception nobody meant a user to see
 EXIT_INTERNAL_ERROR = 1
+#: exit status after Ctrl-C (128 + SIGINT), with the line ``interrupted`` on stderr
+EXIT_INTERRUPTED = 130
+#: operating-system errors that are the user's environment, not a bug: exit 2 with one line
+USER_ERRNOS = frozenset({errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT, errno.ELOOP,
+                         errno.ENOTDIR, errno.EISDIR, errno.ENAMETOOLONG})
 
 
 def exit_code_for(exc: BaseException) -> int:
@@ -90,6 +112,10 @@ def exit_code_for(exc: BaseException) -> int:
     """
     if isinstance(exc, InvphysError):
         console.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True)
+        return EXIT_USER_ERROR
+    if isinstance(exc, OSError) and exc.errno in USER_ERRNOS:
+        where = f"{exc.filename!s}: " if exc.filename is not None else ""
+        console.print(f"[bold red]error:[/] {escape(where + (exc.strerror or str(exc)))}", soft_wrap=True)
         return EXIT_USER_ERROR
     message = " ".join(str(exc).split()) or "(no message)"
     if len(message) > 300:
@@ -109,8 +135,12 @@ def handle_errors(func: F) -> F:
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
             return func(*args, **kwargs)
-        except (typer.Exit, typer.Abort, KeyboardInterrupt, SystemExit):
+        except (typer.Exit, typer.Abort, SystemExit):
             raise
+        except KeyboardInterrupt as exc:
+            if debug_enabled():
+                raise
+            raise typer.Exit(interrupted(exc)) from None
         except Exception as exc:
             if debug_enabled():
                 raise
@@ -119,16 +149,31 @@ def handle_errors(func: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
+def interrupted(exc: BaseException | None = None) -> int:
+    """Print the one line a stop by signal deserves (``interrupted``; ``terminated`` for SIGTERM) and
+    return its exit status (130; 143)."""
+    word, code = getattr(exc, "word", "interrupted"), getattr(exc, "exit_code", EXIT_INTERRUPTED)
+    sys.stderr.write(f"{word}\n")
+    sys.stderr.flush()
+    return int(code)
+
+
 def escape(text: str) -> str:
     from rich.markup import escape as _escape
 
     return _escape(text)
 
 
-def emit(data: Any, as_json: bool, render: Callable[[Any], None] | None = None) -> None:
-    """Print ``data`` as JSON on stdout when ``as_json``, else call ``render(data)`` (or pretty-print)."""
+def emit(data: Any, as_json: bool, render: Callable[[Any], None] | None = None, status_only: bool = False) -> None:
+    """Print ``data`` as JSON on stdout when ``as_json``, else call ``render(data)`` (or pretty-print).
+
+    ``status_only``: the rendering only says that the command worked (``finished``, ``valid``); ``-qq``
+    leaves it out (the exit status says it). JSON asked for is always printed.
+    """
     if as_json:
         sys.stdout.write(json.dumps(data, indent=2, default=str) + "\n")
+    elif status_only and silent():
+        return
     elif render is not None:
         render(data)
     else:

@@ -7,7 +7,8 @@ from typing import Any
 
 import typer
 
-from invphys.cli.common import console, emit, escape, handle_errors, out_console
+from invphys.cli.common import console, emit, escape, handle_errors, interrupted, out_console, quiet
+from invphys.core.errors import InvphysError
 
 dataset_app = typer.Typer(help="Generate and inspect simulation datasets (resumable Parquet stores).",
                           no_args_is_help=True)
@@ -32,7 +33,7 @@ def generate(
 ) -> None:
     """Simulate the spec's dataset into a resumable store: re-running skips rows already stored."""
     from invphys.core.generate import generate_from_spec
-    from invphys.core.spec import load_spec
+    from invphys.core.spec import check_output_directory, load_spec
 
     s = load_spec(spec)
     updates: dict[str, Any] = {}
@@ -48,12 +49,18 @@ def generate(
         s = validate_spec(data, source="--n/--batch-size", references=False)
     if executor is not None:
         s = s.model_copy(update={"executor": {"type": executor}})
-    summary = generate_from_spec(s, out, progress=not no_progress, console=console,
+    target = out if out is not None else s.dataset.path
+    if target is not None:  # a store may be resumed; nothing may go inside a store, a bundle or a file
+        check_output_directory(target, "--out" if out is not None else "dataset.path", store_ok=True)
+    summary = generate_from_spec(s, out, progress=not (no_progress or quiet()), console=console,
                                  limit_minutes=limit_minutes)
     data = summary.to_dict()
     emit(data, as_json, _render_summary)
     if summary.stop_reason in ("interrupted", "terminated"):
-        raise typer.Exit(130 if summary.stop_reason == "interrupted" else 143)
+        from invphys.core.errors import Interrupted
+
+        raise typer.Exit(interrupted(Interrupted(summary.stop_reason,
+                                                 130 if summary.stop_reason == "interrupted" else 143)))
 
 
 def _render_summary(d: dict[str, Any]) -> None:
@@ -131,15 +138,21 @@ def verify(
                                 "unlisted ones and rewrite the manifest"),
     as_json: bool = typer.Option(False, "--json", help="machine-readable output"),
 ) -> None:
-    """Check every part against the manifest (missing, corrupt, foreign, duplicated); exit 1 on problems."""
+    """Check every part against the manifest (missing, corrupt, foreign, duplicated); exit 2 on problems."""
     from invphys.core.dataset import DatasetStore
 
     store = DatasetStore(path)
-    report = store.repair() if repair else store.verify()
+    try:
+        report = store.repair() if repair else store.verify()
+    except OSError as exc:  # a read-only store or disk: nothing was half-moved (moves are renames)
+        raise InvphysError(f"cannot {'repair' if repair else 'verify'} {str(path)!r}: {exc.strerror or exc}"
+                           f"{f' ({exc.filename})' if exc.filename else ''}") from None
     data = report.to_dict()
     emit(data, as_json, _render_verify)
     if not report.ok:
-        raise typer.Exit(1)
+        n = len(data["problems"])
+        raise InvphysError(f"{path}: {n} problem{'s' if n != 1 else ''} found"
+                           f"{'' if repair else '; `invphys dataset verify PATH --repair` quarantines bad parts'}")
 
 
 def _render_verify(d: dict[str, Any]) -> None:

@@ -13,6 +13,9 @@ from invphys.core.atomic import output_directory
 from invphys.core.errors import InvphysError
 from invphys.core.results import DEFAULT_MAX_FRAMES
 
+#: the largest ``--params`` file read
+MAX_PARAMS_BYTES = 16 * 2**20
+
 
 def parse_params(text: str | None, space: Any) -> list[dict[str, float]]:
     """``--params`` as a list of ``{name: value}`` dicts: a JSON object, a JSON list of objects, or a
@@ -23,8 +26,15 @@ def parse_params(text: str | None, space: Any) -> list[dict[str, float]]:
     candidate = Path(text)
     stripped = text.strip()
     if not stripped.startswith(("{", "[")) and candidate.exists():
+        if not candidate.is_file():
+            kind = "a directory" if candidate.is_dir() else "not a regular file"
+            raise InvphysError(f"--params {text!r} is {kind}; give JSON or the path of a JSON file")
+        if candidate.stat().st_size > MAX_PARAMS_BYTES:
+            raise InvphysError(f"--params file {text!r} is larger than {MAX_PARAMS_BYTES // 2**20} MiB")
         try:
             raw = json.loads(candidate.read_text())
+        except UnicodeDecodeError:
+            raise InvphysError(f"--params file {text!r} is not UTF-8 text") from None
         except json.JSONDecodeError as exc:
             raise InvphysError(f"--params file {candidate} is not valid JSON: {exc}") from None
     else:
@@ -107,6 +117,9 @@ def run_simulation(simulator: str | None, params: str | None, out: Path, *, back
 
     ex_name = extractor or sim.default_feature_extractor()
     ex = registry.create("feature_extractor", ex_name) if ex_name else None
+    from invphys.core.spec import check_output_directory
+
+    check_output_directory(out)
     output_directory(out)
     results = sim.simulate(np.stack(rows))
     described = sim.describe()

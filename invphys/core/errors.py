@@ -27,7 +27,17 @@ class DuplicatePluginError(InvphysError):
 
 
 class SpecError(InvphysError, ValueError):
-    """An experiment spec is malformed; the message lists each problem with its path (and line)."""
+    """An experiment spec is malformed; the message lists each problem with its path (and line).
+
+    :attr:`problems` holds them as ``(path, message)`` pairs (path a tuple of keys; empty when the file
+    itself could not be read or parsed) and :attr:`lines` each path's YAML line, where known.
+    """
+
+    def __init__(self, message: str, problems: list[tuple[tuple[str, ...], str]] | None = None,
+                 lines: dict[tuple[str, ...], int] | None = None) -> None:
+        super().__init__(message)
+        self.problems = list(problems or [])
+        self.lines = dict(lines or {})
 
 
 class ParameterRangeError(InvphysError, ValueError):
@@ -36,6 +46,16 @@ class ParameterRangeError(InvphysError, ValueError):
 
 class DeviceUnavailableError(InvphysError, RuntimeError):
     """A compute device (e.g. CUDA) was asked for where there is none."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """A stop by signal after the work done so far was kept (Ctrl-C: ``interrupted``, exit 130; SIGTERM:
+    ``terminated``, exit 143). A :class:`KeyboardInterrupt`, so nothing catches it as an ordinary error."""
+
+    def __init__(self, word: str = "interrupted", exit_code: int = 130) -> None:
+        super().__init__(word)
+        self.word = word
+        self.exit_code = exit_code
 
 
 class SimulationFailed(RuntimeError):

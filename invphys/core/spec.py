@@ -470,19 +470,61 @@ def validate_spec(data: dict[str, Any], source: str = "<spec>", lines: dict[tupl
     """Validate an already-parsed spec mapping: values (keys are strings, numbers finite), shape,
     plugin blocks, and (``references``) the cross-references :func:`validate_references` checks."""
     lines = lines or {}
+    problems = spec_problems(data, registry, references)
+    if problems:
+        raise SpecError(_format(source, problems, lines), problems=problems, lines=lines)
+    return ExperimentSpec.model_validate(data)
+
+
+def spec_problems(data: dict[str, Any], registry: Any = None,
+                  references: bool = True) -> list[tuple[tuple[str, ...], str]]:
+    """Every problem of a parsed spec at once, as (path, message): values, shape, plugin blocks, and
+    (``references``) the cross-references. A section that fails the shape check still has its plugin
+    blocks checked; the cross-references need a spec whose shape is right."""
     problems = value_problems(data)
-    if problems:
-        raise SpecError(_format(source, problems, lines))
-    try:
-        spec = ExperimentSpec.model_validate(data)
+    try:  # keys that are not text are reported once, above; the shape check sees the rest
+        spec: ExperimentSpec | None = ExperimentSpec.model_validate(_text_keys(data) if problems else data)
     except ValidationError as exc:
-        raise SpecError(_format(source, _pydantic_problems(exc, ()), lines)) from None
-    problems = validate_plugin_blocks(spec, registry)
-    if not problems and references:
-        problems = validate_references(spec, registry)
-    if problems:
-        raise SpecError(_format(source, problems, lines))
-    return spec
+        spec = None
+        problems += [(path, msg) for path, msg in _pydantic_problems(exc, ())
+                     if not any(path[:len(q)] == q for q, _ in problems)]
+    blocks = [*spec.plugin_blocks(), *spec.evaluation_blocks()] if spec is not None else _raw_plugin_blocks(data)
+    plugin_problems = validate_plugin_blocks(blocks, registry)
+    problems += [(path, msg) for path, msg in plugin_problems
+                 if not any(path[:len(q)] == q or q[:len(path)] == path for q, _ in problems)]
+    if spec is not None and references:  # each check copes with a block that failed above
+        problems += [(path, msg) for path, msg in validate_references(spec, registry)
+                     if not any(path[:len(q)] == q or q[:len(path)] == path for q, _ in problems)]
+    return problems
+
+
+def _text_keys(data: Any) -> Any:
+    """``data`` without the mapping entries whose key is not text (at any depth)."""
+    if isinstance(data, dict):
+        return {k: _text_keys(v) for k, v in data.items() if isinstance(k, str)}
+    if isinstance(data, list):
+        return [_text_keys(v) for v in data]
+    return data
+
+
+def _raw_plugin_blocks(data: dict[str, Any]) -> list[tuple[str, str, Any]]:
+    """The plugin blocks of a spec mapping whose shape failed, as :meth:`ExperimentSpec.plugin_blocks`
+    gives them (what is not a mapping of blocks is left to the shape check's problems)."""
+    def mapping(value: Any) -> dict[str, Any]:
+        return value if isinstance(value, dict) else {}
+
+    blocks: list[tuple[str, str, Any]] = []
+    for section, kind in (("simulator", "simulator"), ("executor", "executor"), ("features", "feature_extractor"),
+                          ("surrogate", "surrogate"), ("validator", "validator")):
+        if isinstance(data.get(section), dict):
+            blocks.append((section, kind, data[section]))
+    blocks += [(f"latent_models.{k}", "latent_model", b) for k, b in mapping(data.get("latent_models")).items()
+               if isinstance(b, dict)]
+    blocks += [(f"optimizers.{k}", "optimizer", optimizer_plugin_block(b))
+               for k, b in mapping(data.get("optimizers")).items() if isinstance(b, dict)]
+    baselines = mapping(mapping(data.get("evaluation")).get("baselines"))
+    blocks += [(f"evaluation.baselines.{k}", "optimizer", b) for k, b in baselines.items() if isinstance(b, dict)]
+    return blocks
 
 
 def value_problems(data: Any, path: tuple[str, ...] = ()) -> list[tuple[tuple[str, ...], str]]:
@@ -506,13 +548,16 @@ def value_problems(data: Any, path: tuple[str, ...] = ()) -> list[tuple[tuple[st
     return problems
 
 
-def validate_plugin_blocks(spec: ExperimentSpec, registry: Any = None) -> list[tuple[tuple[str, ...], str]]:
-    """Pass 2: each plugin block by its plugin's Config. Returns (path, message) problems."""
+def validate_plugin_blocks(spec: ExperimentSpec | list[tuple[str, str, Any]],
+                           registry: Any = None) -> list[tuple[tuple[str, ...], str]]:
+    """Pass 2: each plugin block by its plugin's Config (a spec's blocks, or a list of (path, kind, block)).
+    Returns (path, message) problems."""
     from invphys import registry as registry_module
 
     reg = registry or registry_module.default_registry()
     problems: list[tuple[tuple[str, ...], str]] = []
-    for dotted, kind, block in [*spec.plugin_blocks(), *spec.evaluation_blocks()]:
+    blocks = spec if isinstance(spec, list) else [*spec.plugin_blocks(), *spec.evaluation_blocks()]
+    for dotted, kind, block in blocks:
         path = tuple(dotted.split("."))
         if not isinstance(block, dict) or "type" not in block:
             problems.append((path, "needs a 'type' field naming the plugin"))
@@ -572,7 +617,38 @@ def validate_references(spec: ExperimentSpec, registry: Any = None) -> list[tupl
         elif policy is None and not Path(str(policy_path)).is_dir():
             problems.append((("optimizers", label, "policy_path"), f"no saved policy at {policy_path!r}"))
     problems += _dataset_problems(spec)
+    problems += _target_problems(spec, reg)
     return problems
+
+
+def _target_problems(spec: ExperimentSpec, reg: Any) -> list[tuple[tuple[str, ...], str]]:
+    """``targets.values`` / ``targets.file``: read and checked against the extractor's feature names as the
+    invert stage will (a file that is missing, unreadable or names an unknown feature is refused now)."""
+    from invphys.core.user_targets import from_mappings, read_target_file
+
+    tg = spec.targets
+    if tg.values is None and tg.file is None:
+        return []
+    names = _feature_names(spec, reg)
+    where = ("targets", "values") if tg.values is not None else ("targets", "file")
+    try:
+        if tg.file is not None:
+            p = Path(tg.file)
+            if not p.is_file():
+                kind = "a directory" if p.is_dir() else "not a regular file" if p.exists() else "absent"
+                return [(where, f"{tg.file!r} is {kind}: name a JSON, YAML or CSV file of targets")]
+            if names is not None:
+                read_target_file(p, names)
+            else:  # the features cannot be known without running: at least the file must be readable
+                with p.open("rb"):
+                    pass
+        elif names is not None:
+            from_mappings(tg.values or [], names, source="targets.values")
+    except InvphysError as exc:
+        return [(where, str(exc).removeprefix("targets.values: "))]
+    except OSError as exc:
+        return [(where, f"cannot read {tg.file!r}: {exc.strerror or exc}")]
+    return []
 
 
 def _feature_names(spec: ExperimentSpec, reg: Any) -> list[str] | None:
@@ -619,6 +695,76 @@ def _dataset_problems(spec: ExperimentSpec) -> list[tuple[tuple[str, ...], str]]
     if "validate_n" in tg.model_fields_set and "n" in tg.model_fields_set and tg.validate_n > tg.n:
         problems.append((("targets", "validate"), f"{tg.validate_n} targets to validate, but targets.n is {tg.n}"))
     return problems
+
+
+#: files that mark a directory as an invphys dataset store, and an inverter bundle's manifest
+STORE_MARKERS: tuple[str, ...] = ("_metadata.json", "_manifest.json")
+BUNDLE_MANIFEST = "manifest.yaml"
+
+
+def output_problem(path: str | Path, option: str = "--out", store_ok: bool = False) -> str | None:
+    """Why ``path`` cannot be an output directory (None when it can), before anything is written.
+
+    Refused: a path that is a file, lies under a file, or runs through a symlink loop; a path in or under
+    an inverter bundle (``manifest.yaml`` with ``format_version``); a path in or under a dataset store
+    (``store_ok``: the path itself may be a store, as ``dataset generate --out`` resumes one).
+    """
+    import errno
+    import os
+    import stat
+
+    given = Path(path)
+    out = Path(os.path.abspath(given))
+    chain = [out, *out.parents]
+    try:  # links followed too: a link to a folder inside a store is inside that store
+        real = given.resolve()
+        chain += [place for place in (real, *real.parents) if place not in chain]
+    except (OSError, RuntimeError):  # a symbolic-link loop: found below
+        pass
+    for level, place in enumerate(chain):
+        shown = str(given) if level == 0 else str(place)
+        try:
+            st = os.stat(place)
+        except FileNotFoundError:
+            continue
+        except OSError as exc:
+            if exc.errno == errno.ELOOP:
+                return (f"{option} {str(given)!r} is a symbolic-link loop" if level == 0 else
+                        f"{option} {str(given)!r} runs through a symbolic-link loop ({shown!r})")
+            if exc.errno == errno.ENOTDIR:
+                continue  # a file above it: found at its own level
+            return f"{option} {str(given)!r}: cannot look at {shown!r}: {exc.strerror or exc}"
+        if not stat.S_ISDIR(st.st_mode):
+            return (f"{option} {str(given)!r} is a file; name a new or existing directory" if level == 0
+                    else f"{option} {str(given)!r} lies under {shown!r}, which is a file")
+        if _is_bundle(place):
+            where = "is" if level == 0 else f"lies inside {shown!r}, which is"
+            return f"{option} {str(given)!r} {where} an inverter bundle; name a directory outside it"
+        if any((place / m).is_file() for m in STORE_MARKERS) and not (store_ok and level == 0):
+            where = "is" if level == 0 else f"lies inside {shown!r}, which is"
+            return f"{option} {str(given)!r} {where} a dataset store; name a directory outside it"
+    return None
+
+
+def check_output_directory(path: str | Path, option: str = "--out", store_ok: bool = False) -> Path:
+    """:func:`output_problem` as an :class:`InvphysError`; returns ``path``."""
+    problem = output_problem(path, option, store_ok)
+    if problem:
+        raise InvphysError(problem)
+    return Path(path)
+
+
+def _is_bundle(directory: Path) -> bool:
+    """True when ``directory`` holds an inverter bundle's manifest (a top-level ``format_version`` key)."""
+    manifest = directory / BUNDLE_MANIFEST
+    try:
+        if not manifest.is_file():
+            return False
+        with manifest.open("rb") as fh:
+            head = fh.read(65536)
+    except OSError:
+        return False
+    return any(line.startswith(b"format_version:") for line in head.splitlines())
 
 
 def _extra_store_problems(primary: str | None, extras: list[ExtraStore]) -> list[tuple[tuple[str, ...], str]]:
@@ -730,17 +876,22 @@ def _format(source: str, problems: list[tuple[tuple[str, ...], str]],
             lines: dict[tuple[str, ...], int]) -> str:
     """One problem: one line ``source: path (line N): message``; several: a count, then one per line."""
     rows = []
-    for path, message in problems:
-        line = None
-        for cut in range(len(path), 0, -1):
-            if path[:cut] in lines:
-                line = lines[path[:cut]]
-                break
+    located = [(path, message, problem_line(path, lines)) for path, message in problems]
+    located.sort(key=lambda item: item[2] or 0)  # in file order; file-wide problems first
+    for path, message, line in located:
         where = ".".join(c if c.isprintable() else repr(c) for c in path) or "(top level)"
         rows.append(f"  {where}{f' (line {line})' if line else ''}: {message}")
     if len(rows) == 1:
         return f"{source}: {rows[0].strip()}"
     return f"{source}: {len(rows)} problems\n" + "\n".join(rows)
+
+
+def problem_line(path: tuple[str, ...], lines: dict[tuple[str, ...], int]) -> int | None:
+    """The YAML line of ``path`` or of its nearest enclosing key (None when unknown)."""
+    for cut in range(len(path), 0, -1):
+        if path[:cut] in lines:
+            return lines[path[:cut]]
+    return None
 
 
 def _line_index(node: yaml.Node | None) -> dict[tuple[str, ...], int]:

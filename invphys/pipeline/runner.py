@@ -30,13 +30,15 @@ import yaml
 
 from invphys.core.atomic import output_directory, write_json
 from invphys.core.errors import InvphysError, did_you_mean
-from invphys.core.spec import STAGES, ExperimentSpec, load_spec
+from invphys.core.spec import STAGES, ExperimentSpec, check_output_directory, load_spec
 from invphys.pipeline.context import StageContext
 
 __all__ = ["StageContext", "fingerprint", "run_spec", "stage_module"]
 
 DONE_FILE = "DONE.json"
 SUMMARY_FILE = "summary.json"
+#: most figures of one stage sent to the tracker as images (its top level, then one folder down)
+MAX_IMAGES = 64
 
 
 def fingerprint(obj: Any) -> str:
@@ -54,8 +56,12 @@ def run_spec(spec: str | Path | ExperimentSpec, out: str | Path, stages: Sequenc
              force: Sequence[str] = (), progress: bool = True, console: Any = None,
              registry: Any = None,
              on_stage: Callable[[str, str, dict[str, Any] | None], None] | None = None,
-             tracker: Any = None) -> dict[str, Any]:
+             tracker: Any = None, quiet: bool = False) -> dict[str, Any]:
     """Run the spec's stages (or ``stages``) into ``out``; returns ``{stage: summary}``.
+
+    ``out`` is checked before anything is written (:func:`~invphys.core.spec.check_output_directory`):
+    not a file, not under one, not a symlink loop, not in or under a dataset store or an inverter bundle.
+    ``quiet`` leaves out the runner's own information lines (why a stage re-runs); warnings stay.
 
     ``force`` names stages to re-run even when cached. ``on_stage(stage, status, summary)`` is called
     with status ``"cached"``, ``"start"`` or ``"done"``. ``tracker`` (a :class:`~invphys.tracking.Tracker`)
@@ -77,13 +83,15 @@ def run_spec(spec: str | Path | ExperimentSpec, out: str | Path, stages: Sequenc
     for s in [*selected, *force]:
         if s not in STAGES:
             raise InvphysError(f"unknown stage {s!r}.{did_you_mean(s, STAGES)} Stages: {', '.join(STAGES)}")
+    check_output_directory(out)
     output_directory(out)
     (out / "spec.yaml").write_text(yaml.safe_dump(spec.model_dump(mode="json", by_alias=True), sort_keys=False))
     summaries: dict[str, Any] = {}
     own_tracker = tracker is None
     tracker = tracker or create_tracker(getattr(spec, "tracker", None), out, run_name=spec.name)
     try:
-        _run_stages(spec, out, selected, force, progress, console, reg, on_stage, tracker, summaries)
+        tracker.log_params(spec_params(spec))
+        _run_stages(spec, out, selected, force, progress, console, reg, on_stage, tracker, summaries, quiet)
     finally:
         if own_tracker:
             tracker.close()
@@ -91,7 +99,8 @@ def run_spec(spec: str | Path | ExperimentSpec, out: str | Path, stages: Sequenc
 
 
 def _run_stages(spec: ExperimentSpec, out: Path, selected: list[str], force: Sequence[str], progress: bool,
-                console: Any, reg: Any, on_stage: Any, tracker: Any, summaries: dict[str, Any]) -> None:
+                console: Any, reg: Any, on_stage: Any, tracker: Any, summaries: dict[str, Any],
+                quiet: bool = False) -> None:
     from invphys.pipeline import cache
 
     spec_stages = spec.stages or []
@@ -134,7 +143,7 @@ def _run_stages(spec: ExperimentSpec, out: Path, selected: list[str], force: Seq
                 if on_stage:
                     on_stage(stage, "cached", summary)
                 continue
-        if done is not None and stage not in force:
+        if done is not None and stage not in force and not quiet:
             console.print(f"[dim]{stage}:[/] re-running: {cache.stale_reason(done, components)}")
         done_path.unlink(missing_ok=True)
         if on_stage:
@@ -157,10 +166,22 @@ def _run_stages(spec: ExperimentSpec, out: Path, selected: list[str], force: Seq
             on_stage(stage, "done", summary)
 
 
+def spec_params(spec: ExperimentSpec) -> dict[str, Any]:
+    """The spec's settings as flat ``section.key`` parameters (what a tracker records to compare runs by)."""
+    from invphys.tracking import flatten_params
+
+    data = spec.model_dump(mode="json", by_alias=True, exclude={"description"})
+    return flatten_params(data)
+
+
 def _track_stage(tracker: Any, stage: str, stage_dir: Path, summary: dict[str, Any]) -> None:
-    """A finished stage's summary numbers (``<stage>/...``, step 0) and top-level files as artifacts."""
+    """A finished stage's summary numbers (``<stage>/...``, step 0), top-level files as artifacts and its
+    figures (``.png``) as images."""
     tracker.log_scalars(summary, step=0, prefix=stage)
     for path in sorted(stage_dir.iterdir()):
         if path.is_file() and path.name != DONE_FILE:
             tracker.log_artifact(path, f"{stage}/{path.name}")
+    figures = [*sorted(stage_dir.glob("*.png")), *sorted(stage_dir.glob("*/*.png"))][:MAX_IMAGES]
+    for path in figures:
+        tracker.log_image(f"{stage}/{path.relative_to(stage_dir).with_suffix('').as_posix()}", path)
     tracker.flush()

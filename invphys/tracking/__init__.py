@@ -18,9 +18,9 @@ from pathlib import Path
 from typing import Any
 
 from invphys.core.errors import InvphysError, did_you_mean
-from invphys.tracking.base import NullTracker, ScopedTracker, Tracker, flatten_numbers
+from invphys.tracking.base import NullTracker, ScopedTracker, Tracker, flatten_numbers, flatten_params
 
-__all__ = ["TRACKERS", "NullTracker", "ScopedTracker", "Tracker", "create_tracker", "flatten_numbers"]
+__all__ = ["TRACKERS", "NullTracker", "ScopedTracker", "Tracker", "create_tracker", "flatten_numbers", "flatten_params"]
 
 #: the values of the ``tracker`` setting
 TRACKERS: tuple[str, ...] = ("tensorboard", "mlflow", "none")

@@ -38,6 +38,14 @@ class Tracker(ABC):
         """Attach a file of the run (``name``: where it sits among the run's artifacts)."""
         return None
 
+    def log_params(self, params: Mapping[str, Any]) -> None:
+        """Record the run's settings once (flat ``section.key`` names, JSON-able values), to compare runs by."""
+        return None
+
+    def log_image(self, tag: str, path: str | Path, step: int = 0) -> None:
+        """Record a figure (a PNG file) under ``tag``."""
+        return None
+
     def flush(self) -> None:
         """Make what was logged so far visible to readers."""
         return None
@@ -83,6 +91,12 @@ class ScopedTracker(Tracker):
     def log_artifact(self, path: str | Path, name: str | None = None) -> None:
         self.parent.log_artifact(path, name)
 
+    def log_params(self, params: Mapping[str, Any]) -> None:
+        self.parent.log_params({self._tag(k): v for k, v in params.items()})
+
+    def log_image(self, tag: str, path: str | Path, step: int = 0) -> None:
+        self.parent.log_image(self._tag(tag), path, step)
+
     def flush(self) -> None:
         self.parent.flush()
 
@@ -115,3 +129,22 @@ def flatten_numbers(values: Mapping[str, Any], prefix: str = "") -> Iterator[tup
 
 def _is_numpy_scalar(value: Any) -> bool:
     return type(value).__module__ == "numpy" and getattr(value, "ndim", None) == 0
+
+
+def flatten_params(values: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested settings as ``{"a.b.c": value}``: mappings are walked, lists of mappings become ``a.0.b``,
+    other lists stay values (as JSON text); None is kept as ``None``."""
+    import json
+
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        name = f"{prefix}.{key}" if prefix else str(key)
+        if isinstance(value, Mapping):
+            out.update(flatten_params(value, name) if value else {name: "{}"})
+        elif isinstance(value, list | tuple) and value and all(isinstance(v, Mapping) for v in value):
+            out.update(flatten_params({str(i): v for i, v in enumerate(value)}, name))
+        elif isinstance(value, list | tuple):
+            out[name] = json.dumps(list(value), default=str)
+        else:
+            out[name] = value
+    return out

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import os
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +22,10 @@ log = logging.getLogger(__name__)
 
 #: most metrics one ``log_batch`` call takes (MLflow's limit)
 BATCH = 1000
+#: most params one ``log_batch`` call takes, and the longest param key and value MLflow stores
+PARAM_BATCH = 100
+MAX_PARAM_KEY = 250
+MAX_PARAM_VALUE = 6000
 
 _MISSING = 'tracker: mlflow needs the mlflow client: pip install "invphys[mlflow]"'
 
@@ -41,6 +46,7 @@ class MLflowTracker(Tracker):
             from mlflow.tracking import MlflowClient
         except ImportError as exc:
             raise InvphysError(_MISSING) from exc
+        quiet_backend_logs()
         run_dir = Path(run_dir).resolve()
         run_dir.mkdir(parents=True, exist_ok=True)
         self.tracking_uri = (tracking_uri or os.environ.get("MLFLOW_TRACKING_URI")
@@ -55,6 +61,7 @@ class MLflowTracker(Tracker):
         self.run_id: str = self.client.create_run(experiment_id, run_name=run_name).info.run_id
         self._closed = False
         self._pending: list[Any] = []
+        self._artifacts: set[str] = set()
         log.info("MLflow run %s in %s", self.run_id, self.tracking_uri)
 
     def log_scalar(self, tag: str, value: float, step: int) -> None:
@@ -79,6 +86,25 @@ class MLflowTracker(Tracker):
             self.client.log_artifacts(self.run_id, str(path), name or path.name)
         else:
             self.client.log_artifact(self.run_id, str(path), folder)
+            self._artifacts.add(f"{folder}/{path.name}" if folder else path.name)
+
+    def log_params(self, params: Mapping[str, Any]) -> None:
+        """The settings as MLflow params (keys sanitised like metric keys, values as text, cut to MLflow's
+        limits), in batches of :data:`PARAM_BATCH`."""
+        from mlflow.entities import Param
+
+        items = [Param(_key(k)[:MAX_PARAM_KEY], _param_text(v)) for k, v in params.items()]
+        for start in range(0, len(items), PARAM_BATCH):
+            self.client.log_batch(self.run_id, params=items[start:start + PARAM_BATCH])
+
+    def log_image(self, tag: str, path: str | Path, step: int = 0) -> None:
+        """A figure as an artifact at ``<tag>.png`` (once: a file already attached there is not copied again)."""
+        path = Path(path)
+        name = f"{_key(tag)}{path.suffix}"
+        if name not in self._artifacts:
+            folder = str(Path(name).parent)
+            self.client.log_artifact(self.run_id, str(path), None if folder == "." else folder)
+            self._artifacts.add(name)
 
     def close(self) -> None:
         if not self._closed:
@@ -89,6 +115,21 @@ class MLflowTracker(Tracker):
     @property
     def run(self) -> Any:
         return self.client.get_run(self.run_id)
+
+
+def _param_text(value: Any) -> str:
+    text = "null" if value is None else str(value).lower() if isinstance(value, bool) else str(value)
+    return text if len(text) <= MAX_PARAM_VALUE else text[:MAX_PARAM_VALUE - 3] + "..."
+
+
+def quiet_backend_logs() -> None:
+    """MLflow's and Alembic's INFO lines (database set-up, migrations) only when invphys logs debug lines:
+    MLflow sets its loggers to INFO when imported, so this runs after the import."""
+    ours = logging.getLogger("invphys").getEffectiveLevel()
+    if ours <= logging.DEBUG or os.environ.get("INVPHYS_DEBUG"):
+        return
+    for name in ("mlflow", "alembic"):
+        logging.getLogger(name).setLevel(max(ours, logging.WARNING))
 
 
 def _key(tag: str) -> str:

@@ -1,7 +1,8 @@
 """``tracker: tensorboard`` (the default): TensorBoard event files under the run directory.
 
 Written with the ``tensorboard`` package's own event writer (no TensorFlow, no torch): scalars as
-``simple_value`` summaries, text through TensorBoard's text plugin. View a run with
+``simple_value`` summaries, text through TensorBoard's text plugin, the spec's settings through its hparams
+plugin, and figures as image summaries. View a run with
 ``tensorboard --logdir OUT/tensorboard``.
 """
 
@@ -9,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -61,6 +63,30 @@ class TensorBoardTracker(Tracker):
         self._artifacts.append(f"- `{name or Path(path).name}`: {Path(path)}")
         self.log_text("artifacts", "\n".join(self._artifacts))
 
+    def log_params(self, params: Mapping[str, Any]) -> None:
+        """The settings through TensorBoard's hparams plugin (its HPARAMS tab; values as numbers, booleans or
+        text)."""
+        from tensorboard.plugins.hparams.summary_v2 import hparams_pb
+
+        values = {str(k): v if isinstance(v, bool | int | float | str) else "null" if v is None else str(v)
+                  for k, v in params.items()}
+        values = {k: float(v) if isinstance(v, int) and not isinstance(v, bool) and abs(v) >= 2**53 else v
+                  for k, v in values.items()}
+        self._add(hparams_pb(values), 0)
+
+    def log_image(self, tag: str, path: str | Path, step: int = 0) -> None:
+        """A PNG figure as an image summary (the IMAGES tab); a file that is not a PNG is skipped."""
+        from tensorboard.compat.proto.summary_pb2 import Summary
+
+        data = Path(path).read_bytes()
+        size = png_size(data)
+        if size is None:
+            log.warning("not a PNG image, not sent to TensorBoard: %s", path)
+            return
+        width, height, channels = size
+        image = Summary.Image(height=height, width=width, colorspace=channels, encoded_image_string=data)
+        self._add(Summary(value=[Summary.Value(tag=tag, image=image)]), step)
+
     def flush(self) -> None:
         if self._writer is not None:
             self._writer.flush()
@@ -69,3 +95,15 @@ class TensorBoardTracker(Tracker):
         if self._writer is not None:
             self._writer.close()
             self._writer = None
+
+
+#: channels of each PNG colour type (grey, RGB, palette, grey + alpha, RGBA)
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}
+
+
+def png_size(data: bytes) -> tuple[int, int, int] | None:
+    """(width, height, channels) from a PNG's header, or None when ``data`` is not a PNG."""
+    if len(data) < 26 or data[:8] != b"\x89PNG\r\n\x1a\n" or data[12:16] != b"IHDR":
+        return None
+    width, height = int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    return width, height, _PNG_CHANNELS.get(data[25], 4)

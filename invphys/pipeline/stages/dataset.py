@@ -3,15 +3,17 @@
 Generates into ``OUT/dataset/store`` (:meth:`StageContext.dataset_path`); with ``dataset.path`` set it
 generates nothing and summarises that store instead (unless the store is absent and
 ``dataset.if_missing: generate``, as in the quick start: then it generates ``dataset.n`` runs). A generation stopped early (time limit, SIGTERM,
-Ctrl-C) raises :class:`DatasetIncomplete` after storing what finished, so the stage is not marked done
+Ctrl-C) raises :class:`DatasetIncomplete` (a time limit) or :class:`~invphys.core.errors.Interrupted` (a
+signal: the CLI prints ``interrupted`` and exits 130) after storing what finished, so the stage is not marked done
 and the next ``invphys run`` resumes it.
 """
 
 from __future__ import annotations
 
+import logging
 from typing import TYPE_CHECKING, Any
 
-from invphys.core.errors import InvphysError
+from invphys.core.errors import Interrupted, InvphysError
 
 if TYPE_CHECKING:
     from invphys.pipeline.context import StageContext
@@ -43,6 +45,10 @@ def run(ctx: StageContext) -> dict[str, Any]:
         limit_minutes=ds.limit_minutes, spec=spec.model_dump(mode="json", by_alias=True),
         progress=ctx.progress, console=ctx.console, registry=ctx.registry, adaptive=ds.adaptive,
     )
+    if summary.stop_reason in ("interrupted", "terminated"):  # Ctrl-C / SIGTERM: the stop the user asked for
+        ctx.log(f"stopped ({summary.stop_reason}) with {summary.total_rows} of {summary.requested} rows stored in "
+                f"{path}; run again to resume", logging.WARNING)
+        raise Interrupted(summary.stop_reason, 130 if summary.stop_reason == "interrupted" else 143)
     if not summary.complete:
         raise DatasetIncomplete(
             f"dataset stage stopped ({summary.stop_reason}) with {summary.total_rows} of {summary.requested} "
