@@ -110,6 +110,21 @@ def test_cheese_cut_features_given_to_the_orange_bundle_are_refused_by_name() ->
     assert feature_targets(orange, orange.data("test")[1][:2]).values.shape == (2, 12)
 
 
+def test_a_bundle_without_a_posterior_gets_its_ood_threshold_and_error_bars(tmp_path) -> None:
+    from invphys.evaluation.diagnose import diagnose
+    from invphys.evaluation.diagnose_report import write_report
+    from invphys.inverter import load_inverter
+
+    d = diagnose(load_inverter("inverters/cheese_cut_quick"), draws=10)
+    assert d.report["posterior_method"] is None and "no method with a posterior" in d.report["note"]
+    assert d.report["heldout"]["rows_used"] == 400 and d.report["heldout"]["training_rows_found"] == 1600
+    assert "posterior" not in d.calibration and d.calibration["ood"]["score"] == "knn"
+    assert 0.03 < d.report["ood"]["check"]["fire_rate"] < 0.15
+    assert abs(d.report["surrogate_error_bars"]["check_after"]["overall"] - 0.9) < 0.03
+    names = {p.name for p in write_report(d, tmp_path / "r")}
+    assert names == {"report.json", "calibration.json", "summary.md"}
+
+
 # -- end to end on a tiny trained bundle ------------------------------------------------------------
 
 

@@ -107,32 +107,45 @@ def _surrogate(bundle: Any, held: HeldOut, fit: np.ndarray) -> dict[str, Any]:
             "check_after": error_bar_coverage(mean[chk], std[chk], held.y[chk], scales)}
 
 
-def _ood(inverter: Any, held: HeldOut, samples: np.ndarray, outside: np.ndarray, identified: np.ndarray,
-         fit: np.ndarray) -> tuple[dict[str, Any], dict[str, Any]]:
-    """AUROC of every candidate score for failing default answers; the best one (on the fit half) kept."""
-    bundle = inverter.bundle
-    answers = np.asarray(inverter.invert_array(held.y), dtype=np.float64)
-    draws = _Draws(samples, outside)
-    scores = score_components(bundle, held.y, answers, draws, SCORES)
-    cols = identified if identified.any() else np.ones(held.theta.shape[1], dtype=bool)
-    err = np.sqrt(np.mean((answers[:, cols] - held.theta[:, cols]) ** 2, axis=1))
-    r_surr = 1.0 - scores["misfit"]
-    labels = {"parameter_error": err > FAILURE_ERROR, "r_surr": r_surr < FAILURE_R}
-    table = {name: {lab: {"fit": auroc(s[fit], f[fit]), "check": auroc(s[~fit], f[~fit])}
-                    for lab, f in labels.items()} for name, s in scores.items()}
-    best = max((n for n in scores if n != "misfit"), key=lambda n: np.nan_to_num(table[n][CHOOSE_BY]["fit"], nan=0.0))
+def _answers(inverter: Any, y: np.ndarray) -> np.ndarray | None:
+    """The default method's answers in one batch, or None when it has no batched answer (a search)."""
+    try:
+        return np.asarray(inverter.invert_array(y), dtype=np.float64)
+    except InvphysError:
+        return None
+
+
+def _ood(inverter: Any, held: HeldOut, draws: Any, identified: np.ndarray, fit: np.ndarray
+         ) -> tuple[dict[str, Any], dict[str, Any]]:
+    """AUROC of every candidate score for failing default answers; the best one (on the fit half) kept.
+    Without batched answers only ``knn`` is scored (its threshold still calibrated on the fit half)."""
+    answers = _answers(inverter, held.y)
+    scores = score_components(inverter.bundle, held.y, answers, draws, SCORES)
+    report: dict[str, Any] = {"candidates": {}, "chosen": "knn", "default_answer": {"method": inverter.default_method}}
+    labels: dict[str, np.ndarray] = {}
+    if answers is not None:
+        cols = identified if identified.any() else np.ones(held.theta.shape[1], dtype=bool)
+        err = np.sqrt(np.mean((answers[:, cols] - held.theta[:, cols]) ** 2, axis=1))
+        r_surr = 1.0 - scores["misfit"]
+        labels = {"parameter_error": err > FAILURE_ERROR, "r_surr": r_surr < FAILURE_R}
+        table = {name: {lab: {"fit": auroc(sc[fit], f[fit]), "check": auroc(sc[~fit], f[~fit])}
+                        for lab, f in labels.items()} for name, sc in scores.items()}
+        best = max((n for n in scores if n != "misfit"),
+                   key=lambda n: np.nan_to_num(table[n][CHOOSE_BY]["fit"], nan=0.0))
+        report.update(candidates=table, chosen=best,
+                      failure={"parameter_error_above": FAILURE_ERROR, "over": "identified parameters",
+                               "r_surr_below": FAILURE_R,
+                               "rate_check": {k: float(v[~fit].mean()) for k, v in labels.items()}},
+                      chosen_by=f"AUROC on the fit rows for the {CHOOSE_BY!r} failures (misfit excluded: it is "
+                                f"that label)", note="misfit is 1 - R_surr: its AUROC on the r_surr label is that label")
+        report["default_answer"].update(mean_r_surr=float(r_surr.mean()), mean_error_identified=float(err.mean()))
+    else:
+        report["note"] = "the default method has no batched answer: only knn is scored, no AUROC measured"
+    best = report["chosen"]
     thr = float(np.quantile(scores[best][fit], OOD_QUANTILE))
     fires = scores[best][~fit] > thr
-    report = {"candidates": table, "chosen": best, "threshold": thr,
-              "failure": {"parameter_error_above": FAILURE_ERROR, "over": "identified parameters",
-                          "r_surr_below": FAILURE_R,
-                          "rate_check": {k: float(v[~fit].mean()) for k, v in labels.items()}},
-              "chosen_by": f"AUROC on the fit rows for the {CHOOSE_BY!r} failures (misfit excluded: it is that label)",
-              "check": {"fire_rate": float(fires.mean()), **{f"recall_{k}": _share(fires, v[~fit])
-                                                            for k, v in labels.items()}},
-              "default_answer": {"method": inverter.default_method, "mean_r_surr": float(r_surr.mean()),
-                                 "mean_error_identified": float(err.mean())},
-              "note": "misfit is 1 - R_surr: its AUROC on the r_surr label is that label itself"}
+    report.update(threshold=thr, check={"fire_rate": float(fires.mean()),
+                                        **{f"recall_{k}": _share(fires, v[~fit]) for k, v in labels.items()}})
     return report, {"score": best, "threshold": thr, "quantile": OOD_QUANTILE, "k": 10}
 
 
@@ -147,6 +160,35 @@ class _Draws:
     outside_fraction: np.ndarray
 
 
+def _posterior(inverter: Any, held: HeldOut, fit: np.ndarray, draws: int, seed: int, method: str | None
+               ) -> tuple[dict[str, Any], dict[str, Any] | None, Any, dict[str, Any]]:
+    """(report blocks, calibration block, draws, figures) of the bundle's posterior (empty without one)."""
+    try:
+        label = inverter.posterior_method(method)
+    except InvphysError as exc:
+        if method:
+            raise
+        return {"posterior_method": None, "note": str(exc)}, None, None, {}
+    names = list(inverter.bundle.space.names)
+    samples, outside = _draws_in_chunks(inverter, held.y, draws, seed, label)
+    before_all = calibration_block(samples, held.theta, seed)
+    maps, recalibrated = _recalibration(samples[fit], held.theta[fit], names, seed)
+    fixed = cal.apply_recalibration(samples[~fit], maps)
+    after = calibration_block(fixed, held.theta[~fit], seed)
+    width90 = np.asarray(before_all["coverage"]["0.9"]["width"])
+    blocks = {"posterior_method": label, "draws_per_row": int(draws),
+              "outside_box": {"mean_outside_fraction": float(outside.mean()),
+                              "note": "share of raw posterior draws outside the parameter box (rejected, not clipped)"},
+              "identified": {"max_width90": IDENTIFIED_WIDTH, "width90": width90.tolist(),
+                             "not_identified": [n for n, w in zip(names, width90, strict=True) if w >= IDENTIFIED_WIDTH]},
+              "all_rows": before_all, "check_before": calibration_block(samples[~fit], held.theta[~fit], seed),
+              "check_after": after, "recalibrated": recalibrated,
+              "after_recalibration_not_uniform": _verdicts(after, names)}
+    calib = {"method": label, "parameters": names, "recalibration": {"knots": cal.KNOTS, "maps": maps}}
+    figures = {"ranks_before": cal.ranks(samples[~fit], held.theta[~fit]), "ranks_after": cal.ranks(fixed, held.theta[~fit])}
+    return blocks, calib, _Draws(samples, outside), figures
+
+
 def diagnose(inverter: Any, stores: Any = None, rows: int | None = None, draws: int = 1000, seed: int = 0,
              method: str | None = None) -> Diagnosis:
     """Measure ``inverter``'s bundle on its held-out rows (at most ``rows``, the first by key)."""
@@ -157,38 +199,23 @@ def diagnose(inverter: Any, stores: Any = None, rows: int | None = None, draws: 
     if len(held) < 20:
         raise InvphysError(f"bundle {bundle.root}: only {len(held)} held-out rows found; diagnose needs >= 20 "
                            f"(point --data at the dataset stores of its simulator)")
-    names = list(bundle.space.names)
     fit = held.split() == 0
-    samples, outside = _draws_in_chunks(inverter, held.y, draws, seed, method)
-    before_all = calibration_block(samples, held.theta, seed)
-    maps, recalibrated = _recalibration(samples[fit], held.theta[fit], names, seed)
-    before = calibration_block(samples[~fit], held.theta[~fit], seed)
-    after = calibration_block(cal.apply_recalibration(samples[~fit], maps), held.theta[~fit], seed)
-    width90 = np.asarray(before_all["coverage"]["0.9"]["width"])
-    identified = width90 < IDENTIFIED_WIDTH
-    ood_report, ood_cal = _ood(inverter, held, samples, outside, identified, fit)
+    blocks, post_calib, samples, figures = _posterior(inverter, held, fit, draws, seed, method)
+    width90 = np.asarray((blocks.get("identified") or {}).get("width90", [0.0] * bundle.space.dim))
+    ood_report, ood_cal = _ood(inverter, held, samples, width90 < IDENTIFIED_WIDTH, fit)
     sur = _surrogate(bundle, held, fit)
     report = {
         "format": FORMAT, "bundle": str(bundle.root), "bundle_id": bundle.manifest.get("bundle_id"),
-        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "posterior_method": inverter.posterior_method(method), "draws_per_row": int(draws), "seed": int(seed),
-        "parameters": names, "features": list(bundle.feature_names), "levels": list(cal.LEVELS),
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "seed": int(seed),
+        "parameters": list(bundle.space.names), "features": list(bundle.feature_names), "levels": list(cal.LEVELS),
         "heldout": {**held.info, "rows_used": len(held), "fit_rows": int(fit.sum()), "check_rows": int((~fit).sum()),
                     "split": "by key: the last 8 hex digits of each row's key, even -> fit, odd -> check"},
-        "outside_box": {"mean_outside_fraction": float(outside.mean()),
-                        "note": "share of raw posterior draws outside the parameter box (rejected, not clipped)"},
-        "identified": {"max_width90": IDENTIFIED_WIDTH, "width90": width90.tolist(),
-                       "not_identified": [n for n, ok in zip(names, identified, strict=True) if not ok]},
-        "all_rows": before_all, "check_before": before, "check_after": after,
-        "recalibrated": recalibrated, "after_recalibration_not_uniform": _verdicts(after, names),
-        "ood": ood_report, "surrogate_error_bars": sur}
-    calib = {"format": FORMAT, "bundle_id": bundle.manifest.get("bundle_id"), "created_utc": report["created_utc"],
-             "posterior": {"method": report["posterior_method"], "parameters": names,
-                           "recalibration": {"knots": cal.KNOTS, "maps": maps}},
-             "ood": ood_cal, "identified": report["identified"]}
+        **blocks, "ood": ood_report, "surrogate_error_bars": sur}
+    calib: dict[str, Any] = {"format": FORMAT, "bundle_id": bundle.manifest.get("bundle_id"),
+                             "created_utc": report["created_utc"], "ood": ood_cal}
+    if post_calib is not None:
+        calib.update(posterior=post_calib, identified=blocks["identified"])
     if sur.get("available"):
         calib["surrogate_error_scales"] = {"features": list(bundle.feature_names), "scales": sur["scales"],
                                            "z": 1.6448536269514722, "nominal": 0.9}
-    return Diagnosis(report, calib, {"ranks_before": cal.ranks(samples[~fit], held.theta[~fit]),
-                                     "ranks_after": cal.ranks(cal.apply_recalibration(samples[~fit], maps),
-                                                              held.theta[~fit])})
+    return Diagnosis(report, calib, figures)

@@ -28,10 +28,24 @@ def _pct(x: float) -> str:
 
 def summary_markdown(report: dict[str, Any]) -> str:
     """The measured summary as Markdown (check half, before and after recalibration)."""
-    names, h = report["parameters"], report["heldout"]
+    h = report["heldout"]
     lines = [f"Measured on {h['rows_used']} held-out rows the bundle never trained on (picked by key; "
-             f"{h['fit_rows']} fit the corrections, {h['check_rows']} check them), {report['draws_per_row']} "
-             f"posterior draws each from `{report['posterior_method']}`.", "",
+             f"{h['fit_rows']} fit the corrections, {h['check_rows']} check them)."]
+    if report.get("check_before"):
+        lines += _posterior_lines(report)
+    else:
+        lines += ["", f"No posterior checked ({report.get('note', 'the bundle has no method with a posterior')})."]
+    lines += ["", _ood_line(report["ood"])]
+    s = report["surrogate_error_bars"]
+    if s.get("available"):
+        lines.append(f"Surrogate error bars (±1.645 sigma): hold {_pct(s['check_before']['overall'])} of held-out "
+                     f"errors with the raw ensemble spread, {_pct(s['check_after']['overall'])} scaled (nominal 90 %).")
+    return "\n".join(lines) + "\n"
+
+
+def _posterior_lines(report: dict[str, Any]) -> list[str]:
+    names = report["parameters"]
+    lines = [f"Posterior: {report['draws_per_row']} draws per row from `{report['posterior_method']}`.", "",
              "Central-interval coverage on the check rows, before -> after recalibration (nominal 50/80/90/95 %):",
              "", "| parameter | 50 % | 80 % | 90 % | 95 % | 90 % width | SBC p before -> after |",
              "|---|---|---|---|---|---|---|"]
@@ -52,19 +66,19 @@ def summary_markdown(report: dict[str, Any]) -> str:
     for v in report["after_recalibration_not_uniform"]:
         lines.append(f"SBC ranks of {v['parameter']} stay non-uniform after recalibration (p {v['ks_pvalue']:.2g}, "
                      f"bias {v['bias']:+.3f}): {v['reading']}.")
-    o = report["ood"]
+    return lines
+
+
+def _ood_line(o: dict[str, Any]) -> str:
+    fires = f"warning above {o['threshold']:.3g}: fires on {_pct(o['check']['fire_rate'])} of check rows"
+    if not o["candidates"]:
+        return f"Out-of-distribution score: `{o['chosen']}` (not measured against failures: {o.get('note')}); {fires}."
     auc = o["candidates"][o["chosen"]]
-    lines += ["", f"Out-of-distribution score: `{o['chosen']}`, AUROC on the check rows {auc['r_surr']['check']:.2f} "
-              f"for answers that do not reproduce their target (R_surr < {o['failure']['r_surr_below']:g}), "
-              f"{auc['parameter_error']['check']:.2f} for answers whose error over the identified parameters "
-              f"exceeds {o['failure']['parameter_error_above']:g}; warning above {o['threshold']:.3g}: fires on "
-              f"{_pct(o['check']['fire_rate'])} of check rows and on {_pct(o['check']['recall_r_surr'] or 0)} "
-              f"of those whose answer does not reproduce the target."]
-    s = report["surrogate_error_bars"]
-    if s.get("available"):
-        lines.append(f"Surrogate error bars (±1.645 sigma): hold {_pct(s['check_before']['overall'])} of held-out "
-                     f"errors with the raw ensemble spread, {_pct(s['check_after']['overall'])} scaled (nominal 90 %).")
-    return "\n".join(lines) + "\n"
+    return (f"Out-of-distribution score: `{o['chosen']}`, AUROC on the check rows {auc['r_surr']['check']:.2f} "
+            f"for answers that do not reproduce their target (R_surr < {o['failure']['r_surr_below']:g}), "
+            f"{auc['parameter_error']['check']:.2f} for answers whose error over the identified parameters "
+            f"exceeds {o['failure']['parameter_error_above']:g}; {fires} and on "
+            f"{_pct(o['check'].get('recall_r_surr') or 0)} of those whose answer does not reproduce the target.")
 
 
 def plot_ranks(ranks_before: np.ndarray, ranks_after: np.ndarray, n_draws: int, names: list[str], path: Path) -> Path:
@@ -134,7 +148,8 @@ def write_report(diagnosis: Any, out: Path) -> list[Path]:
     if "ranks_before" in diagnosis.figures:
         files.append(plot_ranks(diagnosis.figures["ranks_before"], diagnosis.figures["ranks_after"],
                                 r["draws_per_row"], r["parameters"], out / "rank_histograms.png"))
-    files.append(plot_coverage(r, out / "coverage.png"))
+    if r.get("check_before"):
+        files.append(plot_coverage(r, out / "coverage.png"))
     return files
 
 

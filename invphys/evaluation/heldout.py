@@ -93,11 +93,6 @@ PRIOR_SAMPLERS: frozenset[str] = frozenset({"uniform", "sobol", "lhs"})
 
 def _matches_bundle(bundle: Any, meta: dict[str, Any]) -> str | None:
     """Why a store's rows are not the bundle's problem or not prior draws (None: they are both)."""
-    sessions = meta.get("sessions")
-    samplers = {str(x.get("sampler")) for x in sessions if isinstance(x, dict)} if isinstance(sessions, list) else set()
-    other = sorted(samplers - PRIOR_SAMPLERS - {"None"})
-    if other:
-        return f"sampled with {', '.join(other)}, not from the prior (calibration is defined against the prior)"
     sim = bundle.manifest["simulator"]
     ident = meta.get("identity") or {}
     preset = (sim.get("config") or {}).get("preset")
@@ -112,6 +107,11 @@ def _matches_bundle(bundle: Any, meta: dict[str, Any]) -> str | None:
         return "other features"
     if tuple(meta.get("param_names") or ()) != tuple(bundle.space.names):
         return "other parameters"
+    sessions = meta.get("sessions")
+    samplers = {str(x.get("sampler")) for x in sessions if isinstance(x, dict)} if isinstance(sessions, list) else set()
+    other = sorted(samplers - PRIOR_SAMPLERS - {"None"})
+    if other:
+        return f"sampled with {', '.join(other)}, not from the prior (calibration is defined against the prior)"
     return None
 
 
