@@ -169,6 +169,11 @@ def test_the_pip_lines_install_every_distribution_they_need() -> None:
     assert check_pip_lines(lines) == []
 
 
+def test_the_readme_install_lines_resolve_too() -> None:
+    lines = [parse_pip(c) for c in commands((ROOT / "README.md").read_text()) if c and _kind(c) == "pip"]
+    assert lines and check_pip_lines(lines) == []
+
+
 def test_the_pip_check_finds_a_missing_engine_and_unknown_extras() -> None:
     """The check itself: the line the page had before (no examples/anisompm) and a misspelt extra fail."""
     old = [parse_pip(shlex.split("pip install torch==2.13.0")),
