@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import os
+import signal
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -98,3 +102,76 @@ def test_out_naming_a_file_is_a_user_error(tmp_path) -> None:
     assert result.returncode == 2, result.stderr
     assert result.stderr.strip() == f"error: --out '{taken}' is a file; name a new or existing directory"
     assert taken.read_text() == "precious"
+
+
+# -- Ctrl-C and -q/-qq tell the truth (issue 50) ---------------------------------------------------------
+TESTS = str(Path(__file__).resolve().parent)
+SLOW = """\
+name: slow
+simulator: {type: "test_dataset_toy:ToyOscillator", n_frames: 10, sleep_s: 0.4}
+dataset: {n: 40, batch_size: 2}
+stages: [dataset]
+"""
+TINY = """\
+name: tiny
+simulator: {type: "test_dataset_toy:ToyOscillator", n_frames: 10}
+dataset: {n: 8, batch_size: 4}
+stages: [dataset]
+"""
+
+
+def _env() -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k != "INVPHYS_DEBUG"}  # an in-process --debug test sets it
+    return {**env, "PYTHONPATH": os.pathsep.join([TESTS, os.environ.get("PYTHONPATH", "")])}
+
+
+@pytest.mark.parametrize("command", [["run", "spec.yaml", "--out", "run"],
+                                     ["dataset", "generate", "spec.yaml", "--out", "ds"]])
+def test_ctrl_c_prints_interrupted_and_exits_130(command, tmp_path) -> None:
+    """A real process and a real SIGINT in the middle of simulating (the run's dataset stage said
+    `error: dataset stage stopped`, exit 2; dataset generate exited 130 without the line)."""
+    (tmp_path / "spec.yaml").write_text(SLOW)
+    proc = subprocess.Popen([sys.executable, "-m", "invphys.cli", *command, "--no-progress"], cwd=tmp_path,
+                            env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    store = tmp_path / ("run/dataset/store" if command[0] == "run" else "ds")
+    deadline = time.monotonic() + 60
+    while not list(store.glob("part-*.parquet")) and time.monotonic() < deadline:  # rows are being stored
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert err.strip().splitlines()[-1] == "interrupted" and "Traceback" not in err and "error:" not in err
+
+
+def test_ctrl_c_anywhere_in_a_command_is_the_interrupted_line(monkeypatch) -> None:
+    """Outside generation (training, inverting) typer turned KeyboardInterrupt into a silent exit 130."""
+    import invphys.pipeline.runner as runner_module
+
+    def stop(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(runner_module, "run_spec", stop)
+    result = runner.invoke(app, ["run", "spec.yaml", "--out", "run"])
+    assert result.exit_code == 130 and result.stderr.strip() == "interrupted"
+
+
+@pytest.mark.slow  # three real runs, one with MLflow (its SQLite schema): ~15 s
+def test_quiet_and_silent_levels(tmp_path) -> None:
+    """-q: no stage lines, progress bars or MLflow INFO lines; -qq: nothing at all on a success."""
+    pytest.importorskip("mlflow")
+    (tmp_path / "spec.yaml").write_text(TINY + "tracker: none\n")
+    (tmp_path / "mlflow.yaml").write_text(TINY + "tracker: mlflow\n")
+
+    def cli(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([sys.executable, "-m", "invphys.cli", *args], cwd=tmp_path, env=_env(),
+                              capture_output=True, text=True, timeout=300)
+
+    loud = cli("run", "spec.yaml", "--out", "a")
+    assert loud.returncode == 0 and "done dataset" in loud.stderr and "finished" in loud.stdout
+    quiet = cli("-q", "run", "mlflow.yaml", "--out", "b")  # no MLflow INFO lines (its database set-up)
+    assert quiet.returncode == 0 and quiet.stderr == "", quiet.stderr
+    assert quiet.stdout.startswith("finished")
+    silent = cli("-qq", "run", "spec.yaml", "--out", "c")
+    assert silent.returncode == 0 and silent.stdout == "" and silent.stderr == ""
+    bad = cli("-qq", "run", "missing.yaml", "--out", "d")
+    assert bad.returncode == 2 and bad.stderr.startswith("error:")

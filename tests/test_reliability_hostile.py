@@ -35,6 +35,9 @@ def tree(root: Path) -> dict[str, str]:
     """Every file and folder under ``root`` with a hash of its content (folders: "dir")."""
     out = {}
     for p in sorted(root.rglob("*")):
+        if p.is_symlink():
+            out[str(p.relative_to(root))] = f"link to {os.readlink(p)}"
+            continue
         out[str(p.relative_to(root))] = "dir" if p.is_dir() else hashlib.sha256(p.read_bytes()).hexdigest()
     return out
 
@@ -117,6 +120,17 @@ CLI_CASES = [
      "k = 1000000000 is outside its range [1, 10000] N/m; m = 0.1 is outside its range [0.5, 2] kg"),
     (["simulate", "--simulator", SIM, "--params", '{"c": 0.009999999}', "--out", "sim"], "c = 0.009999999 is outside"),
     (["simulate", "--simulator", SIM, "--params", '{"kk": 1}', "--out", "sim"], "Did you mean 'k'"),
+    # issue 47: output places and paths that used to be internal errors (exit 1) or silently written into
+    (["schema", "--out", "adir"], "'adir' is a directory"),
+    (["schema", "--out", "afile/schema.json"], "lies under"),
+    (["simulate", "--simulator", SIM, "--params", "adir", "--out", "sim"], "--params 'adir' is a directory"),
+    (["run", "good.yaml", "--out", "afile/run"], "which is a file"),
+    (["run", "good.yaml", "--out", "loop"], "symbolic-link loop"),
+    (["run", "good.yaml", "--out", "loop/run"], "symbolic-link loop"),
+    (["dataset", "generate", "good.yaml", "--out", "loop/ds", "--no-progress"], "symbolic-link loop"),
+    (["dataset", "generate", "good.yaml", "--out", "afile/ds", "--no-progress"], "which is a file"),
+    (["simulate", "--simulator", SIM, "--out", "loop/sim"], "symbolic-link loop"),
+    (["validate", "good.yaml", "--out", "afile/run"], "which is a file"),
 ]
 
 
@@ -126,9 +140,39 @@ def test_hostile_command_line(args: list[str], expect: str, sandbox: Path) -> No
     (sandbox / "afile").write_text("precious")
     (sandbox / "adir").mkdir()
     (sandbox / "adir" / "notes.txt").write_text("mine")
+    (sandbox / "loop").symlink_to("loop")
     before = tree(sandbox)
     assert_one_line_error(invoke(args), expect, " ".join(args))
     assert tree(sandbox) == before
+
+
+# -- nothing is written into a dataset store or an inverter bundle (issue 47) ----------------------------
+BUNDLE_MANIFEST = "format_version: 2\ninvphys_version: 0.0\n"
+
+
+@pytest.mark.parametrize("args, expect", [
+    (["run", "good.yaml", "--out", "store/run"], "lies inside"),
+    (["run", "good.yaml", "--out", "store"], "is a dataset store"),
+    (["run", "good.yaml", "--out", "bundle/run"], "which is an inverter bundle"),
+    (["run", "good.yaml", "--out", "bundle"], "is an inverter bundle"),
+    (["run", "good.yaml", "--out", "link/run"], "a dataset store"),
+    (["dataset", "generate", "good.yaml", "--out", "bundle/ds", "--no-progress"], "an inverter bundle"),
+    (["dataset", "generate", "good.yaml", "--out", "store/inner", "--no-progress"], "a dataset store"),
+    (["simulate", "--simulator", SIM, "--out", "store/sim"], "a dataset store"),
+    (["validate", "good.yaml", "--out", "bundle/run"], "an inverter bundle"),
+])
+def test_outputs_inside_a_store_or_a_bundle_are_refused(args, expect, pristine_store, sandbox) -> None:
+    shutil.copytree(pristine_store, sandbox / "store")
+    (sandbox / "bundle").mkdir()
+    (sandbox / "bundle" / "manifest.yaml").write_text(BUNDLE_MANIFEST)
+    (sandbox / "link").symlink_to("store")
+    (sandbox / "good.yaml").write_text(GOOD)
+    before = tree(sandbox)
+    assert_one_line_error(invoke(args), expect, " ".join(args))
+    assert tree(sandbox) == before
+    from invphys.core.dataset import DatasetStore
+
+    assert DatasetStore(sandbox / "store").verify().ok
 
 
 # -- broken stores: every reader refuses, nothing is changed ---------------------------------------------
@@ -195,7 +239,8 @@ def test_broken_store(kind: str, pristine_store: Path, sandbox: Path) -> None:
 
 
 # -- a handful as real subprocesses --------------------------------------------------------------------
-@pytest.mark.parametrize("name", ["alias-bomb", "nul-byte", "label-optimizer-01", "nonfinite-00", "reference-00"])
+@pytest.mark.parametrize("name", ["alias-bomb", "nul-byte", "label-optimizer-01", "nonfinite-00", "reference-00",
+                                  "validate-targets-unknown-feature", "validate-seed-huge-integer"])
 def test_hostile_spec_in_a_real_subprocess(name: str, sandbox: Path) -> None:
     spec = next(p for p in SPECS if p.stem.endswith(name) and p.stem[3:] == "-" + name)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")])}

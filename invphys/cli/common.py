@@ -36,9 +36,11 @@ _state: dict[str, Any] = {"debug": False, "level": logging.INFO}
 
 def set_debug(value: bool) -> None:
     """``--debug``: tracebacks instead of short errors, and the heavy back-ends' own log lines."""
-    _state["debug"] = value
     if value:
         os.environ["INVPHYS_DEBUG"] = "1"
+    elif _state["debug"]:  # set by an earlier --debug in this process (tests): not inherited further
+        os.environ.pop("INVPHYS_DEBUG", None)
+    _state["debug"] = value
 
 
 def debug_enabled() -> bool:

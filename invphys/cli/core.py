@@ -99,8 +99,9 @@ def _errors_of(exc: Exception) -> list[dict[str, Any]]:
     lines = getattr(exc, "lines", None) or {}
     if not problems:
         return [{"path": None, "line": None, "message": str(exc)}]
-    return [{"path": ".".join(path), "line": problem_line(path, lines), "message": message}
+    rows = [{"path": ".".join(path), "line": problem_line(path, lines), "message": message}
             for path, message in problems]
+    return sorted(rows, key=lambda row: row["line"] or 0)  # in file order, as the text lists them
 
 
 @handle_errors

@@ -34,7 +34,7 @@ ENV_ID = "invphys/Inversion-v0"
 def make_inversion_env(surrogate: Any = None, *, bundle: Any = None, space: str = "raw",
                        target: Any = None, horizon: int = 8, step_scale: float = 0.5, kappa: float | None = None,
                        scales: Any = None, goal_samples: int = 512, goal_seed: int = 0,
-                       render_mode: str | None = None) -> InverseDesignEnv:
+                       parameters: Any = None, render_mode: str | None = None) -> InverseDesignEnv:
     """The environment behind :data:`ENV_ID` (``gym.make`` passes its keyword arguments here).
 
     Args:
@@ -49,6 +49,12 @@ def make_inversion_env(surrogate: Any = None, *, bundle: Any = None, space: str 
         kappa, scales: the recovery reward's sharpness and per-feature scales (default: the bundle's,
             else 3.0 and p95 - p5 of the goal samples).
         goal_samples, goal_seed: random points whose predicted features form the goal distribution.
+        parameters: the :class:`~invphys.core.params.ParameterSpace` that names the parameters in ``info``
+            (default: the bundle's; a bare surrogate's are ``theta_0``, ... in [0, 1]).
+
+    Every ``reset`` and ``step`` returns ``info`` with ``R`` (the state's recovery reward), ``R_best`` (the
+    best so far; also as ``score`` and ``best``), ``theta`` (normalised parameters), ``params`` (physical
+    values by name) and ``units`` (each parameter's unit).
     """
     if render_mode is not None:
         raise InvphysError(f"{ENV_ID} renders nothing (render_mode must be None, got {render_mode!r})")
@@ -59,7 +65,9 @@ def make_inversion_env(surrogate: Any = None, *, bundle: Any = None, space: str 
             from invphys.inverter import load_inverter
 
             bundle = load_inverter(bundle)
-        search, predict, kappa_, scales_ = _from_bundle(getattr(bundle, "bundle", bundle), space)
+        loaded = getattr(bundle, "bundle", bundle)
+        search, predict, kappa_, scales_ = _from_bundle(loaded, space)
+        parameters = parameters if parameters is not None else getattr(loaded, "space", None)
     else:
         if space != "raw":
             raise InvphysError(f"{ENV_ID}: space={space!r} needs a bundle (a surrogate alone searches 'raw')")
@@ -87,7 +95,30 @@ def make_inversion_env(surrogate: Any = None, *, bundle: Any = None, space: str 
                        score=lambda y, g: recovery_reward(y, g, scale, k), feature_mean=stats.mean,
                        feature_std=stats.std, horizon=int(horizon), step_scale=float(step_scale),
                        goal_sampler=sample_goals)
-    return InverseDesignEnv(task)
+    return InverseDesignEnv(task, describe=parameter_describer(search, parameters))
+
+
+def parameter_describer(search: Any, parameters: Any = None) -> Any:
+    """A function of a search point (dim,) giving ``{"theta", "params", "units"}`` for an env's ``info``:
+    normalised parameters, physical values by name and units (``parameters`` a ParameterSpace; without
+    one, ``theta_<i>`` in [0, 1], unit ``"1"``)."""
+    from invphys.core.params import ParameterSpace
+
+    if parameters is not None and not isinstance(parameters, ParameterSpace):
+        raise InvphysError(f"{ENV_ID}: parameters= must be an invphys ParameterSpace, got {type(parameters).__name__}")
+
+    def describe(point: np.ndarray) -> dict[str, Any]:
+        theta = np.clip(np.asarray(search.to_theta(np.asarray(point, dtype=np.float64)[None, :]),
+                                   dtype=np.float64)[0], 0.0, 1.0)
+        if parameters is None or parameters.dim != theta.size:
+            names = [f"theta_{i}" for i in range(theta.size)]
+            return {"theta": theta.tolist(), "params": dict(zip(names, map(float, theta), strict=True)),
+                    "units": dict.fromkeys(names, "1")}
+        physical = parameters.denormalize(theta)
+        return {"theta": theta.tolist(), "params": parameters.to_mapping(physical),
+                "units": {p.name: p.unit for p in parameters.parameters}}
+
+    return describe
 
 
 def _from_surrogate(surrogate: Any) -> tuple[Any, Any, float | None, np.ndarray | None]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import gymnasium as gym
@@ -20,9 +21,10 @@ class InverseDesignEnv(gym.Env):
 
     metadata: dict[str, Any] = {"render_modes": []}
 
-    def __init__(self, task: InverseTask) -> None:
+    def __init__(self, task: InverseTask, describe: Callable[[np.ndarray], dict[str, Any]] | None = None) -> None:
         super().__init__()
         self.task = task
+        self.describe = describe
         low, high = task.obs_bounds()
         self.observation_space = gym.spaces.Box(low=low, high=high, dtype=np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(task.dim,), dtype=np.float32)
@@ -33,12 +35,22 @@ class InverseDesignEnv(gym.Env):
         self._batch = EpisodeBatch(self.task, 1, self.np_random)
         goal = (options or {}).get("goal")
         self._batch.reset(goals=None if goal is None else np.asarray(goal, dtype=np.float64)[None, :])
-        return self._batch.observe()[0], {}
+        return self._batch.observe()[0], self._info()
 
     def step(self, action: np.ndarray):
         if self._batch is None:
             raise RuntimeError("call reset() before step()")
         rewards, done = self._batch.step(np.asarray(action)[None, :])
         obs = self._batch.observe()[0]
-        info = {"score": float(self._batch.r[0]), "best": float(self._batch.best[0])}
-        return obs, float(rewards[0]), bool(done[0]), False, info
+        return obs, float(rewards[0]), bool(done[0]), False, self._info()
+
+    def _info(self) -> dict[str, Any]:
+        """R (this state's recovery reward), R_best (the best so far; before any step, R) and, with a
+        ``describe`` function, the state's parameters: ``theta``, ``params`` by name, ``units``."""
+        assert self._batch is not None
+        r, best = float(self._batch.r[0]), float(self._batch.best[0])
+        best = best if np.isfinite(best) else r
+        info: dict[str, Any] = {"R": r, "R_best": best, "score": r, "best": best}
+        if self.describe is not None:
+            info.update(self.describe(self._batch.s[0]))
+        return info

@@ -175,6 +175,19 @@ for i, (old, new, expect) in enumerate([
 ]):
     case(f"reference-{i:02d}", sub(old, new), expect)
 
+# -- what validate knows, run will not refuse later (issue 47): targets read against the features ---------
+for name, new, expect in [
+    ("targets-unknown-feature", "targets: {values: [{peek_abs: 1.0}]}", "unknown feature 'peek_abs'. Did you mean 'peak_abs'?"),
+    ("targets-not-a-number", "targets: {values: [{peak_abs: lots}]}", "peak_abs = 'lots' is not a number"),
+    ("targets-file-missing", "targets: {file: no/such/targets.csv}", "'no/such/targets.csv' is absent"),
+    ("targets-file-directory", "targets: {file: /etc}", "'/etc' is a directory"),
+    ("targets-file-device", "targets: {file: /dev/zero}", "'/dev/zero' is not a regular file"),
+    ("targets-huge-integer", "targets: {values: [{peak_abs: " + "9" * 400 + "}]}", "too large for a number"),
+    ("seed-huge-integer", None, "too large for a number"),
+]:
+    text = sub("seed: 0", "seed: " + "7" * 450) if new is None else sub("targets: {n: 2, validate: 1}", new)
+    case(f"validate-{name}", text, expect)
+
 
 def main() -> None:
     out = HERE / "specs"
