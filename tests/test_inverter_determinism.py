@@ -92,7 +92,7 @@ def test_cli_json_parses_for_every_method(inv, rows, tmp_path) -> None:
         data = json.loads(res.stdout)
         assert data["method"] == method and len(data["results"]) == 2
         post = data["results"][0]["posterior"]
-        assert (post is not None) == (method == "npe_best64"), method
+        assert (post is not None) == (method in ("npe_best64", "pool")), method
 
 
 def test_third_party_prints_and_warnings_go_to_the_log(caplog, capsys) -> None:

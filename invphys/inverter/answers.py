@@ -28,6 +28,10 @@ from invphys.inverter.uncertainty import NEIGHBOUR_ROWS, Uncertainty
 Pool = tuple[np.ndarray, list[str], int]
 #: most candidates a policy or a search gives per target (each a rollout set or a whole search)
 MAX_TOP_K = 64
+#: targets whose posterior draws are made together (bounds the memory of one batch)
+DRAW_BATCH = 64
+#: most draws (targets x draws per target) held at once
+DRAW_ROWS = 2**18
 
 
 @contextlib.contextmanager
@@ -67,6 +71,13 @@ class MethodAnswers:
                ) -> tuple[Pool, Uncertainty]:
         raise NotImplementedError
 
+    def answer_all(self, values: np.ndarray, masks: np.ndarray, top_k: int, seed: int, draws: int
+                   ) -> Iterator[tuple[Pool, Uncertainty]]:
+        """:meth:`answer` for every row of ``values`` (B, M), in order; a method may share work across
+        the targets as long as no answer depends on the others."""
+        for v, m in zip(values, masks, strict=True):
+            yield self.answer(v, m, top_k, seed, draws)
+
 
 class PosteriorAnswers(MethodAnswers):
     """A dataset baseline holding a posterior: ``draws`` truncated draws per target (at least the
@@ -77,26 +88,52 @@ class PosteriorAnswers(MethodAnswers):
     def __init__(self, inv: Any, label: str, entry: dict[str, Any], plugin: Any) -> None:
         super().__init__(inv, label, entry)
         self.plugin = plugin
-        self.k = int(getattr(plugin.config, "samples", 64))
+        self.k = self.answer_draws = int(getattr(plugin.config, "samples", 64))
 
     def max_top_k(self) -> int:
         return self.k
 
-    def answer(self, values: np.ndarray, mask: np.ndarray, top_k: int, seed: int, draws: int
-               ) -> tuple[Pool, Uncertainty]:
+    #: the method whose per-target stream the draws come from (a pool draws the NPE's own draws)
+    posterior_label: str = ""
+    #: draws per target the answer itself uses (before the intervals' ``draws``)
+    answer_draws: int = 1
+
+    def draw(self, values: np.ndarray, masks: np.ndarray, seed: int, n: int) -> tuple[list[np.ndarray], Any]:
+        """(conditions per target, :class:`~invphys.inverter.draws.PosteriorDraws`) of every target, drawn
+        together (each from its own stream: the same draws as alone)."""
         from invphys.inverter.draws import completions, sample_posterior
 
-        train_y = None if mask.all() else self.bundle.data("train")[1]
+        train_y = None if masks.all() else self.bundle.data("train")[1]
         mean = np.asarray(self.bundle.manifest["features"]["mean"], dtype=np.float64)
-        cond = completions(values, mask, train_y, mean, self.bundle.scales)
-        d = sample_posterior(self.plugin, [cond], [self.seed(seed, values, mask, "posterior")], max(self.k, draws))
-        s = d.samples[0]
-        first = s[:self.k]
+        conds = [completions(v, m, None if m.all() else train_y, mean, self.bundle.scales)
+                 for v, m in zip(values, masks, strict=True)]
+        label = self.posterior_label or self.label
+        seeds = [target_seed(seed, label, v, m, "posterior") for v, m in zip(values, masks, strict=True)]
+        return conds, sample_posterior(self.plugin, conds, seeds, n)
+
+    def answer(self, values: np.ndarray, mask: np.ndarray, top_k: int, seed: int, draws: int
+               ) -> tuple[Pool, Uncertainty]:
+        return next(iter(self.answer_all(values[None, :], mask[None, :], top_k, seed, draws)))
+
+    def answer_all(self, values: np.ndarray, masks: np.ndarray, top_k: int, seed: int, draws: int
+                   ) -> Iterator[tuple[Pool, Uncertainty]]:
+        n = max(self.answer_draws, draws)
+        step = max(1, min(DRAW_BATCH, DRAW_ROWS // n))
+        for a in range(0, len(values), step):
+            v, m = values[a:a + step], masks[a:a + step]
+            conds, d = self.draw(v, m, seed, n)
+            for i in range(len(v)):
+                unc = Uncertainty("posterior", d.samples[i], outside_fraction=float(d.outside_fraction[i]),
+                                  clipped=int(d.clipped[i]), completions=int(d.completions[i]))
+                yield self.from_draws(v[i], m[i], top_k, seed, d.samples[i], conds[i]), unc
+
+    def from_draws(self, values: np.ndarray, mask: np.ndarray, top_k: int, seed: int, samples: np.ndarray,
+                   cond: np.ndarray) -> Pool:
+        """The candidate pool of one target from its draws (S, d)."""
+        first = samples[:self.k]
         theta, spent = self._choose(first, cond[0], self.goal(values, mask))
         pool = theta[None, :] if top_k == 1 and mask.all() else np.concatenate([theta[None, :], first])
-        unc = Uncertainty("posterior", s, outside_fraction=float(d.outside_fraction[0]), clipped=int(d.clipped[0]),
-                          completions=int(d.completions[0]))
-        return (pool, [self.label] * len(pool), spent), unc
+        return pool, [self.label] * len(pool), spent
 
     def _choose(self, first: np.ndarray, cond: np.ndarray, goal: np.ndarray) -> tuple[np.ndarray, int]:
         """The method's answer among its draws (mean, best log-prob, best by the surrogate) and the

@@ -28,6 +28,7 @@ from invphys.inverter.answers import MethodAnswers, quiet_cma
 from invphys.inverter.bundle import Bundle
 from invphys.inverter.draws import PosteriorDraws
 from invphys.inverter.objective import MaskedRecovery, masked_recovery
+from invphys.inverter.pool import POOL_METHOD, PoolSettings
 from invphys.inverter.quiet import quiet
 from invphys.inverter.result import Candidate, InversionResult
 from invphys.inverter.seeds import check_seed, target_seed
@@ -105,6 +106,8 @@ class Inverter:
         self.threads = threads
         self._runners: dict[str, Any] = {}
         self._plugins: dict[str, Any] = {}
+        #: settings of the built-in candidate pool (``method="pool"``); a bundle's pool entry overrides them
+        self.pool_settings = PoolSettings()
 
     # -- description --------------------------------------------------------------------------------
     @property
@@ -121,8 +124,15 @@ class Inverter:
 
     @property
     def methods(self) -> list[str]:
-        """The bundle's methods (trained policies and configured optimisers) by label."""
-        return list(self.bundle.methods)
+        """The bundle's methods (trained policies and configured optimisers) by label, and ``pool`` where
+        the bundle holds a posterior (:mod:`invphys.inverter.pool`)."""
+        extra = [POOL_METHOD] if POOL_METHOD not in self.bundle.methods and self._pool_posterior() else []
+        return [*self.bundle.methods, *extra]
+
+    def _pool_posterior(self) -> str | None:
+        """The bundle method a built-in pool draws from: the default if it is an NPE, else the first NPE."""
+        npe = [k for k, m in self.bundle.methods.items() if m.get("type") == "npe"]
+        return self.bundle.default_method if self.bundle.default_method in npe else (npe[0] if npe else None)
 
     @property
     def default_method(self) -> str:
@@ -162,6 +172,9 @@ class Inverter:
         label = method or self.default_method
         if label in self.bundle.methods:
             return label, self.bundle.methods[label]
+        if label == POOL_METHOD and self._pool_posterior():
+            return label, {"type": POOL_METHOD, "kind": "pool", "space": "raw", "evaluator": "shared",
+                           "config": {"posterior": self._pool_posterior()}}
         reg = self.bundle.registry
         names = reg.names("optimizer")
         if label in names:
@@ -221,10 +234,32 @@ class Inverter:
 
         if "rollout" in entry:
             return PolicyAnswers(self, label, entry)
+        if entry["type"] == POOL_METHOD:
+            return self._pool_answers(label, entry)
         plugin, entry = self._plugin(label, entry)
         if self._is_baseline(entry):
             return (PosteriorAnswers if has_posterior(plugin) else LookupAnswers)(self, label, entry, plugin)
         return SearchAnswers(self, label, entry, plugin)
+
+    def _pool_answers(self, label: str, entry: dict[str, Any]) -> MethodAnswers:
+        """The candidate pool: its settings from the entry's config over :attr:`pool_settings`."""
+        from invphys.inverter.pool import PoolAnswers
+
+        cfg = dict(entry.get("config") or {})
+        base = str(cfg.pop("posterior", None) or self._pool_posterior() or "")
+        if base not in self.bundle.methods:
+            raise InvphysError(f"method {label!r} needs a posterior method (npe) in the bundle; it has "
+                               f"{', '.join(self.bundle.methods) or 'none'}")
+        try:
+            settings = self.pool_settings.with_(**cfg)
+        except TypeError:
+            raise InvphysError(f"method {label!r}: unknown pool settings {sorted(cfg)}") from None
+        plugin = self._plugin(base, self.bundle.methods[base])[0]
+        from invphys.inverter.draws import has_posterior
+
+        if not has_posterior(plugin):
+            raise InvphysError(f"method {label!r}: {base!r} holds no posterior to draw from")
+        return PoolAnswers(self, label, entry, plugin, base, settings)
 
     # -- posterior ----------------------------------------------------------------------------------
     def posterior_method(self, method: str | None = None) -> str:
@@ -234,6 +269,8 @@ class Inverter:
             if not label:
                 continue
             entry = self._entry(label)[1]
+            if entry["type"] == POOL_METHOD:
+                return str((entry.get("config") or {}).get("posterior") or self._pool_posterior())
             if "rollout" not in entry and self._is_baseline(entry):
                 with quiet():
                     if self._answers(label, entry).kind == "posterior":
@@ -298,15 +335,20 @@ class Inverter:
         with quiet(), blas_threads(self.threads if len(t) >= BLAS_LIMIT_ROWS else None):
             answers = self._answers(label, entry)
             answers.check_top_k(top_k)
-            return [self._answer_one(answers, t, i, top_k, refine, seed, level, draws) for i in range(len(t))]
+            out, t0 = [], time.perf_counter()
+            for i, ans in enumerate(answers.answer_all(t.values, t.mask, top_k, seed, draws)):
+                out.append(self._answer_one(answers, ans, t, i, refine, seed, level, top_k, t0))
+                t0 = time.perf_counter()
+            return out
 
-    def _answer_one(self, answers: MethodAnswers, t: UserTargets, i: int, top_k: int, refine: int, seed: int,
-                    level: float, draws: int) -> InversionResult:
-        t0 = time.perf_counter()
+    def _answer_one(self, answers: MethodAnswers, ans: tuple[Any, Any], t: UserTargets, i: int, refine: int,
+                    seed: int, level: float, top_k: int, t0: float) -> InversionResult:
+        """The result of target ``i`` from its method's pool ``ans``; ``t0``: when its answer began (work
+        shared across targets counts towards the target that waited for it)."""
         values, mask = t.values[i], t.mask[i]
-        (thetas, sources, spent), unc = answers.answer(values, mask, top_k, seed, draws)
+        (thetas, sources, spent), unc = ans
         unc.level = level
-        cands = self._select(thetas, sources, values, mask, top_k)
+        cands = self._select(thetas, sources, values, mask, top_k, float(getattr(answers, "lam", 0.0)))
         if refine:
             cands, extra = self._refine(cands, values, mask, refine, target_seed(seed, answers.label, values, mask,
                                                                                   "refine"))
@@ -322,10 +364,12 @@ class Inverter:
     def invert_array(self, values: np.ndarray, method: str | None = None) -> np.ndarray:
         """The fast path: normalised parameters (N, d) for complete targets (N, M) by a bundle policy or
         a dataset baseline without a posterior, in one batched answer. Batching changes float rounding,
-        so an answer may differ from :meth:`invert`'s in its last bits; a posterior method is answered
-        target by target, exactly as :meth:`invert` answers it."""
+        so an answer may differ from :meth:`invert`'s in its last bits; a posterior method (and the pool)
+        is answered exactly as :meth:`invert` answers it (draws made together, each from its own stream)."""
         label, entry = self._entry(method)
         t = from_array(values, self.feature_names)
+        if entry["type"] == POOL_METHOD:  # draws per target from its own stream, as invert answers
+            return np.array([r.theta for r in self.invert_many(t, method=label, draws=1)])
         if "rollout" not in entry and self._is_baseline(entry):
             with quiet(), blas_threads(self.threads if len(t) >= BLAS_LIMIT_ROWS else None):
                 answers = self._answers(label, entry)
@@ -359,9 +403,15 @@ class Inverter:
                           source=sources[j]) for j in range(len(thetas))]
 
     def _select(self, thetas: np.ndarray, sources: list[str], target: np.ndarray, mask: np.ndarray,
-                k: int) -> list[Candidate]:
-        """The best ``k`` candidates that are at least :data:`MIN_DISTANCE` apart."""
-        cands = sorted(self._candidates(thetas, sources, target, mask), key=lambda c: -c.r_surrogate)
+                k: int, lam: float = 0.0) -> list[Candidate]:
+        """The best ``k`` candidates that are at least :data:`MIN_DISTANCE` apart (best: highest R_surr,
+        minus ``lam`` x the normalised ensemble std where a method scores so)."""
+        from invphys.plugins.evaluators.uncertainty import normalised_std
+
+        cands = self._candidates(thetas, sources, target, mask)
+        pen = lam * normalised_std(np.array([c.std for c in cands]), self.bundle.scales) if lam else np.zeros(len(cands))
+        order = np.lexsort((np.arange(len(cands)), -(np.array([c.r_surrogate for c in cands]) - pen)))
+        cands = [cands[i] for i in order]
         if k == 1:
             return cands[:1]
         chosen: list[Candidate] = []

@@ -1,0 +1,127 @@
+"""The candidate pool: posterior draws, the nearest training rows and local moves, scored by the ensemble.
+
+For one target the pool holds
+
+* the first ``draws`` truncated posterior draws of the bundle's NPE (the same draws, from the same
+  per-target stream, as the posterior method's own answer and intervals);
+* the ``neighbours`` training rows nearest the target by the recovery metric (features divided by the
+  scales s_k, over the given features): where the posterior is poor (the box's faces and corners) a
+  row that was really simulated near the target is often the better start;
+* ``moves`` local moves: Gaussian steps of ``step`` (normalised units) around the ``starts`` best
+  candidates so far, from a random stream of the target's own (:func:`~invphys.inverter.seeds.target_rng`).
+
+Every candidate is scored ``R_surr - lam x normalised ensemble std`` (the std on the scales s_k, as
+:func:`~invphys.plugins.evaluators.uncertainty.normalised_std`): the penalty keeps the answer away from
+where the surrogate's members disagree, i.e. where its R is least trustworthy. The answer is the best
+scored candidate. Nothing depends on other targets or their order.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from invphys.core.errors import InvphysError
+from invphys.inverter.answers import Pool, PosteriorAnswers
+from invphys.inverter.objective import masked_recovery
+from invphys.inverter.seeds import target_rng
+
+#: the label ``invphys invert --method`` knows the pool by (any bundle holding a posterior method)
+POOL_METHOD = "pool"
+
+
+@dataclass(frozen=True)
+class PoolSettings:
+    """How a pool is built and scored (defaults: the measured winner, docs/inverting.md)."""
+
+    draws: int = 64
+    neighbours: int = 16
+    moves: int = 32
+    starts: int = 4
+    step: float = 0.03
+    lam: float = 0.5
+
+    def checked(self) -> PoolSettings:
+        for name in ("draws", "neighbours", "moves", "starts"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < (1 if name in ("draws", "starts")
+                                                                                   else 0):
+                raise InvphysError(f"pool {name} must be a whole number >= {1 if name in ('draws', 'starts') else 0}, "
+                                   f"got {v!r}")
+        if not (0 < float(self.step) <= 0.5):
+            raise InvphysError(f"pool step must be in (0, 0.5], got {self.step!r}")
+        if not float(self.lam) >= 0:
+            raise InvphysError(f"pool lam must be >= 0, got {self.lam!r}")
+        return self
+
+    def with_(self, **kw: Any) -> PoolSettings:
+        return replace(self, **kw).checked()
+
+
+def nearest_rows(z_train: np.ndarray, values: np.ndarray, mask: np.ndarray, scales: np.ndarray, k: int) -> np.ndarray:
+    """Indices of the ``k`` training rows nearest the target (scaled features, given ones only), nearest
+    first, ties by row index; ``z_train`` (N, M): the training features divided by the scales."""
+    if k <= 0 or not len(z_train):
+        return np.zeros(0, dtype=np.int64)
+    zt = np.where(mask, values, 0.0) / np.maximum(scales, 1e-12)
+    diff = np.where(mask[None, :], z_train - zt[None, :], 0.0)
+    d2 = np.einsum("ij,ij->i", diff, diff)
+    d2 = np.where(np.isfinite(d2), d2, np.inf)
+    k = min(k, len(d2))
+    part = np.argpartition(d2, k - 1)[:k] if k < len(d2) else np.arange(len(d2))
+    return part[np.lexsort((part, d2[part]))]
+
+
+class PoolAnswers(PosteriorAnswers):
+    """The candidate pool over the posterior method ``posterior_label`` (module docstring)."""
+
+    def __init__(self, inv: Any, label: str, entry: dict[str, Any], plugin: Any, posterior_label: str,
+                 settings: PoolSettings) -> None:
+        super().__init__(inv, label, entry, plugin)
+        self.posterior_label, self.settings = posterior_label, settings.checked()
+        self.answer_draws = self.settings.draws
+        theta, y = self.bundle.data("train")
+        ok = np.all(np.isfinite(y), axis=1)
+        self.train_theta = np.asarray(theta[ok], dtype=np.float64)
+        self.z_train = np.asarray(y[ok], dtype=np.float64) / np.maximum(self.bundle.scales, 1e-12)
+
+    @property
+    def lam(self) -> float:
+        return float(self.settings.lam)
+
+    def max_top_k(self) -> int:
+        s = self.settings
+        return s.draws + s.neighbours + s.moves
+
+    def score(self, thetas: np.ndarray, values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """(P,) R_surr over the given features minus lam x the normalised ensemble std."""
+        from invphys.plugins.evaluators.uncertainty import normalised_std
+
+        mean, std = self.bundle.surrogate.predict_with_uncertainty(np.clip(thetas, 0.0, 1.0))
+        r = masked_recovery(mean, values, self.bundle.scales, mask, self.bundle.kappa)
+        return r - self.lam * normalised_std(std, self.bundle.scales) if self.lam else r
+
+    def from_draws(self, values: np.ndarray, mask: np.ndarray, top_k: int, seed: int, samples: np.ndarray,
+                   cond: np.ndarray) -> Pool:
+        s = self.settings
+        near = self.train_theta[nearest_rows(self.z_train, values, mask, self.bundle.scales, s.neighbours)]
+        thetas = np.concatenate([samples[:s.draws], near])
+        sources = [f"{self.label} (posterior)"] * s.draws + [f"{self.label} (neighbour)"] * len(near)
+        scores = self.score(thetas, values, mask)
+        if s.moves:
+            moved = self._moves(thetas, scores, values, mask, seed)
+            thetas, scores = np.concatenate([thetas, moved]), np.concatenate([scores, self.score(moved, values, mask)])
+            sources += [f"{self.label} (move)"] * len(moved)
+        order = np.lexsort((np.arange(len(scores)), -scores))  # best first, ties by position (deterministic)
+        keep = order[:1] if top_k == 1 else order
+        return thetas[keep], [sources[i] for i in keep], len(thetas)
+
+    def _moves(self, thetas: np.ndarray, scores: np.ndarray, values: np.ndarray, mask: np.ndarray, seed: int
+               ) -> np.ndarray:
+        s = self.settings
+        starts = thetas[np.lexsort((np.arange(len(scores)), -scores))[:s.starts]]
+        rng = target_rng(seed, self.label, values, mask, "moves")
+        steps = rng.normal(0.0, s.step, size=(s.moves, thetas.shape[1]))
+        return np.clip(starts[np.arange(s.moves) % len(starts)] + steps, 0.0, 1.0)
