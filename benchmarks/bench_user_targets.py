@@ -17,7 +17,20 @@ The evaluation protocol's user-like sets (docs/evaluation.md): each target store
 Per set and method: mean R_actual with a bootstrap 95 % interval, the worst answer, the paired difference
 against ``nearest_neighbour_all``, and how the answers' warnings rank failures (R_actual < 0.8): recall on
 failing targets and the alarm rate on the others. Without ``--validate`` only the surrogate's R is scored
-(no simulator: a quick check of the plumbing).
+(no simulator: a quick check of the plumbing). Every method also gets its mean absolute parameter error
+against the truth (normalised units; ``theta_error``) and its answer time per target.
+
+Answering and simulating can run on different machines (the answers need sbi, the simulation a GPU)::
+
+    python benchmarks/bench_user_targets.py --bundle inverters/orange_peel_paper_all --targets ... \
+        --methods pool npe_best64 --label all --answers-out runs/answers_all.json --out runs/surr_all.json
+    python benchmarks/bench_user_targets.py --bundle inverters/orange_peel_paper --targets ... \
+        --answers-in runs/answers_all.json runs/answers_shipped.json --all-data ... --validate --out ...
+
+``--answers-out`` writes every answer's normalised parameters (and warnings) per set and method;
+``--answers-in`` answers nothing: it re-scores (and with ``--validate`` re-simulates) the answers of one
+or more such files, every file's methods named ``LABEL:METHOD`` when it was written with ``--label``.
+All answers are scored with ``--bundle``'s scales and simulator, whichever bundle gave them.
 """
 
 from __future__ import annotations
@@ -70,14 +83,42 @@ def _lookup_all(inv: Any, stores: list[str], targets: np.ndarray) -> tuple[np.nd
     return nn.answer(targets).theta, len(theta)
 
 
-def _answers(inv: Any, arrays: Any, methods: list[str], all_data: list[str], seed: int) -> dict[str, list[Any]]:
-    """InversionResults per method label for every target of one set."""
+def _invert(inv: Any, y: np.ndarray, method: str, seed: int) -> list[Any]:
+    """``invert_many`` with ``method``; ``pool:KEY=VALUE,...`` is the pool with other settings (e.g.
+    ``pool:lam=0,moves=0``), so that variants are answered, and validated, side by side."""
+    name, _, opts = method.partition(":")
+    if name != "pool" or not opts:
+        return list(inv.invert_many(y, method=method, seed=seed))
+    from invphys.inverter.pool import PoolSettings
+
+    kw = {k: (float(v) if k in ("lam", "step") else int(v)) for k, v in (o.split("=", 1) for o in opts.split(","))}
+    default, inv.pool_settings = inv.pool_settings, PoolSettings().with_(**kw)
+    try:
+        return list(inv.invert_many(y, method="pool", seed=seed))
+    finally:
+        inv.pool_settings = default
+
+
+def _answers(inv: Any, arrays: Any, methods: list[str], all_data: list[str], seed: int,
+             given: dict[str, Any] | None = None, timing: dict[str, float] | None = None) -> dict[str, list[Any]]:
+    """InversionResults per method label for every target of one set: answered by ``inv``, or (``given``:
+    {label: {"theta": ..., "warnings": ...}}) re-scored from an answers file."""
     y = arrays.y
     out: dict[str, list[Any]] = {}
     for m in methods:
         t0 = time.perf_counter()
-        out[m] = inv.invert_many(y, method=m, seed=seed)
-        print(f"  {m}: {len(y)} answers in {time.perf_counter() - t0:.2f} s", file=sys.stderr)
+        out[m] = _invert(inv, y, m, seed)
+        dt = time.perf_counter() - t0
+        if timing is not None:
+            timing[m] = 1e3 * dt / max(len(y), 1)
+        print(f"  {m}: {len(y)} answers in {dt:.2f} s", file=sys.stderr)
+    for m, rec in (given or {}).items():
+        theta = np.asarray(rec["theta"], dtype=np.float64)
+        if theta.shape != (len(y), len(inv.parameter_names)):
+            raise SystemExit(f"error: answers of {m!r} hold {theta.shape} parameters for {len(y)} targets")
+        out[m] = [inv.evaluate(theta=t, target=v, label=m) for t, v in zip(theta, y, strict=True)]
+        for r, w in zip(out[m], rec.get("warnings") or [[]] * len(y), strict=True):
+            r.warnings = list(w)
     if all_data:
         theta_nn, _ = _lookup_all(inv, all_data, y)
         out["nearest_neighbour_all"] = [inv.evaluate(theta=t, target=v, label="nearest_neighbour_all")
@@ -100,8 +141,8 @@ def _warning_rank(results: list[Any], r: np.ndarray) -> dict[str, Any]:
             "alarm_rate_on_others": float(warned[~failing].mean()) if (~failing).any() else None}
 
 
-def summarise(answers: dict[str, list[Any]], validated: bool, reference: str = "nearest_neighbour_all"
-              ) -> dict[str, Any]:
+def summarise(answers: dict[str, list[Any]], validated: bool, reference: str = "nearest_neighbour_all",
+              truth_theta: np.ndarray | None = None) -> dict[str, Any]:
     from invphys.evaluation.stats import bootstrap_mean_ci, paired_difference
 
     scores = {m: _score(res, validated) for m, res in answers.items()}
@@ -111,6 +152,9 @@ def summarise(answers: dict[str, list[Any]], validated: bool, reference: str = "
         row: dict[str, Any] = {"n": len(r), "r_mean": float(np.mean(r)), "r_ci95": [float(lo), float(hi)],
                                "r_worst": float(np.min(r)), "below_0_8": int(np.sum(r < FAIL_BELOW)),
                                "r_surrogate_mean": float(np.mean([x.r_surrogate for x in answers[m]]))}
+        if truth_theta is not None:
+            err = np.abs(np.array([x.theta for x in answers[m]]) - truth_theta)
+            row["theta_error"] = float(err.mean())
         if reference in scores and m != reference:
             diff = paired_difference(r, scores[reference])
             row[f"vs_{reference}"] = {"mean_diff": float(diff["mean_diff"]), "ci95": list(map(float, diff["ci95"]))}
@@ -120,9 +164,9 @@ def summarise(answers: dict[str, list[Any]], validated: bool, reference: str = "
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--bundle", required=True)
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    p.add_argument("--bundle", required=True, help="the bundle that answers (its scales and simulator score)")
     p.add_argument("--targets", nargs="+", required=True, help="NAME=STORE: a set of fresh simulations")
     p.add_argument("--all-data", nargs="*", default=[], help="every store of the bundle's simulator version")
     p.add_argument("--methods", nargs="+", default=None, help="bundle methods (default: the bundle's default)")
@@ -131,37 +175,75 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sim-batch", type=int, default=64)
     p.add_argument("--limit", type=int, default=None, help="first N targets of each set (a quick check)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--label", default="", help="with --answers-out: name methods LABEL:METHOD in the file")
+    p.add_argument("--answers-out", default=None, help="also write every answer's parameters to this JSON file")
+    p.add_argument("--answers-in", nargs="+", default=None, help="answers files to score instead of answering")
     p.add_argument("--out", required=True)
-    a = p.parse_args(argv)
+    return p
+
+
+def _given(files: list[str] | None) -> dict[str, dict[str, Any]]:
+    """{set: {label: {"theta", "warnings"}}} from answers files (labels must not repeat)."""
+    out: dict[str, dict[str, Any]] = {}
+    for f in files or []:
+        data = json.loads(Path(f).read_text())
+        if data.get("benchmark") != "user_targets_answers":
+            raise SystemExit(f"error: {f} is not an answers file of this benchmark (--answers-out)")
+        for name, s in data["sets"].items():
+            for m, rec in s["methods"].items():
+                if m in out.setdefault(name, {}):
+                    raise SystemExit(f"error: method {m!r} of set {name!r} is in two answers files (use --label)")
+                out[name][m] = rec
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    a = _parser().parse_args(argv)
 
     from invphys.inverter import load_inverter
 
     inv = load_inverter(a.bundle)
-    methods = a.methods or [inv.default_method]
+    given = _given(a.answers_in)
+    methods = [] if a.answers_in else (a.methods or [inv.default_method])
     overrides = dict(kv.split("=", 1) for kv in a.sim_option)
     result: dict[str, Any] = {"benchmark": "user_targets", "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
                               "device": _device(), "bundle": a.bundle,
                               "bundle_id": inv.bundle.manifest.get("bundle_id"),
                               "simulator": inv.bundle.manifest["simulator"], "validated": a.validate,
-                              "fail_below": FAIL_BELOW, "sets": {}}
+                              "fail_below": FAIL_BELOW, "answers_in": a.answers_in, "sets": {}}
+    saved: dict[str, Any] = {"benchmark": "user_targets_answers", "bundle": a.bundle, "seed": a.seed,
+                             "bundle_id": inv.bundle.manifest.get("bundle_id"), "sets": {}}
+    prefix = f"{a.label}:" if a.label else ""
     for spec in a.targets:
         name, _, path = spec.partition("=")
         arrays = _store_rows(path)
         if a.limit:
             arrays.y, arrays.theta = arrays.y[: a.limit], arrays.theta[: a.limit]
+        if a.answers_in and name not in given:
+            raise SystemExit(f"error: the answers files hold no set {name!r}")
         print(f"{name}: {len(arrays.y)} targets from {path}", file=sys.stderr)
-        answers = _answers(inv, arrays, methods, a.all_data, a.seed)
+        timing: dict[str, float] = {}
+        answers = _answers(inv, arrays, methods, a.all_data, a.seed, given.get(name), timing)
+        saved["sets"][name] = {"store": path, "n_targets": len(arrays.y), "methods": {
+            prefix + m: {"theta": [r.theta.tolist() for r in answers[m]], "warnings": [r.warnings for r in answers[m]],
+                         "answer_ms_per_target": timing[m]} for m in methods}}
         t0 = time.perf_counter()
         if a.validate:
             inv.validate([r for res in answers.values() for r in res], overrides=overrides, batch_size=a.sim_batch)
+        rows = summarise(answers, a.validate, truth_theta=arrays.theta)
+        for m, ms in timing.items():
+            rows[m]["answer_ms_per_target"] = ms
         result["sets"][name] = {"store": path, "n_targets": len(arrays.y), "validate_s": time.perf_counter() - t0,
-                                "methods": summarise(answers, a.validate)}
+                                "methods": rows}
+    if a.answers_out:
+        Path(a.answers_out).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.answers_out).write_text(json.dumps(saved) + "\n")
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(result, indent=1) + "\n")
     for name, s in result["sets"].items():
         for m, row in s["methods"].items():
             print(f"{name:8s} {m:24s} R {row['r_mean']:.3f} [{row['r_ci95'][0]:.3f}, {row['r_ci95'][1]:.3f}] "
-                  f"worst {row['r_worst']:.3f}")
+                  f"worst {row['r_worst']:.3f} theta error {row.get('theta_error', float('nan')):.4f}")
     return 0
 
 

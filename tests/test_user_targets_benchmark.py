@@ -28,3 +28,34 @@ def test_scores_each_method_against_a_lookup_over_all_stores(tmp_path: Path) -> 
     assert np.isclose(diff["mean_diff"], rows["gc_ppo_vae"]["r_mean"] - rows["nearest_neighbour_all"]["r_mean"])
     lo, hi = rows["gc_ppo_vae"]["r_ci95"]
     assert lo <= rows["gc_ppo_vae"]["r_mean"] <= hi
+
+
+def test_answers_written_on_one_machine_are_scored_on_another(tmp_path: Path) -> None:
+    """--answers-out writes every answer's parameters; --answers-in re-scores exactly those answers
+    without answering (the GPU run needs no sbi), several files side by side under their labels."""
+    bench = load("bench_user_targets")
+    common = ["--bundle", QUICK_BUNDLE, "--targets", f"quick={QUICK_STORE}", "--limit", "5"]
+    first, answers = tmp_path / "first.json", tmp_path / "answers.json"
+    assert bench.main([*common, "--methods", "gc_ppo_vae", "--label", "a", "--answers-out", str(answers),
+                       "--out", str(first)]) == 0
+    saved = json.loads(answers.read_text())
+    rec = saved["sets"]["quick"]["methods"]["a:gc_ppo_vae"]
+    assert np.array(rec["theta"]).shape == (5, 9) and rec["answer_ms_per_target"] > 0
+    other = tmp_path / "answers_b.json"
+    assert bench.main([*common, "--methods", "gc_ppo_vae", "--seed", "1", "--label", "b",
+                       "--answers-out", str(other), "--out", str(tmp_path / "b.json")]) == 0
+    again = tmp_path / "again.json"
+    assert bench.main([*common, "--answers-in", str(answers), str(other), "--all-data", QUICK_STORE,
+                       "--out", str(again)]) == 0
+    rows = json.loads(again.read_text())["sets"]["quick"]["methods"]
+    assert set(rows) == {"a:gc_ppo_vae", "b:gc_ppo_vae", "nearest_neighbour_all", "truth"}
+    before = json.loads(first.read_text())["sets"]["quick"]["methods"]["gc_ppo_vae"]
+    assert rows["a:gc_ppo_vae"]["r_mean"] == before["r_mean"]  # the same parameters, the same scores
+    assert rows["a:gc_ppo_vae"]["theta_error"] == before["theta_error"] and rows["truth"]["theta_error"] == 0.0
+    # a file that is not an answers file, or a label given twice, is refused
+    import pytest
+
+    with pytest.raises(SystemExit, match="not an answers file"):
+        bench.main([*common, "--answers-in", str(first), "--out", str(tmp_path / "x.json")])
+    with pytest.raises(SystemExit, match="two answers files"):
+        bench.main([*common, "--answers-in", str(answers), str(answers), "--out", str(tmp_path / "x.json")])
