@@ -216,3 +216,47 @@ def test_cross_references_known_without_training(tmp_path):
     (tmp_path / "f").write_text("x")
     with pytest.raises(SpecError, match="is a file, not a dataset directory"):
         parse(GOOD.replace("dataset: {n: 10, sampler: sobol}", f"dataset: {{path: '{tmp_path / 'f'}'}}"))
+
+
+# -- every problem at once, and what run would refuse (issues 47, 50) -------------------------------------
+def test_shape_and_plugin_problems_come_together_in_file_order():
+    """Before, a shape problem hid every plugin block's problem (one nesting level at a time)."""
+    with pytest.raises(SpecError) as info:
+        parse(GOOD.replace("seed: 3", "seed: -3").replace("frames: 4", "frames: 1")
+              .replace("sigma0: 0.2", "sigma0: 0").replace("n: 10", "n: 0"))
+    assert [".".join(p) for p, _ in info.value.problems] == ["seed", "dataset.n", "simulator.frames",
+                                                              "optimizers.rs.sigma0"]
+    text = str(info.value)
+    assert text.startswith("spec.yaml: 4 problems") and text.index("seed (line 2)") < text.index(
+        "simulator.frames (line 3)") < text.index("dataset.n (line 4)") < text.index("optimizers.rs.sigma0 (line 10)")
+
+
+def test_a_non_text_key_is_one_problem_and_the_rest_is_still_checked():
+    with pytest.raises(SpecError) as info:
+        parse(GOOD.replace("seed: 3", "seed: 3\n1: x").replace("frames: 4", "frames: 1"))
+    assert sorted(".".join(p) for p, _ in info.value.problems) == ["1", "simulator.frames"]
+
+
+def test_output_problem_names_stores_bundles_files_and_loops(tmp_path):
+    from invphys.core.spec import output_problem
+
+    store, bundle = tmp_path / "store", tmp_path / "bundle"
+    store.mkdir()
+    (store / "_metadata.json").write_text("{}")
+    bundle.mkdir()
+    (bundle / "manifest.yaml").write_text("format_version: 2\n")
+    (tmp_path / "plain").mkdir()
+    (tmp_path / "plain" / "manifest.yaml").write_text("name: not a bundle\n")
+    (tmp_path / "file").write_text("x")
+    (tmp_path / "loop").symlink_to("loop")
+    (tmp_path / "to_store").symlink_to(store)
+    assert output_problem(tmp_path / "new" / "run") is None and output_problem(tmp_path / "plain" / "run") is None
+    assert output_problem(store, store_ok=True) is None  # dataset generate resumes a store
+    cases = {store / "run": "lies inside", store: "is a dataset store", bundle / "x": "an inverter bundle",
+             tmp_path / "to_store" / "run": "a dataset store", tmp_path / "file": "is a file",
+             tmp_path / "file" / "x": "which is a file", tmp_path / "loop": "symbolic-link loop",
+             tmp_path / "loop" / "x": "symbolic-link loop"}
+    for path, expect in cases.items():
+        problem = output_problem(path)
+        assert problem is not None and expect in problem, (path, problem)
+    assert "lies inside" in (output_problem(store / "deeper", store_ok=True) or "")

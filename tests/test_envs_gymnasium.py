@@ -92,7 +92,12 @@ def test_from_an_inverter_bundle_in_its_latent_space(tmp_path_factory) -> None:
     goal = bundle.surrogate.predict(bundle.search_space("flow").to_theta(np.zeros((1, task.dim))))[0]
     env = gym.make("invphys/Inversion-v0", bundle=bundle, space="flow", target=goal, horizon=1)
     env.reset(seed=0)
-    _, reward, terminated, _, _ = env.step(np.zeros(task.dim, dtype=np.float32))
+    _, reward, terminated, _, info = env.step(np.zeros(task.dim, dtype=np.float32))
+    # info names the bundle's parameters, in physical units, decoded from the latent point
+    theta = bundle.search_space("flow").to_theta(np.zeros((1, task.dim)))[0]
+    assert list(info["params"]) == list(bundle.space.names)
+    assert list(info["params"].values()) == pytest.approx(bundle.space.denormalize(np.clip(theta, 0, 1)).tolist())
+    assert info["units"] == {p.name: p.unit for p in bundle.space.parameters} and info["R"] == pytest.approx(reward)
     from invphys.core.objectives import recovery_reward
 
     start = bundle.surrogate.predict(bundle.search_space("flow").to_theta(np.zeros((1, task.dim))))[0]
@@ -109,3 +114,25 @@ def test_bad_arguments_are_one_clear_error(surrogate) -> None:
         gym.make("invphys/Inversion-v0", surrogate=model, space="vae")
     with pytest.raises(InvphysError, match="no saved surrogate"):
         gym.make("invphys/Inversion-v0", surrogate="/nonexistent/dir")
+
+
+def test_info_carries_r_and_the_parameters_by_name_in_physical_units(surrogate) -> None:
+    """Issue 50: info had only score/best; now R, R_best, theta, params (physical, by name) and units."""
+    import invphys.envs  # noqa: F401  (registers the id)
+    from invphys.core.params import Parameter, ParameterSpace
+
+    model, _ = surrogate
+    space = ParameterSpace(tuple(Parameter(f"p{i}", 1.0, 100.0, log=i % 2 == 0, unit="Pa" if i else "kg")
+                                 for i in range(9)))
+    env = gym.make("invphys/Inversion-v0", surrogate=model, horizon=2, parameters=space)
+    _, info = env.reset(seed=0)
+    assert info["theta"] == [0.5] * 9 and info["params"]["p0"] == pytest.approx(10.0)  # log scale: the centre
+    assert info["params"]["p1"] == pytest.approx(50.5) and info["units"] == {"p0": "kg", **{f"p{i}": "Pa"
+                                                                                          for i in range(1, 9)}}
+    action = np.full(9, 1.0, dtype=np.float32)
+    _, _, _, _, info = env.step(action)
+    assert list(info["params"]) == list(space.names) and info["params"]["p1"] == pytest.approx(100.0)
+    assert info["R"] == info["score"] and info["R_best"] == info["best"] and 0.0 <= info["R"] <= 1.0
+    bare = gym.make("invphys/Inversion-v0", surrogate=model, horizon=2)  # no space: normalised, named theta_i
+    _, info = bare.reset(seed=0)
+    assert list(info["params"]) == [f"theta_{i}" for i in range(9)] and info["units"]["theta_0"] == "1"

@@ -48,6 +48,24 @@ def test_mlflow_run_holds_every_epoch_final_metrics_and_artifacts(tmp_path, monk
     stored = {f.path for f in client.list_artifacts(run.info.run_id, "train")}
     assert {"train/metrics.json", "train/metrics.md", "train/summary.json"} <= stored
     assert (out / "mlartifacts").is_dir()  # artifacts stay inside the run directory
+    # the spec's settings as params, so that runs compare by them (issue 50: there were none)
+    params = run.data.params
+    assert params["dataset.n"] == "48" and params["surrogate.type"] == "ensemble"
+    assert params["surrogate.hidden"] == "[8, 8, 8]" and params["tracker.experiment"] == "tiny"
+    assert params["name"] == "tracking-mlflow" and params["dataset.path"] == "null"
+
+
+def test_mlflow_params_are_cut_to_its_limits_and_sent_in_batches(tmp_path, monkeypatch) -> None:
+    pytest.importorskip("mlflow")
+    from invphys.tracking.mlflow_tracker import MAX_PARAM_VALUE, MLflowTracker
+
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    tracker = MLflowTracker(tmp_path, experiment="limits")
+    tracker.log_params({**{f"k{i}": i for i in range(150)}, "long": "x" * 10_000, "odd key!": True})
+    tracker.close()
+    params = tracker.run.data.params
+    assert len(params) == 152 and params["k149"] == "149" and params["odd key_"] == "true"
+    assert len(params["long"]) == MAX_PARAM_VALUE and params["long"].endswith("...")
 
 
 def test_tracker_none_writes_nothing(tmp_path) -> None:

@@ -114,3 +114,48 @@ def test_the_quick_start_spec_itself_writes_events(tmp_path) -> None:
     assert [e.step for e in acc.Scalars("train/surrogate/val_loss")] == [0, 1, 2]
     assert [e.step for e in acc.Scalars("train/latent_models/flow/val_loss")] == [0, 1]
     assert [e.step for e in acc.Scalars("invert/policy/gc_ppo_flow/rollout/ep_rew_mean")] == [64]
+
+
+def test_the_spec_is_logged_as_hparams_and_figures_as_images(tmp_path) -> None:
+    """Issue 50: TensorBoard had no hparams and no figures. A run logs its spec's settings (flattened keys)
+    through the hparams plugin, and a stage's PNG figures as image summaries."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    from tensorboard.plugins.hparams import plugin_data_pb2
+
+    from invphys.pipeline.runner import _track_stage
+    from invphys.tracking import create_tracker
+
+    stage = tmp_path / "report"
+    (stage / "renders").mkdir(parents=True)
+    for path in (stage / "recovery.png", stage / "renders" / "t00.png"):
+        plt.figure(figsize=(2, 1.5), dpi=50)
+        plt.plot([0, 1])
+        plt.savefig(path)
+        plt.close()
+    with create_tracker("tensorboard", tmp_path) as tracker:
+        tracker.log_params({"name": "x", "dataset.n": 64, "surrogate.hidden": "[16, 8]", "report.render": True,
+                            "dataset.path": None})
+        _track_stage(tracker, "report", stage, {"n": 1})
+    acc = EventAccumulator(str(tmp_path / "tensorboard"), size_guidance={"images": 0, "tensors": 0})
+    acc.Reload()
+    assert acc.Tags()["images"] == ["report/recovery", "report/renders/t00"]
+    image = acc.Images("report/recovery")[0]
+    assert (image.width, image.height) == (100, 75) and image.encoded_image_string == (stage / "recovery.png").read_bytes()
+    content = acc.PluginTagToContent("hparams")["_hparams_/session_start_info"]
+    hparams = plugin_data_pb2.HParamsPluginData.FromString(content).session_start_info.hparams
+    assert hparams["dataset.n"].number_value == 64 and hparams["surrogate.hidden"].string_value == "[16, 8]"
+    assert hparams["report.render"].bool_value is True and hparams["dataset.path"].string_value == "null"
+
+
+def test_spec_params_are_flat_section_keys() -> None:
+    from invphys.core.spec import parse_spec
+    from invphys.pipeline.runner import spec_params
+
+    params = spec_params(parse_spec(SPEC))
+    assert params["surrogate.type"] == "mlp" and params["surrogate.hidden"] == "[16, 16, 8]"
+    assert params["optimizers.gc.type"] == "gc_ppo" and params["objectives.lively.weights.peak_abs"] == 1.0
+    assert params["dataset.n"] == 64 and params["seed"] == 5 and "description" not in params
