@@ -1,8 +1,11 @@
 """``invphys diagnose``: calibration, out-of-distribution and surrogate error-bar checks of one bundle.
 
 On rows the bundle never trained on (:mod:`~invphys.evaluation.heldout`, picked by key), split in two
-by key: the *fit* half fits the corrections (posterior recalibration, the OOD score and its threshold,
-the surrogate's error-bar factors) and the *check* half measures them, before and after. The result is
+by key: the *fit* half fits the OOD score's choice and threshold and the surrogate's error-bar factors,
+the *check* half measures them; likewise the posterior's recalibration maps (stored for answers) are
+fitted on the fit half and checked on the check half. The other direction (fitted on the check half,
+checked on the fit half) is reported beside it, never pooled: two folds pooled cancel each other's
+errors and look better calibrated than either is. The result is
 ``report`` (everything measured) and ``calibration`` (the numbers answers use, stored as
 ``diagnostics/calibration.json`` in a bundle).
 """
@@ -175,6 +178,8 @@ def _posterior(inverter: Any, held: HeldOut, fit: np.ndarray, draws: int, seed: 
     maps, recalibrated = _recalibration(samples[fit], held.theta[fit], names, seed)
     fixed = cal.apply_recalibration(samples[~fit], maps)
     after = calibration_block(fixed, held.theta[~fit], seed)
+    swapped_maps, _ = _recalibration(samples[~fit], held.theta[~fit], names, seed)  # the other direction
+    swapped = calibration_block(cal.apply_recalibration(samples[fit], swapped_maps), held.theta[fit], seed)
     width90 = np.asarray(before_all["coverage"]["0.9"]["width"])
     blocks = {"posterior_method": label, "draws_per_row": int(draws),
               "outside_box": {"mean_outside_fraction": float(outside.mean()),
@@ -183,6 +188,9 @@ def _posterior(inverter: Any, held: HeldOut, fit: np.ndarray, draws: int, seed: 
                              "not_identified": [n for n, w in zip(names, width90, strict=True) if w >= IDENTIFIED_WIDTH]},
               "all_rows": before_all, "check_before": calibration_block(samples[~fit], held.theta[~fit], seed),
               "check_after": after, "recalibrated": recalibrated,
+              "swapped": {"note": "the other direction: maps fitted on the check half, checked on the fit half "
+                                  "(not pooled with check_after: two folds pooled cancel each other's errors)",
+                          "before": calibration_block(samples[fit], held.theta[fit], seed), "after": swapped},
               "after_recalibration_not_uniform": _verdicts(after, names)}
     calib = {"method": label, "parameters": names, "recalibration": {"knots": cal.KNOTS, "maps": maps}}
     figures = {"ranks_before": cal.ranks(samples[~fit], held.theta[~fit]), "ranks_after": cal.ranks(fixed, held.theta[~fit])}

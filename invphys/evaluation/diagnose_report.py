@@ -46,7 +46,8 @@ def summary_markdown(report: dict[str, Any]) -> str:
 def _posterior_lines(report: dict[str, Any]) -> list[str]:
     names = report["parameters"]
     lines = [f"Posterior: {report['draws_per_row']} draws per row from `{report['posterior_method']}`.", "",
-             "Central-interval coverage on the check rows, before -> after recalibration (nominal 50/80/90/95 %):",
+             "Central-interval coverage on the check rows, before -> after the recalibration fitted on the fit rows "
+             "(nominal 50/80/90/95 %):",
              "", "| parameter | 50 % | 80 % | 90 % | 95 % | 90 % width | SBC p before -> after |",
              "|---|---|---|---|---|---|---|"]
     b, a = report["check_before"], report["check_after"]
@@ -63,6 +64,14 @@ def _posterior_lines(report: dict[str, Any]) -> list[str]:
               f"Not identified (90 % interval wider than {report['identified']['max_width90']:.0%} of the range): "
               f"{', '.join(report['identified']['not_identified']) or 'none'}. "
               f"Raw draws outside the box: {_pct(report['outside_box']['mean_outside_fraction'])} (rejected)."]
+    sw = report.get("swapped")
+    if sw:
+        w = sw["after"]
+        lines.append("The other direction (fitted on the check rows, checked on the fit rows), 50/80/90/95 %: worst "
+                     "parameter off by " + ", ".join(f"{max(abs(c - float(k)) for c in w['coverage'][k]['coverage']):.3f}"
+                                                      for k in ("0.5", "0.8", "0.9", "0.95"))
+                     + "; joint (TARP) " + ", ".join(_pct(w["tarp"]["levels"][k]["rate"])
+                                                     for k in ("0.5", "0.8", "0.9", "0.95")) + ".")
     for v in report["after_recalibration_not_uniform"]:
         lines.append(f"SBC ranks of {v['parameter']} stay non-uniform after recalibration (p {v['ks_pvalue']:.2g}, "
                      f"bias {v['bias']:+.3f}): {v['reading']}.")
@@ -104,7 +113,8 @@ def plot_ranks(ranks_before: np.ndarray, ranks_after: np.ndarray, n_draws: int, 
         ax.set_title(names[j], fontsize=9)
         ax.set_yticks([])
     np.atleast_1d(axes).ravel()[0].legend(fontsize=7)
-    fig.suptitle("SBC ranks on the check rows (grey: 99 % band of a uniform histogram)", fontsize=10)
+    fig.suptitle("SBC ranks on the check rows, before and after recalibration "
+                 "(grey: 99 % band of a uniform histogram)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
@@ -112,7 +122,7 @@ def plot_ranks(ranks_before: np.ndarray, ranks_after: np.ndarray, n_draws: int, 
 
 
 def plot_coverage(report: dict[str, Any], path: Path) -> Path:
-    """Empirical against nominal coverage per parameter and jointly (TARP), check rows, before and after."""
+    """Empirical against nominal coverage per parameter and jointly (TARP), before and after recalibration."""
     import matplotlib
 
     matplotlib.use("Agg")
