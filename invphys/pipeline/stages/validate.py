@@ -8,8 +8,9 @@ wall time. For objective rows R is the named objective's score instead of R_gt. 
 simulated once.
 
 With ``report.render`` on, the best-recovered run of the first ``RENDER_TARGETS`` targets is kept
-(every time series whole, particle frames reduced to the last one), and each such target's ground-truth
-parameters are simulated too, so that the report can draw target and recovered runs side by side and
+(every time series whole, particle frames reduced to the last one), and so is the run of each such target's
+ground-truth parameters (the noise floor's run of the same vector, else one simulated for the renders), so
+that the report can draw target and recovered runs side by side and
 plot their time series (``renders/tNN_target.npz``, ``tNN_recovered.npz``: framework trajectory files,
 :mod:`invphys.core.trajectory_io`).
 The evaluation protocol (``evaluation:`` in the spec, docs/evaluation.md) adds its own answers,
