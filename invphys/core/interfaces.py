@@ -154,7 +154,21 @@ class Simulator(Plugin):
 
 
 class FeatureExtractor(Plugin):
-    """Turns a :class:`Trajectory` into a fixed-length behavioural feature vector."""
+    """Turns a :class:`Trajectory` into a fixed-length behavioural feature vector.
+
+    Subclasses define :attr:`feature_names` and :meth:`extract`. Optional:
+
+    * ``feature_units``: a property or class attribute giving each feature's unit, a tuple of strings in
+      :attr:`feature_names`' order (or a mapping ``{name: unit}``; ``""`` for dimensionless or unknown,
+      e.g. ``("N", "s", "")``). Bundles record them, and ``invphys invert``, its JSON and the Python
+      :class:`~invphys.inverter.InversionResult` show them beside each value. Without it every unit is ``""``.
+    * ``version``: a class attribute string, like :attr:`Simulator.version`; bump it when the same
+      trajectory gives other features.
+
+    The pipeline's stage keys hold the extractor's registered name, ``version``, config, feature names and
+    units (``invphys.pipeline.cache.extractor_identity``): changing any of them re-runs the stages that
+    record them (the dataset stage, which then finds every run stored, and those after it).
+    """
 
     kind: ClassVar[str] = "feature_extractor"
 

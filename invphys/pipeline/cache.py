@@ -4,7 +4,11 @@ A stage's key has four parts, each recorded in its ``DONE.json``:
 
 * ``spec``: the spec sections the stage names in ``DEPENDS_ON`` (plus the seed), without the settings
   that only change where or how fast work runs (:func:`key_inputs`);
-* ``plugins``: the name, distribution and version of every plugin those sections use;
+* ``plugins``: the name, distribution and version of every plugin those sections use and, for a stage
+  that reads the dataset's features or the ``features`` section, the feature extractor's identity
+  (:func:`extractor_identity`: its registered name, version, settings, feature names and units), so that
+  adding units or changing the extractor re-runs the stages that record them (the bundle written by
+  ``train`` holds the units);
 * ``data``: the dataset's content fingerprint (:meth:`DatasetStore.content_fingerprint`: its
   manifest's checksums), for every stage that reads the dataset;
 * ``upstream``: the keys of the stages before it and the run id of each earlier stage's last run
@@ -73,9 +77,40 @@ def _at(tree: dict[str, Any], path: str) -> Any:
     return node
 
 
+#: the entry of :func:`plugin_versions` that holds the feature extractor's identity
+EXTRACTOR_ENTRY = "features (extractor)"
+#: sections whose stages read what the extractor computed or describes (feature columns, their units)
+EXTRACTOR_SECTIONS: tuple[str, ...] = ("features", "dataset")
+
+
+def extractor_identity(spec: Any, registry: Any) -> str:
+    """``"name@version/<digest>"`` of the extractor the run uses (the ``features`` block, else the simulator's
+    default): the digest covers its settings, feature names and ``feature_units``; ``"?"`` when it cannot be
+    built (validation reports that; a key must not fail)."""
+    try:
+        block = dict(spec.features) if spec.features is not None else None
+        if block is None:
+            default = registry.create("simulator", spec.simulator).default_feature_extractor()
+            block = {"type": default}
+        ext = registry.create("feature_extractor", block)
+        names = [str(n) for n in ext.feature_names]
+        units = getattr(ext, "feature_units", None)
+        if isinstance(units, dict):
+            units = [units.get(n, "") for n in names]
+        config = ext.config.model_dump(mode="json") if hasattr(ext.config, "model_dump") else str(ext.config)
+        version = str(getattr(ext, "version", "") or "")
+        return f"{ext.name}@{version}/" + digest({"config": config, "features": names,
+                                                   "units": [str(u) for u in units] if units else None})
+    except Exception:  # reported by validation; a key must not fail
+        return "?"
+
+
 def plugin_versions(spec: Any, sections: tuple[str, ...], registry: Any) -> dict[str, str]:
-    """``{path: "type@distribution==version"}`` for each plugin block in ``sections``."""
+    """``{path: "type@distribution==version"}`` for each plugin block in ``sections``, plus the feature
+    extractor's identity (:data:`EXTRACTOR_ENTRY`) when ``sections`` hold one of :data:`EXTRACTOR_SECTIONS`."""
     out: dict[str, str] = {}
+    if any(s in sections for s in EXTRACTOR_SECTIONS):
+        out[EXTRACTOR_ENTRY] = extractor_identity(spec, registry)
     for path, kind, block in spec.plugin_blocks():
         if path.split(".")[0] not in sections or not isinstance(block, dict):
             continue
@@ -118,5 +153,11 @@ def stale_reason(done: dict[str, Any] | None, components: dict[str, Any]) -> str
         return "its marker predates input tracking"
     names = {"spec": "spec sections", "plugins": "plugin versions", "data": "dataset content",
              "upstream": "an earlier stage"}
+    old_plugins, plugins = before.get("plugins"), components.get("plugins")
+    if isinstance(old_plugins, dict) and isinstance(plugins, dict) and old_plugins.get(EXTRACTOR_ENTRY) != \
+            plugins.get(EXTRACTOR_ENTRY) and {k: v for k, v in old_plugins.items() if k != EXTRACTOR_ENTRY} == \
+            {k: v for k, v in plugins.items() if k != EXTRACTOR_ENTRY}:
+        names["plugins"] = ("the feature extractor (settings, units or version)" if EXTRACTOR_ENTRY in old_plugins
+                            else "the key now covers the feature extractor")
     changed = [names.get(k, k) for k in components if before.get(k) != components[k]]
     return f"{' and '.join(changed)} changed" if changed else "inputs changed"

@@ -387,5 +387,6 @@ def plugin_for_callable(kind: str, obj: Any, path: str) -> type:
         return _PLAIN[key]
     if kind == "feature_extractor" and inspect.isfunction(obj) and obj.__module__ == module:
         return FunctionFeatures
-    raise PluginLoadError(f"{path!r} is a {type(obj).__name__}, not a {kind.replace('_', ' ')} plugin class "
-                          f"(or a function defined in {module!r} described as a simulator)")
+    label = kind.replace("_", " ")
+    raise PluginLoadError(f"{path!r} is a {type(obj).__name__}, not {'an' if label[0] in 'aeiou' else 'a'} {label} "
+                          f"plugin class (or a function defined in {module!r} described as a simulator)")
