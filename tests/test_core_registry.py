@@ -116,6 +116,26 @@ def test_module_class_escape_hatch_and_wrong_base():
         registry.get("optimizer", "no_such_module_xyz:Thing")
 
 
+def test_module_function_escape_hatch_finds_functions_in_the_current_directory(tmp_path, monkeypatch):
+    """``module:function`` names a Python function (a simulator when its block gives parameters); a module
+    that is not importable but lies in the current directory is imported from there (as ``python -m``)."""
+    (tmp_path / "h7_cwd_fn.py").write_text("import numpy as np\n\ndef f(theta):\n    return np.asarray(theta) * 2\n")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if p not in ("", str(tmp_path))])
+    try:
+        sim = registry.create("simulator", {"type": "h7_cwd_fn:f", "parameters": {"x": [0, 1]}, "vectorised": True})
+        assert sys.path[-1] == str(tmp_path)  # appended: it never shadows an installed module
+        assert sim.simulate([[0.25]])[0].trajectory.series["features"].values.tolist() == [[0.5]]
+        with pytest.raises(PluginLoadError, match="not an optimizer plugin class"):
+            registry.get("optimizer", "h7_cwd_fn:f")
+    finally:
+        sys.modules.pop("h7_cwd_fn", None)
+    with pytest.raises(PluginLoadError, match="builtin_function_or_method"):
+        registry.get("simulator", "os:getcwd")  # only pure-Python functions of the module named
+    with pytest.raises(PluginLoadError, match="cannot import module"):
+        registry.get("simulator", "no_such_module_h7:f")
+
+
 def test_create_validates_config():
     opt = registry.create("optimizer", {"type": "core_plugins:RandomSearch", "sigma0": 0.5})
     assert opt.config.sigma0 == 0.5
@@ -132,7 +152,8 @@ def test_registering_a_non_plugin_class_is_an_error(monkeypatch):
 
 def test_listing_plugins_imports_no_heavy_library():
     code = ("import sys, invphys.registry as r; r.infos(); "
-            "heavy = [m for m in ('torch', 'taichi', 'warp', 'stable_baselines3', 'ray') if m in sys.modules]; "
+            "heavy = [m for m in ('torch', 'taichi', 'warp', 'stable_baselines3', 'ray', 'optuna', 'sqlalchemy') "
+            "if m in sys.modules]; "
             "print(heavy)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
