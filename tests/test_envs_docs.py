@@ -15,5 +15,7 @@ def test_the_gymnasium_example_runs(tmp_path, monkeypatch, capsys) -> None:
     (code,) = re.findall(r"^```python\n(.*?)^```$", DOC.read_text(), re.S | re.M)
     monkeypatch.chdir(tmp_path)
     exec(compile(code, str(DOC), "exec"), {"__name__": "__doc_example__"})
-    reward = float(capsys.readouterr().out.strip().rsplit(" ", 1)[-1])
+    out = capsys.readouterr().out.strip()
+    reward = float(out.rsplit(" ", 1)[-1])
     assert 0.0 < reward <= 1.0
+    assert "'theta_0': " in out.splitlines()[-2]  # info names the state's parameters

@@ -188,5 +188,7 @@ def register(app: typer.Typer) -> None:
         summary = run_simulation(simulator, params, out, backend=backend, preset=preset, arch=arch,
                                  config=config, render=render, max_frames=max_frames)
         emit(summary, as_json, _print)
-        if not all(r["ok"] for r in summary["runs"]):
-            raise typer.Exit(1)
+        failed = [r for r in summary["runs"] if not r["ok"]]
+        if failed:  # the simulator's answer for these parameters: exit 2 (1 is for bugs)
+            raise InvphysError(f"{len(failed)} of {len(summary['runs'])} simulation(s) failed: "
+                               f"{failed[0]['run']}: {failed[0]['failure']}")
