@@ -127,6 +127,12 @@ def plugin_versions(spec: Any, sections: tuple[str, ...], registry: Any) -> dict
     return out
 
 
+def without_extractor(plugins: dict[str, str]) -> dict[str, str]:
+    """``plugins`` as keys hashed it before they held the extractor's identity (2026-11-28): a runner that
+    also accepts markers of this older key keeps run directories made before then cached."""
+    return {k: v for k, v in plugins.items() if k != EXTRACTOR_ENTRY}
+
+
 def data_fingerprint(path: Path, first_ok: int | None = None) -> str:
     """The dataset's content fingerprint at ``path`` ("absent" when there is no store yet); with
     ``first_ok``, that of its first ``first_ok`` ok rows only (rows appended later leave it unchanged)."""
