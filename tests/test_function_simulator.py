@@ -22,7 +22,13 @@ from invphys import registry
 from invphys.core.errors import InvphysError
 from invphys.core.spec import parse_spec
 from invphys.pipeline.runner import run_spec
-from invphys.testing import check_deterministic, check_feature_extractor, check_plugin_class, check_simulator
+from invphys.testing import (
+    check_deterministic,
+    check_feature_extractor,
+    check_plugin_class,
+    check_render,
+    check_simulator,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 GUIDE = ROOT / "docs" / "writing-a-simulator.md"
@@ -85,7 +91,7 @@ def fnmod(tmp_path, monkeypatch):
     sys.modules.pop(name, None)
 
 
-def test_a_described_function_is_a_registered_simulator_and_extractor(fnmod) -> None:
+def test_a_described_function_is_a_registered_simulator_and_extractor(fnmod, tmp_path) -> None:
     sim_cls, ext_cls = fnmod.PAIR
     path = f"{fnmod.__name__}:bowl"
     assert "simulator_from_function" in invphys.__all__
@@ -104,6 +110,8 @@ def test_a_described_function_is_a_registered_simulator_and_extractor(fnmod) -> 
     results = check_simulator(ok, n_runs=4)
     check_deterministic(ok)
     check_feature_extractor(ext, [r for r in results if r.ok])
+    drawn = check_render(ok, next(r for r in results if r.ok).trajectory, tmp_path / "render", max_frames=1)
+    assert [p.name for p in drawn.images] == ["outputs.png"]  # the outputs as labelled bars
 
 
 def test_failures_are_recorded_per_run_and_never_depend_on_the_batch(fnmod) -> None:

@@ -20,6 +20,7 @@ import inspect
 import re
 import time
 from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
 from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
@@ -28,7 +29,7 @@ from pydantic import Field, field_validator
 from invphys.core.errors import InvphysError, PluginLoadError
 from invphys.core.interfaces import FeatureExtractor, PluginConfig, Simulator
 from invphys.core.params import Parameter, ParameterSpace
-from invphys.core.results import RunStats, SimulationResult, Trajectory
+from invphys.core.results import Rendering, RunStats, SimulationResult, Trajectory
 
 ATTRIBUTE = "__invphys_plugins__"
 SERIES = "features"  # the trajectory series holding the function's outputs (one sample at t = 0)
@@ -187,6 +188,7 @@ class FunctionSimulator(Simulator):
 
     Each run's trajectory holds one series, ``features``: the function's M outputs at t = 0. A run whose
     call raised, or returned the wrong shape or a non-finite value, is ``ok=False`` with a reason.
+    :meth:`render` draws the outputs as labelled bars.
     """
 
     name: ClassVar[str] = "function_simulator"
@@ -195,6 +197,7 @@ class FunctionSimulator(Simulator):
     function: ClassVar[Callable[..., Any]]
     base_space: ClassVar[ParameterSpace | None] = None
     output_names: ClassVar[tuple[str, ...] | None] = None
+    output_units: ClassVar[tuple[str, ...] | None] = None
     extractor_ref: ClassVar[str | None] = None
 
     class Config(PluginConfig):
@@ -244,6 +247,37 @@ class FunctionSimulator(Simulator):
                 on_result(i, res)
             results.append(res)
         return results
+
+    def render(self, trajectory: Trajectory, path: str | Path, *, max_frames: int = 60, animation: str = "gif",
+               **options: Any) -> Rendering:
+        """``outputs.png`` under ``path``: the function's outputs as labelled bars (there are no frames)."""
+        if options:
+            raise InvphysError(f"simulator {self.name!r} draws its outputs and takes no options "
+                               f"(got {', '.join(sorted(options))})")
+        if animation not in ("gif", "mp4", "none"):
+            raise InvphysError(f"animation must be gif, mp4 or none, not {animation!r}")
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        y = np.asarray(trajectory.series[SERIES].values, dtype=np.float64).reshape(len(trajectory.series[SERIES]), -1)[-1]
+        units = self.output_units or ("",) * len(y)
+        labels = [f"{self._label(j)}" + (f" ({units[j]})" if j < len(units) and units[j] else "") for j in range(len(y))]
+        out = Path(path)
+        out.mkdir(parents=True, exist_ok=True)
+        fig, ax = plt.subplots(figsize=(5.0, 1.2 + 0.45 * len(y)))
+        ax.barh(np.arange(len(y)), y, color="tab:blue")
+        ax.set_yticks(np.arange(len(y)), labels, fontsize=8)
+        ax.invert_yaxis()
+        for j, v in enumerate(y):
+            ax.annotate(f"{v:.4g}", (v, j), xytext=(3, 0), textcoords="offset points", va="center", fontsize=8)
+        ax.set_title(f"{self.name}: outputs", fontsize=10)
+        fig.tight_layout()
+        image = out / "outputs.png"
+        fig.savefig(image, dpi=90)
+        plt.close(fig)
+        return Rendering(images=[image])
 
     def _label(self, j: int) -> str:
         names = self.output_names
@@ -352,6 +386,7 @@ def make_plugins(fn: Callable[..., Any], parameters: Any, features: Sequence[str
     Sim.function = staticmethod(fn)  # type: ignore[assignment]
     Sim.version = str(version) if version is not None else source_version(fn)  # type: ignore[misc]
     Sim.base_space, Sim.output_names, Sim.extractor_ref = space, tuple(names), path or name
+    Sim.output_units = tuple(funits)
     pair = FunctionPlugins(Sim, Features)
     try:
         setattr(fn, ATTRIBUTE, {"simulator": Sim, "feature_extractor": Features})
