@@ -220,7 +220,7 @@ def test_diagnose_writes_its_report_and_stores_it_in_the_bundle(bundle, tmp_path
     out = tmp_path / "diag"
     res = runner.invoke(_cli(), ["diagnose", str(bundle), "--out", str(out), "--draws", "60", "--json", "--write"])
     assert res.exit_code == 0, res.output
-    report = json.loads(res.stdout)
+    report = json.loads(res.stdout, parse_constant=lambda c: pytest.fail(f"{c} in the JSON"))  # strict JSON
     names = list(Bundle(bundle).space.names)
     assert report["heldout"]["rows_used"] == Bundle(bundle).manifest["dataset"]["n_test"]
     assert set(report["check_before"]["coverage"]) == set(LEVELS)

@@ -226,4 +226,19 @@ def diagnose(inverter: Any, stores: Any = None, rows: int | None = None, draws: 
     if sur.get("available"):
         calib["surrogate_error_scales"] = {"features": list(bundle.feature_names), "scales": sur["scales"],
                                            "z": 1.6448536269514722, "nominal": 0.9}
-    return Diagnosis(report, calib, figures)
+    return Diagnosis(_plain(report), _plain(calib), figures)
+
+
+def _plain(obj: Any) -> Any:
+    """JSON-safe copy: NumPy scalars to Python, NaN and infinities to None (strict JSON has neither)."""
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if np.isfinite(obj) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj

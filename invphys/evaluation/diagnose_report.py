@@ -83,11 +83,16 @@ def _ood_line(o: dict[str, Any]) -> str:
     if not o["candidates"]:
         return f"Out-of-distribution score: `{o['chosen']}` (not measured against failures: {o.get('note')}); {fires}."
     auc = o["candidates"][o["chosen"]]
-    return (f"Out-of-distribution score: `{o['chosen']}`, AUROC on the check rows {auc['r_surr']['check']:.2f} "
+    return (f"Out-of-distribution score: `{o['chosen']}`, AUROC on the check rows {_f2(auc['r_surr']['check'])} "
             f"for answers that do not reproduce their target (R_surr < {o['failure']['r_surr_below']:g}), "
-            f"{auc['parameter_error']['check']:.2f} for answers whose error over the identified parameters "
+            f"{_f2(auc['parameter_error']['check'])} for answers whose error over the identified parameters "
             f"exceeds {o['failure']['parameter_error_above']:g}; {fires} and on "
-            f"{_pct(o['check'].get('recall_r_surr') or 0)} of those whose answer does not reproduce the target.")
+            f"{_pct(o['check']['recall_r_surr']) if o['check'].get('recall_r_surr') is not None else 'n/a (none)'} "
+            f"of those whose answer does not reproduce the target.")
+
+
+def _f2(x: float | None) -> str:
+    return "n/a" if x is None else f"{x:.2f}"
 
 
 def plot_ranks(ranks_before: np.ndarray, ranks_after: np.ndarray, n_draws: int, names: list[str], path: Path) -> Path:
@@ -164,7 +169,7 @@ def write_report(diagnosis: Any, out: Path) -> list[Path]:
 
 
 def _json(path: Path, data: Any) -> Path:
-    atomic_write_bytes(path, (json.dumps(data, indent=1, allow_nan=True) + "\n").encode())
+    atomic_write_bytes(path, (json.dumps(data, indent=1, allow_nan=False) + "\n").encode())
     return path
 
 
