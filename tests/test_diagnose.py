@@ -238,3 +238,8 @@ def test_diagnose_writes_its_report_and_stores_it_in_the_bundle(bundle, tmp_path
     again = runner.invoke(_cli(), ["diagnose", str(bundle), "--out", str(out), "--draws", "60"])
     assert again.exit_code == 2 and "not empty" in again.output
     assert runner.invoke(_cli(), ["diagnose", str(bundle)]).exit_code == 2
+    rewrite = runner.invoke(_cli(), ["diagnose", str(bundle), "--write", "--draws", "20"])
+    assert rewrite.exit_code == 0, rewrite.output
+    assert (bundle / "README.md").read_text().count("## Diagnostics (invphys diagnose)") == 1
+    assert sorted(p.name for p in bundle.parent.iterdir() if p.name.startswith(".")) == []  # no copy left over
+    Bundle(bundle)

@@ -174,26 +174,35 @@ def _json(path: Path, data: Any) -> Path:
 
 
 def write_into_bundle(diagnosis: Any, root: Path) -> Path:
-    """Replace ``root/diagnostics`` with this diagnosis, put its summary in the README, re-hash the manifest."""
+    """Replace ``root/diagnostics`` with this diagnosis, put its summary in the README, re-hash the manifest.
+
+    All of it happens in a copy of the bundle beside it, which is checked (every file against its new
+    hash) and then swapped in, so a killed run leaves the old bundle or the new one, never a bundle whose
+    README no longer matches its manifest.
+    """
     from invphys.inverter.manifest import read_manifest, write_manifest
 
-    manifest = read_manifest(root, verify=True)
-    tmp = root / f".{DIAGNOSTICS_DIR}.tmp{uuid.uuid4().hex[:6]}"
-    old = root / f".{DIAGNOSTICS_DIR}.old{uuid.uuid4().hex[:6]}"
+    root = Path(root)
+    tmp = root.with_name(f".{root.name}.diag{uuid.uuid4().hex[:6]}")
+    old = root.with_name(f".{root.name}.old{uuid.uuid4().hex[:6]}")
+    shutil.copytree(root, tmp, symlinks=True)
     try:
-        write_report(diagnosis, tmp)
-        dest = root / DIAGNOSTICS_DIR
-        if dest.exists():
-            dest.rename(old)
-        tmp.rename(dest)
-    finally:
+        manifest = read_manifest(tmp, verify=True)
+        shutil.rmtree(tmp / DIAGNOSTICS_DIR, ignore_errors=True)
+        write_report(diagnosis, tmp / DIAGNOSTICS_DIR)
+        readme = tmp / "README.md"
+        text = readme.read_text() if readme.is_file() else ""
+        text = text.split("\n" + README_HEADING)[0].rstrip("\n")
+        summary = summary_markdown(diagnosis.report)
+        atomic_write_bytes(readme, (text + "\n\n" + README_HEADING + "\n\n" + summary).encode())
+        manifest["diagnostics"] = {"path": DIAGNOSTICS_DIR, "created_utc": diagnosis.report["created_utc"],
+                                   "rows": diagnosis.report["heldout"]["rows_used"]}
+        write_manifest(tmp, manifest)
+        read_manifest(tmp, verify=True)
+        root.rename(old)
+        tmp.rename(root)
+    except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
-        shutil.rmtree(old, ignore_errors=True)
-    readme = root / "README.md"
-    text = readme.read_text() if readme.is_file() else ""
-    text = text.split("\n" + README_HEADING)[0].rstrip("\n")
-    atomic_write_bytes(readme, (text + "\n\n" + README_HEADING + "\n\n" + summary_markdown(diagnosis.report)).encode())
-    manifest["diagnostics"] = {"path": DIAGNOSTICS_DIR, "created_utc": diagnosis.report["created_utc"],
-                               "rows": diagnosis.report["heldout"]["rows_used"]}
-    write_manifest(root, manifest)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
     return root / DIAGNOSTICS_DIR
