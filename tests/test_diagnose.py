@@ -214,6 +214,7 @@ def test_the_ood_score_ranks_a_planted_far_target_above_typical_ones(bundle) -> 
 def test_diagnose_writes_its_report_and_stores_it_in_the_bundle(bundle, tmp_path) -> None:
     from typer.testing import CliRunner
 
+    from invphys.core.errors import InvphysError
     from invphys.inverter.bundle import Bundle
 
     runner = CliRunner()
@@ -238,6 +239,15 @@ def test_diagnose_writes_its_report_and_stores_it_in_the_bundle(bundle, tmp_path
     again = runner.invoke(_cli(), ["diagnose", str(bundle), "--out", str(out), "--draws", "60"])
     assert again.exit_code == 2 and "not empty" in again.output
     assert runner.invoke(_cli(), ["diagnose", str(bundle)]).exit_code == 2
+    from invphys.evaluation.ood import load_diagnostics
+
+    assert load_diagnostics(Bundle(bundle))["ood"]["threshold"] == calib["ood"]["threshold"]
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "diagnostics").mkdir()
+    (broken / "diagnostics" / "calibration.json").write_text("{not json")
+    with pytest.raises(InvphysError, match="not a JSON object"):
+        load_diagnostics(type("B", (), {"root": broken})())
     rewrite = runner.invoke(_cli(), ["diagnose", str(bundle), "--write", "--draws", "20"])
     assert rewrite.exit_code == 0, rewrite.output
     assert (bundle / "README.md").read_text().count("## Diagnostics (invphys diagnose)") == 1

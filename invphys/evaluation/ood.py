@@ -147,8 +147,14 @@ def load_diagnostics(bundle: Any) -> dict[str, Any] | None:
     path = bundle.root / "diagnostics" / "calibration.json"
     if not path.is_file():
         return None
-    data = json.loads(path.read_text())
-    return data if isinstance(data, dict) else None
+    try:
+        data = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError):
+        data = None
+    if not isinstance(data, dict):
+        raise TargetError(f"bundle {bundle.root}: {path.name} in diagnostics/ is not a JSON object; "
+                          f"run invphys diagnose {bundle.root} --write again")
+    return data
 
 
 def auroc(score: np.ndarray, failed: np.ndarray) -> float:
