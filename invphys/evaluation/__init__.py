@@ -7,5 +7,11 @@
   normalised parameter space and the parameters the data cannot pin down;
 * :mod:`~invphys.evaluation.uncertainty`: does the surrogate ensemble's std rank its real errors;
 * :mod:`~invphys.evaluation.baselines`: fitting and answering the spec's baselines;
-* :mod:`~invphys.evaluation.plots`: R_actual per method with intervals.
+* :mod:`~invphys.evaluation.plots`: R_actual per method with intervals;
+* ``invphys diagnose`` (docs/diagnostics.md): :mod:`~invphys.evaluation.heldout` (rows a bundle never
+  trained on, by key), :mod:`~invphys.evaluation.calibration` (coverage, TARP, SBC, quantile
+  recalibration), :mod:`~invphys.evaluation.ood` (out-of-distribution scores, feature mismatch),
+  :mod:`~invphys.evaluation.surrogate_errors` (error bars scaled to the surrogate's real errors),
+  :mod:`~invphys.evaluation.diagnose` (the measurement) and :mod:`~invphys.evaluation.diagnose_report`
+  (its files, and writing them into a bundle).
 """
