@@ -104,19 +104,36 @@ class Bundle:
                                                   ps.get("descriptions") or [""] * len(ps["names"]), strict=True)))
         except (KeyError, TypeError, ValueError) as exc:
             raise BundleError(f"{self.root}: the manifest's parameter_space is malformed ({exc})") from None
-        f = m["features"]
-        self.feature_names: tuple[str, ...] = tuple(f["names"])
-        self.feature_units: tuple[str, ...] = tuple(f.get("units") or [""] * len(self.feature_names))
-        self.scales = np.asarray(f["scales"], dtype=np.float64)
-        self.kappa = float(f.get("kappa", 3.0))
-        self.train_min = np.asarray(f.get("train_min", [-np.inf] * len(self.feature_names)), dtype=np.float64)
-        self.train_max = np.asarray(f.get("train_max", [np.inf] * len(self.feature_names)), dtype=np.float64)
-        if len(self.scales) != len(self.feature_names):
-            raise BundleError(f"{self.root}: {len(self.scales)} feature scales for {len(self.feature_names)} features")
+        self._read_features(m["features"])
         self._check_parts()
         msg = python_mismatch(m.get("system_info") or {})
         if msg:
             warnings.warn(msg, stacklevel=3)
+
+    def _read_features(self, f: dict[str, Any]) -> None:
+        """Names, units, scales (positive), kappa and training range of the features; one line naming the key."""
+        self.feature_names: tuple[str, ...] = tuple(f["names"])
+        n = len(self.feature_names)
+        key = "features.units"
+        try:
+            self.feature_units: tuple[str, ...] = tuple(str(u) for u in (f.get("units") or [""] * n))
+            key = "features.scales"
+            self.scales = np.asarray(f["scales"], dtype=np.float64).reshape(n)
+            key = "features.kappa"
+            self.kappa = float(f.get("kappa", 3.0))
+            key = "features.train_min"
+            self.train_min = np.asarray(f.get("train_min", [-np.inf] * n), dtype=np.float64).reshape(n)
+            key = "features.train_max"
+            self.train_max = np.asarray(f.get("train_max", [np.inf] * n), dtype=np.float64).reshape(n)
+        except (TypeError, ValueError):
+            raise BundleError(f"{self.root / 'manifest.yaml'}: {key} must hold one number per feature "
+                              f"({n} features)") from None
+        if len(self.feature_units) != n:
+            raise BundleError(f"{self.root / 'manifest.yaml'}: features.units must name one unit per feature")
+        if not (np.all(np.isfinite(self.scales)) and np.all(self.scales > 0) and np.isfinite(self.kappa)
+                and self.kappa > 0):
+            raise BundleError(f"{self.root / 'manifest.yaml'}: features.scales and features.kappa must be "
+                              f"finite and > 0")
 
     def _check_parts(self) -> None:
         """Every part the manifest names (components, inference forms, methods' saves) stays inside the
@@ -124,11 +141,17 @@ class Bundle:
         comps, files = self.manifest["components"], self.manifest["files"]
         parts = [("components.surrogate." + k, comps["surrogate"].get(k)) for k in ("path", "inference")]
         for label, entry in (comps.get("latents") or {}).items():
-            if not isinstance(entry, dict) or "latent_dim" not in entry or "bound" not in entry:
-                raise BundleError(f"{self.root / 'manifest.yaml'}: the manifest lacks components.latents.{label}."
-                                  f"latent_dim or .bound")
+            try:
+                ok = int(entry["latent_dim"]) >= 1 and float(entry["bound"]) > 0
+            except (KeyError, TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise BundleError(f"{self.root / 'manifest.yaml'}: components.latents.{label} needs latent_dim "
+                                  f">= 1 and bound > 0")
             parts += [(f"components.latents.{label}.{k}", entry.get(k)) for k in ("path", "decoder", "head")]
         for label, entry in self.methods.items():
+            if not isinstance(entry.get("config", {}), dict):
+                raise BundleError(f"{self.root / 'manifest.yaml'}: methods.{label}.config must be a mapping")
             parts += [(f"methods.{label}.{k}", entry.get(k)) for k in ("path", "inference")]
         for what, rel in parts:
             if rel is not None:

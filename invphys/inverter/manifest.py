@@ -267,6 +267,20 @@ def check_keys(data: dict[str, Any], path: Path) -> None:
         for key in ("type", "kind", "space"):
             if not isinstance(entry, dict) or not isinstance(entry.get(key), str):
                 raise BundleError(f"{path}: the manifest lacks methods.{label}.{key}")
+        if not isinstance(entry.get("evaluator", "shared"), str):
+            raise BundleError(f"{path}: methods.{label}.evaluator must be a name")
+    for dotted in ("simulator.name", "components.surrogate.type"):
+        section, key = dotted.split(".", 1)
+        node = data[section][key] if section != "components" else data["components"]["surrogate"]["type"]
+        if not isinstance(node, str) or not node:
+            raise BundleError(f"{path}: {dotted} must be a name")
+    for dotted, node in (("features.extractor", data["features"].get("extractor")),
+                         ("system_info", data.get("system_info"))):
+        if node is not None and not isinstance(node, dict):
+            raise BundleError(f"{path}: {dotted} must be a mapping")
+    default = data.get("default_method")
+    if default is not None and (not isinstance(default, str) or default not in data["methods"]):
+        raise BundleError(f"{path}: default_method {default!r} names no method of the bundle")
     if not isinstance(data["components"].get("latents") or {}, dict):
         raise BundleError(f"{path}: components.latents must be a mapping")
 

@@ -19,6 +19,8 @@ from invphys.core.interfaces import Problem
 from invphys.core.results import OptimizationResult
 from invphys.inverter.objective import masked_recovery
 
+#: longest episode a bundle's policy may describe (the paper's T is 8)
+MAX_HORIZON = 10_000
 #: rollouts run in chunks of at most this many rows (targets x rollouts), so that activations stay in cache
 CHUNK_ROWS = 1024
 
@@ -81,7 +83,7 @@ class PolicyRunner:
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise BundleError(f"bundle {str(self.bundle.root)!r}: methods.{self.label}.rollout is malformed "
                               f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
-        if self.horizon < 1 or not self.low < self.high:
+        if not 1 <= self.horizon <= MAX_HORIZON or not self.low < self.high:
             raise BundleError(f"bundle {str(self.bundle.root)!r}: methods.{self.label}.rollout has horizon "
                               f"{self.horizon} and space [{self.low}, {self.high}]")
 
