@@ -227,6 +227,7 @@ def test_diagnose_writes_its_report_and_stores_it_in_the_bundle(bundle, tmp_path
     assert set(report["check_before"]["coverage"]) == set(LEVELS)
     assert len(report["check_before"]["sbc"]["ks_pvalue"]) == len(names)
     assert 0.0 <= report["check_after"]["tarp"]["levels"]["0.9"]["rate"] <= 1.0
+    assert 0.0 <= report["outside_box"]["clipped_share"] <= 1.0
     assert set(report["ood"]["candidates"]) >= {"knn", "misfit", "ensemble_std", "outside_fraction"}
     for f in ("report.json", "calibration.json", "summary.md", "rank_histograms.png", "coverage.png"):
         assert (out / f).is_file(), f

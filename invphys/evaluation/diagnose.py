@@ -56,17 +56,19 @@ def posterior_draws(inverter: Any, y: np.ndarray, n: int, seed: int, method: str
     return inverter.posterior(np.asarray(y, dtype=np.float64), n=n, seed=seed, method=method)
 
 
-def _draws_in_chunks(inverter: Any, y: np.ndarray, n: int, seed: int, method: str | None) -> tuple[np.ndarray,
-                                                                                                 np.ndarray]:
-    """(samples (N, n, d), outside_fraction (N,)); each target's draws are its own (chunks only log progress)."""
-    samples, outside = [], []
+def _draws_in_chunks(inverter: Any, y: np.ndarray, n: int, seed: int, method: str | None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(samples (N, n, d), outside_fraction (N,), clipped (N,) draws clipped to the box because too few
+    fell inside); each target's draws are its own (chunks only log progress)."""
+    samples, outside, clipped = [], [], []
     t0 = time.perf_counter()
     for i in range(0, len(y), 100):
         d = posterior_draws(inverter, y[i:i + 100], n, seed, method)
         samples.append(d.samples)
         outside.append(np.asarray(d.outside_fraction, dtype=np.float64))
+        clipped.append(np.asarray(getattr(d, "clipped", np.zeros(len(d.samples))), dtype=np.float64))
         _LOG.info("posterior draws: %d/%d targets (%.0f s)", min(i + 100, len(y)), len(y), time.perf_counter() - t0)
-    return np.concatenate(samples), np.concatenate(outside)
+    return np.concatenate(samples), np.concatenate(outside), np.concatenate(clipped)
 
 
 def calibration_block(draws: np.ndarray, theta: np.ndarray, seed: int) -> dict[str, Any]:
@@ -173,7 +175,7 @@ def _posterior(inverter: Any, held: HeldOut, fit: np.ndarray, draws: int, seed: 
             raise
         return {"posterior_method": None, "note": str(exc)}, None, None, {}
     names = list(inverter.bundle.space.names)
-    samples, outside = _draws_in_chunks(inverter, held.y, draws, seed, label)
+    samples, outside, clipped = _draws_in_chunks(inverter, held.y, draws, seed, label)
     before_all = calibration_block(samples, held.theta, seed)
     maps, recalibrated = _recalibration(samples[fit], held.theta[fit], names, seed)
     fixed = cal.apply_recalibration(samples[~fit], maps)
@@ -183,7 +185,11 @@ def _posterior(inverter: Any, held: HeldOut, fit: np.ndarray, draws: int, seed: 
     width90 = np.asarray(before_all["coverage"]["0.9"]["width"])
     blocks = {"posterior_method": label, "draws_per_row": int(draws),
               "outside_box": {"mean_outside_fraction": float(outside.mean()),
-                              "note": "share of raw posterior draws outside the parameter box (rejected, not clipped)"},
+                              "clipped_share": float(clipped.sum() / (draws * len(clipped))),
+                              "rows_with_clipping": int((clipped > 0).sum()),
+                              "note": "outside: share of raw posterior draws outside the parameter box (rejected); "
+                                      "clipped: share of the draws kept that had to be clipped into it (too few "
+                                      "raw draws fell inside)"},
               "identified": {"max_width90": IDENTIFIED_WIDTH, "width90": width90.tolist(),
                              "not_identified": [n for n, w in zip(names, width90, strict=True) if w >= IDENTIFIED_WIDTH]},
               "all_rows": before_all, "check_before": calibration_block(samples[~fit], held.theta[~fit], seed),

@@ -63,7 +63,9 @@ def _posterior_lines(report: dict[str, Any]) -> list[str]:
     lines += ["", f"Recalibrated: {', '.join(report['recalibrated']) or 'none'}. "
               f"Not identified (90 % interval wider than {report['identified']['max_width90']:.0%} of the range): "
               f"{', '.join(report['identified']['not_identified']) or 'none'}. "
-              f"Raw draws outside the box: {_pct(report['outside_box']['mean_outside_fraction'])} (rejected)."]
+              f"Raw draws outside the box: {_pct(report['outside_box']['mean_outside_fraction'])} (rejected); "
+              f"draws clipped into it: {_pct(report['outside_box'].get('clipped_share', 0.0))} "
+              f"({report['outside_box'].get('rows_with_clipping', 0)} rows)."]
     sw = report.get("swapped")
     if sw:
         w = sw["after"]
