@@ -340,7 +340,7 @@ def test_the_guide_example_runs_the_pipeline_export_and_invert(tmp_path) -> None
     validation = json.loads((out / "validate" / "validation.json").read_text())
     cma = [v for v in validation if v["optimizer"] == "cma_es"]
     assert len(cma) == 4 and not any(v["failure"] for v in cma)
-    assert np.mean([v["r_actual"] for v in cma]) > 0.6  # measured 0.92 at full size, 0.8-0.9 at these sizes
+    assert np.mean([v["r_actual"] for v in cma]) > 0.6  # measured 0.92 at full size, 0.91 at these sizes
     assert (out / "report" / "report.md").is_file()
     res = _cli(tmp_path, export)
     assert res.returncode == 0, res.stderr[-3000:]
