@@ -127,7 +127,11 @@ def run(
             secs = (summary or {}).get("wall_time_s", 0)
             console.print(f"[green]done {name}[/] in {secs:.1f} s")
 
+    from rich.console import Console
+
+    # -q: no progress, no stage or re-run lines (warnings stay); -qq: the runner's warnings go too
     summaries = run_spec(spec, out, stages=stage or None, force=force or (), progress=not (no_progress or quiet()),
-                         console=console, on_stage=on_stage)
+                         console=Console(stderr=True, quiet=True) if silent() else console, on_stage=on_stage,
+                         quiet=quiet())
     emit(summaries, as_json, lambda d: out_console.print(f"[green]finished[/]: {', '.join(d)} -> {escape(str(out))}"),
          status_only=True)
