@@ -175,3 +175,19 @@ def test_quiet_and_silent_levels(tmp_path) -> None:
     assert silent.returncode == 0 and silent.stdout == "" and silent.stderr == ""
     bad = cli("-qq", "run", "missing.yaml", "--out", "d")
     assert bad.returncode == 2 and bad.stderr.startswith("error:")
+
+
+def test_a_permission_or_read_only_error_is_the_users_one_line(monkeypatch) -> None:
+    """The environment refusing a write (read-only disk, no permission) is not a bug: exit 2, one line."""
+    import errno
+
+    import invphys.pipeline.runner as runner_module
+
+    def refuse(*args, **kwargs):
+        raise OSError(errno.EROFS, "Read-only file system", "/mnt/ro/run")
+
+    monkeypatch.setattr(runner_module, "run_spec", refuse)
+    result = runner.invoke(app, ["run", "spec.yaml", "--out", "/mnt/ro/run"])
+    assert result.exit_code == 2 and result.output.strip() == "error: /mnt/ro/run: Read-only file system"
+    monkeypatch.setattr(runner_module, "run_spec", lambda *a, **k: (_ for _ in ()).throw(OSError("other")))
+    assert runner.invoke(app, ["run", "spec.yaml", "--out", "x"]).exit_code == 1  # an OSError of ours: a bug

@@ -90,7 +90,8 @@ def run_spec(spec: str | Path | ExperimentSpec, out: str | Path, stages: Sequenc
     own_tracker = tracker is None
     tracker = tracker or create_tracker(getattr(spec, "tracker", None), out, run_name=spec.name)
     try:
-        tracker.log_params(spec_params(spec))
+        if hasattr(tracker, "log_params"):  # a duck-typed tracker of older code may lack it
+            tracker.log_params(spec_params(spec))
         _run_stages(spec, out, selected, force, progress, console, reg, on_stage, tracker, summaries, quiet)
     finally:
         if own_tracker:
@@ -182,6 +183,6 @@ def _track_stage(tracker: Any, stage: str, stage_dir: Path, summary: dict[str, A
         if path.is_file() and path.name != DONE_FILE:
             tracker.log_artifact(path, f"{stage}/{path.name}")
     figures = [*sorted(stage_dir.glob("*.png")), *sorted(stage_dir.glob("*/*.png"))][:MAX_IMAGES]
-    for path in figures:
+    for path in figures if hasattr(tracker, "log_image") else []:
         tracker.log_image(f"{stage}/{path.relative_to(stage_dir).with_suffix('').as_posix()}", path)
     tracker.flush()
