@@ -429,3 +429,20 @@ def test_the_extraction_timeout_is_a_setting_with_a_documented_default() -> None
         LocalExecutor(extract_timeout_s=0)
     with pytest.raises(InvphysError, match="timeout"):
         ExtractionPool({"type": FEATURES}, 1, timeout_s=-1)
+
+
+def test_the_validator_stops_a_stuck_extraction_at_its_timeout() -> None:
+    """The simulator validator's extraction processes take the same per-run timeout (it had the fixed default)."""
+    from invphys.plugins.validators.simulator import SimulatorValidator
+
+    sim = ToyOscillator(substeps=1)
+    unit = sim.parameter_space().normalize(_params(12))
+    val = SimulatorValidator(batch_size=5, extract_workers=2, extract_timeout_s=1.0)
+    assert "extract_timeout_s" in SimulatorValidator.identity_ignores  # a setting that changes no answer
+    got = val.simulate_features(unit, sim, SleepyFeatures(limit=0.5))
+    inline = val.__class__(batch_size=5).simulate_features(unit, sim, ToyFeatures())
+    stuck = [r for r, f in enumerate(got.failures) if f and "extraction took longer than 1 s" in f]
+    assert len(stuck) == 1 and inline.failures[stuck[0]] is None and np.isnan(got.features[stuck[0]]).all()
+    for r in set(range(12)) - set(stuck):  # every other run as extracted in the simulator's thread
+        assert got.failures[r] == inline.failures[r]
+        np.testing.assert_array_equal(got.features[r], inline.features[r])

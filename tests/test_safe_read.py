@@ -217,3 +217,18 @@ def test_limits_are_documented_numbers() -> None:
     assert safe_read.DEFAULT_MAX_BYTES == 32 << 20 and safe_read.YAML_MAX_BYTES == 4 << 20
     assert safe_read.NPZ_MAX_BYTES == 2 << 30 and safe_read.NPZ_MAX_UNPACKED == 4 << 30
     assert isinstance(UserFileError("target file", Path("t.csv"), "x"), InvphysError)
+
+
+def test_a_large_limit_costs_no_memory_of_its_own(tmp_path: Path) -> None:
+    """Reading a small file under a 2 GiB limit must not allocate the limit (a process capped at 1 GiB)."""
+    import subprocess
+    import sys
+
+    small = tmp_path / "small.bin"
+    small.write_bytes(b"x" * 1000)
+    code = ("import resource; resource.setrlimit(resource.RLIMIT_AS, (1 << 30, 1 << 30)); "
+            "from invphys.core.safe_read import read_user_bytes; "
+            f"print(len(read_user_bytes({str(small)!r}, what='file', max_bytes=2 << 30)))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-500:]
+    assert out.stdout.strip() == "1000"

@@ -101,6 +101,17 @@ def check_regular_file(path: str | os.PathLike[str], *, what: str, max_bytes: in
     return p
 
 
+def _read_at_most(fh: Any, limit: int, chunk: int = 1 << 20) -> bytes:
+    """Up to ``limit`` bytes in chunks: memory grows with what the file holds, never with the limit."""
+    out = bytearray()
+    while len(out) < limit:
+        block = fh.read(min(chunk, limit - len(out)))
+        if not block:
+            break
+        out += block
+    return bytes(out)
+
+
 def read_user_bytes(path: str | os.PathLike[str], *, what: str, max_bytes: int = DEFAULT_MAX_BYTES) -> bytes:
     """The bytes of a regular file of at most ``max_bytes`` (:func:`check_regular_file`); the read stops
     at the limit, so a file that grows meanwhile is refused too."""
@@ -110,7 +121,7 @@ def read_user_bytes(path: str | os.PathLike[str], *, what: str, max_bytes: int =
         with os.fdopen(fd, "rb") as fh:
             if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):  # swapped for a FIFO after the stat
                 raise UserFileError(what, p, "not a regular file (a device, pipe or socket)")
-            data = fh.read(max_bytes + 1)
+            data = _read_at_most(fh, max_bytes + 1)
     except OSError as exc:
         raise _oserror(what, p, exc) from None
     if len(data) > max_bytes:

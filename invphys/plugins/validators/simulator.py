@@ -13,6 +13,7 @@ from invphys.core.errors import InvphysError, SimulationFailed
 from invphys.core.interfaces import FeatureExtractor, PluginConfig, Simulator, Validator
 from invphys.core.objectives import recovery_reward
 from invphys.core.results import RunStats, SimulationResult, ValidationRecord
+from invphys.plugins.executors._extract_pool import DEFAULT_TIMEOUT_S
 
 
 @dataclass
@@ -36,7 +37,7 @@ class SimulatorValidator(Validator):
 
     name: ClassVar[str] = "simulator"
     #: settings that change how fast validation goes, not its results: left out of the stage keys
-    identity_ignores: ClassVar[tuple[str, ...]] = ("batch_size", "extract_workers")
+    identity_ignores: ClassVar[tuple[str, ...]] = ("batch_size", "extract_workers", "extract_timeout_s")
 
     class Config(PluginConfig):
         overrides: dict[str, Any] = Field(default_factory=dict,
@@ -46,6 +47,9 @@ class SimulatorValidator(Validator):
         extract_workers: int = Field(0, ge=0, le=256,
                                      description="extract features in this many worker processes while the "
                                                  "simulator goes on (0: in the simulator's thread)")
+        extract_timeout_s: float | None = Field(
+            DEFAULT_TIMEOUT_S, gt=0, description="seconds one run's extraction may take in an extraction process "
+                                                 "before the run is a recorded failure (None: no limit)")
 
     def simulator_for(self, simulator: Simulator) -> Simulator:
         """``simulator`` itself, or a copy with ``overrides`` applied (validated by its Config)."""
@@ -148,7 +152,8 @@ class SimulatorValidator(Validator):
                extractor.config.model_dump_json() if getattr(extractor, "config", None) is not None else "")
         pools = self.__dict__.setdefault("_pools", {})
         if key not in pools:
-            pools[key] = ExtractionPool(extractor, self.config.extract_workers)
+            pools[key] = ExtractionPool(extractor, self.config.extract_workers,
+                                         timeout_s=self.config.extract_timeout_s)
         return pools[key]
 
     @staticmethod
