@@ -53,7 +53,7 @@ def run_dir(tmp_path_factory):
 def test_report_json_has_the_protocol_shape_with_baselines(run_dir) -> None:
     out, _ = run_dir
     text = (out / "report" / "report.json").read_text()
-    assert "\n" not in text  # compact: committed reports count against a GPU call's carry
+    assert "\n" not in text  # compact: one line (committed reports stay small)
     rep = json.loads(text)
     opt = rep["optimizers"]
     assert set(opt) == {"cma", "nearest_neighbour", "nn5", "npe", "sil", "cma_pen", "noise_floor", "active_learning"}

@@ -13,7 +13,7 @@ import typer
 
 from invphys.cli.common import configure_logging, debug_enabled, exit_code_for, interrupted, set_debug
 
-COMMAND_MODULES: tuple[str, ...] = ("core", "dataset", "simulate", "render", "invert", "export")
+COMMAND_MODULES: tuple[str, ...] = ("core", "dataset", "simulate", "render", "invert", "export", "diagnose")
 
 app = typer.Typer(
     name="invphys",

@@ -18,7 +18,7 @@ round number), so the store reads, verifies and joins like any other.
 
 Why: on the orange peel's paper preset, two adaptive designs of 1,600 runs (800 uniform + 4 rounds of 200)
 gave the shipped surrogate R^2 0.941-0.947 on 2,000 uniform test runs, against 0.925-0.938 for five uniform
-designs of 1,600 runs (``results/orange_peel_paper_surrogate/v030/design/``).
+designs of 1,600 runs (docs/results.md).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The evaluation protocol (docs/evaluation.md, ../shared/design/evaluation-protocol.md).
+"""The evaluation protocol (docs/evaluation.md).
 
 * :mod:`~invphys.evaluation.stats`: bootstrap intervals of means and of paired differences;
 * :mod:`~invphys.evaluation.protocol`: the per-method summary of ``report.json`` (R_actual with its

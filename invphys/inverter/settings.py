@@ -15,7 +15,7 @@ from invphys.core.errors import InvphysError
 
 #: polish's CMA-ES step in [0, 1]^d: the simulator is sharp in its parameters (orange peel, paper
 #: preset: sigma0 0.05 improved 13 of 62 targets in its first generation; 0.012 improved 31 of 35 in
-#: three generations, none got worse; results/orange_peel_paper_active_polish)
+#: three generations, none got worse; docs/results.md)
 POLISH_SIGMA0 = 0.012
 
 

@@ -29,7 +29,7 @@ class EnsembleSurrogate(MLPSurrogate, Surrogate):
     LEGACY: ClassVar[dict[str, Any]] = {**MLPSurrogate.LEGACY, "member_splits": False}
 
     class Config(MLPSurrogate.Config):
-        # Defaults measured best on the orange-peel paper data (results/orange_peel_paper_surrogate/):
+        # Defaults measured best on the orange-peel paper data (docs/results.md):
         # SiLU, no batch norm or dropout, AdamW with a one-cycle cosine schedule, best epoch kept.
         # ``activation=relu, batch_norm=true, dropout=0.1, optimizer=adam, schedule=constant, lr=1e-3,
         # max_epochs=1000, patience=50`` gives K copies of the paper's MLP.
