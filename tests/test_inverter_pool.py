@@ -138,7 +138,8 @@ def test_draws_made_together_are_those_made_alone(inv, rows) -> None:
         assert together[i][1:] == alone[1:]
 
 
-@pytest.mark.parametrize("bad", [{"draws": 0}, {"step": 0.0}, {"lam": -1.0}, {"moves": 1.5}])
+@pytest.mark.parametrize("bad", [{"draws": 0}, {"step": 0.0}, {"lam": -1.0}, {"moves": 1.5}, {"step": "x"},
+                                 {"lam": float("nan")}])
 def test_bad_pool_settings_are_refused(inv, bad) -> None:
     from invphys.inverter.pool import PoolSettings
 

@@ -34,7 +34,8 @@ POOL_METHOD = "pool"
 
 @dataclass(frozen=True)
 class PoolSettings:
-    """How a pool is built and scored (defaults: the measured winner, docs/inverting.md)."""
+    """How a pool is built and scored. Defaults: the best of the variants measured on the fresh
+    user-like sets on the CPU (docs/inverting.md); validation on the simulator decides what is claimed."""
 
     draws: int = 64
     neighbours: int = 16
@@ -44,16 +45,15 @@ class PoolSettings:
     lam: float = 0.5
 
     def checked(self) -> PoolSettings:
-        for name in ("draws", "neighbours", "moves", "starts"):
+        """``self``, or :class:`InvphysError` naming the first setting out of range."""
+        for name, low in (("draws", 1), ("neighbours", 0), ("moves", 0), ("starts", 1)):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < (1 if name in ("draws", "starts")
-                                                                                   else 0):
-                raise InvphysError(f"pool {name} must be a whole number >= {1 if name in ('draws', 'starts') else 0}, "
-                                   f"got {v!r}")
-        if not (0 < float(self.step) <= 0.5):
-            raise InvphysError(f"pool step must be in (0, 0.5], got {self.step!r}")
-        if not float(self.lam) >= 0:
-            raise InvphysError(f"pool lam must be >= 0, got {self.lam!r}")
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
+                raise InvphysError(f"pool {name} must be a whole number >= {low}, got {v!r}")
+        for name, ok, rule in (("step", lambda x: 0 < x <= 0.5, "in (0, 0.5]"), ("lam", lambda x: x >= 0, ">= 0")):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.number)) or not ok(float(v)):
+                raise InvphysError(f"pool {name} must be a number {rule}, got {v!r}")
         return self
 
     def with_(self, **kw: Any) -> PoolSettings:
