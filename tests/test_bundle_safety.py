@@ -407,3 +407,20 @@ def test_a_failed_export_leaves_the_old_destination_intact(toy, bundle, tmp_path
     monkeypatch.undo()
     writer.copy_bundle(bundle, out, read_manifest(bundle)["files"])  # --force: the new bundle replaces it
     assert (out / "policies" / "npe" / "npe.json").is_file() and snapshot(out) != before
+
+
+def test_a_bundle_cannot_name_a_module_for_invphys_to_import(bundle, target_file, tmp_path) -> None:
+    """'module:Class' plugin names import code: a bundle's methods and components may name only installed
+    plugins, and a module-path simulator that is not imported already is not loaded."""
+    marker = tmp_path / "ran.txt"
+    (bundle / "evil_plugin.py").write_text(f"open({str(marker)!r}, 'w').write('ran')\n")
+    _edit(bundle, lambda m: m["methods"]["cma"].update(type="evil_plugin:Optimizer"))
+    res = subprocess.run([sys.executable, "-c", "from invphys.cli import main; main()", "invert", ".", "--target",
+                          str(target_file), "--method", "cma"], capture_output=True, text=True, cwd=bundle, timeout=300)
+    one_error(res, "methods.cma.type = 'evil_plugin:Optimizer' is a module path")
+    _edit(bundle, lambda m: (m["methods"]["cma"].update(type="cma_es"),
+                             m["simulator"].update(name="evil_plugin:Simulator")))
+    res = subprocess.run([sys.executable, "-c", "from invphys.cli import main; main()", "invert", ".", "--target",
+                          str(target_file), "--json"], capture_output=True, text=True, cwd=bundle, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert not marker.exists()

@@ -29,6 +29,7 @@ from invphys.inverter.manifest import (
     part_path,
     python_mismatch,
     read_manifest,
+    unimported_code_path,
 )
 from invphys.inverter.numeric import Program
 
@@ -188,6 +189,9 @@ class Bundle:
         sim = self.manifest["simulator"]
         problems: list[str] = []
         notes: list[str] = []
+        if unimported_code_path(sim["name"]):  # importing it would run code the bundle names
+            return [f"simulator {sim['name']!r} is a module path that is not imported, so it is not loaded: "
+                    f"inversion works, validation does not"]
         try:
             info = self.registry.info("simulator", sim["name"])
         except InvphysError:
@@ -199,7 +203,7 @@ class Bundle:
                             f"the installed one is {installed}: retrain the bundle, or load it anyway with --allow-mismatch "
                             f"(Python: strict=False)")
         block = self.manifest["features"].get("extractor") or {}
-        if block.get("type") and not problems:
+        if block.get("type") and not problems and not unimported_code_path(block.get("type")):
             try:
                 names = tuple(self.registry.create("feature_extractor", block).feature_names)
             except Exception as exc:  # a plugin failing to build is reported, not fatal here

@@ -278,11 +278,36 @@ def check_keys(data: dict[str, Any], path: Path) -> None:
                          ("system_info", data.get("system_info"))):
         if node is not None and not isinstance(node, dict):
             raise BundleError(f"{path}: {dotted} must be a mapping")
+    _check_types(data, path)
     default = data.get("default_method")
     if default is not None and (not isinstance(default, str) or default not in data["methods"]):
         raise BundleError(f"{path}: default_method {default!r} names no method of the bundle")
     if not isinstance(data["components"].get("latents") or {}, dict):
         raise BundleError(f"{path}: components.latents must be a mapping")
+
+
+def unimported_code_path(name: Any) -> str | None:
+    """The module a ``module:Class`` plugin name would import, when that module is not imported yet (None
+    for a registered plugin name, or a module the process already imported). A bundle naming such a path
+    would run that module's code on load: :func:`check_keys` refuses it for components and methods, and
+    the simulator and extractor checks skip it."""
+    if not isinstance(name, str) or ":" not in name:
+        return None
+    module = name.split(":", 1)[0]
+    return None if module in sys.modules else module
+
+
+def _check_types(data: dict[str, Any], path: Path) -> None:
+    comps = data["components"]
+    named = [("components.surrogate.type", comps["surrogate"].get("type"))]
+    named += [(f"components.latents.{k}.type", v.get("type")) for k, v in (comps.get("latents") or {}).items()
+              if isinstance(v, dict)]
+    named += [(f"methods.{k}.type", v.get("type")) for k, v in data["methods"].items()]
+    for dotted, name in named:
+        module = unimported_code_path(name)
+        if module:
+            raise BundleError(f"{path}: {dotted} = {name!r} is a module path: loading it would import and run "
+                              f"{module}; a bundle may name only installed plugins")
 
 
 def part_path(root: Path, rel: Any, what: str) -> Path:
