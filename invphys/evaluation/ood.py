@@ -142,14 +142,14 @@ def ood_threshold(bundle: Any, diagnostics: dict[str, Any] | None = None) -> flo
 
 def load_diagnostics(bundle: Any) -> dict[str, Any] | None:
     """The numbers answers use (``diagnostics/calibration.json`` of the bundle), or None."""
-    import json
+    from invphys.core.safe_read import UserFileError, load_user_json
 
     path = bundle.root / "diagnostics" / "calibration.json"
     if not path.is_file():
         return None
     try:
-        data = json.loads(path.read_text())
-    except (ValueError, UnicodeDecodeError):
+        data = load_user_json(path, what="bundle diagnostics")
+    except UserFileError:
         data = None
     if not isinstance(data, dict):
         raise TargetError(f"bundle {bundle.root}: {path.name} in diagnostics/ is not a JSON object; "

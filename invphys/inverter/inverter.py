@@ -26,6 +26,7 @@ from invphys.core.errors import InvphysError, did_you_mean
 from invphys.core.user_targets import UserTargets, from_array, from_mappings
 from invphys.inverter.answers import MethodAnswers, quiet_cma
 from invphys.inverter.bundle import Bundle
+from invphys.inverter.diagnosed import feature_std, ood_warning, recalibrated
 from invphys.inverter.draws import PosteriorDraws
 from invphys.inverter.objective import MaskedRecovery, masked_recovery
 from invphys.inverter.pool import POOL_METHOD, PoolSettings
@@ -348,12 +349,16 @@ class Inverter:
         values, mask = t.values[i], t.mask[i]
         (thetas, sources, spent), unc = ans
         unc.level = level
+        if unc.kind == "posterior" and unc.has_draws:
+            unc.draws, unc.recalibrated = recalibrated(self.bundle, unc.draws)
         cands = self._select(thetas, sources, values, mask, top_k, float(getattr(answers, "lam", 0.0)))
         if refine:
             cands, extra = self._refine(cands, values, mask, refine, target_seed(seed, answers.label, values, mask,
                                                                                   "refine"))
             spent += extra
-        warn = self._warnings(values, mask) + answer_warnings(unc, self.parameter_names, cands[0].theta, mask)
+        self._calibrate_error_bars(cands)
+        warn = (self._warnings(values, mask) + ood_warning(self.bundle, values, mask)
+                + answer_warnings(unc, self.parameter_names, cands[0].theta, mask))
         return InversionResult(
             label=t.labels[i], method=answers.label, target=values, mask=mask, candidates=cands,
             parameter_names=self.parameter_names, parameter_units=tuple(p.unit for p in self.bundle.space.parameters),
@@ -393,6 +398,13 @@ class Inverter:
         return learns_from_rows(self.bundle.registry.get("optimizer", entry["type"]))
 
     # -- candidates ---------------------------------------------------------------------------------
+    def _calibrate_error_bars(self, cands: list[Candidate]) -> list[Candidate]:
+        """The error bars an answer shows: the ensemble's std, calibrated where the bundle holds diagnostics
+        (after choosing, which keeps the ensemble's own spread)."""
+        for c in cands:
+            c.std = feature_std(self.bundle, c.std[None, :])[0]
+        return cands
+
     def _candidates(self, thetas: np.ndarray, sources: list[str], target: np.ndarray, mask: np.ndarray
                     ) -> list[Candidate]:
         thetas = np.clip(np.atleast_2d(thetas), 0.0, 1.0)
@@ -455,7 +467,7 @@ class Inverter:
         else:
             phys = space.from_mapping(parameters) if isinstance(parameters, Mapping) else space.check(parameters)
             theta = space.normalize(phys).reshape(1, -1)
-        cands = self._candidates(theta, [label], t.values[0], t.mask[0])
+        cands = self._calibrate_error_bars(self._candidates(theta, [label], t.values[0], t.mask[0]))
         return InversionResult(label=t.labels[0], method=label, target=t.values[0], mask=t.mask[0], candidates=cands,
                                parameter_names=self.parameter_names,
                                parameter_units=tuple(p.unit for p in space.parameters),

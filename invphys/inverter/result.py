@@ -182,7 +182,8 @@ class InversionResult:
                   for (n, (lo, m, hi)), unit in zip(iv.items(), self.parameter_units, strict=True)}
         block: dict[str, Any] = {"level": u.level, "draws": len(u.draws), "parameters": params}
         if u.kind == "posterior":
-            block.update(outside_fraction=_f(u.outside_fraction), clipped=int(u.clipped), completions=u.completions)
+            block.update(outside_fraction=_f(u.outside_fraction), clipped=int(u.clipped), completions=u.completions,
+                         recalibrated=u.recalibrated)
             out["posterior"] = block
         else:
             out[u.kind] = {**block, "note": u.note}

@@ -147,7 +147,8 @@ def _apply(inv: Any, r: InversionResult, start: Candidate, i: int, pol: Any, pol
         moved = True
         improved = bool(polished and np.isfinite(new_r) and not new_r <= r0)
     if improved:
-        cand = inv._candidates(new_theta[None, :], [f"{start.source} + polish"], r.target, r.mask)[0]
+        cand = inv._calibrate_error_bars(inv._candidates(new_theta[None, :], [f"{start.source} + polish"], r.target,
+                                                         r.mask))[0]
         cand.actual, cand.r_actual = new_feats.copy(), float(new_r)
         cand.gap = cand.r_surrogate - cand.r_actual
         r.candidates.insert(0, cand)

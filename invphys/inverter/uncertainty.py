@@ -52,6 +52,8 @@ class Uncertainty:
     clipped: int = 0
     completions: int = 1
     note: str = ""
+    #: the draws were corrected by the bundle's stored recalibration (``invphys diagnose --write``)
+    recalibrated: bool = False
 
     @property
     def has_draws(self) -> bool:

@@ -1,0 +1,78 @@
+"""Answers of a bundle that holds diagnostics (``invphys diagnose --write``): recalibrated intervals,
+calibrated surrogate error bars, and the out-of-distribution warning; a planted unlisted file is refused."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_inverter_support import paper_bundle
+
+from invphys.core.errors import InvphysError
+
+CALIBRATION = Path(__file__).resolve().parent / "data" / "paper_calibration.json"
+
+
+@pytest.fixture(scope="module")
+def bundles(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    from invphys.inverter.manifest import file_hashes, read_manifest, write_manifest
+
+    plain = paper_bundle(tmp_path_factory.mktemp("plain"))
+    diag = tmp_path_factory.mktemp("diag") / "bundle"
+    shutil.copytree(plain, diag)
+    (diag / "diagnostics").mkdir()
+    shutil.copy(CALIBRATION, diag / "diagnostics" / "calibration.json")
+    manifest = read_manifest(diag, verify=False)
+    manifest["files"] = file_hashes(diag)
+    write_manifest(diag, manifest)
+    return plain, diag
+
+
+def _answer(root: Path, y: np.ndarray) -> object:
+    from invphys.inverter import load_inverter
+
+    return load_inverter(root).invert(y, method="npe_best64", seed=3)
+
+
+def test_intervals_are_recalibrated_and_error_bars_scaled(bundles) -> None:
+    from invphys.inverter import load_inverter
+
+    plain, diag = bundles
+    _, y = load_inverter(plain).bundle.data("test")
+    a, b = _answer(plain, y[0]), _answer(diag, y[0])
+    assert a.to_dict()["posterior"]["recalibrated"] is False and b.to_dict()["posterior"]["recalibrated"] is True
+    np.testing.assert_array_equal(a.theta, b.theta)  # the answer itself is the posterior's own
+    ia, ib = a.interval(0.9), b.interval(0.9)  # the intervals move with the stored correction
+    assert any(not np.allclose(ia[n], ib[n]) for n in ia)
+    scales = json.loads(CALIBRATION.read_text())["surrogate_error_scales"]["scales"]
+    np.testing.assert_allclose(b.best.std, a.best.std * np.asarray(scales), rtol=1e-9)
+
+
+def test_a_target_far_from_the_training_data_is_warned_and_a_typical_one_not(bundles) -> None:
+    from invphys.inverter import load_inverter
+
+    plain, diag = bundles
+    inv = load_inverter(diag)
+    _, y = inv.bundle.data("test")
+    std = np.asarray(inv.bundle.manifest["features"]["std"])
+    typical, far = _answer(diag, y[1]), _answer(diag, y[1] + 6.0 * std)
+    assert not any("unusual target" in w for w in typical.warnings)
+    assert any("unusual target" in w for w in far.warnings)
+    assert not any("unusual target" in w for w in _answer(plain, y[1] + 6.0 * std).warnings)  # no diagnostics
+
+
+def test_diagnostics_not_covered_by_the_manifest_are_refused(bundles, tmp_path: Path) -> None:
+    """A diagnostics file dropped into a bundle without its checksum (one that silences every warning, say)
+    is refused instead of trusted."""
+    plain, _ = bundles
+    planted = tmp_path / "planted"
+    shutil.copytree(plain, planted)
+    data = json.loads(CALIBRATION.read_text())
+    data["ood"]["threshold"] = 1e9
+    (planted / "diagnostics").mkdir()
+    (planted / "diagnostics" / "calibration.json").write_text(json.dumps(data))
+    with pytest.raises(InvphysError, match=r"calibration\.json"):
+        _answer(planted, np.zeros(12))
