@@ -424,3 +424,11 @@ def test_a_bundle_cannot_name_a_module_for_invphys_to_import(bundle, target_file
                           str(target_file), "--json"], capture_output=True, text=True, cwd=bundle, timeout=300)
     assert res.returncode == 0, res.stderr
     assert not marker.exists()
+
+
+def test_a_method_config_its_plugin_rejects_is_one_line_at_load(bundle) -> None:
+    from invphys.inverter import BundleError, load_inverter
+
+    _edit(bundle, lambda m: m["methods"]["npe"]["config"].update(samples="many"))
+    with pytest.raises(BundleError, match=r"methods\.npe\.config\.samples: Input should be a valid integer"):
+        load_inverter(bundle)

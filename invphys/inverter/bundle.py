@@ -107,6 +107,7 @@ class Bundle:
             raise BundleError(f"{self.root}: the manifest's parameter_space is malformed ({exc})") from None
         self._read_features(m["features"])
         self._check_parts()
+        self._check_method_configs()
         msg = python_mismatch(m.get("system_info") or {})
         if msg:
             warnings.warn(msg, stacklevel=3)
@@ -157,6 +158,25 @@ class Bundle:
         for what, rel in parts:
             if rel is not None:
                 check_covered(self.root, rel, files, what)
+
+    def _check_method_configs(self) -> None:
+        """Each method's config is valid for its (installed) plugin: one line naming the key, not later."""
+        from pydantic import ValidationError
+
+        for label, entry in self.methods.items():
+            try:
+                cls = self.registry.get("optimizer", entry["type"])
+            except InvphysError:
+                continue  # not installed: using the method says so
+            try:
+                cls.Config(**entry.get("config", {}))
+            except ValidationError as exc:
+                err = exc.errors()[0]
+                key = ".".join(str(k) for k in err.get("loc", ())) or "config"
+                raise BundleError(f"{self.root / 'manifest.yaml'}: methods.{label}.config.{key}: "
+                                  f"{err.get('msg', 'invalid')}") from None
+            except TypeError as exc:
+                raise BundleError(f"{self.root / 'manifest.yaml'}: methods.{label}.config: {exc}") from None
 
     def part(self, rel: str, what: str) -> Path:
         """The bundle file ``rel`` (inside the bundle and listed in the manifest's files)."""
