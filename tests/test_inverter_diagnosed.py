@@ -20,14 +20,19 @@ CALIBRATION = Path(__file__).resolve().parent / "data" / "paper_calibration.json
 def bundles(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     from invphys.inverter.manifest import file_hashes, read_manifest, write_manifest
 
-    plain = paper_bundle(tmp_path_factory.mktemp("plain"))
+    def rehash(root: Path) -> None:
+        manifest = read_manifest(root, verify=False)
+        manifest["files"] = file_hashes(root)
+        write_manifest(root, manifest)
+
+    plain = paper_bundle(tmp_path_factory.mktemp("plain"))  # without diagnostics (the shipped one has its own)
+    shutil.rmtree(plain / "diagnostics", ignore_errors=True)
+    rehash(plain)
     diag = tmp_path_factory.mktemp("diag") / "bundle"
     shutil.copytree(plain, diag)
     (diag / "diagnostics").mkdir()
     shutil.copy(CALIBRATION, diag / "diagnostics" / "calibration.json")
-    manifest = read_manifest(diag, verify=False)
-    manifest["files"] = file_hashes(diag)
-    write_manifest(diag, manifest)
+    rehash(diag)
     return plain, diag
 
 
