@@ -169,7 +169,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--bundle", required=True, help="the bundle that answers (its scales and simulator score)")
     p.add_argument("--targets", nargs="+", required=True, help="NAME=STORE: a set of fresh simulations")
     p.add_argument("--all-data", nargs="*", default=[], help="every store of the bundle's simulator version")
-    p.add_argument("--methods", nargs="+", default=None, help="bundle methods (default: the bundle's default)")
+    p.add_argument("--methods", nargs="+", default=None,
+                   help="bundle methods (default: the bundle's default); with --answers-in: the files' methods to score")
     p.add_argument("--validate", action="store_true", help="re-simulate every answer (a GPU for the paper preset)")
     p.add_argument("--sim-option", nargs="*", default=[], help="KEY=VALUE simulator overrides (e.g. arch=cpu)")
     p.add_argument("--sim-batch", type=int, default=64)
@@ -204,6 +205,8 @@ def main(argv: list[str] | None = None) -> int:
 
     inv = load_inverter(a.bundle)
     given = _given(a.answers_in)
+    if a.answers_in and a.methods:  # score only these of the files' methods
+        given = {k: {m: r for m, r in v.items() if m in a.methods} for k, v in given.items()}
     methods = [] if a.answers_in else (a.methods or [inv.default_method])
     overrides = dict(kv.split("=", 1) for kv in a.sim_option)
     result: dict[str, Any] = {"benchmark": "user_targets", "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),

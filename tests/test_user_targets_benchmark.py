@@ -52,6 +52,10 @@ def test_answers_written_on_one_machine_are_scored_on_another(tmp_path: Path) ->
     before = json.loads(first.read_text())["sets"]["quick"]["methods"]["gc_ppo_vae"]
     assert rows["a:gc_ppo_vae"]["r_mean"] == before["r_mean"]  # the same parameters, the same scores
     assert rows["a:gc_ppo_vae"]["theta_error"] == before["theta_error"] and rows["truth"]["theta_error"] == 0.0
+    only = tmp_path / "only.json"
+    assert bench.main([*common, "--answers-in", str(answers), str(other), "--methods", "b:gc_ppo_vae",
+                       "--out", str(only)]) == 0
+    assert set(json.loads(only.read_text())["sets"]["quick"]["methods"]) == {"b:gc_ppo_vae", "truth"}
     # a file that is not an answers file, or a label given twice, is refused
     import pytest
 
