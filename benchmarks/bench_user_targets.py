@@ -224,6 +224,9 @@ def main(argv: list[str] | None = None) -> int:
             arrays.y, arrays.theta = arrays.y[: a.limit], arrays.theta[: a.limit]
         if a.answers_in and name not in given:
             raise SystemExit(f"error: the answers files hold no set {name!r}")
+        if a.answers_in and a.limit:  # the files answer the whole store: their first N answers
+            given[name] = {m: {"theta": r["theta"][: a.limit], "warnings": (r.get("warnings") or [])[: a.limit] or None}
+                           for m, r in given[name].items()}
         print(f"{name}: {len(arrays.y)} targets from {path}", file=sys.stderr)
         timing: dict[str, float] = {}
         answers = _answers(inv, arrays, methods, a.all_data, a.seed, given.get(name), timing)
