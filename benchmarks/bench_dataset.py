@@ -82,7 +82,7 @@ def bench(preset: str, n: int, batch_size: int, executors: list[str], workers: i
           time_split: bool = False, host_profile: bool = False) -> dict:
     import pandas as pd
 
-    from invphys.core.generate import generate_dataset
+    from invphys.data.generate import generate_dataset
 
     sim = {"type": simulator_type, "preset": preset, "arch": arch, "backend": backend,
            "batch_size": batch_size}

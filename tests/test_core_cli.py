@@ -158,7 +158,7 @@ def test_schema_out_a_directory_or_under_a_file_is_one_line(tmp_path) -> None:
 
 
 def test_dataset_verify_of_a_damaged_store_exits_2_with_an_error_line(tmp_path) -> None:
-    from invphys.core.generate import generate_dataset
+    from invphys.data.generate import generate_dataset
 
     store = tmp_path / "store"
     generate_dataset(store, {"type": "test_dataset_toy:ToyOscillator", "n_frames": 10}, n=8, batch_size=4,

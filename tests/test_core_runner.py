@@ -66,7 +66,7 @@ def test_train_reruns_when_its_dataset_changes_and_says_why(tmp_path):
     read it, even though the spec did not change."""
     from rich.console import Console
 
-    from invphys.core.generate import generate_dataset
+    from invphys.data.generate import generate_dataset
 
     store = tmp_path / "store"
     sim = {"type": "test_dataset_toy:ToyOscillator", "n_frames": 10}

@@ -23,12 +23,12 @@ import yaml
 from invphys.core.adaptive import PLAN_FILE, pick_spread
 from invphys.core.dataset import DatasetStore
 from invphys.core.errors import InvphysError
-from invphys.core.generate import generate_dataset
 from invphys.core.interfaces import FeatureExtractor, PluginConfig, Simulator
 from invphys.core.params import Parameter, ParameterSpace
 from invphys.core.results import RunStats, SimulationResult, TimeSeries, Trajectory
 from invphys.core.sampling import sample_unit
 from invphys.core.spec import validate_spec
+from invphys.data.generate import generate_dataset
 
 TESTS = str(Path(__file__).resolve().parent)
 SIM = "test_dataset_adaptive:FrontSim"

@@ -11,7 +11,7 @@ from test_dataset_toy import FEATURES, SIM, ToyOscillator
 
 from invphys.core.dataset import DatasetStore
 from invphys.core.errors import InvphysError
-from invphys.core.generate import generate_dataset
+from invphys.data.generate import generate_dataset
 
 
 class CostedToy(ToyOscillator):

@@ -11,7 +11,7 @@ from test_dataset_toy import FEATURES, SIM, ToyOscillator
 
 from invphys import registry
 from invphys.core.dataset import DatasetStore
-from invphys.core.generate import generate_dataset
+from invphys.data.generate import generate_dataset
 from invphys.plugins.executors import LocalExecutor, ProcessExecutor, RayExecutor
 
 TESTS = str(Path(__file__).resolve().parent)

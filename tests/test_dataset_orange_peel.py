@@ -9,7 +9,7 @@ import pytest
 
 from invphys import registry
 from invphys.core.dataset import DatasetStore, RunIdentity
-from invphys.core.generate import generate_dataset
+from invphys.data.generate import generate_dataset
 from invphys.registry import AUTOLOAD_ENV
 
 pytest.importorskip("invphys_orange_peel")

@@ -19,8 +19,8 @@ from typer.testing import CliRunner
 
 from invphys.cli import app
 from invphys.core.dataset import DatasetStore, RunIdentity, round_theta, row_keys
-from invphys.core.generate import generate_dataset
 from invphys.core.sampling import sample_unit
+from invphys.data.generate import generate_dataset
 
 TESTS = str(Path(__file__).resolve().parent)
 N = 48

@@ -24,9 +24,9 @@ from invphys.core.dataset import (
     row_keys,
 )
 from invphys.core.errors import InvphysError
-from invphys.core.generate import generate_dataset
 from invphys.core.results import RunStats, SimulationResult
 from invphys.core.sampling import sample_unit
+from invphys.data.generate import generate_dataset
 
 IDENT = RunIdentity("toy_oscillator", "tiny", "numpy", "1")
 

@@ -18,7 +18,7 @@ from invphys import registry
 from invphys.cli import app
 from invphys.core.dataset import DatasetStore
 from invphys.core.errors import InvphysError
-from invphys.core.generate import generate_dataset
+from invphys.data.generate import generate_dataset
 from invphys.plugins.executors import LocalExecutor, RayActorsExecutor
 
 TESTS = str(Path(__file__).resolve().parent)

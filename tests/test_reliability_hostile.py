@@ -214,7 +214,7 @@ STORE_CASES = {
 
 @pytest.fixture(scope="module")
 def pristine_store(tmp_path_factory) -> Path:
-    from invphys.core.generate import generate_dataset
+    from invphys.data.generate import generate_dataset
 
     path = tmp_path_factory.mktemp("hostile") / "store"
     generate_dataset(path, {"type": SIM, "n_frames": 10}, n=12, batch_size=4, seed=2, progress=False)

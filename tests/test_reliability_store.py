@@ -29,7 +29,7 @@ from invphys.core.dataset import (
     RunIdentity,
     row_key,
 )
-from invphys.core.generate import generate_dataset
+from invphys.data.generate import generate_dataset
 
 N, BATCH = 12, 4
 

@@ -32,8 +32,8 @@ def generate(
     as_json: bool = typer.Option(False, "--json", help="print the summary as JSON"),
 ) -> None:
     """Simulate the spec's dataset into a resumable store: re-running skips rows already stored."""
-    from invphys.core.generate import generate_from_spec
     from invphys.core.spec import check_output_directory, load_spec
+    from invphys.data.generate import generate_from_spec
 
     s = load_spec(spec)
     updates: dict[str, Any] = {}

@@ -102,7 +102,7 @@ class ExtraStore(_Section):
 
 class AdaptiveSection(_Section):
     """``dataset.adaptive``: generate part of the dataset where a surrogate is least sure
-    (:mod:`invphys.core.adaptive`)."""
+    (:mod:`invphys.data.adaptive`)."""
 
     initial: int | None = Field(None, gt=0, description="runs of the sampler's design first (default: a stored plan's when the design grows, else n // 2)")
     rounds: int = Field(4, ge=1, le=100, description="rounds the remaining runs are split into")

@@ -36,7 +36,7 @@ def run(ctx: StageContext) -> dict[str, Any]:
         return {"path": str(path), "generated": False, "rows": info["rows"], "ok": info["ok"],
                 "failed": info["failed"], "fingerprint": info["fingerprint"]}
 
-    from invphys.core.generate import generate_dataset
+    from invphys.data.generate import generate_dataset
 
     ds = spec.dataset
     summary = generate_dataset(

@@ -2,7 +2,7 @@
 
 :func:`generate_dataset` is what ``invphys dataset generate`` and the ``dataset`` stage run::
 
-    from invphys.core.generate import generate_dataset
+    from invphys.data.generate import generate_dataset
     summary = generate_dataset("data/peel", simulator={"type": "orange_peel", "preset": "tiny"},
                                n=64, batch_size=8, executor={"type": "process", "workers": 2})
     print(summary.ok, summary.failed, summary.runs_per_hour)
@@ -182,7 +182,7 @@ def generate_dataset(
     is recorded in the metadata.
 
     ``adaptive`` (a ``dataset.adaptive`` block) generates the first ``adaptive.initial`` runs by the
-    sampler and the rest in rounds where a surrogate is least sure (:mod:`invphys.core.adaptive`).
+    sampler and the rest in rounds where a surrogate is least sure (:mod:`invphys.data.adaptive`).
     ``points`` (unit-cube rows) replaces the sampler's design by these points, stored with sample
     indices from ``index_offset``; ``design`` is recorded in the session (both are what the adaptive
     rounds use).
@@ -190,12 +190,13 @@ def generate_dataset(
     from invphys import registry as registry_module
 
     if adaptive is not None:
-        from invphys.core.adaptive import generate_adaptive
+        from invphys.data.adaptive import generate_adaptive
 
         return generate_adaptive(path, n=n, sampler=sampler, seed=seed, adaptive=adaptive,
                                  limit_minutes=limit_minutes, progress=progress, console=console,
                                  registry=registry, simulator=simulator, features=features, executor=executor,
-                                 batch_size=batch_size, spec=spec, flush_every_s=flush_every_s)
+                                 batch_size=batch_size, spec=spec, flush_every_s=flush_every_s,
+                                 generate=generate_dataset)
 
     reg = registry or registry_module.default_registry()
     from invphys.core.spec import MAX_DATASET_N
