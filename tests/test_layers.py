@@ -73,7 +73,6 @@ KNOWN_CIRCLES: tuple[frozenset[str], ...] = (
         "invphys.plugins.executors.ray_tasks", "invphys.plugins.validators", "invphys.plugins.validators.simulator",
         "invphys.registry",
     }),
-    frozenset({"invphys.core.safe_read", "invphys.core.safe_yaml"}),
     frozenset({"invphys_anisompm.engine", "invphys_anisompm.streaming"}),
     frozenset({"invphys_anisompm.model", "invphys_anisompm.scene"}),
     frozenset({"invphys_anisompm.backends.taichi_backend", "invphys_anisompm.backends.taichi_resort"}),

@@ -1,7 +1,7 @@
 """The one safe way invphys parses YAML: specs, and (through :mod:`invphys.core.safe_read`) every
 YAML file a user or a shared artifact hands it.
 
-:func:`read_text` reads a spec through the bounded reader :func:`invphys.core.safe_read.read_user_text`
+:func:`read_text` reads a spec through the bounded reader :func:`invphys.core.bounded_read.read_user_text`
 (regular files only: not ``/dev/zero``, a FIFO, a directory; at most :data:`MAX_BYTES`; UTF-8 without
 NUL bytes, a BOM dropped). :func:`load` parses with PyYAML's safe loader and then refuses, before
 building any Python object:
@@ -49,8 +49,8 @@ def max_bytes() -> int:
 def read_text(path: str | os.PathLike[str], what: str = "spec", error: type[InvphysError] = SpecError,
               limit: int | None = None) -> str:
     """The UTF-8 text of the regular file ``path`` (at most ``limit`` bytes), or ``error`` saying why not
-    (:func:`invphys.core.safe_read.read_user_text`: the one bounded reader)."""
-    from invphys.core.safe_read import UserFileError, read_user_text
+    (:func:`invphys.core.bounded_read.read_user_text`: the one bounded reader)."""
+    from invphys.core.bounded_read import UserFileError, read_user_text
 
     try:
         return read_user_text(path, what=what, max_bytes=max_bytes() if limit is None else limit)
@@ -60,7 +60,7 @@ def read_text(path: str | os.PathLike[str], what: str = "spec", error: type[Invp
 
 def decode(data: bytes, source: str, error: type[InvphysError] = SpecError) -> str:
     """``data`` as UTF-8 text (a leading BOM dropped), refusing binary content with its line."""
-    from invphys.core.safe_read import text_of
+    from invphys.core.bounded_read import text_of
 
     try:
         return text_of(data)
