@@ -41,7 +41,7 @@ def test_docs_api_example_runs(monkeypatch, capsys) -> None:
 def test_shipped_bundle_feature_units_match_the_extractor(name) -> None:
     """The bundle records the installed extractor's feature units (empty ones too); a stale bundle fails."""
     import invphys
-    from invphys.inverter.writer import _units
+    from invphys.inverter.writer import feature_units as _units
 
     inv = invphys.load_inverter(ROOT / "inverters" / name)
     ext = inv.extractor(inv.simulator())

@@ -40,7 +40,7 @@ BUNDLE_DIR = "inverter"
 
 @dataclass
 class BundleParts:
-    """Everything a bundle is made of (gathered from a run by :func:`parts_from_context`)."""
+    """Everything a bundle is made of (gathered from a run by :func:`invphys.pipeline.artifacts.parts_from_context`)."""
 
     name: str
     description: str
@@ -63,93 +63,14 @@ class BundleParts:
     notes: str = ""
 
 
-def _units(extractor: Any, names: list[str]) -> list[str]:
+def feature_units(extractor: Any, names: list[str]) -> list[str]:
+    """The extractor's unit of each feature (empty strings when it names none, or not one per feature)."""
     units = getattr(extractor, "feature_units", None)
     if isinstance(units, dict):
         return [str(units.get(n, "")) for n in names]
     if isinstance(units, (list, tuple)) and len(units) == len(names):
         return [str(u) for u in units]
     return [""] * len(names)
-
-
-def parts_from_context(ctx: Any, with_policies: bool) -> BundleParts:
-    """Gather a run's parts through its stage context (``with_policies`` after the invert stage)."""
-    from invphys.core.spec import optimizer_plugin_block
-    from invphys.plugins.baselines import learns_from_rows
-
-    spec, reg = ctx.spec, ctx.registry
-    data = ctx.dataset()
-    train_idx, test_idx = ctx.split()
-    sim_info = reg.info("simulator", spec.simulator["type"])
-    try:
-        extractor = ctx.extractor()
-        extractor_block = ctx.extractor_block()
-    except InvphysError:
-        extractor, extractor_block = None, {}
-    names = list(data.feature_names)
-    train_dir = ctx.stage_dir_of("train")
-    sur_type = spec.surrogate["type"]
-    latents = {label: (block["type"], ctx.latent(label), train_dir / "latent" / label)
-               for label, block in spec.latent_models.items()}
-    methods: dict[str, dict[str, Any]] = {}
-    policies: dict[str, tuple[Any, Path]] = {}
-    heldout = _heldout(ctx) if with_policies else {}
-    for label, block in spec.optimizers.items():
-        plugin_block = optimizer_plugin_block(block)
-        cls = reg.get("optimizer", block["type"])
-        entry = {"type": block["type"], "kind": "policy" if getattr(cls, "goal_conditioned", False) else "optimizer",
-                 "space": block.get("space", "raw"), "evaluator": block.get("evaluator", "shared"),
-                 "config": {k: v for k, v in plugin_block.items() if k != "type"}}
-        if label in heldout:
-            entry["heldout"] = heldout[label]
-        if entry["kind"] == "policy":
-            saved = ctx.stage_dir_of("invert") / "policies" / label
-            if with_policies and saved.is_dir() and hasattr(cls, "load"):
-                policies[label] = (cls.load(saved), saved)  # trained policies and fitted dataset baselines
-            elif not (with_policies and learns_from_rows(cls)):
-                continue  # not trained yet (train stage) or not persistable; a baseline refits from the bundle's rows
-        methods[label] = entry
-    return BundleParts(
-        name=spec.name, description=spec.description, simulator_block=dict(spec.simulator),
-        simulator_version=_data_version(ctx) or str(getattr(sim_info.cls, "version", "")),
-        simulator_distribution=sim_info.distribution,
-        parameter_space=ctx.simulator().parameter_space(), feature_names=names,
-        feature_units=_units(extractor, names), extractor_block=extractor_block, scales=ctx.scales(),
-        train=(data.theta[train_idx], data.y[train_idx]), test=(data.theta[test_idx], data.y[test_idx]),
-        dataset={"fingerprint": data.fingerprint, "n_rows": len(data.theta), "n_train": len(train_idx),
-                 "n_test": len(test_idx), "path": str(ctx.dataset_path()),
-                 "test_fraction": spec.dataset.test_fraction, "split_seed": spec.seed},
-        surrogate=(sur_type, ctx.surrogate(), train_dir / "surrogate"), latents=latents, methods=methods,
-        policies=policies, seed=spec.seed)
-
-
-def _data_version(ctx: Any) -> str | None:
-    """The simulator version the dataset was generated with (what the bundle was trained on)."""
-    from invphys.core.dataset import DatasetStore
-
-    try:
-        identity = DatasetStore(ctx.dataset_path()).metadata.get("identity") or {}
-    except Exception:  # a store without readable metadata: fall back to the installed version
-        return None
-    return str(identity["version"]) if identity.get("version") else None
-
-
-def _heldout(ctx: Any) -> dict[str, dict[str, Any]]:
-    """Per optimiser label: mean R_surr, evaluations and time on the run's held-out targets."""
-    import json
-
-    path = ctx.stage_dir_of("invert") / "results.json"
-    if not path.is_file():
-        return {}
-    rows = [r for r in json.loads(path.read_text()) if r.get("problem") == "target"]
-    out = {}
-    for label in dict.fromkeys(r["optimizer"] for r in rows):
-        mine = [r for r in rows if r["optimizer"] == label]
-        out[label] = {"targets": len(mine),
-                      "mean_r_surrogate": round(float(np.mean([r["r_surrogate"] for r in mine])), 4),
-                      "mean_evaluations": float(np.mean([r["evaluations"] for r in mine])),
-                      "mean_time_s": round(float(np.mean([r["wall_time_s"] for r in mine])), 5)}
-    return out
 
 
 def default_method(methods: dict[str, dict[str, Any]]) -> str | None:

@@ -105,8 +105,8 @@ def run(ctx: StageContext) -> dict[str, Any]:
     from invphys.core.objectives import recovery_reward
     from invphys.evaluation.stats import bootstrap_mean_ci
     from invphys.models.data import r2_scores
+    from invphys.pipeline.artifacts import to_params
     from invphys.pipeline.stages.invert import load_results
-    from invphys.pipeline.stages.validate import _to_params
     from invphys.plugins.evaluators.simulator_loop import SimulatorEvaluator, refine_targets
     from invphys.plugins.evaluators.uncertainty import UncertaintyPenalty
 
@@ -194,10 +194,10 @@ def run(ctx: StageContext) -> dict[str, Any]:
     if trained_on:
         np.savez_compressed(ctx.stage_dir / "added.npz", theta=np.concatenate(added_theta[:trained_on]),
                             y=np.concatenate(added_y[:trained_on]))
-    to_params = _to_params(ctx)
+    physical = to_params(ctx)
     runs_per_target = sum(x["simulator_runs"] for x in rounds) / max(n, 1) + start_runs
     wall = float(sum(x["propose_s"] + x["simulator_s"] + x.get("retrain_s", 0.0) for x in rounds) / n)
-    spec_row = {"to_params": to_params, "surrogate": surrogate, "feats": feats, "scales": scales, "ks": ks,
+    spec_row = {"to_params": physical, "surrogate": surrogate, "feats": feats, "scales": scales, "ks": ks,
                 "targets": targets, "evaluations": int(sec.budget * sec.proposals * (sec.rounds + 1)),
                 "device": sim.device or next((x["device"] for x in reversed(rounds) if x.get("device")), "cpu")}
     rows, val = _answer_rows(spec_row, LABEL, "active_learning", "shared", best_theta, best_r, best_y,

@@ -55,7 +55,8 @@ def run(ctx: StageContext) -> dict[str, Any]:
 
 def write_inverter(ctx: StageContext, with_policies: bool) -> str:
     """Write the run's inverter bundle to ``OUT/inverter/`` (the invert stage adds its policies)."""
-    from invphys.inverter.writer import BUNDLE_DIR, parts_from_context, write_bundle
+    from invphys.inverter.writer import BUNDLE_DIR, write_bundle
+    from invphys.pipeline.artifacts import parts_from_context
 
     path = write_bundle(parts_from_context(ctx, with_policies=with_policies), ctx.out / BUNDLE_DIR)
     ctx.log(f"inverter bundle written to {path}")

@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from invphys.core.errors import InvphysError
+from invphys.pipeline.artifacts import to_params
 
 if TYPE_CHECKING:
     from invphys.pipeline.context import StageContext
@@ -177,14 +178,6 @@ def _checkpoint(ctx: StageContext, validator: Any, simulator: Any, extractor: An
     return SimCheckpoint(ctx.stage_dir / SIMULATED_FILE, identity, legacy=[legacy])
 
 
-def _to_params(ctx: StageContext) -> Any:
-    try:
-        space = ctx.simulator().parameter_space()
-    except Exception:  # a simulator that cannot be built here: physical values unknown
-        return lambda theta: [float("nan")] * len(theta)
-    return lambda theta: space.denormalize(np.asarray(theta)).tolist()
-
-
 def baselines(ctx: StageContext, targets: dict[str, Any]) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """The spec's baselines fitted on the training partition and answered for every target (cached)."""
     import json
@@ -209,7 +202,7 @@ def baselines(ctx: StageContext, targets: dict[str, Any]) -> tuple[list[dict[str
     train_idx, _ = ctx.split()
     plugins = {label: ctx.registry.create("optimizer", block) for label, block in blocks.items()}
     rows, metrics = baseline_rows(plugins, data.theta[train_idx], data.y[train_idx], ctx.scales(), targets,
-                                  ctx.surrogate().predict, _to_params(ctx), progress=False, log=ctx.log,
+                                  ctx.surrogate().predict, to_params(ctx), progress=False, log=ctx.log,
                                   surrogate=ctx.surrogate())
     write_json(cache, {"key": key, "rows": rows, "metrics": metrics})
     return rows, metrics
@@ -229,7 +222,7 @@ def evaluation_rows(ctx: StageContext, rows: list[dict[str, Any]], targets: dict
         ctx.log("noise floor skipped: the targets have no ground truth (targets.values / targets.file)")
     elif n_val and ev.noise_floor:
         extra += noise_floor_rows(list(range(n_val)), targets, np.asarray(targets["scales"]),
-                                  ctx.surrogate().predict, _to_params(ctx))
+                                  ctx.surrogate().predict, to_params(ctx))
     answers = rows + extra
     for label, method in ev.methods.items():
         n = min(n_val, method.targets or n_val)
@@ -250,7 +243,7 @@ def evaluation_rows(ctx: StageContext, rows: list[dict[str, Any]], targets: dict
         ctx.log(f"{label}: ask/tell CMA-ES from {method.start} on {len(starts)} targets, {method.budget} "
                 f"{'simulator runs' if sim_eval else 'surrogate evaluations'} each")
         got = refine_rows(label, method, starts, targets, np.asarray(targets["scales"]), ctx.surrogate().predict,
-                          _to_params(ctx), seed=ctx.seed, surrogate=ctx.surrogate(), sim_evaluator=sim_eval)
+                          to_params(ctx), seed=ctx.seed, surrogate=ctx.surrogate(), sim_evaluator=sim_eval)
         extra += got
         info[label] = {"targets": len(got), "mean_in_loop_score": float(np.mean([r["in_loop_score"] for r in got]))}
         if sim_eval is not None:
