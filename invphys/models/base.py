@@ -27,6 +27,8 @@ FORMAT_VERSION = 1
 MODEL_FILE = "model.json"
 WEIGHTS_FILE = "weights.pt"
 HISTORY_FILE = "history.json"
+#: largest input or output size a saved model may declare
+MAX_DIM = 100_000
 
 
 class TrainingConfig(PluginConfig):
@@ -148,17 +150,23 @@ class TorchModel:
         if meta.get("plugin") != cls.name or meta.get("kind") != cls.kind:
             raise ModelLoadError(
                 f"{directory} holds a {meta.get('kind')} {meta.get('plugin')!r}, not a {cls.kind} {cls.name!r}")
+        if not isinstance(meta.get("config"), dict):
+            raise ModelLoadError(f"{meta_path}: no config mapping")
         config = {**getattr(cls, "LEGACY", {}), **meta["config"]}
         if device is not None:
             config["device"] = device
         try:
             model = cls(config)  # type: ignore[call-arg]
         except ValidationError as exc:
-            raise ModelLoadError(f"{directory}: saved config no longer valid: {exc}") from exc
-        try:
-            d, m = int(meta["dims"]["d"]), int(meta["dims"]["m"])
-        except (KeyError, TypeError, ValueError):
-            raise ModelLoadError(f"{meta_path}: no integer dims.d and dims.m") from None
+            err = exc.errors()[0]
+            key = ".".join(str(k) for k in err.get("loc", ())) or "config"
+            raise ModelLoadError(f"{meta_path}: saved config no longer valid (config.{key}: "
+                                 f"{err.get('msg', 'invalid')})") from None
+        dims = meta.get("dims") if isinstance(meta.get("dims"), dict) else {}
+        d, m = dims.get("d"), dims.get("m")
+        if not all(isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= MAX_DIM for v in (d, m)):
+            raise ModelLoadError(f"{meta_path}: dims.d and dims.m must be integers from 1 to {MAX_DIM:,}")
+        assert isinstance(d, int) and isinstance(m, int)
         model.dims = (d, m)
         state = load_torch_weights(directory / WEIGHTS_FILE)
         shapes = _meta_shapes(model, d, m)  # sizes first, allocating nothing: a hostile config builds no giant net

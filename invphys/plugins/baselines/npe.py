@@ -201,7 +201,7 @@ class NPEBaseline(DatasetBaseline):
                 raise LegacyPickleError(d / LEGACY_FILE)
             raise InvphysError(f"no saved npe baseline in {d} (no {WEIGHTS_FILE})")
         try:
-            plugin = cls(meta["config"])
+            plugin = cls(cls.Config(**meta["config"]))
             arch = meta["architecture"]
             dims = int(arch["theta_dim"]), int(arch["x_dim"])
         except (KeyError, TypeError, ValueError) as exc:
@@ -214,7 +214,8 @@ class NPEBaseline(DatasetBaseline):
             plugin._scales = None if scales is None else np.asarray(scales, dtype=np.float64).reshape(dims[1])
         except (TypeError, ValueError):
             raise InvphysError(f"{d / CONFIG_FILE}: scales must be {dims[1]} numbers, one per feature") from None
-        plugin.metrics = dict(meta.get("metrics") or {})
+        metrics = meta.get("metrics")
+        plugin.metrics = dict(metrics) if isinstance(metrics, dict) else {}
         plugin.fitted = True
         return plugin
 

@@ -218,7 +218,8 @@ class GoalConditionedPPO(BuiltinOptimizer):
             low, high = float(sp["low"]), float(sp["high"])
         except (KeyError, TypeError, ValueError) as exc:
             raise InvphysError(f"{d / CONFIG_FILE}: not a gc_ppo save this invphys reads ({first_line(exc)})") from None
-        opt.metrics = dict(saved.get("metrics") or {})
+        metrics = saved.get("metrics")
+        opt.metrics = dict(metrics) if isinstance(metrics, dict) else {}
         state = read_weights_npz(d / POLICY_FILE)
         opt._check_size(dim, n_feat, state, d / POLICY_FILE)
         opt.model = opt._rebuild(dim, n_feat, low, high, state, d / POLICY_FILE)
@@ -239,29 +240,26 @@ class GoalConditionedPPO(BuiltinOptimizer):
     def _rebuild(self, dim: int, n_feat: int, low: float, high: float, state: dict[str, np.ndarray],
                  where: Path) -> Any:
         """A PPO with the trained policy's spaces and architecture, holding the saved tensors."""
-        import torch
-
-        from invphys.envs.task import InverseTask
-        from invphys.envs.vec import InverseVecEnv
-
-        meta, cfg = self.meta, self.config
-
-        def no_predict(*args: Any) -> np.ndarray:
-            raise InvphysError("a loaded gc_ppo policy has no surrogate to train with")
-
-        task = InverseTask(low=low, high=high, dim=dim, predict=no_predict, score=no_predict,
-                           feature_mean=np.asarray(meta["feature_mean"], dtype=np.float64),
-                           feature_std=np.asarray(meta["feature_std"], dtype=np.float64), horizon=cfg.horizon,
-                           step_scale=cfg.step_scale, start=np.asarray(meta["start"], dtype=np.float64),
-                           start_features=np.asarray(meta["start_features"], dtype=np.float64),
-                           goal_sampler=lambda rng, n: np.zeros((n, n_feat)))
         import random
 
+        import torch
+
+        from invphys.envs.vec import InverseVecEnv
+
+        cfg = self.config
+        try:
+            task = self._task(dim, n_feat, low, high)
+        except (KeyError, ValueError, TypeError, InvphysError) as exc:
+            raise InvphysError(f"{where.parent / CONFIG_FILE}: the saved episode (meta) does not fit a {dim}-dimensional "
+                               f"space and {n_feat} features ({first_line(exc)})") from None
         threads, states = torch.get_num_threads(), (torch.get_rng_state(), np.random.get_state(), random.getstate())
         try:  # building PPO seeds the global RNGs and sets torch's threads: leave the caller's as they were
             # acting only: one env and a minimal rollout buffer (a saved n_steps x n_envs is never allocated)
-            small = cfg.model_copy(update={"n_envs": 1, "n_steps": 2, "batch_size": 2})
+            small = cfg.model_copy(update={"n_envs": 1, "n_steps": 2, "batch_size": 2, "torch_threads": None})
             model = make_ppo(InverseVecEnv(task, 1, 0), small, int(cfg.seed or 0))
+        except (ValueError, TypeError, RuntimeError) as exc:  # settings PPO itself refuses (a negative seed, ...)
+            raise InvphysError(f"{where.parent / CONFIG_FILE}: PPO cannot be rebuilt from the saved config "
+                               f"({first_line(exc)})") from None
         finally:
             torch.set_num_threads(threads)
             torch.set_rng_state(states[0])
@@ -271,6 +269,29 @@ class GoalConditionedPPO(BuiltinOptimizer):
         model.policy.load_state_dict({k: torch.from_numpy(np.array(v)) for k, v in state.items()}, strict=True)
         model.policy.set_training_mode(False)
         return model
+
+    def _task(self, dim: int, n_feat: int, low: float, high: float) -> Any:
+        """The saved episode (spaces, feature statistics, start) without a surrogate: for acting only."""
+        from invphys.envs.task import InverseTask
+
+        meta, cfg = self.meta, self.config
+
+        def no_predict(*args: Any) -> np.ndarray:
+            raise InvphysError("a loaded gc_ppo policy has no surrogate to train with")
+
+        def vector(key: str, n: int) -> np.ndarray:
+            v = np.asarray(meta[key], dtype=np.float64).reshape(n)
+            if not np.all(np.isfinite(v)):
+                raise ValueError(f"{key} is not finite")
+            return v
+
+        if not (np.isfinite(low) and np.isfinite(high) and low < high):
+            raise ValueError(f"space [{low}, {high}]")
+        return InverseTask(low=low, high=high, dim=dim, predict=no_predict, score=no_predict,
+                           feature_mean=vector("feature_mean", n_feat), feature_std=vector("feature_std", n_feat),
+                           horizon=cfg.horizon, step_scale=cfg.step_scale, start=vector("start", dim),
+                           start_features=vector("start_features", n_feat),
+                           goal_sampler=lambda rng, n: np.zeros((n, n_feat)))
 
     @classmethod
     def load_legacy_pickle(cls, directory: str | Path) -> GoalConditionedPPO:
