@@ -72,7 +72,7 @@ def test_invert_runs_every_entry_on_targets_and_objectives(run_dir) -> None:
     assert by[("cma_head", "t00")]["evaluator"] == "own_head"
     assert by[("ppo", "lively")]["evaluations"] == 1 + 512 + 8
     # the cached policy is saved in the stage directory
-    assert (out / "invert" / "policies" / "gc" / "policy.zip").is_file()
+    assert (out / "invert" / "policies" / "gc" / "policy.npz").is_file()
     # CMA-ES with 200 evaluations beats the policy's 8 evaluations on average
     mean = {k: np.mean([by[(k, f"t{i:02d}")]["r_surrogate"] for i in range(4)]) for k in ("cma", "gc")}
     assert mean["cma"] >= mean["gc"]

@@ -87,9 +87,9 @@ def invert(
                                        polish_confirm, polish_confirm_candidates)
     files = _output_files(samples, samples_out, plot, csv_out)
     inv = load_inverter(bundle, strict=not allow_mismatch)
+    targets = cli_targets(inv, target, feature or [], observed or [], partial)  # a bad target: its one line only
     for note in inv.notes:
         console.print(f"[yellow]warning:[/] {escape(note)}", soft_wrap=True)
-    targets = cli_targets(inv, target, feature or [], observed or [], partial)
     results = inv.invert_many(targets, method=method, top_k=top_k, refine=refine, seed=seed, level=level,
                               draws=max(samples or 0, INTERVAL_DRAWS))
     if samples and not results[0].parameter_uncertainty.has_draws:
