@@ -53,7 +53,8 @@ class Diagnosis:
 
 def posterior_draws(inverter: Any, y: np.ndarray, n: int, seed: int, method: str | None = None) -> Any:
     """The bundle's posterior draws of complete targets ``y`` (the inverter's public draws API)."""
-    return inverter.posterior(np.asarray(y, dtype=np.float64), n=n, seed=seed, method=method)
+    return inverter.posterior(np.asarray(y, dtype=np.float64), n=n, seed=seed, method=method,
+                              recalibrate=False)  # the posterior's own draws: what is measured
 
 
 def _draws_in_chunks(inverter: Any, y: np.ndarray, n: int, seed: int, method: str | None

@@ -281,12 +281,14 @@ class Inverter:
         raise InvphysError(f"bundle {self.bundle.root} has no method with a posterior (e.g. npe)")
 
     def posterior(self, targets: Any, n: int = 1000, seed: int = 0, method: str | None = None,
-                  partial: bool = False) -> PosteriorDraws:
+                  partial: bool = False, recalibrate: bool = True) -> PosteriorDraws:
         """Posterior draws of every target: a :class:`~invphys.inverter.draws.PosteriorDraws` whose
         ``samples`` are (B, n, d) in normalised units ([0, 1]^d, the space's order; physical units:
         ``inv.parameter_space.denormalize``). Draws lie in the box by rejection (``outside_fraction``),
-        each target's from its own stream (seed, method, target), so they do not depend on the batch;
-        the first k of n draws are the same for any n >= k, and are the draws :meth:`invert` uses."""
+        each target's from its own stream (seed, method, target), so they do not depend on the batch.
+        They are the draws :meth:`invert` uses: corrected by the bundle's stored recalibration (``invphys
+        diagnose --write``) unless ``recalibrate`` is False (the posterior's own draws, which ``diagnose``
+        measures; the first k of n of those are the same for any n >= k)."""
         from invphys.inverter.draws import completions, sample_posterior
 
         seed = check_seed(seed)
@@ -300,7 +302,10 @@ class Inverter:
         conds = [completions(t.values[i], t.mask[i], train_y, mean, self.bundle.scales) for i in range(len(t))]
         seeds = [target_seed(seed, label, t.values[i], t.mask[i], "posterior") for i in range(len(t))]
         with quiet():
-            return sample_posterior(plugin, conds, seeds, int(n))
+            draws = sample_posterior(plugin, conds, seeds, int(n))
+        if recalibrate:
+            draws.samples = np.stack([recalibrated(self.bundle, s)[0] for s in draws.samples])
+        return draws
 
     # -- inversion ----------------------------------------------------------------------------------
     def invert(self, target: Any, method: str | None = None, top_k: int = 1, refine: int = 0,
