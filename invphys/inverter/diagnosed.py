@@ -34,7 +34,8 @@ def recalibrated(bundle: Any, draws: np.ndarray) -> tuple[np.ndarray, bool]:
 
     diag = diagnostics(bundle)
     out = recalibrated_samples(np.asarray(draws, dtype=np.float64)[None], diag)[0]
-    return out, bool(((diag or {}).get("posterior") or {}).get("recalibration", {}).get("maps"))
+    block = ((diag or {}).get("posterior") or {}).get("recalibration") or {}
+    return out, any(m is not None for m in block.get("maps") or [])
 
 
 def feature_std(bundle: Any, std: np.ndarray) -> np.ndarray:
