@@ -205,3 +205,17 @@ def test_gc_ppo_saves_tensors_and_loads_without_unpickling(optim_data, tmp_path)
     assert sorted(p.name for p in d.iterdir()) == ["gc_ppo.json", "policy.npz"]
     np.testing.assert_array_equal(GoalConditionedPPO.load(d).model.predict(obs, deterministic=True)[0],
                                   gc.model.predict(obs, deterministic=True)[0])
+
+
+def test_torch_threads_are_bounded_in_ppo_and_npe_settings() -> None:
+    """torch_threads: 10**7 segfaulted training (a bundle or spec could ask for it); now a config error."""
+    from pydantic import ValidationError
+
+    from invphys.plugins.baselines.npe import NPEBaseline
+    from invphys.plugins.optimizers._rl import PPOSettings
+
+    with pytest.raises(ValidationError):
+        PPOSettings(torch_threads=10**7)
+    with pytest.raises(ValidationError):
+        NPEBaseline.Config(torch_threads=10**7)
+    assert PPOSettings(torch_threads=8).torch_threads == 8

@@ -56,7 +56,7 @@ class NPEBaseline(DatasetBaseline):
             "none", description="logit: learn logit(theta), so samples stay in the box (on the tiny fixture: "
                                 "no leakage but a larger error)")
         seed: int = 0
-        torch_threads: int | None = Field(1, ge=1, description="torch CPU threads while training (None: torch's)")
+        torch_threads: int | None = Field(1, ge=1, le=1024, description="torch CPU threads while training (None: torch's)")
 
     @property
     def evaluation_budget(self) -> int:

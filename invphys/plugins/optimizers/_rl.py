@@ -27,7 +27,7 @@ class PPOSettings(PluginConfig):
     horizon: int = Field(8, ge=1, description="episode length T (evaluations per rollout)")
     step_scale: float = Field(0.5, gt=0, description="s_{t+1} = clip(s_t + step_scale * a_t)")
     seed: int | None = Field(None, description="random seed (default: the problem's / run's seed)")
-    torch_threads: int | None = Field(1, ge=1, description="torch CPU threads while training (None: leave)")
+    torch_threads: int | None = Field(1, ge=1, le=1024, description="torch CPU threads while training (None: leave)")
     device: str = Field("cpu", description="torch device of the policy")
 
     @field_validator("net_arch")
