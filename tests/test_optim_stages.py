@@ -145,3 +145,26 @@ def test_report_writes_tables_plot_and_renders_and_reruns_are_cached(run_dir) ->
     bad["stages"] = ["invert"]
     with pytest.raises(InvphysError, match="not a goal-conditioned entry"):
         run_spec(parse_spec(yaml.safe_dump(bad)), out, progress=False, console=Console(file=io.StringIO()))
+
+
+def test_a_cached_policy_in_the_older_pickled_format_is_trained_again_not_unpickled(run_dir, tmp_path,
+                                                                                      caplog) -> None:
+    """A run directory made before pickle-free saves holds only SB3's policy.zip: the invert stage trains the
+    policy again (before, loading it stopped the stage with exit 2); the zip is never read."""
+    import shutil
+
+    from rich.console import Console
+
+    from invphys.pipeline.runner import run_spec
+
+    out, spec, _ = run_dir
+    copy = tmp_path / "run"
+    shutil.copytree(out, copy)
+    cache = copy / "invert" / "policies" / "gc"
+    (cache / "policy.npz").unlink()
+    (cache / "policy.zip").write_bytes(b"an old cloudpickled zip: never read")
+    (copy / "invert" / "DONE.json").unlink()
+    with caplog.at_level("INFO", logger="invphys.pipeline.stages"):
+        run_spec(spec, copy, stages=["invert"], progress=False, console=Console(file=io.StringIO()))
+    assert "older pickled format; training it again" in caplog.text
+    assert (cache / "policy.npz").is_file()

@@ -163,8 +163,14 @@ class _Entries:
             predict = pen.predict_points(lambda p: space.to_theta(space.clip(p)))
             extra["penalty"] = pen.penalty
         if hasattr(plugin, "load") and (cache / "gc_ppo.json").is_file() and hasattr(plugin, "save"):
-            loaded = type(plugin).load(cache)
-            if loaded.config == plugin.config and loaded.meta.get("space", {}).get("name") == space.name \
+            from invphys.models.base import LegacyPickleError
+
+            try:
+                loaded = type(plugin).load(cache)
+            except LegacyPickleError:  # a run made before pickle-free saves: train again, never unpickle
+                self.ctx.log(f"{label}: the cached policy is in the older pickled format; training it again")
+                loaded = None
+            if loaded is not None and loaded.config == plugin.config and loaded.meta.get("space", {}).get("name") == space.name \
                     and float(loaded.meta.get("uncertainty_penalty", 0.0)) == lam:
                 self.plugins[label] = loaded
                 self.prepare_metrics[label] = {**loaded.metrics, "cached": True}
