@@ -133,12 +133,24 @@ def _score(results: list[Any], validated: bool) -> np.ndarray:
     return np.array([0.0 if r.r_actual is None else float(r.r_actual) for r in results], dtype=np.float64)
 
 
-def _warning_rank(results: list[Any], r: np.ndarray) -> dict[str, Any]:
-    warned = np.array([bool(res.warnings) for res in results])
-    failing = r < FAIL_BELOW
-    return {"failing": int(failing.sum()), "warned": int(warned.sum()),
+#: the out-of-distribution warning of a bundle with diagnostics (invphys.inverter.diagnosed)
+OOD_WARNING = "unusual target"
+
+
+def _recall(warned: np.ndarray, failing: np.ndarray) -> dict[str, Any]:
+    return {"warned": int(warned.sum()),
             "recall_on_failing": float(warned[failing].mean()) if failing.any() else None,
             "alarm_rate_on_others": float(warned[~failing].mean()) if (~failing).any() else None}
+
+
+def _warning_rank(results: list[Any], r: np.ndarray) -> dict[str, Any]:
+    """How warnings rank failing answers (R < FAIL_BELOW): any warning (every posterior answer notes its
+    unidentified parameters), and the out-of-distribution warning alone."""
+    failing = r < FAIL_BELOW
+    return {"failing": int(failing.sum()),
+            "any": _recall(np.array([bool(res.warnings) for res in results]), failing),
+            "out_of_distribution": _recall(np.array([any(OOD_WARNING in w for w in res.warnings)
+                                                     for res in results]), failing)}
 
 
 def summarise(answers: dict[str, list[Any]], validated: bool, reference: str = "nearest_neighbour_all",
