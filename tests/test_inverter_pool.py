@@ -8,16 +8,14 @@ import json
 
 import numpy as np
 import pytest
-from test_inverter_support import paper_bundle
+from test_inverter_support import paper_inverter
 
 from invphys.core.errors import InvphysError
 
 
 @pytest.fixture(scope="module")
 def inv(tmp_path_factory):
-    import invphys
-
-    return invphys.load_inverter(paper_bundle(tmp_path_factory.getbasetemp()))
+    return paper_inverter(tmp_path_factory.getbasetemp())
 
 
 @pytest.fixture(scope="module")

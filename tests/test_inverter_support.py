@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import io
 from pathlib import Path
+from typing import Any
 
 import yaml
 
@@ -74,3 +75,11 @@ def paper_bundle(base: Path) -> Path:
     else:
         shutil.copytree(src, out)
     return out
+
+
+def paper_inverter(base: Path) -> Any:
+    """An inverter on :func:`paper_bundle`'s private copy (tests share one per session base folder)."""
+    import invphys
+
+    return invphys.load_inverter(paper_bundle(base))
+

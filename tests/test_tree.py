@@ -27,7 +27,7 @@ WORKPLACE = tuple("".join(p) for p in [
     ("device", " tool"), ("device", "-tool"), ("device", " call"), (".g", "pu/"), ("pack_for", "_gpu"),
     ("nvidia-h100", "-x"), ("nvidia-h200", "-x"), ("ensure", "_staged"), ("split_taichi", "_wheels"),
     ("split", "_ray.sh"), ("/root", "/out"), ("datasets/", "device/"), ("benchmarks/", "device/"),
-    ("carry", " limit"), ("call's", " carry"), ("64 MiB", " carr"), ("taichi", " staged"),
+    ("carry", " limit"), ("call's", " carry"), ("64", " MiB carr"), ("taichi", " staged"),
 ])
 
 #: files of other owners that still hold such phrases, to be cleaned (remove a line when its file is clean)
