@@ -406,8 +406,9 @@ class Inverter:
     def _calibrate_error_bars(self, cands: list[Candidate]) -> list[Candidate]:
         """The error bars an answer shows: the ensemble's std, calibrated where the bundle holds diagnostics
         (after choosing, which keeps the ensemble's own spread)."""
-        for c in cands:
-            c.std = feature_std(self.bundle, c.std[None, :])[0]
+        if cands:
+            for c, std in zip(cands, feature_std(self.bundle, np.array([c.std for c in cands])), strict=True):
+                c.std = std
         return cands
 
     def _candidates(self, thetas: np.ndarray, sources: list[str], target: np.ndarray, mask: np.ndarray
