@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
 import time
 from pathlib import Path
@@ -48,6 +47,15 @@ import numpy as np
 FAIL_BELOW = 0.8
 
 
+def _machine() -> Any:
+    """The benchmarks' shared ``_machine`` helpers (this script may be loaded by file, as the tests do)."""
+    if str(Path(__file__).parent) not in sys.path:
+        sys.path.insert(0, str(Path(__file__).parent))
+    import _machine
+
+    return _machine
+
+
 def _device() -> str:
     try:
         import torch
@@ -56,7 +64,7 @@ def _device() -> str:
             return torch.cuda.get_device_name(0)
     except ImportError:
         pass
-    return f"cpu ({platform.processor() or platform.machine()})"
+    return f"cpu ({_machine().cpu_name()})"
 
 
 def _store_rows(path: str) -> Any:
@@ -221,7 +229,7 @@ def main(argv: list[str] | None = None) -> int:
         given = {k: {m: r for m, r in v.items() if m in a.methods} for k, v in given.items()}
     methods = [] if a.answers_in else (a.methods or [inv.default_method])
     overrides = dict(kv.split("=", 1) for kv in a.sim_option)
-    result: dict[str, Any] = {"benchmark": "user_targets", "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+    result: dict[str, Any] = {"benchmark": "user_targets", **_machine().provenance(),
                               "device": _device(), "bundle": a.bundle,
                               "bundle_id": inv.bundle.manifest.get("bundle_id"),
                               "simulator": inv.bundle.manifest["simulator"], "validated": a.validate,
