@@ -11,7 +11,7 @@ The evaluation protocol's user-like sets (docs/evaluation.md): each target store
 ``Inverter.validate``: the bundle's recorded simulator re-runs it), next to
 
 * ``nearest_neighbour_all``: a 1-NN lookup (R_gt metric) over ALL the rows the ``--all-data`` stores hold
-  (the baseline every answer must beat), and
+  except the targets' own rows (the baseline every answer must beat), and
 * ``truth``: the targets' own parameters re-simulated (the noise floor).
 
 Per set and method: mean R_actual with a bootstrap 95 % interval, the worst answer, the paired difference
@@ -31,6 +31,11 @@ Answering and simulating can run on different machines (the answers need sbi, th
 ``--answers-in`` answers nothing: it re-scores (and with ``--validate`` re-simulates) the answers of one
 or more such files, every file's methods named ``LABEL:METHOD`` when it was written with ``--label``.
 All answers are scored with ``--bundle``'s scales and simulator, whichever bundle gave them.
+
+A set may be the held-out rows of a store: ``NAME=STORE@KEYFILE`` keeps the rows whose keys the file lists
+(one per line, ``#`` comments), e.g. ``heldout=datasets/orange_peel_paper_seed1_v030@inverters/specs/
+orange_peel_paper_all.heldout_keys.txt``. ``--per-target-out FILE`` writes every target's answer, R_actual and
+R_surrogate per set and method (what a failure warning is fitted and checked on); ``--no-truth`` skips the truth.
 """
 
 from __future__ import annotations
@@ -67,25 +72,41 @@ def _device() -> str:
     return f"cpu ({_machine().cpu_name()})"
 
 
+def _read_keys(path: str) -> list[str]:
+    """Row keys, one per line (``#`` comments and blank lines skipped)."""
+    lines = (ln.strip() for ln in Path(path).read_text().splitlines())
+    return [ln for ln in lines if ln and not ln.startswith("#")]
+
+
 def _store_rows(path: str) -> Any:
+    """The ok rows of a store; ``STORE@KEYFILE``: only the rows whose keys the file lists (held-out rows)."""
     from invphys.core.dataset import DatasetStore
 
-    arrays = DatasetStore(path).arrays(ok_only=True)
+    store, _, key_file = path.partition("@")
+    arrays = DatasetStore(store).arrays(ok_only=True)
+    if key_file:
+        wanted = set(_read_keys(key_file))
+        keep = np.array([k in wanted for k in arrays.keys], dtype=bool)
+        arrays.theta, arrays.y, arrays.keys = arrays.theta[keep], arrays.y[keep], arrays.keys[keep]
     if len(arrays.y) == 0:
         raise SystemExit(f"error: {path} holds no successful rows")
     return arrays
 
 
-def _lookup_all(inv: Any, stores: list[str], targets: np.ndarray) -> tuple[np.ndarray, int]:
-    """1-NN over every row the stores hold (same parameter and feature names as the bundle)."""
+def _lookup_all(inv: Any, stores: list[str], targets: np.ndarray,
+                exclude_keys: Any = ()) -> tuple[np.ndarray, int]:
+    """1-NN over every row the stores hold (same parameter and feature names as the bundle), except the
+    rows whose keys are in ``exclude_keys`` (the targets themselves, when they are rows of those stores)."""
     from invphys.plugins.baselines.nearest_neighbour import NearestNeighbour
 
     blocks = [_store_rows(s) for s in stores]
     for s, a in zip(stores, blocks, strict=True):
         if tuple(a.feature_names) != inv.feature_names or tuple(a.param_names) != inv.parameter_names:
             raise SystemExit(f"error: {s} holds other parameters or features than the bundle")
-    theta = np.concatenate([a.theta for a in blocks])
-    y = np.concatenate([a.y for a in blocks])
+    excluded = set(exclude_keys)
+    keep = np.concatenate([[k not in excluded for k in a.keys] for a in blocks]).astype(bool)
+    theta = np.concatenate([a.theta for a in blocks])[keep]
+    y = np.concatenate([a.y for a in blocks])[keep]
     nn = NearestNeighbour({"k": 1, "metric": "r_gt"})
     nn.fit(theta, y, inv.bundle.scales)
     return nn.answer(targets).theta, len(theta)
@@ -108,7 +129,8 @@ def _invert(inv: Any, y: np.ndarray, method: str, seed: int) -> list[Any]:
 
 
 def _answers(inv: Any, arrays: Any, methods: list[str], all_data: list[str], seed: int,
-             given: dict[str, Any] | None = None, timing: dict[str, float] | None = None) -> dict[str, list[Any]]:
+             given: dict[str, Any] | None = None, timing: dict[str, float] | None = None,
+             with_truth: bool = True) -> dict[str, list[Any]]:
     """InversionResults per method label for every target of one set: answered by ``inv``, or (``given``:
     {label: {"theta": ..., "warnings": ...}}) re-scored from an answers file."""
     y = arrays.y
@@ -128,10 +150,11 @@ def _answers(inv: Any, arrays: Any, methods: list[str], all_data: list[str], see
         for r, w in zip(out[m], rec.get("warnings") or [[]] * len(y), strict=True):
             r.warnings = list(w)
     if all_data:
-        theta_nn, _ = _lookup_all(inv, all_data, y)
+        theta_nn, _ = _lookup_all(inv, all_data, y, exclude_keys=arrays.keys)
         out["nearest_neighbour_all"] = [inv.evaluate(theta=t, target=v, label="nearest_neighbour_all")
                                         for t, v in zip(theta_nn, y, strict=True)]
-    out["truth"] = [inv.evaluate(theta=t, target=v, label="truth") for t, v in zip(arrays.theta, y, strict=True)]
+    if with_truth:
+        out["truth"] = [inv.evaluate(theta=t, target=v, label="truth") for t, v in zip(arrays.theta, y, strict=True)]
     return out
 
 
@@ -199,8 +222,23 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--label", default="", help="with --answers-out: name methods LABEL:METHOD in the file")
     p.add_argument("--answers-out", default=None, help="also write every answer's parameters to this JSON file")
     p.add_argument("--answers-in", nargs="+", default=None, help="answers files to score instead of answering")
+    p.add_argument("--no-truth", action="store_true", help="do not score (or re-simulate) the true parameters")
+    p.add_argument("--per-target-out", default=None,
+                   help="also write every target's answer, R_actual and R_surrogate per set and method (JSON)")
     p.add_argument("--out", required=True)
     return p
+
+
+def _per_target(arrays: Any, answers: dict[str, list[Any]]) -> dict[str, Any]:
+    """One set's targets and, per method, each answer (normalised), its R_actual (None unless validated),
+    R_surrogate and warnings: the rows a failure warning is fitted and checked on."""
+    def r_actual(r: Any) -> float | None:
+        return None if r.r_actual is None else float(r.r_actual)
+
+    return {"keys": [str(k) for k in arrays.keys], "y": arrays.y.tolist(), "truth_theta": arrays.theta.tolist(),
+            "methods": {m: {"theta": [r.theta.tolist() for r in res], "r_actual": [r_actual(r) for r in res],
+                            "r_surrogate": [float(r.r_surrogate) for r in res],
+                            "warnings": [list(r.warnings) for r in res]} for m, res in answers.items()}}
 
 
 def _given(files: list[str] | None) -> dict[str, dict[str, Any]]:
@@ -237,11 +275,12 @@ def main(argv: list[str] | None = None) -> int:
     saved: dict[str, Any] = {"benchmark": "user_targets_answers", "bundle": a.bundle, "seed": a.seed,
                              "bundle_id": inv.bundle.manifest.get("bundle_id"), "sets": {}}
     prefix = f"{a.label}:" if a.label else ""
+    per_target: dict[str, Any] = {}
     for spec in a.targets:
         name, _, path = spec.partition("=")
         arrays = _store_rows(path)
         if a.limit:
-            arrays.y, arrays.theta = arrays.y[: a.limit], arrays.theta[: a.limit]
+            arrays.y, arrays.theta, arrays.keys = arrays.y[: a.limit], arrays.theta[: a.limit], arrays.keys[: a.limit]
         if a.answers_in and name not in given:
             raise SystemExit(f"error: the answers files hold no set {name!r}")
         if a.answers_in and a.limit:  # the files answer the whole store: their first N answers
@@ -249,7 +288,8 @@ def main(argv: list[str] | None = None) -> int:
                            for m, r in given[name].items()}
         print(f"{name}: {len(arrays.y)} targets from {path}", file=sys.stderr)
         timing: dict[str, float] = {}
-        answers = _answers(inv, arrays, methods, a.all_data, a.seed, given.get(name), timing)
+        answers = _answers(inv, arrays, methods, a.all_data, a.seed, given.get(name), timing,
+                           with_truth=not a.no_truth)
         saved["sets"][name] = {"store": path, "n_targets": len(arrays.y), "methods": {
             prefix + m: {"theta": [r.theta.tolist() for r in answers[m]], "warnings": [r.warnings for r in answers[m]],
                          "answer_ms_per_target": timing[m]} for m in methods}}
@@ -257,6 +297,7 @@ def main(argv: list[str] | None = None) -> int:
         if a.validate:
             inv.validate([r for res in answers.values() for r in res], overrides=overrides, batch_size=a.sim_batch)
         rows = summarise(answers, a.validate, truth_theta=arrays.theta)
+        per_target[name] = _per_target(arrays, answers)
         for m, ms in timing.items():
             rows[m]["answer_ms_per_target"] = ms
         result["sets"][name] = {"store": path, "n_targets": len(arrays.y), "validate_s": time.perf_counter() - t0,
@@ -264,6 +305,10 @@ def main(argv: list[str] | None = None) -> int:
     if a.answers_out:
         Path(a.answers_out).parent.mkdir(parents=True, exist_ok=True)
         Path(a.answers_out).write_text(json.dumps(saved) + "\n")
+    if a.per_target_out:
+        Path(a.per_target_out).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.per_target_out).write_text(json.dumps({"benchmark": "user_targets_per_target", "bundle": a.bundle,
+                                                      "validated": a.validate, "sets": per_target}) + "\n")
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(result, indent=1) + "\n")
     for name, s in result["sets"].items():

@@ -22,8 +22,8 @@ def test_scores_each_method_against_a_lookup_over_all_stores(tmp_path: Path) -> 
     rows = report["sets"]["quick"]["methods"]
     assert set(rows) == {"gc_ppo_vae", "nearest_neighbour_all", "truth"}
     assert all(r["n"] == 6 for r in rows.values())
-    # the targets are rows of the lookup's store: the lookup finds each one itself, so it scores as the truth
-    assert np.isclose(rows["nearest_neighbour_all"]["r_mean"], rows["truth"]["r_mean"])
+    # the targets are rows of the lookup's store: the lookup leaves them out (it would find each one itself)
+    assert rows["nearest_neighbour_all"]["theta_error"] > 0.0
     diff = rows["gc_ppo_vae"]["vs_nearest_neighbour_all"]
     assert np.isclose(diff["mean_diff"], rows["gc_ppo_vae"]["r_mean"] - rows["nearest_neighbour_all"]["r_mean"])
     lo, hi = rows["gc_ppo_vae"]["r_ci95"]
@@ -63,3 +63,25 @@ def test_answers_written_on_one_machine_are_scored_on_another(tmp_path: Path) ->
         bench.main([*common, "--answers-in", str(first), "--out", str(tmp_path / "x.json")])
     with pytest.raises(SystemExit, match="two answers files"):
         bench.main([*common, "--answers-in", str(answers), str(answers), "--out", str(tmp_path / "x.json")])
+
+
+def test_held_out_rows_by_key_file_with_every_answer_per_target(tmp_path: Path) -> None:
+    """``STORE@KEYFILE`` answers only the listed rows; ``--per-target-out`` keeps each target's answer and
+    scores (what a failure warning is fitted on); ``--no-truth`` leaves the truth out."""
+    from invphys.core.dataset import DatasetStore
+
+    keys = [str(k) for k in DatasetStore(QUICK_STORE).arrays().keys[3:7]]
+    key_file = tmp_path / "held_out.txt"
+    key_file.write_text("# four rows\n" + "\n".join(keys) + "\n")
+    bench = load("bench_user_targets")
+    per_target, out = tmp_path / "per_target.json", tmp_path / "out.json"
+    assert bench.main(["--bundle", QUICK_BUNDLE, "--targets", f"held={QUICK_STORE}@{key_file}", "--all-data",
+                       QUICK_STORE, "--methods", "warm_start_vae", "--no-truth", "--per-target-out", str(per_target),
+                       "--out", str(out)]) == 0
+    rows = json.loads(out.read_text())["sets"]["held"]["methods"]
+    assert set(rows) == {"warm_start_vae", "nearest_neighbour_all"} and rows["warm_start_vae"]["n"] == 4
+    data = json.loads(per_target.read_text())["sets"]["held"]
+    assert data["keys"] == keys and np.array(data["y"]).shape == (4, 12)
+    rec = data["methods"]["warm_start_vae"]
+    assert np.array(rec["theta"]).shape == (4, 9) and rec["r_actual"] == [None] * 4
+    assert np.isclose(np.mean(rec["r_surrogate"]), rows["warm_start_vae"]["r_mean"])
