@@ -198,7 +198,49 @@ def generate_dataset(
                                  batch_size=batch_size, spec=spec, flush_every_s=flush_every_s,
                                  generate=generate_dataset)
 
-    reg = registry or registry_module.default_registry()
+    plan = _plan(registry or registry_module.default_registry(), simulator, features, executor,
+                 n=n, sampler=sampler, seed=seed, batch_size=batch_size, points=points)
+    store = DatasetStore(path)
+    with store.writer():
+        run, todo = _open_session(store, plan, sampler=sampler, seed=seed, batch_size=batch_size,
+                                  limit_minutes=limit_minutes, spec=spec, design=design, progress=progress,
+                                  console=console)
+        run.flush([])
+        if len(todo):
+            _simulate(plan, run, todo, batch_size=batch_size, limit_minutes=limit_minutes,
+                      flush_every_s=flush_every_s, index_offset=index_offset, progress=progress, console=console)
+        summary = run.summary
+        if summary.stop_reason == "running":
+            summary.stop_reason = "complete" if summary.complete else "incomplete"
+        run.flush([])
+    return summary
+
+
+@dataclass
+class _Plan:
+    """What one generation runs: the plugins and their blocks, the design (``theta`` normalised, ``params``
+    physical) and each design point's row key."""
+
+    sim: Any
+    sim_block: dict[str, Any]
+    ext_block: dict[str, Any]
+    exec_block: dict[str, Any]
+    executor: Any
+    extractor: Any
+    space: Any
+    identity: RunIdentity
+    theta: np.ndarray
+    params: np.ndarray
+    keys: list[str]
+
+    @property
+    def n(self) -> int:
+        return len(self.keys)
+
+
+def _plan(reg: Any, simulator: dict[str, Any], features: dict[str, Any] | None, executor: dict[str, Any] | None,
+          n: int, sampler: str, seed: int, batch_size: int, points: np.ndarray | None) -> _Plan:
+    """Check the settings, build the plugins and the design (the sampler's, or ``points``) with its keys."""
     from invphys.core.spec import MAX_DATASET_N
 
     if not 0 < n <= MAX_DATASET_N:
@@ -218,7 +260,6 @@ def generate_dataset(
     exec_block = dict(executor or {"type": "local"})
     execu = reg.create("executor", exec_block)
     space = sim.parameter_space()
-    n_features = len(extractor.feature_names)
     identity = RunIdentity.of(sim)
 
     if points is None:
@@ -227,131 +268,172 @@ def generate_dataset(
         theta = round_theta(np.asarray(points, dtype=np.float64))
         if theta.ndim != 2 or theta.shape[1] != space.dim or not ((theta >= 0) & (theta <= 1)).all():
             raise InvphysError(f"design points must be an (n, {space.dim}) array in [0, 1]")
-        n = len(theta)
-    params = space.denormalize(theta)
     keys = row_keys(theta, identity)
     if len(set(keys)) != len(keys):
         raise InvphysError("the sampled design repeats a point at the key precision; use another seed")
+    return _Plan(sim=sim, sim_block=sim_block, ext_block=ext_block, exec_block=exec_block, executor=execu,
+                 extractor=extractor, space=space, identity=identity, theta=theta,
+                 params=space.denormalize(theta), keys=keys)
 
-    store = DatasetStore(path)
-    with store.writer():
-        meta = store.create_or_check({
-            "identity": identity.to_dict(),
-            "param_names": list(space.names),
-            "feature_names": list(extractor.feature_names),
-            "parameter_space": space.describe(),
-            "simulator": sim.describe(),
-            "simulator_block": sim_block,
-            "extractor_block": ext_block,
-        })
-        frame = store.frame() if store.parts() else None
-        present = set(frame["key"]) if frame is not None else set()
-        prior_ok = int((frame["status"] == "ok").sum()) if frame is not None else 0
-        prior_failed = (len(frame) - prior_ok) if frame is not None else 0
-        todo = _costliest_first(sim, params, np.array([i for i, k in enumerate(keys) if k not in present],
-                                                      dtype=np.int64))
-        summary = GenerationSummary(path=str(store.path), requested=n, already_present=n - len(todo),
-                                    other_rows=len(present - set(keys)))
-        if summary.other_rows and progress and design is None:
-            from rich.console import Console
 
-            (console or Console(stderr=True)).print(
-                f"[yellow]note:[/] {summary.other_rows} stored rows are not points of this design "
-                f"(sampler {sampler!r}, n={n}, seed={seed}); they stay in the dataset")
-        session: dict[str, Any] = {
-            "started_at": _utcnow(), "n": n, "sampler": sampler, "seed": seed, "batch_size": batch_size,
-            "executor": exec_block, "limit_minutes": limit_minutes, "host": host_info(),
-            "simulator_config": sim.describe().get("config"),
-            **({"design": design} if design is not None else {}),
+class _Session:
+    """One generation session under the store's write lock: its summary, its entry in the metadata's
+    ``sessions``, and the flushes that store rows and rewrite the metadata (a flush is never cut short by
+    SIGTERM or Ctrl-C: see :class:`_Stopper`)."""
+
+    def __init__(self, store: DatasetStore, meta: dict[str, Any], summary: GenerationSummary,
+                 session: dict[str, Any], prior_ok: int, prior_failed: int) -> None:
+        self.store, self.meta, self.summary, self.session = store, meta, summary, session
+        self.prior_ok, self.prior_failed = prior_ok, prior_failed
+        self.t0 = time.monotonic()
+        self.devices: set[str] = set()
+        self.backends: set[str] = set()
+        self.stopper = _Stopper()
+
+    def record(self, result: Any) -> None:
+        """Count one finished run."""
+        summary = self.summary
+        summary.ran += 1
+        summary.ok += bool(result.ok)
+        summary.failed = summary.ran - summary.ok
+        self.devices.update([result.stats.device] if result.stats.device else [])
+        self.backends.update([result.stats.backend] if result.stats.backend else [])
+
+    def flush(self, buffer: list[Row]) -> None:
+        """Store ``buffer`` (then empty it) and rewrite the metadata with this session's figures."""
+        with self.stopper.critical():
+            self._flush(buffer)
+
+    def _flush(self, buffer: list[Row]) -> None:
+        summary, session, meta = self.summary, self.session, self.meta
+        self.store.append(buffer)
+        buffer.clear()
+        summary.wall_s = time.monotonic() - self.t0
+        summary.devices, summary.backends = sorted(self.devices), sorted(self.backends)
+        session.update(finished_at=_utcnow(), wall_s=round(summary.wall_s, 3), ran=summary.ran,
+                       ok=summary.ok, failed=summary.failed, stop_reason=summary.stop_reason,
+                       runs_per_hour=round(summary.runs_per_hour, 1), devices=summary.devices,
+                       backends=summary.backends)
+        summary.total_ok, summary.total_failed = self.prior_ok + summary.ok, self.prior_failed + summary.failed
+        summary.total_rows = summary.total_ok + summary.total_failed
+        sessions = meta["sessions"]
+        meta["totals"] = {
+            "rows": summary.total_rows, "ok": summary.total_ok, "failed": summary.total_failed,
+            "generation_wall_s": round(sum(s.get("wall_s", 0.0) for s in sessions), 3),
+            "devices": sorted({d for s in sessions for d in s.get("devices", [])}),
+            "backends": sorted({b for s in sessions for b in s.get("backends", [])}),
         }
-        meta["sessions"] = [*meta.get("sessions", []), session]
-        if spec is not None:
-            meta["spec"] = spec
+        self.store.write_metadata(meta)
 
-        t0 = time.monotonic()
-        devices: set[str] = set()
-        backends: set[str] = set()
-        stopper = _Stopper()
 
-        def flush(buffer: list[Row]) -> None:
-            with stopper.critical():
-                _flush(buffer)
+def _open_session(store: DatasetStore, plan: _Plan, sampler: str, seed: int, batch_size: int,
+                  limit_minutes: float | None, spec: dict[str, Any] | None, design: dict[str, Any] | None,
+                  progress: bool, console: Any) -> tuple[_Session, np.ndarray]:
+    """Create (or check) the store, find the design rows it does not hold yet (costliest first) and start a
+    session in its metadata. Needs the store's write lock."""
+    sim, space, keys, n = plan.sim, plan.space, plan.keys, plan.n
+    meta = store.create_or_check({
+        "identity": plan.identity.to_dict(),
+        "param_names": list(space.names),
+        "feature_names": list(plan.extractor.feature_names),
+        "parameter_space": space.describe(),
+        "simulator": sim.describe(),
+        "simulator_block": plan.sim_block,
+        "extractor_block": plan.ext_block,
+    })
+    frame = store.frame() if store.parts() else None
+    present = set(frame["key"]) if frame is not None else set()
+    prior_ok = int((frame["status"] == "ok").sum()) if frame is not None else 0
+    prior_failed = (len(frame) - prior_ok) if frame is not None else 0
+    todo = _costliest_first(sim, plan.params, np.array([i for i, k in enumerate(keys) if k not in present],
+                                                       dtype=np.int64))
+    summary = GenerationSummary(path=str(store.path), requested=n, already_present=n - len(todo),
+                                other_rows=len(present - set(keys)))
+    if summary.other_rows and progress and design is None:
+        from rich.console import Console
 
-        def _flush(buffer: list[Row]) -> None:
-            store.append(buffer)
-            buffer.clear()
-            summary.wall_s = time.monotonic() - t0
-            summary.devices, summary.backends = sorted(devices), sorted(backends)
-            session.update(finished_at=_utcnow(), wall_s=round(summary.wall_s, 3), ran=summary.ran,
-                           ok=summary.ok, failed=summary.failed, stop_reason=summary.stop_reason,
-                           runs_per_hour=round(summary.runs_per_hour, 1), devices=summary.devices,
-                           backends=summary.backends)
-            summary.total_ok, summary.total_failed = prior_ok + summary.ok, prior_failed + summary.failed
-            summary.total_rows = summary.total_ok + summary.total_failed
-            sessions = meta["sessions"]
-            meta["totals"] = {
-                "rows": summary.total_rows, "ok": summary.total_ok, "failed": summary.total_failed,
-                "generation_wall_s": round(sum(s.get("wall_s", 0.0) for s in sessions), 3),
-                "devices": sorted({d for s in sessions for d in s.get("devices", [])}),
-                "backends": sorted({b for s in sessions for b in s.get("backends", [])}),
-            }
-            store.write_metadata(meta)
+        (console or Console(stderr=True)).print(
+            f"[yellow]note:[/] {summary.other_rows} stored rows are not points of this design "
+            f"(sampler {sampler!r}, n={n}, seed={seed}); they stay in the dataset")
+    session: dict[str, Any] = {
+        "started_at": _utcnow(), "n": n, "sampler": sampler, "seed": seed, "batch_size": batch_size,
+        "executor": plan.exec_block, "limit_minutes": limit_minutes, "host": host_info(),
+        "simulator_config": sim.describe().get("config"),
+        **({"design": design} if design is not None else {}),
+    }
+    meta["sessions"] = [*meta.get("sessions", []), session]
+    if spec is not None:
+        meta["spec"] = spec
+    return _Session(store, meta, summary, session, prior_ok, prior_failed), todo
 
-        buffer: list[Row] = []
-        flush(buffer)
-        if len(todo):
-            sizes = {b: min(batch_size, len(todo) - b * batch_size) for b in range(-(-len(todo) // batch_size))}
-            received: dict[int, int] = {}
-            deadline = t0 + 60.0 * limit_minutes if limit_minutes else None
-            batches_done = 0
-            last_flush = time.monotonic()
-            bar = _Progress(progress, console, len(todo), summary.already_present)
-            runs = execu.run(sim_block, ext_block, params[todo], batch_size)
-            try:
-                with stopper.installed(), bar:
-                    for local_i, result in runs:
-                        with stopper.critical():
-                            i = int(todo[local_i])
-                            check_features(result, n_features)
-                            buffer.append(Row(key=keys[i], sample_index=index_offset + i, theta=theta[i], params=params[i],
-                                              result=result))
-                            summary.ran += 1
-                            summary.ok += bool(result.ok)
-                            summary.failed = summary.ran - summary.ok
-                            devices.update([result.stats.device] if result.stats.device else [])
-                            backends.update([result.stats.backend] if result.stats.backend else [])
-                            bar.advance(summary)
-                            b = local_i // batch_size
-                            received[b] = received.get(b, 0) + 1
-                            batch_finished = received[b] == sizes[b]
-                            if batch_finished:
-                                del received[b]
-                                batches_done += 1
-                            now = time.monotonic()
-                            if len(buffer) >= batch_size or now - last_flush >= flush_every_s:
-                                flush(buffer)
-                                last_flush = now
-                            if deadline is not None and summary.ran < len(todo):
-                                per_batch = (now - t0) / max(batches_done, 1)
-                                idle = not received  # no batch half-delivered
-                                if (idle and now + per_batch > deadline) or now > deadline + per_batch:
-                                    summary.stop_reason = "time_limit"
-                                    break
-            except (KeyboardInterrupt, _Terminated) as exc:
-                stopper.stopping()
-                summary.stop_reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else "terminated"
-            except Exception:
-                summary.stop_reason = "error"
-                raise
-            finally:
-                runs_close = getattr(runs, "close", None)
-                if runs_close is not None:
-                    runs_close()
-                flush(buffer)
-        if summary.stop_reason == "running":
-            summary.stop_reason = "complete" if summary.complete else "incomplete"
-        flush(buffer)
-    return summary
+
+class _BatchClock:
+    """Which of the executor's batches have come back whole, and whether the time limit stops the run: it
+    stops between batches before one it expects to end after the limit, or a batch's time past the limit."""
+
+    def __init__(self, n_todo: int, batch_size: int, t0: float, limit_minutes: float | None) -> None:
+        self.batch_size, self.t0 = batch_size, t0
+        self.sizes = {b: min(batch_size, n_todo - b * batch_size) for b in range(-(-n_todo // batch_size))}
+        self.received: dict[int, int] = {}
+        self.deadline = t0 + 60.0 * limit_minutes if limit_minutes else None
+        self.batches_done = 0
+
+    def received_row(self, local_i: int) -> None:
+        b = local_i // self.batch_size
+        self.received[b] = self.received.get(b, 0) + 1
+        if self.received[b] == self.sizes[b]:
+            del self.received[b]
+            self.batches_done += 1
+
+    def out_of_time(self, now: float) -> bool:
+        if self.deadline is None:
+            return False
+        per_batch = (now - self.t0) / max(self.batches_done, 1)
+        idle = not self.received  # no batch half-delivered
+        return (idle and now + per_batch > self.deadline) or now > self.deadline + per_batch
+
+
+def _simulate(plan: _Plan, run: _Session, todo: np.ndarray, batch_size: int, limit_minutes: float | None,
+              flush_every_s: float, index_offset: int, progress: bool, console: Any) -> None:
+    """Run the design rows ``todo`` through the executor and store them as they come back (every
+    ``batch_size`` rows or ``flush_every_s`` seconds); a time limit, SIGTERM or Ctrl-C stops it cleanly
+    with every finished row stored (``run.summary.stop_reason`` says why it stopped)."""
+    summary, theta, params, keys = run.summary, plan.theta, plan.params, plan.keys
+    n_features = len(plan.extractor.feature_names)
+    clock = _BatchClock(len(todo), batch_size, run.t0, limit_minutes)
+    buffer: list[Row] = []
+    last_flush = time.monotonic()
+    bar = _Progress(progress, console, len(todo), summary.already_present)
+    runs = plan.executor.run(plan.sim_block, plan.ext_block, params[todo], batch_size)
+    try:
+        with run.stopper.installed(), bar:
+            for local_i, result in runs:
+                with run.stopper.critical():
+                    i = int(todo[local_i])
+                    check_features(result, n_features)
+                    buffer.append(Row(key=keys[i], sample_index=index_offset + i, theta=theta[i], params=params[i],
+                                      result=result))
+                    run.record(result)
+                    bar.advance(summary)
+                    clock.received_row(local_i)
+                    now = time.monotonic()
+                    if len(buffer) >= batch_size or now - last_flush >= flush_every_s:
+                        run.flush(buffer)
+                        last_flush = now
+                    if summary.ran < len(todo) and clock.out_of_time(now):
+                        summary.stop_reason = "time_limit"
+                        break
+    except (KeyboardInterrupt, _Terminated) as exc:
+        run.stopper.stopping()
+        summary.stop_reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else "terminated"
+    except Exception:
+        summary.stop_reason = "error"
+        raise
+    finally:
+        runs_close = getattr(runs, "close", None)
+        if runs_close is not None:
+            runs_close()
+        run.flush(buffer)
 
 
 class _Progress:
