@@ -100,17 +100,8 @@ def fit_loop(module: nn.Module, loss_fn: LossFn, train: tuple[torch.Tensor, ...]
     whose weights still change is not compared with its final form.
     """
     start = time.perf_counter()
-    opt_cls = torch.optim.AdamW if optimizer == "adamw" else torch.optim.Adam
-    opt = opt_cls(module.parameters(), lr=lr, weight_decay=weight_decay)
-    n = train[0].shape[0]
-    sched = None
-    if schedule == "one_cycle":
-        steps = max_epochs * max(1, -(-n // batch_size))
-        # 5 % warm-up; at least 2.5 steps of it, else torch's phase boundaries coincide (division by zero)
-        warmup = min(0.5, max(0.05, 2.5 / steps))
-        if steps >= 6:
-            sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=steps, pct_start=warmup,
-                                                        anneal_strategy="cos", div_factor=10, final_div_factor=1e3)
+    opt, sched = _optimizer(module, train[0].shape[0], lr=lr, weight_decay=weight_decay, batch_size=batch_size,
+                            max_epochs=max_epochs, optimizer=optimizer, schedule=schedule)
     gen = torch.Generator().manual_seed(seed)
     hist = History()
     best_state = copy.deepcopy(module.state_dict())
@@ -118,27 +109,12 @@ def fit_loop(module: nn.Module, loss_fn: LossFn, train: tuple[torch.Tensor, ...]
     bar = _Bar(progress, description, max_epochs)
     try:
         for epoch in range(max_epochs):
-            module.train()
-            perm = torch.randperm(n, generator=gen).to(train[0].device)
-            total, count = 0.0, 0
-            for i in range(0, n, batch_size):
-                idx = perm[i:i + batch_size]
-                if idx.numel() < 2 and n >= 2:  # batch norm needs 2 rows; fold a lone row away
-                    continue
-                batch = tuple(t[idx] for t in train)
-                loss, _ = loss_fn(batch, epoch)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
-                if sched is not None:
-                    sched.step()
-                total += float(loss.detach()) * idx.numel()
-                count += idx.numel()
+            train_loss = _train_epoch(module, loss_fn, train, opt, sched, gen, batch_size, epoch)
             module.eval()
             with torch.no_grad():
                 vloss, parts = loss_fn(val, None)
             vloss_f = float(vloss)
-            hist.train_loss.append(total / max(count, 1))
+            hist.train_loss.append(train_loss)
             hist.val_loss.append(vloss_f)
             for k, v in parts.items():
                 hist.parts.setdefault(k, []).append(float(v))
@@ -167,6 +143,45 @@ def fit_loop(module: nn.Module, loss_fn: LossFn, train: tuple[torch.Tensor, ...]
         tracker.flush()
     hist.train_time_s = time.perf_counter() - start
     return hist
+
+
+def _optimizer(module: nn.Module, n: int, *, lr: float, weight_decay: float, batch_size: int, max_epochs: int,
+               optimizer: str, schedule: str) -> tuple[Any, Any]:
+    """The optimiser (Adam, or AdamW for ``"adamw"``) and the learning-rate schedule (None: constant)."""
+    opt_cls = torch.optim.AdamW if optimizer == "adamw" else torch.optim.Adam
+    opt = opt_cls(module.parameters(), lr=lr, weight_decay=weight_decay)
+    sched = None
+    if schedule == "one_cycle":
+        steps = max_epochs * max(1, -(-n // batch_size))
+        # 5 % warm-up; at least 2.5 steps of it, else torch's phase boundaries coincide (division by zero)
+        warmup = min(0.5, max(0.05, 2.5 / steps))
+        if steps >= 6:
+            sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=steps, pct_start=warmup,
+                                                        anneal_strategy="cos", div_factor=10, final_div_factor=1e3)
+    return opt, sched
+
+
+def _train_epoch(module: nn.Module, loss_fn: LossFn, train: tuple[torch.Tensor, ...], opt: Any, sched: Any,
+                 gen: torch.Generator, batch_size: int, epoch: int) -> float:
+    """One pass over ``train`` in shuffled mini-batches; the mean training loss per row."""
+    module.train()
+    n = train[0].shape[0]
+    perm = torch.randperm(n, generator=gen).to(train[0].device)
+    total, count = 0.0, 0
+    for i in range(0, n, batch_size):
+        idx = perm[i:i + batch_size]
+        if idx.numel() < 2 and n >= 2:  # batch norm needs 2 rows; fold a lone row away
+            continue
+        batch = tuple(t[idx] for t in train)
+        loss, _ = loss_fn(batch, epoch)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if sched is not None:
+            sched.step()
+        total += float(loss.detach()) * idx.numel()
+        count += idx.numel()
+    return total / max(count, 1)
 
 
 class _Bar:
