@@ -41,6 +41,7 @@ then carry as R_actual (the search's answer is a best-of-N run of a slightly cha
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -100,19 +101,70 @@ def _retrain(ctx: StageContext, theta: np.ndarray, y: np.ndarray) -> Any:
     return model
 
 
-def run(ctx: StageContext) -> dict[str, Any]:
-    from invphys.core.atomic import write_json
-    from invphys.core.objectives import recovery_reward
-    from invphys.evaluation.stats import bootstrap_mean_ci
-    from invphys.models.data import r2_scores
-    from invphys.pipeline.artifacts import to_params
-    from invphys.pipeline.stages.invert import load_results
-    from invphys.plugins.evaluators.simulator_loop import SimulatorEvaluator, refine_targets
-    from invphys.plugins.evaluators.uncertainty import UncertaintyPenalty
+@dataclass
+class _Inputs:
+    """What every round works on: the targets (``ks`` of ``targets``, their features and scales), the
+    training and test rows, the simulator the proposals run on, and what the start answers cost."""
 
+    targets: dict[str, Any]
+    ks: list[int]
+    feats: np.ndarray
+    scales: np.ndarray
+    data: Any
+    theta_tr: np.ndarray
+    y_tr: np.ndarray
+    test_idx: np.ndarray
+    sim: Any
+    start_r: np.ndarray
+    start_runs: float
+
+    @property
+    def n(self) -> int:
+        return len(self.ks)
+
+
+@dataclass
+class _State:
+    """The rounds so far: each target's best simulated answer, the rows every round added, the round
+    records, the surrogate the next round proposes with, and the checkpoint key."""
+
+    best_theta: np.ndarray
+    best_r: np.ndarray
+    best_y: np.ndarray
+    added_theta: list[np.ndarray]
+    added_y: list[np.ndarray]
+    rounds: list[dict[str, Any]]
+    surrogate: Any
+    key: str
+    first: int = 0
+
+    @property
+    def best(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self.best_theta, self.best_r, self.best_y
+
+
+def run(ctx: StageContext) -> dict[str, Any]:
+    """Run (or resume) the active-learning rounds, then the optional polish; see the module docstring."""
     sec = ctx.spec.active
     if sec is None:
         raise InvphysError("the active stage needs an 'active' section")
+    inp, best = _inputs(ctx, sec)
+    st = _resume(ctx, sec, inp, best)
+    for r in range(st.first, sec.rounds + 1):
+        _one_round(ctx, sec, r, inp, st)
+        _save_checkpoint(ctx, st.key, st.rounds, st.best, st.added_theta, st.added_y)
+        if r == sec.rounds:
+            break
+        st.surrogate = _retrain_round(ctx, r + 1, inp.theta_tr, inp.y_tr, st.added_theta, st.added_y, st.rounds)
+        _save_checkpoint(ctx, st.key, st.rounds, st.best, st.added_theta, st.added_y)
+    return _finish(ctx, sec, inp, st)
+
+
+def _inputs(ctx: StageContext, sec: Any) -> tuple[_Inputs, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The rounds' inputs, and the start answers (theta, validated R_actual, features) they improve on."""
+    from invphys.pipeline.stages.invert import load_results
+    from invphys.plugins.evaluators.simulator_loop import SimulatorEvaluator
+
     _, targets = load_results(ctx)
     n = min(sec.targets or int(ctx.spec.targets.validate_n) or len(targets["rows"]), len(targets["rows"]))
     ks = list(range(n))
@@ -120,7 +172,6 @@ def run(ctx: StageContext) -> dict[str, Any]:
     scales = np.asarray(targets["scales"], dtype=np.float64)
     data = ctx.dataset()
     train_idx, test_idx = ctx.split()
-    theta_tr, y_tr = data.theta[train_idx], data.y[train_idx]
     validator = ctx.registry.create("validator", ctx.spec.validator)
     if not hasattr(validator, "simulate_features"):
         raise InvphysError("the active stage simulates through a validator with simulate_features ('simulator')")
@@ -131,91 +182,114 @@ def run(ctx: StageContext) -> dict[str, Any]:
         best_r, best_y, start_runs = _start_r_actual(ctx, sec.start, ks, feats.shape[1])
         if not np.isfinite(best_r).any():
             raise InvphysError(f"active.keep_start: the validate stage validated no {sec.start!r} answer")
-    start_r = best_r.copy()
+    inp = _Inputs(targets=targets, ks=ks, feats=feats, scales=scales, data=data, theta_tr=data.theta[train_idx],
+                  y_tr=data.y[train_idx], test_idx=test_idx, sim=sim, start_r=best_r.copy(), start_runs=start_runs)
+    return inp, (best_theta, best_r, best_y)
+
+
+def _resume(ctx: StageContext, sec: Any, inp: _Inputs, best: tuple[np.ndarray, np.ndarray, np.ndarray]) -> _State:
+    """Round 0's state, or the saved rounds' when ``progress.npz`` matches (also when ``rounds`` grew),
+    with the surrogate the next round proposes with."""
     surrogate = ctx.surrogate()
-    added_theta: list[np.ndarray] = []
-    added_y: list[np.ndarray] = []
-    rounds: list[dict[str, Any]] = []
-    key = _checkpoint_key(ctx, n, feats)
-    first = 0
-    saved = _load_checkpoint(ctx, (key, _checkpoint_key(ctx, n, feats, legacy=True)))
-    if saved is not None:  # resume after the last round that finished (also when `rounds` grew)
-        key = saved["key"]  # a legacy key stays in use: the polish logs are keyed by it
-        rounds, best_theta, best_r, best_y = saved["rounds"], saved["best_theta"], saved["best_r"], saved["best_y"]
-        added_theta, added_y = saved["added_theta"], saved["added_y"]
-        first = len(rounds)
-        ctx.log(f"resuming after round {first - 1} ({first} rounds recorded in {CHECKPOINT_FILE})")
-        if first <= sec.rounds:
-            surrogate = _surrogate_for(ctx, first, theta_tr, y_tr, added_theta, added_y, rounds, key,
-                                       (best_theta, best_r, best_y))
-        elif first > 1:  # more rounds recorded than asked for: they are all kept
-            surrogate = _surrogate_for(ctx, first - 1, theta_tr, y_tr, added_theta[:-1], added_y[:-1],
-                                       rounds[:-1], key, None)
-    for r in range(first, sec.rounds + 1):
-        t0 = time.perf_counter()
-        pen = UncertaintyPenalty(surrogate, scales, sec.uncertainty_penalty)
-        k_prop = sec.proposals
-        refined = refine_targets(np.repeat(feats, k_prop, axis=0), np.repeat(best_theta, k_prop, axis=0), scales,
-                                 pen.predict, sec.budget, sec.popsize, sec.sigma0, seed=ctx.seed * 1000 + r,
-                                 score=lambda y, t, pen=pen: recovery_reward(y, t, scales) - pen.penalty(y))
-        proposals = np.array([x.theta for x in refined])  # target i's proposals: rows i*k .. i*k+k-1
-        propose_s = time.perf_counter() - t0
-        runs0, sim_s0 = sim.runs, sim.wall_time_s
-        y_sim = sim(proposals)
-        ok = np.all(np.isfinite(y_sim), axis=1)
-        r_all = np.where(ok, recovery_reward(np.where(ok[:, None], y_sim, 0.0), np.repeat(feats, k_prop, axis=0),
-                                             scales), 0.0).reshape(n, k_prop)
-        pick = np.arange(n) * k_prop + r_all.argmax(axis=1)
-        r_act = r_all.max(axis=1)
-        better = r_act > best_r
-        best_r = np.where(better, r_act, best_r)
-        best_theta = np.where(better[:, None], proposals[pick], best_theta)
-        best_y = np.where(better[:, None], y_sim[pick], best_y)
-        r2 = float(r2_scores(data.y[test_idx], surrogate.predict(data.theta[test_idx]))[0]) if len(test_idx) > 1 else None
-        m, lo, hi = bootstrap_mean_ci(r_act, ctx.spec.evaluation.bootstrap, ctx.spec.evaluation.confidence, ctx.seed)
-        bm, blo, bhi = bootstrap_mean_ci(best_r, ctx.spec.evaluation.bootstrap, ctx.spec.evaluation.confidence,
-                                         ctx.seed)
-        rounds.append({"round": r, "train_rows": int(len(theta_tr) + sum(len(a) for a in added_theta)),
-                       "surrogate_r2_test": r2, "r_actual_mean": m, "r_actual_ci95": [lo, hi],
-                       "best_so_far_mean": bm, "best_so_far_ci95": [blo, bhi], "failed": int((~ok).sum()),
-                       "simulator_runs": sim.runs - runs0, "simulator_s": sim.wall_time_s - sim_s0,
-                       "propose_s": propose_s, "device": sim.device})
-        ctx.log(f"round {r}: {rounds[-1]['train_rows']} training rows, surrogate R^2 {r2 if r2 is None else round(r2, 3)}, "
-                f"R_actual {m:.3f} [{lo:.3f}, {hi:.3f}], best so far {bm:.3f}")
-        added_theta.append(proposals[ok])
-        added_y.append(y_sim[ok])
-        _save_checkpoint(ctx, key, rounds, (best_theta, best_r, best_y), added_theta, added_y)
-        if r == sec.rounds:
-            break
-        surrogate = _retrain_round(ctx, r + 1, theta_tr, y_tr, added_theta, added_y, rounds)
-        _save_checkpoint(ctx, key, rounds, (best_theta, best_r, best_y), added_theta, added_y)
+    key = _checkpoint_key(ctx, inp.n, inp.feats)
+    st = _State(*best, added_theta=[], added_y=[], rounds=[], surrogate=surrogate, key=key)
+    saved = _load_checkpoint(ctx, (key, _checkpoint_key(ctx, inp.n, inp.feats, legacy=True)))
+    if saved is None:
+        return st
+    st = _State(best_theta=saved["best_theta"], best_r=saved["best_r"], best_y=saved["best_y"],
+                added_theta=saved["added_theta"], added_y=saved["added_y"], rounds=saved["rounds"],
+                surrogate=surrogate, key=saved["key"],  # a legacy key stays in use: the polish logs are keyed by it
+                first=len(saved["rounds"]))
+    ctx.log(f"resuming after round {st.first - 1} ({st.first} rounds recorded in {CHECKPOINT_FILE})")
+    if st.first <= sec.rounds:
+        st.surrogate = _surrogate_for(ctx, st.first, inp.theta_tr, inp.y_tr, st.added_theta, st.added_y, st.rounds,
+                                      st.key, st.best)
+    elif st.first > 1:  # more rounds recorded than asked for: they are all kept
+        st.surrogate = _surrogate_for(ctx, st.first - 1, inp.theta_tr, inp.y_tr, st.added_theta[:-1],
+                                      st.added_y[:-1], st.rounds[:-1], st.key, None)
+    return st
+
+
+def _one_round(ctx: StageContext, sec: Any, r: int, inp: _Inputs, st: _State) -> None:
+    """Round ``r``: propose on the surrogate, simulate every proposal, keep each target's best answer,
+    record the round and the rows it adds."""
+    from invphys.core.objectives import recovery_reward
+    from invphys.evaluation.stats import bootstrap_mean_ci
+    from invphys.models.data import r2_scores
+    from invphys.plugins.evaluators.simulator_loop import refine_targets
+    from invphys.plugins.evaluators.uncertainty import UncertaintyPenalty
+
+    n, feats, scales, sim, data, test_idx = inp.n, inp.feats, inp.scales, inp.sim, inp.data, inp.test_idx
+    t0 = time.perf_counter()
+    pen = UncertaintyPenalty(st.surrogate, scales, sec.uncertainty_penalty)
+    k_prop = sec.proposals
+    refined = refine_targets(np.repeat(feats, k_prop, axis=0), np.repeat(st.best_theta, k_prop, axis=0), scales,
+                             pen.predict, sec.budget, sec.popsize, sec.sigma0, seed=ctx.seed * 1000 + r,
+                             score=lambda y, t, pen=pen: recovery_reward(y, t, scales) - pen.penalty(y))
+    proposals = np.array([x.theta for x in refined])  # target i's proposals: rows i*k .. i*k+k-1
+    propose_s = time.perf_counter() - t0
+    runs0, sim_s0 = sim.runs, sim.wall_time_s
+    y_sim = sim(proposals)
+    ok = np.all(np.isfinite(y_sim), axis=1)
+    r_all = np.where(ok, recovery_reward(np.where(ok[:, None], y_sim, 0.0), np.repeat(feats, k_prop, axis=0),
+                                         scales), 0.0).reshape(n, k_prop)
+    pick = np.arange(n) * k_prop + r_all.argmax(axis=1)
+    r_act = r_all.max(axis=1)
+    better = r_act > st.best_r
+    st.best_r = np.where(better, r_act, st.best_r)
+    st.best_theta = np.where(better[:, None], proposals[pick], st.best_theta)
+    st.best_y = np.where(better[:, None], y_sim[pick], st.best_y)
+    r2 = (float(r2_scores(data.y[test_idx], st.surrogate.predict(data.theta[test_idx]))[0])
+          if len(test_idx) > 1 else None)
+    ev = ctx.spec.evaluation
+    m, lo, hi = bootstrap_mean_ci(r_act, ev.bootstrap, ev.confidence, ctx.seed)
+    bm, blo, bhi = bootstrap_mean_ci(st.best_r, ev.bootstrap, ev.confidence, ctx.seed)
+    st.rounds.append({"round": r, "train_rows": int(len(inp.theta_tr) + sum(len(a) for a in st.added_theta)),
+                      "surrogate_r2_test": r2, "r_actual_mean": m, "r_actual_ci95": [lo, hi],
+                      "best_so_far_mean": bm, "best_so_far_ci95": [blo, bhi], "failed": int((~ok).sum()),
+                      "simulator_runs": sim.runs - runs0, "simulator_s": sim.wall_time_s - sim_s0,
+                      "propose_s": propose_s, "device": sim.device})
+    ctx.log(f"round {r}: {st.rounds[-1]['train_rows']} training rows, surrogate R^2 {r2 if r2 is None else round(r2, 3)}, "
+            f"R_actual {m:.3f} [{lo:.3f}, {hi:.3f}], best so far {bm:.3f}")
+    st.added_theta.append(proposals[ok])
+    st.added_y.append(y_sim[ok])
+
+
+def _finish(ctx: StageContext, sec: Any, inp: _Inputs, st: _State) -> dict[str, Any]:
+    """Write ``rounds.json``, ``added.npz``, the answers' report and validation rows (and the polish's);
+    return the stage's summary."""
+    from invphys.core.atomic import write_json
+    from invphys.pipeline.artifacts import to_params
+
+    n, rounds, sim = inp.n, st.rounds, inp.sim
     write_json(ctx.stage_dir / ROUNDS_FILE, rounds)
     trained_on = len(rounds) - 1  # the last round's runs are simulated but not yet trained on
     if trained_on:
-        np.savez_compressed(ctx.stage_dir / "added.npz", theta=np.concatenate(added_theta[:trained_on]),
-                            y=np.concatenate(added_y[:trained_on]))
+        np.savez_compressed(ctx.stage_dir / "added.npz", theta=np.concatenate(st.added_theta[:trained_on]),
+                            y=np.concatenate(st.added_y[:trained_on]))
     physical = to_params(ctx)
-    runs_per_target = sum(x["simulator_runs"] for x in rounds) / max(n, 1) + start_runs
+    runs_per_target = sum(x["simulator_runs"] for x in rounds) / max(n, 1) + inp.start_runs
     wall = float(sum(x["propose_s"] + x["simulator_s"] + x.get("retrain_s", 0.0) for x in rounds) / n)
-    spec_row = {"to_params": physical, "surrogate": surrogate, "feats": feats, "scales": scales, "ks": ks,
-                "targets": targets, "evaluations": int(sec.budget * sec.proposals * (sec.rounds + 1)),
+    row_inputs = {"to_params": physical, "surrogate": st.surrogate, "feats": inp.feats, "scales": inp.scales,
+                "ks": inp.ks, "targets": inp.targets, "evaluations": int(sec.budget * sec.proposals * (sec.rounds + 1)),
                 "device": sim.device or next((x["device"] for x in reversed(rounds) if x.get("device")), "cpu")}
-    rows, val = _answer_rows(spec_row, LABEL, "active_learning", "shared", best_theta, best_r, best_y,
+    rows, val = _answer_rows(row_inputs, LABEL, "active_learning", "shared", st.best_theta, st.best_r, st.best_y,
                              np.full(n, runs_per_target), np.full(n, wall))
     polish_summary = None
     if sec.polish is not None:
-        pol, share, polish_summary = _polish_passes(ctx, sec.polish, key, len(rounds), feats, scales,
-                                                    (best_theta, best_r, best_y), sim, runs_per_target, wall)
-        prow, pval = _answer_rows({**spec_row, "device": pol.device or spec_row["device"]}, POLISH_LABEL,
+        pol, share, polish_summary = _polish_passes(ctx, sec.polish, st.key, len(rounds), inp.feats, inp.scales,
+                                                    st.best, sim, runs_per_target, wall)
+        prow, pval = _answer_rows({**row_inputs, "device": pol.device or row_inputs["device"]}, POLISH_LABEL,
                                   "active_learning+simulator", "simulator", pol.theta, pol.r_actual, pol.features,
                                   runs_per_target + pol.runs, wall + share)
         rows, val = rows + prow, val + pval
         write_json(ctx.stage_dir / POLISH_FILE, polish_summary)
     write_json(ctx.stage_dir / "rows.json", rows)
     write_json(ctx.stage_dir / "validation.json", val)
+    start_r = inp.start_r
     return {"targets": n, "rounds": rounds, "simulator_runs": sum(x["simulator_runs"] for x in rounds),
-            "resumed_after_round": first - 1 if first else None, "proposals": sec.proposals,
-            "start": sec.start, "start_simulator_runs_per_target": start_runs,
+            "resumed_after_round": st.first - 1 if st.first else None, "proposals": sec.proposals,
+            "start": sec.start, "start_simulator_runs_per_target": inp.start_runs,
             "start_r_actual_mean": float(np.mean(start_r[np.isfinite(start_r)])) if sec.keep_start else None,
             **({"polish": polish_summary} if polish_summary is not None else {})}
 

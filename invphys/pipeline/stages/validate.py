@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -61,8 +62,10 @@ def _run_bar(ctx: StageContext, total: int, label: str) -> Iterator[Any]:
 
 
 def run(ctx: StageContext) -> dict[str, Any]:
+    """Validate the invert stage's answers and the evaluation protocol's on the simulator (see the module
+    docstring); writes ``validation.json``/``.csv`` and ``evaluation_rows.json``."""
     from invphys.core.atomic import write_json
-    from invphys.pipeline.stages.invert import load_results, objectives
+    from invphys.pipeline.stages.invert import load_results, summarise
 
     rows, targets = load_results(ctx)
     n_val = int(ctx.spec.targets.validate_n)
@@ -77,45 +80,92 @@ def run(ctx: StageContext) -> dict[str, Any]:
         write_json(ctx.stage_dir / VALIDATION_FILE, [])
         return {"validated": 0, "note": "nothing to validate (targets.validate is 0 and no objectives)",
                 "evaluation": eval_info}
-    scales = np.asarray(targets["scales"])
     theta = np.array([r["theta"] for r in chosen])
     unique, inverse = np.unique(np.round(theta, 12), axis=0, return_inverse=True)
     inverse = np.asarray(inverse).reshape(-1)
     render = bool(ctx.spec.report.render)
     ctx.log(f"simulating {len(unique)} recovered parameter vectors ({len(chosen)} rows) "
             f"with validator {validator.name!r}")
-    out: list[dict[str, Any]] = []
-    target_rows = [i for i, r in enumerate(chosen) if r["problem"] == "target"]
-    if hasattr(validator, "simulate_features"):
-        # keep trajectories only of runs that may be rendered (the first RENDER_TARGETS targets)
-        # (the noise floor's runs among them: they are the targets' own runs that the renders draw)
-        keep = {int(inverse[i]) for i in target_rows if chosen[i]["target_index"] < RENDER_TARGETS} if render else False
-        assert ckpt is not None
-        reused0 = ckpt.reused  # the in-loop replay above counts too
-        with _run_bar(ctx, len(unique), "validating") as on_run:
-            sim = ckpt.simulate(unique, _bound(validator, simulator, extractor), validator.config.batch_size,
-                                len(extractor.feature_names), keep_trajectories=keep, on_run=on_run)
-        if ckpt.reused:
-            ctx.log(f"{ckpt.reused - reused0} of {len(unique)} validated vectors ({ckpt.reused} simulator calls' "
-                    f"vectors in all) reused from {ckpt.path.name} (a resumed validation)")
-        feats = sim.features[inverse]
-        failures = [sim.failures[j] for j in inverse]
-        stats = [sim.stats[j] for j in inverse]
-        if target_rows:
-            from invphys.plugins.validators.simulator import SimulatedFeatures
+    done = _simulate_chosen(ctx, chosen, targets, theta, unique, inverse, validator, simulator, extractor, ckpt)
+    out = _validation_rows(ctx, chosen, done)
+    if ctx.spec.evaluation.best_of:
+        from invphys.evaluation.answers import best_of_rows
 
-            sub = SimulatedFeatures(feats[target_rows], [failures[i] for i in target_rows],
-                                    [stats[i] for i in target_rows], [None] * len(target_rows))
-            recs = validator.records(theta[target_rows], _targets_of(chosen, target_rows, targets),
-                                     _predicted(chosen, target_rows), sub, scales)
-        else:
-            recs = []
-    else:  # a third-party validator: recovery targets only, through the Validator interface
-        sim, feats, failures, stats = None, None, None, None
+        sel_a, sel_v = best_of_rows(ctx.spec.evaluation.best_of, rows + extra, out)
+        extra += sel_a
+        out += sel_v
+        write_json(ctx.stage_dir / EVALUATION_ROWS_FILE, extra)
+    renders = (_renders(ctx, chosen, out, inverse, done.sim, validator, simulator, extractor, targets)
+               if render else [])
+    write_json(ctx.stage_dir / VALIDATION_FILE, out)
+    import pandas as pd
+
+    pd.DataFrame([{k: v for k, v in r.items() if k not in ("theta", "actual")} for r in out]).to_csv(
+        ctx.stage_dir / "validation.csv", index=False)
+    failed = sum(1 for r in out if r["failure"])
+    ctx.log(f"validated {len(out)} rows ({failed} failed runs)")
+    return {"validated": len(out), "simulated": len(unique), "failed": failed, "renders": renders,
+            "optimizers": summarise(out, "r_actual"), "evaluation": eval_info}
+
+
+@dataclass
+class _Validated:
+    """The chosen rows' simulations: the validator's records of recovery rows (by row index) and, for a
+    validator with ``simulate_features``, every row's features, failure and run stats (``sim``: the
+    unique vectors' simulation)."""
+
+    by_row: dict[int, Any]
+    sim: Any = None
+    feats: np.ndarray | None = None
+    failures: list[Any] | None = None
+    stats: list[Any] | None = None
+
+
+def _simulate_chosen(ctx: StageContext, chosen: list[dict[str, Any]], targets: dict[str, Any], theta: np.ndarray,
+                     unique: np.ndarray, inverse: np.ndarray, validator: Any, simulator: Any, extractor: Any,
+                     ckpt: Any) -> _Validated:
+    """Simulate each unique vector once (replaying the stage's memo) and score the recovery rows."""
+    scales = np.asarray(targets["scales"])
+    target_rows = [i for i, r in enumerate(chosen) if r["problem"] == "target"]
+    if not hasattr(validator, "simulate_features"):  # a third-party validator: recovery targets only
         recs = validator.validate(theta[target_rows], _targets_of(chosen, target_rows, targets),
                                   _predicted(chosen, target_rows), simulator, extractor, scales) if target_rows else []
-    by_row = dict(zip(target_rows, recs, strict=True))
+        return _Validated(by_row=dict(zip(target_rows, recs, strict=True)))
+    # keep trajectories only of runs that may be rendered (the first RENDER_TARGETS targets)
+    # (the noise floor's runs among them: they are the targets' own runs that the renders draw)
+    render = bool(ctx.spec.report.render)
+    keep = {int(inverse[i]) for i in target_rows if chosen[i]["target_index"] < RENDER_TARGETS} if render else False
+    assert ckpt is not None
+    reused0 = ckpt.reused  # the in-loop replay above counts too
+    with _run_bar(ctx, len(unique), "validating") as on_run:
+        sim = ckpt.simulate(unique, _bound(validator, simulator, extractor), validator.config.batch_size,
+                            len(extractor.feature_names), keep_trajectories=keep, on_run=on_run)
+    if ckpt.reused:
+        ctx.log(f"{ckpt.reused - reused0} of {len(unique)} validated vectors ({ckpt.reused} simulator calls' "
+                f"vectors in all) reused from {ckpt.path.name} (a resumed validation)")
+    feats = sim.features[inverse]
+    failures = [sim.failures[j] for j in inverse]
+    stats = [sim.stats[j] for j in inverse]
+    recs = []
+    if target_rows:
+        from invphys.plugins.validators.simulator import SimulatedFeatures
+
+        sub = SimulatedFeatures(feats[target_rows], [failures[i] for i in target_rows],
+                                [stats[i] for i in target_rows], [None] * len(target_rows))
+        recs = validator.records(theta[target_rows], _targets_of(chosen, target_rows, targets),
+                                 _predicted(chosen, target_rows), sub, scales)
+    return _Validated(by_row=dict(zip(target_rows, recs, strict=True)), sim=sim, feats=feats, failures=failures,
+                      stats=stats)
+
+
+def _validation_rows(ctx: StageContext, chosen: list[dict[str, Any]], done: _Validated) -> list[dict[str, Any]]:
+    """One validation row per chosen row that has a result: a recovery row's record, or a named
+    objective's score on the surrogate's prediction and on the simulated features."""
+    from invphys.pipeline.stages.invert import objectives
+
+    by_row, feats, failures, stats = done.by_row, done.feats, done.failures, done.stats
     named = objectives(ctx) if any(r["problem"] == "objective" for r in chosen) else {}
+    out: list[dict[str, Any]] = []
     for i, r in enumerate(chosen):
         base = {k: r[k] for k in ("optimizer", "type", "space", "evaluator", "problem", "problem_id",
                                   "target_index", "dataset_row", "evaluations", "wall_time_s", "theta")}
@@ -136,25 +186,7 @@ def run(ctx: StageContext) -> dict[str, Any]:
         else:
             continue
         out.append(base)
-    if ctx.spec.evaluation.best_of:
-        from invphys.evaluation.answers import best_of_rows
-
-        sel_a, sel_v = best_of_rows(ctx.spec.evaluation.best_of, rows + extra, out)
-        extra += sel_a
-        out += sel_v
-        write_json(ctx.stage_dir / EVALUATION_ROWS_FILE, extra)
-    renders = _renders(ctx, chosen, out, inverse, sim, validator, simulator, extractor, targets) if render else []
-    write_json(ctx.stage_dir / VALIDATION_FILE, out)
-    import pandas as pd
-
-    pd.DataFrame([{k: v for k, v in r.items() if k not in ("theta", "actual")} for r in out]).to_csv(
-        ctx.stage_dir / "validation.csv", index=False)
-    failed = sum(1 for r in out if r["failure"])
-    from invphys.pipeline.stages.invert import summarise
-
-    ctx.log(f"validated {len(out)} rows ({failed} failed runs)")
-    return {"validated": len(out), "simulated": len(unique), "failed": failed, "renders": renders,
-            "optimizers": summarise(out, "r_actual"), "evaluation": eval_info}
+    return out
 
 
 def _bound(validator: Any, simulator: Any, extractor: Any) -> Any:
