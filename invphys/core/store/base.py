@@ -29,9 +29,8 @@ class StoreBase:
         self._keys: set[str] | None = None
 
     def __repr__(self) -> str:
-        return f"DatasetStore({str(self.path)!r})"
+        return f"{type(self).__name__}({str(self.path)!r})"
 
-    # -- metadata ------------------------------------------------------------------------------
     @property
     def metadata_path(self) -> Path:
         return self.path / METADATA_FILE

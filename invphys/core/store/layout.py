@@ -53,10 +53,12 @@ def max_part_bytes() -> int:
 
 
 def utcnow() -> str:
+    """Now, in UTC, as the store's files record times."""
     return datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
 def short(exc: BaseException) -> str:
+    """An exception's message on one line of at most 160 characters."""
     text = " ".join(str(exc).split()) or type(exc).__name__
     return text if len(text) <= 160 else text[:157] + "..."
 
@@ -116,6 +118,7 @@ def provenance(meta: dict[str, Any], part: str) -> dict[str, Any]:
 
 
 def not_writable(path: Path, exc: OSError, done: Sequence[str] = ()) -> str:
+    """The one-line message for a store that cannot be changed (``done``: what was changed before)."""
     why = exc.strerror or str(exc)
     if exc.errno == errno.ELOOP or (os.path.islink(path) and not os.path.exists(path)):
         why = "the path is a symbolic link that leads nowhere (or in a loop)"

@@ -46,6 +46,8 @@ class PartProblem:
 
 @dataclass
 class Part:
+    """A part file read and checked: its rows, checksum and size."""
+
     name: str
     table: Any = None
     sha256: str = ""
@@ -54,6 +56,9 @@ class Part:
 
 @dataclass
 class Scan:
+    """What :func:`scan_store` found: the good parts (in manifest order, then unlisted ones), the problems,
+    and the store's schema."""
+
     parts: list[Part]
     problems: list[PartProblem]
     has_manifest: bool
@@ -140,10 +145,12 @@ def _strays(path: Path, parts: Any) -> list[str]:
 
 
 def part_entry(part: Part) -> dict[str, Any]:
+    """The manifest's entry for a good part."""
     return {"name": part.name, "rows": int(part.table.num_rows), "bytes": part.nbytes, "sha256": part.sha256}
 
 
 def problems_message(path: Path, problems: list[PartProblem]) -> str:
+    """The one-line refusal of a store with bad parts (the first three named)."""
     shown = "; ".join(p.text() for p in problems[:3])
     more = f" and {len(problems) - 3} more" if len(problems) > 3 else ""
     return (f"dataset {str(path)!r} has {len(problems)} bad part(s): {shown}{more}. "
