@@ -15,6 +15,8 @@ import numpy as np
 
 from invphys.core.errors import InvphysError
 from invphys.core.results import RunStats, SimulationResult
+from invphys.plugins.executors import _deadline
+from invphys.plugins.executors._extract_pool import DEFAULT_TIMEOUT_S
 
 _CACHE: dict[str, tuple[Any, Any]] = {}
 #: plugin builds in this process (a warm worker builds once per spec, whatever the number of batches)
@@ -50,15 +52,17 @@ def _reason(exc: BaseException) -> str:
     return failure_reason(exc)
 
 
-def _finish(res: SimulationResult, extractor: Any) -> None:
-    """Extract the features of an ok result and drop its trajectory (idempotent)."""
+def _finish(res: SimulationResult, extractor: Any, timeout_s: float | None = DEFAULT_TIMEOUT_S) -> None:
+    """Extract the features of an ok result (within ``timeout_s``: :mod:`._deadline`) and drop its
+    trajectory (idempotent)."""
     if extractor is None:
         return
     if res.ok and res.features is None:
         try:
             if res.trajectory is None:
                 raise RuntimeError("the simulator returned no trajectory")
-            res.features = np.asarray(extractor.extract(res.trajectory), dtype=np.float64)
+            res.features = np.asarray(_deadline.call(extractor.extract, timeout_s, res.trajectory),
+                                      dtype=np.float64)
         except InvphysError:
             raise
         except Exception as exc:
@@ -66,8 +70,8 @@ def _finish(res: SimulationResult, extractor: Any) -> None:
     res.trajectory = None
 
 
-def simulate_batch(simulator: Any, extractor: Any, params: np.ndarray,
-                   isolate_failures: bool = True, pool: Any = None) -> list[SimulationResult]:
+def simulate_batch(simulator: Any, extractor: Any, params: np.ndarray, isolate_failures: bool = True,
+                   pool: Any = None, timeout_s: float | None = DEFAULT_TIMEOUT_S) -> list[SimulationResult]:
     """Simulate ``params`` (B, d) in one simulator call and extract features.
 
     Features are extracted as the simulator reports each run (``on_result``), so trajectories are
@@ -76,14 +80,15 @@ def simulate_batch(simulator: Any, extractor: Any, params: np.ndarray,
     process instead and the simulator goes on at once. An exception from the simulator (other than an
     :class:`InvphysError`, which is the user's to fix and propagates) becomes failed results: with
     ``isolate_failures`` the rows of a multi-row batch are re-run one by one so that one bad row does
-    not fail its neighbours. Results carry ``features``, never a trajectory.
+    not fail its neighbours. An extraction in this process that runs past ``timeout_s`` is its run's
+    failure (:mod:`._deadline`). Results carry ``features``, never a trajectory.
     """
     params = np.atleast_2d(np.asarray(params, dtype=np.float64))
     pending: dict[int, Any] = {}
 
     def on_result(i: int, res: SimulationResult) -> None:
         if pool is None or extractor is None:
-            _finish(res, extractor)
+            _finish(res, extractor, timeout_s)
         elif int(i) not in pending:
             pending[int(i)] = pool.submit(res)
 
@@ -100,7 +105,7 @@ def simulate_batch(simulator: Any, extractor: Any, params: np.ndarray,
                 fut.cancel()
         pending.clear()
         if isolate_failures and len(params) > 1:
-            results = [simulate_batch(simulator, extractor, row[None], False, pool)[0] for row in params]
+            results = [simulate_batch(simulator, extractor, row[None], False, pool, timeout_s)[0] for row in params]
         else:
             wall = (time.perf_counter() - t0) / len(params)
             results = [failed_result(simulator, row, _reason(exc), wall) for row in params]
@@ -111,13 +116,14 @@ def simulate_batch(simulator: Any, extractor: Any, params: np.ndarray,
         for i, res in enumerate(results):
             pool.resolve(res, pending.get(i))
     for res in results:
-        _finish(res, extractor)
+        _finish(res, extractor, timeout_s)
         res.trajectory = None
     return results
 
 
 def stream_rows(simulator: Any, extractor: Any, params: np.ndarray, batch_size: int | None = None,
-                isolate_failures: bool = True, pool: Any = None) -> Iterator[tuple[int, SimulationResult]]:
+                isolate_failures: bool = True, pool: Any = None, timeout_s: float | None = DEFAULT_TIMEOUT_S
+                ) -> Iterator[tuple[int, SimulationResult]]:
     """Yield ``(row, result)`` through :meth:`Simulator.simulate_stream` (continuous batching on a warm
     simulator), features extracted and trajectories dropped as runs finish (with a ``pool``: in worker
     processes, each row yielded once its features are back, so rows may come out of finishing order).
@@ -136,7 +142,7 @@ def stream_rows(simulator: Any, extractor: Any, params: np.ndarray, batch_size: 
         for i, res in simulator.simulate_stream(params, batch_size):
             seen.add(int(i))
             if pool is None or extractor is None:
-                _finish(res, extractor)
+                _finish(res, extractor, timeout_s)
                 yield int(i), res
             else:
                 pending[int(i)] = (res, pool.submit(res))
@@ -147,23 +153,25 @@ def stream_rows(simulator: Any, extractor: Any, params: np.ndarray, batch_size: 
         yield from ready(True)
         rest = np.array([i for i in range(len(params)) if i not in seen], dtype=np.int64)
         if len(rest):
-            yield from zip(rest.tolist(), simulate_batch(simulator, extractor, params[rest], isolate_failures, pool),
-                           strict=True)
+            yield from zip(rest.tolist(), simulate_batch(simulator, extractor, params[rest], isolate_failures, pool,
+                                                         timeout_s), strict=True)
         return
     yield from ready(True)
 
 
 def run_batch(simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None, params: np.ndarray,
-              isolate_failures: bool = True, pool: Any = None) -> list[SimulationResult]:
+              isolate_failures: bool = True, pool: Any = None,
+              timeout_s: float | None = DEFAULT_TIMEOUT_S) -> list[SimulationResult]:
     """Build (or reuse) the plugins and simulate one batch: the function workers execute (features
-    extracted in ``pool``'s processes while the simulator goes on, where one is given)."""
+    extracted in ``pool``'s processes while the simulator goes on, where one is given; else here, within
+    ``timeout_s`` per run)."""
     simulator, extractor = build_plugins(simulator_spec, extractor_spec)
     if getattr(simulator, "native_stream", False):   # continuous batching inside the task
         out: list[SimulationResult | None] = [None] * len(np.atleast_2d(params))
-        for i, res in stream_rows(simulator, extractor, params, None, isolate_failures, pool):
+        for i, res in stream_rows(simulator, extractor, params, None, isolate_failures, pool, timeout_s):
             out[i] = res
         return [r for r in out if r is not None]
-    return simulate_batch(simulator, extractor, params, isolate_failures, pool)
+    return simulate_batch(simulator, extractor, params, isolate_failures, pool, timeout_s)
 
 
 def batches(n: int, batch_size: int) -> list[np.ndarray]:

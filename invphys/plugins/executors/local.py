@@ -27,9 +27,10 @@ class LocalExecutor(Executor):
             0, ge=0, le=256, description="extract features in this many worker processes while the simulator "
                                          "goes on (0: in this process, between launches)")
         extract_timeout_s: float | None = Field(
-            DEFAULT_TIMEOUT_S, gt=0, description="seconds one run's extraction may take in a worker process "
-                                                 "before the process is stopped and the run recorded as failed "
-                                                 "(null: no limit; in-process extraction has none)")
+            DEFAULT_TIMEOUT_S, gt=0, description="seconds one run's feature extraction may take before it is "
+                                                 "stopped and the run recorded as failed (in a worker process: "
+                                                 "the process is stopped; in this process: the extractor is "
+                                                 "interrupted, see the executors docs; null: no limit)")
 
     def run(self, simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None,
             params: np.ndarray, batch_size: int) -> Iterator[tuple[int, SimulationResult]]:
@@ -46,10 +47,12 @@ class LocalExecutor(Executor):
         try:
             if getattr(simulator, "native_stream", False):
                 # one stream over every row: the simulator keeps its slots full across batch boundaries
-                yield from stream_rows(simulator, extractor, params, None, self.config.isolate_failures, pool)
+                yield from stream_rows(simulator, extractor, params, None, self.config.isolate_failures, pool,
+                                       self.config.extract_timeout_s)
                 return
             for idx in batches(len(params), batch_size):
-                results = simulate_batch(simulator, extractor, params[idx], self.config.isolate_failures, pool)
+                results = simulate_batch(simulator, extractor, params[idx], self.config.isolate_failures, pool,
+                                         self.config.extract_timeout_s)
                 yield from zip(idx.tolist(), results, strict=True)
         finally:
             if pool is not None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -12,11 +13,14 @@ from pydantic import Field
 from invphys.core.errors import InvphysError
 from invphys.core.interfaces import Executor, PluginConfig
 from invphys.core.results import SimulationResult
+from invphys.plugins.executors import _deadline
 from invphys.plugins.executors._batch import batches, build_plugins, failed_result, run_batch
+from invphys.plugins.executors._extract_pool import DEFAULT_TIMEOUT_S
 
 
 def _init_worker(env: dict[str, str], gpus: list[int] | None = None, counter: object = None) -> None:
     os.environ.update(env)
+    _deadline.DISPOSABLE = True   # an extraction stuck in native code may end this process (see _deadline)
     if gpus:
         with counter.get_lock():  # type: ignore[attr-defined]
             k = counter.value  # type: ignore[attr-defined]
@@ -29,6 +33,10 @@ class ProcessExecutor(Executor):
     must not be initialised before a fork). Each worker rebuilds the simulator and extractor from
     their spec blocks once (so plugins must be importable there: installed entry points or
     ``module:Class`` paths) and keeps them for later batches.
+
+    A run whose feature extraction takes longer than ``extract_timeout_s`` is interrupted in its worker
+    and recorded as failed; an extractor stuck in native code ends its worker a little later (see
+    :mod:`invphys.plugins.executors._deadline`), which is then handled as a worker that died.
 
     A worker process that dies (segfault, out of memory) breaks the pool: the pool is restarted and
     the batches it held are re-run one at a time (then row by row), so only the rows that kill a
@@ -54,6 +62,10 @@ class ProcessExecutor(Executor):
         gpus: list[int] | None = Field(
             None, description="one worker per GPU: worker k sees only GPU gpus[k] (CUDA_VISIBLE_DEVICES); "
                               "workers defaults to len(gpus)")
+        extract_timeout_s: float | None = Field(
+            DEFAULT_TIMEOUT_S, gt=0, description="seconds one run's feature extraction may take in a worker "
+                                                 "before it is interrupted and the run recorded as failed "
+                                                 "(null: no limit)")
 
     def _pool(self) -> Any:
         import multiprocessing
@@ -85,15 +97,18 @@ class ProcessExecutor(Executor):
         todo = batches(len(params), batch_size)
         todo.reverse()
         limit = self.config.max_in_flight or 2 * self.workers
-        isolate = self.config.isolate_failures
+        isolate, timeout = self.config.isolate_failures, self.config.extract_timeout_s
         suspects: list[np.ndarray] = []  # batches that were in a pool when it broke, re-run alone
         pool = self._pool()
         pending: dict[Any, np.ndarray] = {}
 
-        def failed(idx: np.ndarray, exc: BaseException) -> list[SimulationResult]:
+        def failed(idx: np.ndarray, exc: BaseException, elapsed: float = 0.0) -> list[SimulationResult]:
             simulator, _ = build_plugins(simulator_spec, None)
             reason = (f"worker process died: {exc}" if isinstance(exc, BrokenProcessPool)
                       else f"{type(exc).__name__}: {exc}")
+            if isinstance(exc, BrokenProcessPool) and timeout is not None and elapsed >= timeout:
+                reason = (f"worker process died after {elapsed:.0f} s, past the extraction timeout ({timeout:g} s; "
+                          f"an extraction stuck in native code ends its process), or it crashed: {exc}")
             return [failed_result(simulator, params[i], reason[:500]) for i in idx]
 
         try:
@@ -101,7 +116,9 @@ class ProcessExecutor(Executor):
                 if suspects and not pending:
                     # a suspect runs alone, so a pool that breaks now was broken by this batch
                     idx = suspects.pop()
-                    fut = pool.submit(run_batch, simulator_spec, extractor_spec, params[idx], isolate)
+                    began = time.monotonic()
+                    fut = pool.submit(run_batch, simulator_spec, extractor_spec, params[idx], isolate,
+                                      None, timeout)
                     try:
                         results = fut.result()
                     except InvphysError:
@@ -112,14 +129,15 @@ class ProcessExecutor(Executor):
                         if isolate and len(idx) > 1:
                             suspects.extend(np.array([i]) for i in idx[::-1])
                             continue
-                        results = failed(idx, exc)
+                        results = failed(idx, exc, time.monotonic() - began)
                     except Exception as exc:
                         results = failed(idx, exc)
                     yield from zip(idx.tolist(), results, strict=True)
                     continue
                 while todo and not suspects and len(pending) < limit:
                     idx = todo.pop()
-                    pending[pool.submit(run_batch, simulator_spec, extractor_spec, params[idx], isolate)] = idx
+                    pending[pool.submit(run_batch, simulator_spec, extractor_spec, params[idx], isolate,
+                                        None, timeout)] = idx
                 done, _ = wait(list(pending), return_when=FIRST_COMPLETED)
                 broken = False
                 for fut in done:

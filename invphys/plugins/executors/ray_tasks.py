@@ -11,8 +11,17 @@ from pydantic import Field
 from invphys.core.errors import InvphysError
 from invphys.core.interfaces import Executor, PluginConfig
 from invphys.core.results import SimulationResult
+from invphys.plugins.executors import _deadline
 from invphys.plugins.executors._batch import batches, build_plugins, failed_result, run_batch
+from invphys.plugins.executors._extract_pool import DEFAULT_TIMEOUT_S
 from invphys.plugins.executors._ray import connect, import_ray
+
+
+def _task(simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None, params: np.ndarray,
+          isolate_failures: bool, timeout_s: float | None) -> list[SimulationResult]:
+    """One batch in a Ray worker (a process that only runs tasks: a stuck extraction may end it)."""
+    _deadline.DISPOSABLE = True
+    return run_batch(simulator_spec, extractor_spec, params, isolate_failures, None, timeout_s)
 
 
 class RayExecutor(Executor):
@@ -22,8 +31,9 @@ class RayExecutor(Executor):
     Tasks ask for ``num_gpus`` GPUs each (fractions share a GPU), are retried ``max_retries`` times
     when their worker dies, and at most ``max_in_flight`` are submitted at once. A batch whose task
     still fails is re-run row by row (with ``isolate_failures``), and the rows that fail alone are
-    stored as failed with the error text. Workers rebuild the plugins from their spec
-    blocks, so plugins must be importable on every node.
+    stored as failed with the error text. A run whose feature extraction takes longer than
+    ``extract_timeout_s`` is interrupted and recorded as failed (:mod:`._deadline`). Workers rebuild the
+    plugins from their spec blocks, so plugins must be importable on every node.
     """
 
     name = "ray"
@@ -39,6 +49,10 @@ class RayExecutor(Executor):
         isolate_failures: bool = Field(
             True, description="when a batch raises, re-run its rows one by one so only the bad row fails")
         runtime_env: dict[str, Any] | None = Field(None, description="Ray runtime_env for the tasks")
+        extract_timeout_s: float | None = Field(
+            DEFAULT_TIMEOUT_S, gt=0, description="seconds one run's feature extraction may take in a task "
+                                                 "before it is interrupted and the run recorded as failed "
+                                                 "(null: no limit)")
         shutdown: bool = Field(True, description="shut down a local instance this executor started")
 
     def run(self, simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None,
@@ -60,7 +74,7 @@ class RayExecutor(Executor):
                                    "max_retries": cfg.max_retries}
         if cfg.runtime_env:
             options["runtime_env"] = cfg.runtime_env
-        task = ray.remote(run_batch).options(**options)
+        task = ray.remote(_task).options(**options)
         params = np.atleast_2d(np.asarray(params, dtype=np.float64))
         todo = batches(len(params), batch_size)
         todo.reverse()
@@ -71,7 +85,8 @@ class RayExecutor(Executor):
             while todo or pending:
                 while todo and len(pending) < limit:
                     idx = todo.pop()
-                    pending[task.remote(simulator_spec, extractor_spec, params[idx], cfg.isolate_failures)] = idx
+                    pending[task.remote(simulator_spec, extractor_spec, params[idx], cfg.isolate_failures,
+                                        cfg.extract_timeout_s)] = idx
                 done, _ = ray.wait(list(pending), num_returns=1)
                 for ref in done:
                     idx = pending.pop(ref)

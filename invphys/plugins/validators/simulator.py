@@ -13,6 +13,7 @@ from invphys.core.errors import InvphysError, SimulationFailed
 from invphys.core.interfaces import FeatureExtractor, PluginConfig, Simulator, Validator
 from invphys.core.objectives import recovery_reward
 from invphys.core.results import RunStats, SimulationResult, ValidationRecord
+from invphys.plugins.executors import _deadline
 from invphys.plugins.executors._extract_pool import DEFAULT_TIMEOUT_S
 
 
@@ -48,8 +49,9 @@ class SimulatorValidator(Validator):
                                      description="extract features in this many worker processes while the "
                                                  "simulator goes on (0: in the simulator's thread)")
         extract_timeout_s: float | None = Field(
-            DEFAULT_TIMEOUT_S, gt=0, description="seconds one run's extraction may take in an extraction process "
-                                                 "before the run is a recorded failure (None: no limit)")
+            DEFAULT_TIMEOUT_S, gt=0, description="seconds one run's feature extraction may take (in this thread "
+                                                 "or an extraction process) before the run is a recorded "
+                                                 "failure (None: no limit)")
 
     def simulator_for(self, simulator: Simulator) -> Simulator:
         """``simulator`` itself, or a copy with ``overrides`` applied (validated by its Config)."""
@@ -94,7 +96,7 @@ class SimulatorValidator(Validator):
             if r in settled:
                 return
             settled.add(r)
-            feats, failures[r], stats[r] = self._outcome(res, extractor, m, fut)
+            feats, failures[r], stats[r] = self._outcome(res, extractor, m, fut, self.config.extract_timeout_s)
             if feats is not None:
                 out[r] = feats
             if failures[r] is None and keep(r):
@@ -157,10 +159,11 @@ class SimulatorValidator(Validator):
         return pools[key]
 
     @staticmethod
-    def _outcome(res: Any, extractor: FeatureExtractor, m: int, fut: Any = None
-                 ) -> tuple[np.ndarray | None, str | None, RunStats | None]:
+    def _outcome(res: Any, extractor: FeatureExtractor, m: int, fut: Any = None,
+                 timeout_s: float | None = DEFAULT_TIMEOUT_S) -> tuple[np.ndarray | None, str | None, RunStats | None]:
         """One result's (features or None, failure reason or None, stats); ``fut``: its features are being
-        extracted in a worker process (what the extractor raised there is raised here)."""
+        extracted in a worker process (what the extractor raised there is raised here), else they are
+        extracted here within ``timeout_s`` (:mod:`invphys.plugins.executors._deadline`)."""
         if isinstance(res, SimulationFailed):
             return None, res.reason, None
         if not res.ok:
@@ -169,7 +172,8 @@ class SimulatorValidator(Validator):
             if fut is not None:
                 feats = fut.result()
             else:
-                feats = res.features if res.features is not None else extractor.extract(res.trajectory)
+                feats = (res.features if res.features is not None
+                         else _deadline.call(extractor.extract, timeout_s, res.trajectory))
         except SimulationFailed as exc:
             return None, exc.reason, res.stats
         feats = np.asarray(feats, dtype=np.float64).reshape(-1)
