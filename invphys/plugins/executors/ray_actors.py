@@ -17,7 +17,7 @@ from pydantic import Field
 from invphys.core.errors import InvphysError
 from invphys.core.interfaces import Executor, PluginConfig
 from invphys.core.results import SimulationResult
-from invphys.plugins.executors import _batch
+from invphys.plugins.executors import _batch, _deadline
 from invphys.plugins.executors._extract_pool import DEFAULT_TIMEOUT_S
 from invphys.plugins.executors._ray import connect, import_ray
 
@@ -30,6 +30,7 @@ class SimulatorActor:
     def __init__(self, env: dict[str, str], extract_workers: int = 0,
                  extract_timeout_s: float | None = DEFAULT_TIMEOUT_S) -> None:
         os.environ.update(env)
+        _deadline.DISPOSABLE = True   # an extraction stuck in native code may end this actor (Ray restarts it)
         self.extract_timeout_s = extract_timeout_s
         self.chunks = 0
         self.rows = 0
@@ -55,7 +56,7 @@ class SimulatorActor:
         t0 = time.perf_counter()
         try:
             return _batch.run_batch(simulator_spec, extractor_spec, params, isolate_failures,
-                                    self._extraction_pool(extractor_spec))
+                                    self._extraction_pool(extractor_spec), self.extract_timeout_s)
         finally:
             self.chunks += 1
             self.rows += len(np.atleast_2d(params))
@@ -138,9 +139,9 @@ class RayActorsExecutor(Executor):
             0, ge=0, le=64, description="processes per actor extracting features while its simulator goes on "
                                         "(0: in the actor, between launches); CPUs beyond num_cpus_per_actor")
         extract_timeout_s: float | None = Field(
-            DEFAULT_TIMEOUT_S, gt=0, description="seconds one run's extraction may take in an actor's worker "
-                                                 "process before the process is stopped and the run recorded "
-                                                 "as failed (null: no limit; in-actor extraction has none)")
+            DEFAULT_TIMEOUT_S, gt=0, description="seconds one run's feature extraction may take (in the actor "
+                                                 "or its extraction processes) before it is stopped and the "
+                                                 "run recorded as failed (null: no limit)")
         runtime_env: dict[str, Any] | None = Field(None, description="Ray runtime_env of the actors")
         keep_actors: bool = Field(
             False, description="keep the warm actors (and a Ray instance started here) after run for the "
@@ -245,99 +246,133 @@ class RayActorsExecutor(Executor):
     def _run(self, pool: list[Any], simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None,
              params: np.ndarray, batch_size: int) -> Iterator[tuple[int, SimulationResult]]:
         ray, cfg = self._ray, self.config
-        from ray.exceptions import RayActorError
-
-        try:
-            from ray.exceptions import ActorUnavailableError
-        except ImportError:   # a Ray without that state (before 2.10)
-            ActorUnavailableError = RayActorError  # type: ignore[misc]
-
         pool = pool[:min(len(pool), cfg.actors or len(pool))]   # a smaller `actors` later: the first ones
-
         params = np.atleast_2d(np.asarray(params, dtype=np.float64))
-        todo = deque(_batch.batches(len(params), cfg.chunk_size or batch_size))
-        suspects: deque[np.ndarray] = deque()   # rows of a chunk whose actor died: each re-run alone
-        load = [0] * len(pool)                  # chunks in flight per actor
-        deaths = [0] * len(pool)
-        alone: set[int] = set()                 # actors running a suspect row or a ping (nothing else)
-        unpinged: dict[int, tuple[float, int]] = {}   # actor that died -> (ping no earlier than, pings)
-        inflight: dict[Any, tuple[int, np.ndarray | None, int]] = {}   # (actor, rows, alone) or (actor, None, pings)
+        plan = _Schedule(ray, cfg, pool, deque(_batch.batches(len(params), cfg.chunk_size or batch_size)),
+                         lambda actor, idx: actor.run.remote(simulator_spec, extractor_spec, params[idx],
+                                                             cfg.isolate_failures))
 
         def failed(idx: np.ndarray, reason: str) -> list[SimulationResult]:
             simulator, _ = _batch.build_plugins(simulator_spec, None)
             return [_batch.failed_result(simulator, params[i], reason[:500]) for i in idx]
 
-        def submit(a: int, idx: np.ndarray, single: bool) -> None:
-            ref = pool[a].run.remote(simulator_spec, extractor_spec, params[idx], cfg.isolate_failures)
-            inflight[ref] = (a, idx, single)
-            load[a] += 1
-            if single:
-                alone.add(a)
-
-        def ping(a: int) -> None:
-            _, tries = unpinged.pop(a)
-            inflight[pool[a].ping.remote()] = (a, None, tries)
-            load[a] += 1
-            alone.add(a)
-
-        def ping_failed(a: int, tries: int, exc: Exception) -> None:
-            if isinstance(exc, ActorUnavailableError) and tries < cfg.unavailable_retries:
-                unpinged[a] = (time.monotonic() + min(0.05 * 2 ** (tries + 1), 2.0), tries + 1)
-            else:   # gone for good, or restarting for too long
-                deaths[a] = cfg.max_restarts + 1
-
         try:
-            while todo or suspects or inflight:
-                live = [a for a in range(len(pool)) if deaths[a] <= cfg.max_restarts]
-                now = time.monotonic()
-                for a in sorted(live, key=lambda k: load[k]):   # idle actors pull first
-                    if a in unpinged and load[a] == 0 and unpinged[a][0] <= now:
-                        ping(a)
-                    if a in alone or a in unpinged:
-                        continue
-                    if suspects and load[a] == 0:
-                        submit(a, suspects.popleft(), True)
-                    elif todo and not suspects and load[a] <= cfg.prefetch:
-                        submit(a, todo.popleft(), False)
-                waits = [unpinged[a][0] - now for a in live if a in unpinged]
-                if not inflight and waits:   # only actors still restarting: ping the first again
+            while plan.todo or plan.suspects or plan.inflight:
+                plan.assign()
+                waits = plan.waits()
+                if not plan.inflight and waits:   # only actors still restarting: ping the first again
                     time.sleep(max(min(waits), 0.0))
                     continue
-                if not inflight:   # every actor died too often: the rest cannot run
+                if not plan.inflight:   # every actor died too often: the rest cannot run
                     reason = (f"ray actor died more than max_restarts={cfg.max_restarts} times "
                               f"(or did not come back after {cfg.unavailable_retries} pings)")
-                    for idx in [*suspects, *todo]:
+                    for idx in [*plan.suspects, *plan.todo]:
                         yield from zip(idx.tolist(), failed(idx, reason), strict=True)
                     return
-                done, _ = ray.wait(list(inflight), num_returns=1,
+                done, _ = ray.wait(list(plan.inflight), num_returns=1,
                                    timeout=max(min(waits), 0.0) if waits else None)
                 for ref in done:
-                    a, idx, single = inflight.pop(ref)
-                    load[a] -= 1
-                    alone.discard(a)
-                    try:
-                        results = ray.get(ref)
-                    except Exception as exc:
-                        if idx is None:
-                            ping_failed(a, single, exc)
-                            continue
-                        cause = getattr(exc, "cause", None) or exc
-                        if isinstance(cause, InvphysError):
-                            raise InvphysError(str(cause)) from exc
-                        died = isinstance(exc, RayActorError)
-                        deaths[a] += died
-                        if died and deaths[a] <= cfg.max_restarts:
-                            unpinged.setdefault(a, (0.0, 0))   # no rows until it answers a ping
-                        if died and not single and (cfg.isolate_failures or len(idx) == 1):
-                            suspects.extend(np.array([i]) for i in idx)   # find the row that kills it
-                            continue
-                        kind = "ray actor died" if died else "ray actor call failed"
-                        results = failed(idx, f"{kind}: {type(cause).__name__}: {cause}")
-                    if idx is not None:
+                    got = plan.collect(ref)
+                    if got is not None:
+                        idx, results = got
+                        if isinstance(results, str):
+                            results = failed(idx, results)
                         yield from zip(idx.tolist(), results, strict=True)
         finally:
-            for ref in inflight:
-                try:
-                    ray.cancel(ref)
-                except Exception:
-                    pass
+            plan.cancel()
+
+
+class _Schedule:
+    """Which actor runs which chunk in one :meth:`RayActorsExecutor.run` (see its class text): idle actors
+    pull chunks (``todo``); the rows of a chunk whose actor died are re-run one at a time, each alone on an
+    actor (``suspects``); an actor that died gets no rows until it answers a ping."""
+
+    def __init__(self, ray: Any, cfg: Any, pool: list[Any], todo: deque[np.ndarray],
+                 call: Any) -> None:
+        from ray.exceptions import RayActorError
+
+        try:
+            from ray.exceptions import ActorUnavailableError
+        except ImportError:   # a Ray without that state (before 2.10)
+            ActorUnavailableError = RayActorError  # type: ignore[misc,assignment]
+        self._died, self._unavailable = RayActorError, ActorUnavailableError
+        self.ray, self.cfg, self.pool, self.todo, self.call = ray, cfg, pool, todo, call
+        self.suspects: deque[np.ndarray] = deque()   # rows of a chunk whose actor died: each re-run alone
+        self.load = [0] * len(pool)                   # chunks in flight per actor
+        self.deaths = [0] * len(pool)
+        self.alone: set[int] = set()                  # actors running a suspect row or a ping (nothing else)
+        self.unpinged: dict[int, tuple[float, int]] = {}   # actor that died -> (ping no earlier than, pings)
+        #: ref -> (actor, rows, alone) or (actor, None, pings)
+        self.inflight: dict[Any, tuple[int, np.ndarray | None, int]] = {}
+
+    def live(self) -> list[int]:
+        return [a for a in range(len(self.pool)) if self.deaths[a] <= self.cfg.max_restarts]
+
+    def submit(self, a: int, idx: np.ndarray, single: bool) -> None:
+        self.inflight[self.call(self.pool[a], idx)] = (a, idx, single)
+        self.load[a] += 1
+        if single:
+            self.alone.add(a)
+
+    def ping(self, a: int) -> None:
+        _, tries = self.unpinged.pop(a)
+        self.inflight[self.pool[a].ping.remote()] = (a, None, tries)
+        self.load[a] += 1
+        self.alone.add(a)
+
+    def ping_failed(self, a: int, tries: int, exc: Exception) -> None:
+        if isinstance(exc, self._unavailable) and tries < self.cfg.unavailable_retries:
+            self.unpinged[a] = (time.monotonic() + min(0.05 * 2 ** (tries + 1), 2.0), tries + 1)
+        else:   # gone for good, or restarting for too long
+            self.deaths[a] = self.cfg.max_restarts + 1
+
+    def assign(self) -> None:
+        """Give idle live actors work: a due ping, a suspect row (alone), or the next chunk."""
+        now = time.monotonic()
+        for a in sorted(self.live(), key=lambda k: self.load[k]):   # idle actors pull first
+            if a in self.unpinged and self.load[a] == 0 and self.unpinged[a][0] <= now:
+                self.ping(a)
+            if a in self.alone or a in self.unpinged:
+                continue
+            if self.suspects and self.load[a] == 0:
+                self.submit(a, self.suspects.popleft(), True)
+            elif self.todo and not self.suspects and self.load[a] <= self.cfg.prefetch:
+                self.submit(a, self.todo.popleft(), False)
+
+    def waits(self) -> list[float]:
+        """Seconds until each live actor that is restarting may be pinged."""
+        now = time.monotonic()
+        return [self.unpinged[a][0] - now for a in self.live() if a in self.unpinged]
+
+    def collect(self, ref: Any) -> tuple[np.ndarray, list[SimulationResult] | str] | None:
+        """A finished call's rows with their results, or with the reason they failed; None for a ping or
+        for rows queued again as suspects. An :class:`InvphysError` raised in the actor propagates."""
+        a, idx, single = self.inflight.pop(ref)
+        self.load[a] -= 1
+        self.alone.discard(a)
+        try:
+            results = self.ray.get(ref)
+        except Exception as exc:
+            if idx is None:
+                self.ping_failed(a, single, exc)
+                return None
+            cause = getattr(exc, "cause", None) or exc
+            if isinstance(cause, InvphysError):
+                raise InvphysError(str(cause)) from exc
+            died = isinstance(exc, self._died)
+            self.deaths[a] += died
+            if died and self.deaths[a] <= self.cfg.max_restarts:
+                self.unpinged.setdefault(a, (0.0, 0))   # no rows until it answers a ping
+            if died and not single and (self.cfg.isolate_failures or len(idx) == 1):
+                self.suspects.extend(np.array([i]) for i in idx)   # find the row that kills it
+                return None
+            kind = "ray actor died" if died else "ray actor call failed"
+            return idx, f"{kind}: {type(cause).__name__}: {cause}"
+        return (idx, results) if idx is not None else None
+
+    def cancel(self) -> None:
+        for ref in self.inflight:
+            try:
+                self.ray.cancel(ref)
+            except Exception:
+                pass
