@@ -71,7 +71,7 @@ class SimulatorActor:
         return True
 
     def info(self) -> dict[str, Any]:
-        """Where this actor runs and what it has done: pid, host, GPU ids, chunks, rows, busy seconds,
+        """Where this actor runs and what it has done: pid, host, Ray node id, GPU ids, chunks, rows, busy seconds,
         plugin builds (one per spec: kernels compiled once), and the slot counters of warm engines."""
         import ray
 
@@ -81,7 +81,8 @@ class SimulatorActor:
             counters = getattr(engine, "counters", None)
             if counters is not None:
                 useful, launched = useful + int(counters.useful), launched + int(counters.launched)
-        return {"pid": os.getpid(), "host": platform.node(), "gpu_ids": [str(g) for g in ray.get_gpu_ids()],
+        return {"pid": os.getpid(), "host": platform.node(), "node_id": ray.get_runtime_context().get_node_id(),
+                "gpu_ids": [str(g) for g in ray.get_gpu_ids()],
                 "cuda_visible_devices": os.environ.get("CUDA_VISIBLE_DEVICES"), "chunks": self.chunks,
                 "rows": self.rows, "busy_s": self.busy_s, "builds": _batch.BUILDS,
                 "extract_workers": self.extract_workers, "extraction_pools": len(self._pools),
