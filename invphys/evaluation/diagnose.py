@@ -7,7 +7,9 @@ fitted on the fit half and checked on the check half. The other direction (fitte
 checked on the fit half) is reported beside it, never pooled: two folds pooled cancel each other's
 errors and look better calibrated than either is. The result is
 ``report`` (everything measured) and ``calibration`` (the numbers answers use, stored as
-``diagnostics/calibration.json`` in a bundle).
+``diagnostics/calibration.json`` in a bundle). Given validated answers (``failures``: held-out targets
+whose default answers were re-simulated), it also fits the answer-level failure warning
+(:mod:`~invphys.evaluation.failure_score`); without them a stored one of the same bundle is kept.
 """
 
 from __future__ import annotations
@@ -204,9 +206,28 @@ def _posterior(inverter: Any, held: HeldOut, fit: np.ndarray, draws: int, seed: 
     return blocks, calib, _Draws(samples, outside), figures
 
 
+def _failure(inverter: Any, failures: Any, keep_training: bool = False) -> dict[str, Any] | None:
+    """The answer-level failure model: fitted on the validated answers ``failures`` (``FILE`` or
+    ``FILE:SET[,SET]``; rows whose true parameters are training rows are left out unless
+    ``keep_training``), else the bundle's stored one when it was fitted for this bundle, else None."""
+    from invphys.evaluation import failure_score as fs
+
+    bundle = inverter.bundle
+    if failures is None:
+        from invphys.evaluation.ood import load_diagnostics
+
+        old = (load_diagnostics(bundle) or {})
+        kept = old.get("failure")
+        if kept and old.get("bundle_id") == bundle.manifest.get("bundle_id"):
+            return {**kept, "kept": "from the bundle's previous diagnostics (no --failures given)"}
+        return None
+    return fs.fit_from_file(bundle, failures, inverter.default_method, keep_training)[0]
+
+
 def diagnose(inverter: Any, stores: Any = None, rows: int | None = None, draws: int = 1000, seed: int = 0,
-             method: str | None = None) -> Diagnosis:
-    """Measure ``inverter``'s bundle on its held-out rows (at most ``rows``, the first by key)."""
+             method: str | None = None, failures: Any = None, keep_training: bool = False) -> Diagnosis:
+    """Measure ``inverter``'s bundle on its held-out rows (at most ``rows``, the first by key); with
+    ``failures`` (validated answers, see :func:`_failure`) fit its answer-level failure warning."""
     bundle = inverter.bundle
     held = heldout_rows(bundle, stores)
     if rows is not None:
@@ -214,6 +235,7 @@ def diagnose(inverter: Any, stores: Any = None, rows: int | None = None, draws: 
     if len(held) < 20:
         raise InvphysError(f"bundle {bundle.root}: only {len(held)} held-out rows found; diagnose needs >= 20 "
                            f"(point --data at the dataset stores of its simulator)")
+    failure = _failure(inverter, failures, keep_training)  # first: a bad file stops it before the long part
     fit = held.split() == 0
     blocks, post_calib, samples, figures = _posterior(inverter, held, fit, draws, seed, method)
     width90 = np.asarray((blocks.get("identified") or {}).get("width90", [0.0] * bundle.space.dim))
@@ -225,7 +247,7 @@ def diagnose(inverter: Any, stores: Any = None, rows: int | None = None, draws: 
         "parameters": list(bundle.space.names), "features": list(bundle.feature_names), "levels": list(cal.LEVELS),
         "heldout": {**held.info, "rows_used": len(held), "fit_rows": int(fit.sum()), "check_rows": int((~fit).sum()),
                     "split": "by key: the last 8 hex digits of each row's key, even -> fit, odd -> check"},
-        **blocks, "ood": ood_report, "surrogate_error_bars": sur}
+        **blocks, "ood": ood_report, "surrogate_error_bars": sur, "failure": failure}
     calib: dict[str, Any] = {"format": FORMAT, "bundle_id": bundle.manifest.get("bundle_id"),
                              "created_utc": report["created_utc"], "ood": ood_cal}
     if post_calib is not None:
@@ -233,6 +255,8 @@ def diagnose(inverter: Any, stores: Any = None, rows: int | None = None, draws: 
     if sur.get("available"):
         calib["surrogate_error_scales"] = {"features": list(bundle.feature_names), "scales": sur["scales"],
                                            "z": 1.6448536269514722, "nominal": 0.9}
+    if failure is not None:
+        calib["failure"] = failure
     return Diagnosis(_plain(report), _plain(calib), figures)
 
 

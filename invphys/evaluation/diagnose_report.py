@@ -3,7 +3,8 @@
 Files: ``report.json`` (everything measured), ``calibration.json`` (the numbers answers use),
 ``summary.md`` (the table a bundle's README shows), ``rank_histograms.png``, ``coverage.png``.
 :func:`write_into_bundle` puts them in a bundle's ``diagnostics/`` folder, adds the summary to its
-README and re-hashes the manifest's file list (:func:`invphys.inverter.manifest.write_manifest`).
+README and re-hashes the manifest's file list (:func:`invphys.inverter.manifest.write_manifest`);
+:func:`write_failure_into_bundle` adds a fitted failure warning to the diagnostics a bundle holds.
 """
 
 from __future__ import annotations
@@ -36,6 +37,8 @@ def summary_markdown(report: dict[str, Any]) -> str:
     else:
         lines += ["", f"No posterior checked ({report.get('note', 'the bundle has no method with a posterior')})."]
     lines += ["", _ood_line(report["ood"])]
+    if report.get("failure"):
+        lines.append(failure_line(report["failure"]))
     s = report["surrogate_error_bars"]
     if s.get("available"):
         lines.append(f"Surrogate error bars (±1.645 sigma): hold {_pct(s['check_before']['overall'])} of held-out "
@@ -91,6 +94,18 @@ def _ood_line(o: dict[str, Any]) -> str:
             f"exceeds {o['failure']['parameter_error_above']:g}; {fires} and on "
             f"{_pct(o['check']['recall_r_surr']) if o['check'].get('recall_r_surr') is not None else 'n/a (none)'} "
             f"of those whose answer does not reproduce the target.")
+
+
+def failure_line(f: dict[str, Any]) -> str:
+    """One sentence on the answer-level failure warning (``failure`` of a report or calibration)."""
+    c, rows = f["calibration"], f.get("rows") or {}
+    left = (f"; {rows['training_rows']} rows that are training rows of the bundle left out"
+            if rows.get("training_rows") and not rows.get("training_rows_used") else "")
+    return (f"Failure warning (answer-level, scores {', '.join(f['scores'])}): fitted on {c['n']} validated held-out "
+            f"answers of `{f.get('method')}` ({c['failing']} with R_actual < {f['fail_below']:g}{left}); at failure "
+            f"score >= {f['threshold']:.3g} it catches {_pct(c['recall'])} of the failing answers and fires on "
+            f"{_pct(c['alarm_rate'])} of the others (AUROC {_f2(c['auroc'])}, measured on the rows that fitted it)."
+            + (f" Kept {f['kept']}." if f.get("kept") else ""))
 
 
 def _f2(x: float | None) -> str:
@@ -182,23 +197,55 @@ def write_into_bundle(diagnosis: Any, root: Path) -> Path:
     hash) and then swapped in, so a killed run leaves the old bundle or the new one, never a bundle whose
     README no longer matches its manifest.
     """
-    from invphys.inverter.manifest import read_manifest, write_manifest
+    def edit(tmp: Path) -> dict[str, Any]:
+        shutil.rmtree(tmp / DIAGNOSTICS_DIR, ignore_errors=True)
+        write_report(diagnosis, tmp / DIAGNOSTICS_DIR)
+        return diagnosis.report  # type: ignore[no-any-return]
+
+    return _swap_in(Path(root), edit)
+
+
+def write_failure_into_bundle(model: dict[str, Any], root: Path) -> Path:
+    """Store a fitted failure model (:func:`invphys.evaluation.failure_score.fit`) in the bundle's existing
+    diagnostics (``calibration.json`` and ``report.json`` get its ``failure`` block, the summary and README
+    its line), re-hashing the manifest as :func:`write_into_bundle` does; nothing else changes."""
+    from invphys.core.errors import InvphysError
 
     root = Path(root)
+    if not (root / DIAGNOSTICS_DIR / "calibration.json").is_file() or not (root / DIAGNOSTICS_DIR / "report.json").is_file():
+        raise InvphysError(f"bundle {root} holds no diagnostics yet: run invphys diagnose {root} --write first")
+
+    def edit(tmp: Path) -> dict[str, Any]:
+        d = tmp / DIAGNOSTICS_DIR
+        cal, report = (json.loads((d / n).read_text()) for n in ("calibration.json", "report.json"))
+        if cal.get("bundle_id") != report.get("bundle_id"):
+            raise InvphysError(f"bundle {root}: its diagnostics' calibration.json and report.json disagree")
+        cal["failure"] = report["failure"] = model
+        _json(d / "calibration.json", cal)
+        _json(d / "report.json", report)
+        atomic_write_bytes(d / "summary.md", summary_markdown(report).encode())
+        return report  # type: ignore[no-any-return]
+
+    return _swap_in(root, edit)
+
+
+def _swap_in(root: Path, edit: Any) -> Path:
+    """Apply ``edit`` (returns the report) to a checked copy of the bundle, refresh the README's summary and
+    the manifest, check it, swap it in."""
+    from invphys.inverter.manifest import read_manifest, write_manifest
+
     tmp = root.with_name(f".{root.name}.diag{uuid.uuid4().hex[:6]}")
     old = root.with_name(f".{root.name}.old{uuid.uuid4().hex[:6]}")
     shutil.copytree(root, tmp, symlinks=True)
     try:
         manifest = read_manifest(tmp, verify=True)
-        shutil.rmtree(tmp / DIAGNOSTICS_DIR, ignore_errors=True)
-        write_report(diagnosis, tmp / DIAGNOSTICS_DIR)
+        report = edit(tmp)
         readme = tmp / "README.md"
         text = readme.read_text() if readme.is_file() else ""
         text = text.split("\n" + README_HEADING)[0].rstrip("\n")
-        summary = summary_markdown(diagnosis.report)
-        atomic_write_bytes(readme, (text + "\n\n" + README_HEADING + "\n\n" + summary).encode())
-        manifest["diagnostics"] = {"path": DIAGNOSTICS_DIR, "created_utc": diagnosis.report["created_utc"],
-                                   "rows": diagnosis.report["heldout"]["rows_used"]}
+        atomic_write_bytes(readme, (text + "\n\n" + README_HEADING + "\n\n" + summary_markdown(report)).encode())
+        manifest["diagnostics"] = {"path": DIAGNOSTICS_DIR, "created_utc": report["created_utc"],
+                                   "rows": report["heldout"]["rows_used"]}
         write_manifest(tmp, manifest)
         read_manifest(tmp, verify=True)
         root.rename(old)

@@ -67,23 +67,47 @@ def _mismatch(bundle: Any, given: Any) -> FeatureMismatch:
                            f"{', '.join(names)}): features from another simulator cannot be scored or inverted")
 
 
-def knn_distance(bundle: Any, t: UserTargets, k: int = K) -> np.ndarray:
+def knn_distance(bundle: Any, t: UserTargets, k: int = K, leave_identical: bool = False) -> np.ndarray:
     """(B,) mean distance to the ``k`` nearest training rows, standardised, over each target's given
-    features (scaled to all features: distance x sqrt(M / given))."""
-    feats = bundle.manifest["features"]
-    mean, std = np.asarray(feats["mean"], dtype=np.float64), np.asarray(feats["std"], dtype=np.float64)
-    train = (bundle.data("train")[1] - mean) / std
-    train = train[np.all(np.isfinite(train), axis=1)]
-    k = min(k, len(train))
-    z = (np.nan_to_num(t.values) - mean) / std
-    out = np.empty(len(t))
+    features (scaled to all features: distance x sqrt(M / given)). ``leave_identical``: training rows
+    identical to the target (distance 0) are left out (a target that is itself a training row)."""
+    dist, _ = neighbours(bundle, t, k, leave_identical)
+    return dist.mean(axis=1)
+
+
+def neighbours(bundle: Any, t: UserTargets, k: int, leave_identical: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """(distances (B, k) scaled to all features, indices (B, k) into the bundle's finite training rows) of
+    each target's ``k`` nearest training rows in standardised space, over the features it gives."""
+    train, _ = standardised_train(bundle)
+    k = min(k, len(train) - int(leave_identical))
+    extra = 1 if leave_identical else 0
+    z = (np.nan_to_num(t.values) - _feature_stats(bundle)[0]) / _feature_stats(bundle)[1]
+    dist, idx = np.empty((len(t), k)), np.empty((len(t), k), dtype=np.int64)
     for pattern in {tuple(m) for m in t.mask.tolist()}:
         sel = np.all(t.mask == np.array(pattern), axis=1)
         cols = np.flatnonzero(pattern)
         tree = _tree(bundle, tuple(cols.tolist()), train[:, cols])
-        d, _ = tree.query(z[sel][:, cols], k=k)
-        out[sel] = np.asarray(d).reshape(int(sel.sum()), -1).mean(axis=1) * np.sqrt(len(pattern) / len(cols))
-    return out
+        d, i = tree.query(z[sel][:, cols], k=k + extra)
+        d, i = np.asarray(d).reshape(int(sel.sum()), -1), np.asarray(i).reshape(int(sel.sum()), -1)
+        if extra:  # drop one identical row where there is one, else the farthest of the k + 1
+            same = d[:, :1] == 0.0
+            d = np.where(same, d[:, 1:], d[:, :-1])
+            i = np.where(same, i[:, 1:], i[:, :-1])
+        dist[sel], idx[sel] = d * np.sqrt(len(pattern) / len(cols)), i
+    return dist, idx
+
+
+def _feature_stats(bundle: Any) -> tuple[np.ndarray, np.ndarray]:
+    feats = bundle.manifest["features"]
+    return np.asarray(feats["mean"], dtype=np.float64), np.asarray(feats["std"], dtype=np.float64)
+
+
+def standardised_train(bundle: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(standardised features of the bundle's finite training rows, their indices in ``data("train")``)."""
+    mean, std = _feature_stats(bundle)
+    train = (bundle.data("train")[1] - mean) / std
+    keep = np.flatnonzero(np.all(np.isfinite(train), axis=1))
+    return train[keep], keep
 
 
 def _tree(bundle: Any, cols: tuple[int, ...], data: np.ndarray) -> Any:

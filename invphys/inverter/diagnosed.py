@@ -2,8 +2,10 @@
 
 With ``diagnostics/calibration.json`` in the bundle: posterior draws (and so intervals and ``samples``) are
 quantile-recalibrated per parameter, the surrogate's ``± std`` is scaled so that ±1.645 of it holds 90 % of
-held-out errors, and a target whose out-of-distribution score exceeds the threshold calibrated on held-out rows
-gets a warning. Without it, answers are the posterior's and the ensemble's own, as before.
+held-out errors, and an answer whose failure score (:mod:`invphys.evaluation.failure_score`, fitted on validated
+held-out answers) reaches its threshold gets a warning (without a failure model: a target whose
+out-of-distribution score exceeds the threshold calibrated on held-out rows). Without diagnostics, answers
+are the posterior's and the ensemble's own, as before.
 """
 
 from __future__ import annotations
@@ -48,10 +50,27 @@ def feature_std(bundle: Any, std: np.ndarray) -> np.ndarray:
     return calibrated_feature_std(std, diag, bundle.feature_names)
 
 
-def ood_warning(bundle: Any, values: np.ndarray, mask: np.ndarray) -> list[str]:
-    """A warning for a target farther from the training data than the calibrated threshold (none without
+def failure_score(bundle: Any, values: np.ndarray, mask: np.ndarray, theta: np.ndarray) -> float | None:
+    """The stored failure model's probability that this answer fails on the simulator (R_actual < 0.8),
+    from the target (``values`` over ``mask``) and the answer ``theta`` (normalised) alone; None where
+    the bundle holds no failure model (``invphys diagnose --write --failures``)."""
+    model = (diagnostics(bundle) or {}).get("failure")
+    if not model:
+        return None
+    from invphys.evaluation.failure_score import components, probability
+
+    given = {n: float(v) for n, v, m in zip(bundle.feature_names, values, mask, strict=True) if m}
+    comps = components(bundle, given, np.asarray(theta, dtype=np.float64)[None])
+    return float(probability(model, comps)[0])
+
+
+def ood_warning(bundle: Any, values: np.ndarray, mask: np.ndarray, theta: np.ndarray | None = None) -> list[str]:
+    """A warning for an answer likely to fail on the simulator (with ``theta`` and a stored failure model),
+    else for a target farther from the training data than the calibrated threshold (none without
     diagnostics, or for a score that needs more than the target)."""
     diag = diagnostics(bundle)
+    if theta is not None and (diag or {}).get("failure"):
+        return failure_warning(bundle, values, mask, theta)
     from invphys.evaluation.ood import NEEDS, ood_score, ood_settings
 
     settings = ood_settings(diag)
@@ -64,3 +83,17 @@ def ood_warning(bundle: Any, values: np.ndarray, mask: np.ndarray) -> list[str]:
         return []
     return [f"unusual target: farther from the training data than the held-out rows the warning was calibrated on "
             f"({settings['score']} score {score:.3g} > {threshold:.3g}); its answer and intervals are less reliable"]
+
+
+def failure_warning(bundle: Any, values: np.ndarray, mask: np.ndarray, theta: np.ndarray) -> list[str]:
+    """The answer-level warning: its failure score at or above the stored threshold."""
+    model = (diagnostics(bundle) or {})["failure"]
+    p = failure_score(bundle, values, mask, theta)
+    if p is None or p < float(model["threshold"]):
+        return []
+    cal = model.get("calibration") or {}
+    held = (f" (on {cal['n']} validated held-out answers it caught {cal['recall']:.0%} of those that failed and "
+            f"fired on {cal['alarm_rate']:.0%} of the others)") if cal.get("recall") is not None else ""
+    return [f"this answer may not reproduce the target on the simulator: failure score {p:.2f} >= {model['threshold']:.2f}"
+            f" (the estimated probability that its simulated R is below {model.get('fail_below', 0.8):g}){held}; "
+            f"validate it (--validate) before relying on it"]
