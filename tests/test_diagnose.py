@@ -254,3 +254,31 @@ def test_diagnose_writes_its_report_and_stores_it_in_the_bundle(bundle, tmp_path
     assert (bundle / "README.md").read_text().count("## Diagnostics (invphys diagnose)") == 1
     assert sorted(p.name for p in bundle.parent.iterdir() if p.name.startswith(".")) == []  # no copy left over
     Bundle(bundle)
+
+
+def test_diagnose_fits_the_failure_warning_from_validated_answers_and_keeps_it(bundle, tmp_path) -> None:
+    from invphys.core.errors import InvphysError
+    from invphys.evaluation.diagnose import diagnose
+    from invphys.evaluation.diagnose_report import write_into_bundle
+    from invphys.evaluation.heldout import heldout_rows
+    from invphys.inverter import load_inverter
+
+    inv = load_inverter(bundle)
+    held = heldout_rows(inv.bundle)
+    bad = np.arange(len(held)) % 3 == 0
+    answers = np.where(bad[:, None], 1.0 - held.theta, held.theta)
+    r = np.where(bad, 0.3, 0.95)
+    path = tmp_path / "validated.json"
+    path.write_text(json.dumps({"validated": True, "sets": {"heldout": {
+        "keys": held.keys.tolist(), "y": held.y.tolist(), "truth_theta": held.theta.tolist(),
+        "methods": {inv.default_method: {"theta": answers.tolist(), "r_actual": r.tolist()}}}}}))
+    with pytest.raises(InvphysError, match="no set named nope"):
+        diagnose(inv, draws=20, failures=f"{path}:nope")
+    d = diagnose(inv, draws=20, failures=path)
+    f = d.calibration["failure"]
+    assert f == d.report["failure"] and f["rows"]["used"] == len(held) and f["rows"]["training_rows"] == 0
+    assert f["calibration"]["recall"] >= 0.8 and f["scores"] == ["knn", "misfit", "local_error"]
+    write_into_bundle(d, bundle)
+    assert "Failure warning (answer-level" in (bundle / "diagnostics" / "summary.md").read_text()
+    kept = diagnose(load_inverter(bundle), draws=20).calibration["failure"]  # no --failures: the stored one stays
+    assert kept["threshold"] == f["threshold"] and "previous diagnostics" in kept["kept"]

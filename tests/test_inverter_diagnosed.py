@@ -81,3 +81,55 @@ def test_diagnostics_not_covered_by_the_manifest_are_refused(bundles, tmp_path: 
     (planted / "diagnostics" / "calibration.json").write_text(json.dumps(data))
     with pytest.raises(InvphysError, match=r"calibration\.json"):
         _answer(planted, np.zeros(12))
+
+
+@pytest.fixture(scope="module")
+def failure_bundle(bundles, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The diagnosed bundle plus a failure model fitted on planted failures (answers moved far off the truth)."""
+    from invphys.evaluation.diagnose_report import write_failure_into_bundle
+    from invphys.evaluation.failure_score import components, fit
+    from invphys.inverter.bundle import Bundle
+
+    _, diag = bundles
+    root = tmp_path_factory.mktemp("failure") / "bundle"
+    shutil.copytree(diag, root)
+    (root / "diagnostics" / "report.json").write_text(json.dumps(
+        {"bundle_id": json.loads(CALIBRATION.read_text()).get("bundle_id"), "created_utc": "2026-01-01T00:00:00Z",
+         "heldout": {"rows_used": 0, "fit_rows": 0, "check_rows": 0},
+         "ood": {"chosen": "knn", "threshold": 1.0, "candidates": {}, "check": {"fire_rate": 0.0}},
+         "surrogate_error_bars": {}}))
+    from invphys.inverter.manifest import file_hashes, read_manifest, write_manifest
+
+    manifest = read_manifest(root, verify=False)
+    manifest["files"] = file_hashes(root)
+    write_manifest(root, manifest)
+    b = Bundle(root)
+    theta, y = b.data("test")
+    theta, y = np.asarray(theta[:80], dtype=np.float64), np.asarray(y[:80], dtype=np.float64)
+    bad = np.arange(80) % 2 == 1
+    answers = theta.copy()
+    answers[bad] = np.clip(1.0 - answers[bad], 0.0, 1.0)
+    write_failure_into_bundle({**fit(components(b, y, answers), bad), "method": "npe_best64"}, root)
+    return root
+
+
+def test_an_answer_likely_to_fail_is_warned_with_its_score_and_a_good_one_not(failure_bundle, bundles) -> None:
+    """With a failure model, the warning judges the answer (not only the target): the same target warns
+    with a wrong answer and not with its true parameters; without the answer, the target-only warning."""
+    from invphys.inverter import load_inverter
+    from invphys.inverter.diagnosed import failure_score, ood_warning
+
+    b = load_inverter(failure_bundle).bundle  # verifies: the model is covered by the manifest
+    theta, y = b.data("test")
+    truth, target, mask = np.asarray(theta[100]), np.asarray(y[100]), np.ones(12, dtype=bool)
+    wrong = np.clip(1.0 - truth, 0.0, 1.0)
+    assert ood_warning(b, target, mask, truth) == []
+    (warn,) = ood_warning(b, target, mask, wrong)
+    p = failure_score(b, target, mask, wrong)
+    assert p is not None and f"failure score {p:.2f}" in warn and "may not reproduce the target" in warn
+    assert failure_score(b, target, mask, truth) < p
+    std = np.asarray(b.manifest["features"]["std"])
+    assert any("unusual target" in w for w in ood_warning(b, target + 6.0 * std, mask))  # no answer given
+    assert failure_score(load_inverter(bundles[1]).bundle, target, mask, truth) is None  # no failure model
+    summary = (failure_bundle / "diagnostics" / "summary.md").read_text()
+    assert "Failure warning (answer-level" in summary and "Failure warning" in (failure_bundle / "README.md").read_text()
