@@ -44,8 +44,8 @@ def test_scores_depend_on_the_target_and_the_answer_alone(paper) -> None:
     rev = components(paper, y[::-1], answers[::-1])
     alone = components(paper, y[5:6], answers[5:6])
     for n in SCORES:
-        np.testing.assert_allclose(rev[n][::-1], batch[n], rtol=1e-6, atol=1e-9)
-        np.testing.assert_allclose(alone[n][0], batch[n][5], rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(rev[n][::-1], batch[n], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(alone[n][0], batch[n][5], rtol=0, atol=1e-12)
     with pytest.raises(InvphysError, match="answers have shape"):
         components(paper, y, answers[:3])
 

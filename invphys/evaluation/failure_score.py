@@ -71,7 +71,9 @@ def components(bundle: Any, targets: Any, answers: np.ndarray) -> dict[str, np.n
     theta = np.atleast_2d(np.asarray(answers, dtype=np.float64))
     if theta.shape != (len(t), bundle.space.dim):
         raise InvphysError(f"answers have shape {theta.shape}; expected ({len(t)}, {bundle.space.dim})")
-    mean = bundle.surrogate.predict(theta)
+    # one answer at a time: a batched network's float rounding would make a score depend on its batch
+    mean = np.concatenate([np.asarray(bundle.surrogate.predict(theta[i:i + 1]), dtype=np.float64)
+                           for i in range(len(theta))]) if len(theta) else np.zeros((0, len(t.feature_names)))
     r = masked_recovery(mean, np.nan_to_num(t.values), bundle.scales, t.mask, bundle.kappa)
     return {"knn": knn_distance(bundle, t, K, leave_identical=True), "misfit": 1.0 - r,
             "local_error": local_error(bundle, t)}

@@ -92,8 +92,8 @@ def failure_warning(bundle: Any, values: np.ndarray, mask: np.ndarray, theta: np
     if p is None or p < float(model["threshold"]):
         return []
     cal = model.get("calibration") or {}
-    held = (f" (on {cal['n']} validated held-out answers it caught {cal['recall']:.0%} of those that failed and "
-            f"fired on {cal['alarm_rate']:.0%} of the others)") if cal.get("recall") is not None else ""
+    held = (f"; on {cal['n']} validated held-out answers the warning caught {cal['recall']:.0%} of those that failed "
+            f"and fired on {cal['alarm_rate']:.0%} of the others") if cal.get("recall") is not None else ""
     return [f"this answer may not reproduce the target on the simulator: failure score {p:.2f} >= {model['threshold']:.2f}"
-            f" (the estimated probability that its simulated R is below {model.get('fail_below', 0.8):g}){held}; "
+            f", the estimated probability that its simulated R is below {model.get('fail_below', 0.8):g}{held}; "
             f"validate it (--validate) before relying on it"]
