@@ -16,9 +16,8 @@ from typing import TYPE_CHECKING, Any
 from invphys.core.hookspecs import hookimpl
 from invphys.core.objectives import recovery_reward
 from invphys.core.params import Parameter, ParameterSpace
+from invphys.core.version import __version__
 from invphys.plugins.simulators.from_function import simulator_from_function
-
-__version__ = "0.1.0"
 
 __all__ = ["Parameter", "ParameterSpace", "__version__", "hookimpl", "load_inverter", "load_spec", "recovery_reward",
            "run", "simulator_from_function"]

@@ -60,8 +60,6 @@ KNOWN_UPWARD: dict[tuple[str, str], str] = {
     ("invphys.core.spec", "invphys.registry"): "spec validation checks each plugin block's config",
     ("invphys.registry", "invphys.plugins.builtin"): "the built-in plugins, registered on first lookup",
     ("invphys.envs.inversion", "invphys.inverter"): "Inversion-v0 takes an inverter bundle (the env belongs above)",
-    ("invphys.cli", "invphys"): "__version__ from the package root (belongs in core)",
-    ("invphys.inverter.writer", "invphys"): "__version__ from the package root (belongs in core)",
 }
 
 #: import circles today (strongly connected modules); each found circle must lie inside one of these

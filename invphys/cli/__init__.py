@@ -29,7 +29,7 @@ app = typer.Typer(
 
 def _print_version(value: bool) -> None:
     if value:
-        from invphys import __version__
+        from invphys.core.version import __version__
 
         typer.echo(f"invphys {__version__}")
         raise typer.Exit()

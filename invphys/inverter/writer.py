@@ -88,7 +88,7 @@ def default_method(methods: dict[str, dict[str, Any]]) -> str | None:
 
 def write_bundle(parts: BundleParts, dest: str | Path) -> Path:
     """Assemble the bundle from ``parts`` and move it to ``dest`` (replacing a previous bundle there)."""
-    import invphys
+    from invphys.core.version import __version__
     from invphys.inverter import export
 
     dest = Path(dest)
@@ -138,7 +138,7 @@ def write_bundle(parts: BundleParts, dest: str | Path) -> Path:
         mean, std = feature_standardiser(y_train)
         manifest: dict[str, Any] = {
             "format_version": FORMAT_VERSION,
-            "invphys_version": invphys.__version__,
+            "invphys_version": __version__,
             "bundle_id": uuid.uuid4().hex[:12],
             "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             "name": parts.name, "description": parts.description, "notes": parts.notes,
