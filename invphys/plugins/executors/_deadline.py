@@ -29,6 +29,8 @@ import threading
 from collections.abc import Callable
 from typing import Any, TypeVar
 
+from invphys.core.errors import SimulationFailed
+
 _LOG = logging.getLogger(__name__)
 T = TypeVar("T")
 
@@ -36,6 +38,11 @@ T = TypeVar("T")
 DISPOSABLE = False
 _ARMED = False
 _WARNED = False
+
+
+class ExtractionTimedOut(SimulationFailed):
+    """One run's feature extraction took longer than the extraction timeout (``extract_timeout_s``): it was
+    interrupted here, or its extraction process was stopped (and replaced). That run's failure."""
 
 
 class _Expired(BaseException):
@@ -73,8 +80,6 @@ def call(fn: Callable[..., T], timeout_s: float | None, *args: Any) -> T:
                          "of a POSIX process with SIGALRM free); set extract_workers >= 1 to have one",
                          "this thread" if sys.platform != "win32" else "this process")
         return fn(*args)
-    from invphys.plugins.executors._extract_pool import ExtractionTimedOut
-
     hard = DISPOSABLE
     previous = signal.signal(signal.SIGALRM, _on_alarm)
     if hard:

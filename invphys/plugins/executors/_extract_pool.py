@@ -46,6 +46,7 @@ import numpy as np
 
 from invphys.core.errors import InvphysError, SimulationFailed
 from invphys.core.results import SimulationResult
+from invphys.plugins.executors._deadline import ExtractionTimedOut
 
 _LOG = logging.getLogger(__name__)
 
@@ -113,11 +114,6 @@ def _extract_shared(data: bytes, name: str, spans: list[tuple[int, int]]) -> np.
 class ExtractionWorkerDied(SimulationFailed):
     """The process extracting one run's features died, also when the run was retried alone in a fresh one:
     the extractor crashes on it (or the process keeps being killed, e.g. for memory). That run's failure."""
-
-
-class ExtractionTimedOut(SimulationFailed):
-    """One run's feature extraction took longer than the pool's ``timeout_s``, also when retried alone in a
-    fresh process: its process was stopped (and replaced). That run's failure."""
 
 
 def _settle(outer: Future, result: Any = None, exc: BaseException | None = None) -> None:
