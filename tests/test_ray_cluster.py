@@ -209,3 +209,17 @@ def test_an_address_where_nothing_listens_is_one_error_line_at_once(tmp_path) ->
     errors = [line for line in (run.stdout + run.stderr).splitlines() if line.startswith("error:")]
     assert len(errors) == 1 and "nothing answers there" in errors[0] and "ray-cluster" in errors[0], errors
     assert "Traceback" not in run.stderr and time.monotonic() - start < 60
+
+
+def test_the_docs_executor_blocks_are_valid_settings() -> None:
+    """Every `executor:` line of docs/ray-cluster.md builds its executor (without reaching a cluster)."""
+    import yaml
+
+    from invphys import registry
+
+    text = (Path(TESTS).parent / "docs" / "ray-cluster.md").read_text()
+    blocks = [yaml.safe_load(line)["executor"] for line in text.splitlines() if line.startswith("executor: {")]
+    assert len(blocks) >= 3
+    for block in blocks:
+        executor = registry.create("executor", dict(block))
+        assert executor.config.address == block["address"]
