@@ -1,8 +1,11 @@
 """The plugin registry: a pluggy PluginManager over the ``invphys`` entry-point group.
 
-* Built-in plugins (:mod:`invphys.plugins.builtin`) register through the same hooks as third parties.
-* Entry points are discovered lazily, once, on the first lookup; set ``INVPHYS_DISABLE_PLUGIN_AUTOLOAD=1``
-  to skip them (the tests do, and register what they need explicitly).
+* The built-in plugins come as third parties' do: through the ``invphys`` entry-point group (invphys's own
+  ``pyproject.toml`` names ``invphys.plugins.builtin``), so this module imports no plugin. They are loaded
+  whatever the setting below; from a source tree without installed metadata (or metadata older than the
+  entry point) they are read from the ``pyproject.toml`` beside the package.
+* Other distributions' entry points are discovered lazily, once, on the first lookup; set
+  ``INVPHYS_DISABLE_PLUGIN_AUTOLOAD=1`` to skip them (the tests do, and register what they need explicitly).
 * ``"package.module:ClassName"`` works wherever a plugin name does (unpackaged code); so does
   ``"module:function"`` for a Python function described as a simulator (``invphys.simulator_from_function``,
   or a plain function whose spec block gives its ``parameters``: :mod:`invphys.plugins.simulators.function`).
@@ -22,10 +25,12 @@ from __future__ import annotations
 import importlib
 import os
 import threading
+import tomllib
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from importlib.metadata import EntryPoint, entry_points
+from pathlib import Path
 from typing import Any
 
 import pluggy
@@ -45,6 +50,16 @@ BUILTIN_DISTRIBUTION = "invphys"
 
 KINDS: tuple[str, ...] = tuple(hookspecs.HOOK_FOR_KIND)
 _KIND_LABEL = {k: k.replace("_", " ") for k in KINDS}
+
+
+class RegistryHooks:
+    """Hooks the registry calls besides the ``invphys_register_*`` ones (:mod:`invphys.core.hookspecs`)."""
+
+    @hookspecs.hookspec(firstresult=True)
+    def invphys_plugin_for_callable(self, kind: str, obj: object, path: str) -> type | None:  # type: ignore[empty-body]
+        """The plugin class of ``kind`` that a Python function ``obj`` (named ``path``, "module:function")
+        gives, or None when this plugin does not make one (the built-ins: functions described as simulators,
+        :func:`invphys.plugins.simulators.function.plugin_for_callable`)."""
 
 
 @dataclass(frozen=True)
@@ -74,6 +89,7 @@ class Registry:
         self._autoload = autoload
         self.pm = pluggy.PluginManager(hookspecs.PROJECT)
         self.pm.add_hookspecs(hookspecs)
+        self.pm.add_hookspecs(RegistryHooks)
         self._dist_of: dict[int, tuple[str, str]] = {}  # id(module/object) -> (dist, version)
         self._tables: dict[str, dict[str, PluginInfo]] | None = None
         self._loaded_entry_points = False
@@ -99,13 +115,15 @@ class Registry:
         return os.environ.get(AUTOLOAD_ENV, "").strip().lower() not in {"1", "true", "yes"}
 
     def _load_builtins(self) -> None:
-        from invphys.plugins import builtin
-
-        if not self.pm.is_registered(builtin):
-            self.register(builtin, BUILTIN_DISTRIBUTION, _version_of(BUILTIN_DISTRIBUTION),
-                          name="invphys.builtin")
+        """invphys's own entry points (its built-in plugins), whatever :data:`AUTOLOAD_ENV` says."""
+        version = _version_of(BUILTIN_DISTRIBUTION)
+        for ep in _builtin_entry_points():
+            if self.pm.get_plugin(f"{BUILTIN_DISTRIBUTION}:{ep.name}") is None:
+                self.register(_load(ep, BUILTIN_DISTRIBUTION), BUILTIN_DISTRIBUTION, version,
+                              name=f"{BUILTIN_DISTRIBUTION}:{ep.name}")
 
     def _load_entry_points(self) -> None:
+        """Other distributions' entry points (once; skipped when :data:`AUTOLOAD_ENV` says so)."""
         if self._loaded_entry_points:
             return
         self._loaded_entry_points = True
@@ -114,16 +132,9 @@ class Registry:
         for ep in _entry_points():
             dist = ep.dist.name if ep.dist is not None else "<unknown>"
             version = ep.dist.version if ep.dist is not None else ""
-            if self.pm.get_plugin(f"ep:{ep.name}") is not None:
+            if _is_builtin(ep) or self.pm.get_plugin(f"ep:{ep.name}") is not None:
                 continue
-            try:
-                module = ep.load()
-            except Exception as exc:
-                raise PluginLoadError(
-                    f"failed to load invphys plugin {ep.name!r} ({ep.value}) from distribution "
-                    f"{dist!r}: {type(exc).__name__}: {exc}"
-                ) from exc
-            self.register(module, dist, version, name=f"ep:{ep.name}")
+            self.register(_load(ep, dist), dist, version, name=f"ep:{ep.name}")
 
     # -- tables --------------------------------------------------------------------------------
     def _build(self) -> dict[str, dict[str, PluginInfo]]:
@@ -178,9 +189,7 @@ class Registry:
         if ":" in name:
             cls = _import_path(name)
             if not isinstance(cls, type) and callable(cls):
-                from invphys.plugins import builtin
-
-                cls = builtin.plugin_for_callable(kind, cls, name)
+                cls = self._plugin_for_callable(kind, cls, name)
             from invphys.core.interfaces import PLUGIN_KINDS
 
             _check_class(cls, kind, PLUGIN_KINDS[kind], "<local>", need_name=False)
@@ -195,6 +204,15 @@ class Registry:
             f"Installed {label}s: {installed}. (`invphys plugins` lists them; "
             f"'module:Class' or 'module:function' names unpackaged code.)"
         )
+
+    def _plugin_for_callable(self, kind: str, obj: object, path: str) -> type[Any]:
+        """The class a plugin makes of the function ``obj`` (:meth:`RegistryHooks.invphys_plugin_for_callable`)."""
+        self._build()  # the plugins that may turn functions into plugin classes
+        made = self.pm.hook.invphys_plugin_for_callable(kind=kind, obj=obj, path=path)
+        if made is None:
+            raise PluginLoadError(f"{path!r} is a {type(obj).__name__}, not a {_KIND_LABEL[kind]} plugin class, "
+                                  f"and no installed plugin makes one of a function")
+        return made  # type: ignore[no-any-return]
 
     def get(self, kind: str, name: str) -> type[Any]:
         """The plugin class of ``kind`` called ``name`` (or a ``module:Class`` path)."""
@@ -266,6 +284,42 @@ def _import_module(module_name: str) -> Any:
 
 def _entry_points() -> Iterable[EntryPoint]:
     return entry_points(group=ENTRY_POINT_GROUP)
+
+
+def _is_builtin(ep: EntryPoint) -> bool:
+    name = ep.dist.name if ep.dist is not None else ""
+    return name.lower().replace("_", "-") == BUILTIN_DISTRIBUTION
+
+
+def _builtin_entry_points() -> list[EntryPoint]:
+    """invphys's own entry points in the ``invphys`` group: from its installed metadata, else (a source
+    tree on ``sys.path`` without metadata, or metadata written before the entry point) from the
+    ``pyproject.toml`` beside the package. None at all is an error: nothing would be registered."""
+    own = [ep for ep in entry_points(group=ENTRY_POINT_GROUP) if _is_builtin(ep)]
+    if own:
+        return own
+    pyproject = Path(__file__).resolve().parent.parent / "pyproject.toml"
+    try:
+        project = tomllib.loads(pyproject.read_text()).get("project", {})
+    except (OSError, tomllib.TOMLDecodeError):
+        project = {}
+    table = project.get("entry-points", {}).get(ENTRY_POINT_GROUP, {}) if project.get("name") == "invphys" else {}
+    if not table:
+        raise PluginLoadError(f"invphys's built-in plugins are not registered: the installed invphys has no "
+                              f"{ENTRY_POINT_GROUP!r} entry points; reinstall it (pip install invphys, or "
+                              f"pip install -e . in a checkout)")
+    return [EntryPoint(name, value, ENTRY_POINT_GROUP) for name, value in sorted(table.items())]
+
+
+def _load(ep: EntryPoint, dist: str) -> Any:
+    """The object an entry point names; a failure is one :class:`PluginLoadError` naming it."""
+    try:
+        return ep.load()
+    except Exception as exc:
+        raise PluginLoadError(
+            f"failed to load invphys plugin {ep.name!r} ({ep.value}) from distribution "
+            f"{dist!r}: {type(exc).__name__}: {exc}"
+        ) from exc
 
 
 def _version_of(dist: str) -> str:

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import shutil
 import subprocess
 import sys
 import types
+import zipfile
+from pathlib import Path
 
 import pytest
 from core_plugins import OtherRandomSearch, RandomSearch
@@ -12,6 +15,8 @@ from core_plugins import OtherRandomSearch, RandomSearch
 from invphys import hookimpl, registry
 from invphys.core.errors import DuplicatePluginError, PluginLoadError, PluginNotFoundError
 from invphys.registry import Registry
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 class FakeDist:
@@ -157,3 +162,71 @@ def test_listing_plugins_imports_no_heavy_library():
             "print(heavy)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def _builtin_entry_point(dist: str = "invphys") -> object:
+    from importlib.metadata import EntryPoint
+
+    class Dist:
+        name, version = dist, "9.9"
+
+    ep = EntryPoint("builtin", "invphys.plugins.builtin", "invphys")
+    object.__setattr__(ep, "dist", Dist())  # as importlib.metadata sets it for an installed distribution
+    return ep
+
+
+def test_the_built_ins_come_through_invphys_own_entry_point_even_with_autoload_off(monkeypatch):
+    """The registry imports no plugin: the built-ins are invphys's entry point (installed metadata)."""
+    from invphys.plugins import builtin
+
+    monkeypatch.setenv("INVPHYS_DISABLE_PLUGIN_AUTOLOAD", "1")
+    monkeypatch.setattr("invphys.registry.entry_points", lambda group: [_builtin_entry_point()])
+    reg = Registry()
+    assert "cma_es" in reg.names("optimizer") and "local" in reg.names("executor")
+    assert reg.pm.get_plugin("invphys:builtin") is builtin
+    assert reg.info("optimizer", "cma_es").distribution == "invphys"
+
+
+def test_without_installed_metadata_the_built_ins_come_from_the_source_tree_pyproject(monkeypatch):
+    """A source tree on sys.path (no metadata, or metadata older than the entry point): pyproject.toml says."""
+    monkeypatch.setattr("invphys.registry.entry_points", lambda group: [])
+    reg = Registry(autoload=False)
+    assert "cma_es" in reg.names("optimizer")
+    assert reg.pm.get_plugin("invphys:builtin") is not None
+
+
+def test_no_built_in_entry_point_anywhere_is_one_error_line(monkeypatch, tmp_path):
+    monkeypatch.setattr("invphys.registry.entry_points", lambda group: [])
+    monkeypatch.setattr("invphys.registry.__file__", str(tmp_path / "invphys" / "registry.py"))
+    with pytest.raises(PluginLoadError) as err:
+        Registry(autoload=False).names("optimizer")
+    assert "built-in plugins are not registered" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_function_needs_a_plugin_that_makes_plugins_of_functions(monkeypatch):
+    """``module:function`` goes through the invphys_plugin_for_callable hook (the built-ins implement it):
+    without them, a function is refused in one line."""
+    reg = Registry(autoload=False)
+    monkeypatch.setattr(reg, "_load_builtins", lambda: None)
+    with pytest.raises(PluginLoadError, match="no installed plugin makes one of a function") as err:
+        reg.get("simulator", "os.path:join")
+    assert "\n" not in str(err.value)
+
+
+def test_the_invphys_wheel_declares_its_built_in_plugins_as_an_entry_point(tmp_path: Path) -> None:
+    pytest.importorskip("setuptools")
+    """The registry finds the built-ins through this entry point (it imports no plugin itself)."""
+    src = tmp_path / "invphys"
+    src.mkdir()
+    for name in ("pyproject.toml", "README.md", "LICENSE"):
+        shutil.copy(ROOT / name, src / name)
+    shutil.copytree(ROOT / "invphys", src / "invphys", ignore=shutil.ignore_patterns("__pycache__"))
+    res = subprocess.run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--no-build-isolation",
+                          "--no-index", "-w", str(tmp_path / "dist"), str(src)], capture_output=True, text=True,
+                         timeout=300)
+    assert res.returncode == 0, res.stderr
+    (wheel,) = (tmp_path / "dist").glob("invphys-*.whl")
+    with zipfile.ZipFile(wheel) as zf:
+        (entry,) = [n for n in zf.namelist() if n.endswith(".dist-info/entry_points.txt")]
+        text = zf.read(entry).decode()
+    assert "[invphys]\nbuiltin = invphys.plugins.builtin\n" in text

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import ast
 import sys
+import tomllib
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -58,19 +59,11 @@ SIBLINGS_APART = ({"invphys_orange_peel", "invphys_cheese_cut", "invphys_toy_spr
 #: (importer, imported) pairs that look up today, with why; remove an entry when its import goes
 KNOWN_UPWARD: dict[tuple[str, str], str] = {
     ("invphys.core.spec", "invphys.registry"): "spec validation checks each plugin block's config",
-    ("invphys.registry", "invphys.plugins.builtin"): "the built-in plugins, registered on first lookup",
     ("invphys.envs.inversion", "invphys.inverter"): "Inversion-v0 takes an inverter bundle (the env belongs above)",
 }
 
 #: import circles today (strongly connected modules); each found circle must lie inside one of these
 KNOWN_CIRCLES: tuple[frozenset[str], ...] = (
-    frozenset({
-        "invphys.plugins.builtin", "invphys.plugins.executors", "invphys.plugins.executors._batch",
-        "invphys.plugins.executors._extract_pool", "invphys.plugins.executors.local",
-        "invphys.plugins.executors.process", "invphys.plugins.executors.ray_actors",
-        "invphys.plugins.executors.ray_tasks", "invphys.plugins.validators", "invphys.plugins.validators.simulator",
-        "invphys.registry",
-    }),
     frozenset({"invphys_anisompm.engine", "invphys_anisompm.streaming"}),
     frozenset({"invphys_anisompm.model", "invphys_anisompm.scene"}),
     frozenset({"invphys_anisompm.backends.taichi_backend", "invphys_anisompm.backends.taichi_resort"}),
@@ -267,6 +260,18 @@ def test_known_circles_still_exist(tree) -> None:
 def test_dynamic_imports_are_the_listed_ones(tree) -> None:
     _, dynamic = tree
     assert dynamic == sorted(DYNAMIC_IMPORT_SITES)
+
+
+def test_the_built_in_plugins_are_an_entry_point_above_the_registry(tree) -> None:
+    """The registry imports no plugin: invphys's own ``invphys`` entry points name the built-ins, as a plugin
+    distribution's do, and each names a module of a layer above the registry's."""
+    graph, _ = tree
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    eps = project["entry-points"]["invphys"]
+    assert eps == {"builtin": "invphys.plugins.builtin"}
+    above = [v for v in eps.values() if (layer_of(v.partition(":")[0]) or 0) > (layer_of("invphys.registry") or 0)]
+    assert above == list(eps.values()) and all(v.partition(":")[0] in graph for v in eps.values())
+    assert not any(d.startswith("invphys.plugins") for d in graph["invphys.registry"])
 
 
 def test_invphys_imports_no_example(tree) -> None:

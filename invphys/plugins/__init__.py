@@ -1,1 +1,2 @@
-"""Built-in plugins of invphys (registered by :mod:`invphys.plugins.builtin`)."""
+"""Built-in plugins of invphys (registered by :mod:`invphys.plugins.builtin`, the ``invphys`` entry point of invphys's own
+``pyproject.toml``)."""

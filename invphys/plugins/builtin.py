@@ -1,5 +1,8 @@
 """The built-in plugins, registered through the same hooks a third-party distribution uses.
 
+invphys's ``pyproject.toml`` names this module in the ``invphys`` entry-point group, as a plugin
+distribution would; the registry finds it there and imports nothing of ``invphys.plugins`` itself.
+
 Each hook imports only the light package ``__init__`` that lists its classes; the classes import
 their heavy dependencies (torch, cma, stable-baselines3, ...) inside their methods.
 """
@@ -45,9 +48,10 @@ def invphys_register_validators() -> list[type]:
     return list(VALIDATORS)
 
 
-def plugin_for_callable(kind: str, obj: object, path: str) -> type:
+@hookimpl
+def invphys_plugin_for_callable(kind: str, obj: object, path: str) -> type:
     """The plugin class a Python function named by ``path`` ("module:function") gives (the registry's
     escape hatch for functions: :func:`invphys.plugins.simulators.function.plugin_for_callable`)."""
-    from invphys.plugins.simulators.function import plugin_for_callable as for_callable
+    from invphys.plugins.simulators.function import plugin_for_callable
 
-    return for_callable(kind, obj, path)
+    return plugin_for_callable(kind, obj, path)
