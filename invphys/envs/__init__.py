@@ -6,8 +6,9 @@
 * :class:`~invphys.envs.vec.InverseVecEnv`: ``n_envs`` episodes as a stable-baselines3 ``VecEnv``
   whose step makes ONE batched surrogate call for all its envs.
 
-* :func:`~invphys.envs.inversion.make_inversion_env`: the Gymnasium id ``invphys/Inversion-v0``,
-  registered when this package is imported (``import invphys.envs``; ``gym.make`` then finds it).
+* the Gymnasium id ``invphys/Inversion-v0`` (:func:`invphys.inversion_env.make_inversion_env`, which lives
+  above the inverter because it also takes a bundle), registered when this package is imported
+  (``import invphys.envs``; ``gym.make`` then finds it and imports its entry point).
 
 Import the submodules directly (they import gymnasium / stable-baselines3).
 """
@@ -17,7 +18,7 @@ from __future__ import annotations
 __all__ = ["ENV_IDS", "InverseDesignEnv", "InverseTask", "InverseVecEnv", "register_envs"]
 
 #: Gymnasium ids this package registers, and their entry points
-ENV_IDS: dict[str, str] = {"invphys/Inversion-v0": "invphys.envs.inversion:make_inversion_env"}
+ENV_IDS: dict[str, str] = {"invphys/Inversion-v0": "invphys.inversion_env:make_inversion_env"}
 
 
 def register_envs() -> list[str]:

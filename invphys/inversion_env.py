@@ -13,6 +13,9 @@ features): action ``a`` in [-1, 1]^dim moves ``s <- clip(s + step_scale * a)``; 
 R_gt (paper eq. 1) among the visited states, at the last step. Goals are drawn from the surrogate's
 predictions at uniformly random points of the space (so every goal is reachable), or fixed with
 ``target=`` or ``reset(options={"goal": y})``.
+
+It sits above the inverter (it loads a bundle directory with :func:`invphys.inverter.load_inverter`);
+:mod:`invphys.envs` holds the environment classes it builds and registers its Gymnasium id.
 """
 
 from __future__ import annotations
