@@ -12,7 +12,9 @@ failing answers on held-out rows (AUROC):
 
 The diagnostics keep the best-ranking score and a threshold (the held-out rows' 90 % quantile, so the
 warning fires on about 10 % of typical targets): :func:`ood_score` and :func:`ood_threshold` read them.
-Features from another simulator are refused by name (:class:`FeatureMismatch`), never scored.
+Features from another simulator are refused by name (:class:`FeatureMismatch`), never scored. Whether an
+*answer* will fail on the simulator is scored by :mod:`invphys.evaluation.failure_score`, which answers use
+instead where a bundle holds its model.
 """
 
 from __future__ import annotations
