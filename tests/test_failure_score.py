@@ -114,3 +114,36 @@ def test_validated_answers_are_read_strictly_and_training_rows_left_out(paper, t
     (tmp_path / "broken.json").write_text("{not json")
     with pytest.raises(InvphysError):
         fit_from_file(paper, tmp_path / "broken.json", "npe_best64")
+
+
+def test_the_fitting_script_measures_other_sets_and_stores_the_model_in_the_bundle(paper, tmp_path: Path) -> None:
+    """benchmarks/fit_failure_warning.py on a private copy of the paper bundle: fitted on one file's rows,
+    measured on another's, stored (the bundle still verifies and its answers' warning reads it)."""
+    import importlib.util
+    import shutil
+
+    from invphys.inverter.bundle import Bundle
+    from invphys.inverter.diagnosed import failure_score
+
+    spec = importlib.util.spec_from_file_location("fit_failure_warning", PAPER.parents[1] / "benchmarks"
+                                                  / "fit_failure_warning.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    root = tmp_path / "bundle"
+    shutil.copytree(PAPER, root)
+    y, truth, answers, bad = _planted(paper, 120)
+    cal = _validated(tmp_path / "cal.json", y[:80], truth[:80], answers[:80], bad[:80])
+    rep = _validated(tmp_path / "rep.json", y[80:], truth[80:], answers[80:], bad[80:])
+    out = tmp_path / "result.json"
+    assert script.main(["--bundle", str(root), "--calibration", f"{cal}:heldout", "--report", str(rep),
+                        "--out", str(out), "--write"]) == 0
+    result = json.loads(out.read_text())
+    assert result["model"]["rows"]["used"] == 80 and result["sets"]["heldout"]["warning"]["n"] == 40
+    assert result["sets"]["heldout"]["warning"]["auroc"] > 0.9  # planted failures, rows it never saw
+    b = Bundle(root)  # re-hashed: verifies
+    stored = json.loads((root / "diagnostics" / "calibration.json").read_text())["failure"]
+    assert stored["threshold"] == result["model"]["threshold"]
+    given = np.ones(12, dtype=bool)
+    assert bad[81] and not bad[80]
+    assert failure_score(b, y[81], given, answers[81]) > failure_score(b, y[80], given, answers[80])
+    assert "Failure warning (answer-level" in (root / "README.md").read_text()
