@@ -29,8 +29,8 @@ class LocalExecutor(Executor):
         extract_timeout_s: float | None = Field(
             DEFAULT_TIMEOUT_S, gt=0, description="seconds one run's feature extraction may take before it is "
                                                  "stopped and the run recorded as failed (in a worker process: "
-                                                 "the process is stopped; in this process: the extractor is "
-                                                 "interrupted, see the executors docs; null: no limit)")
+                                                 "the process is stopped; in this process: the extractor's "
+                                                 "Python code is interrupted; null: no limit)")
 
     def run(self, simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None,
             params: np.ndarray, batch_size: int) -> Iterator[tuple[int, SimulationResult]]:
