@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
+from invphys import registry  # noqa: F401  (installs the plugin lookup the spec checks in core use)
 from invphys.core.hookspecs import hookimpl
 from invphys.core.objectives import recovery_reward
 from invphys.core.params import Parameter, ParameterSpace

@@ -260,3 +260,59 @@ def test_output_problem_names_stores_bundles_files_and_loops(tmp_path):
         problem = output_problem(path)
         assert problem is not None and expect in problem, (path, problem)
     assert "lies inside" in (output_problem(store / "deeper", store_ok=True) or "")
+
+
+#: every name the repository, its docs and tests import from invphys.core.spec (and the rest of the old module)
+PUBLIC_NAMES = ("ActiveSection", "AdaptiveSection", "BUNDLE_MANIFEST", "DatasetSection", "EvaluationMethod",
+                "EvaluationSection", "ExperimentSpec", "ExtraStore", "KEY_NEUTRAL_DEFAULTS", "Label", "MAX_DATASET_N",
+                "MAX_SEED", "MAX_TARGETS", "MODULE_CLASS_PATTERN", "OPTIMIZER_RUNNER_KEYS", "ObjectiveSection",
+                "PluginBlock", "PolishSection", "REPORT_FORMATS", "ReportFormat", "ReportSection", "SCHEMA_DIALECT",
+                "SCHEMA_ID", "STAGES", "STORE_MARKERS", "TargetsSection", "TrackerSection", "check_output_directory",
+                "json_schema", "load_spec", "optimizer_plugin_block", "output_problem", "parse_spec", "problem_line",
+                "spec_problems", "validate_plugin_blocks", "validate_references", "validate_spec", "value_problems")
+
+
+def test_every_public_name_keeps_its_import_path():
+    import invphys.core.spec as spec
+
+    assert [n for n in PUBLIC_NAMES if not hasattr(spec, n)] == []
+    assert set(PUBLIC_NAMES) <= set(spec.__all__)
+
+
+def test_the_spec_modules_are_small_with_short_functions():
+    """No spec module over 600 lines, no function over 80 (spec.py was 968 lines)."""
+    import ast
+    from pathlib import Path
+
+    import invphys.core.spec as spec
+
+    files = sorted(Path(spec.__file__).parent.glob("spec*.py"))
+    assert len(files) >= 6
+    big = [(f.name, n) for f in files if (n := len(f.read_text().splitlines())) > 600]
+    long = [(f.name, node.name, node.end_lineno - node.lineno + 1) for f in files
+            for node in ast.walk(ast.parse(f.read_text())) if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)
+            and node.end_lineno is not None and node.end_lineno - node.lineno + 1 > 80]
+    assert (big, long) == ([], [])
+
+
+def test_plugin_blocks_are_checked_by_the_registry_a_caller_passes():
+    """core looks plugins up through what it is given (the process's registry by default, installed by it)."""
+    from invphys.core.spec import validate_plugin_blocks
+    from invphys.registry import Registry
+
+    own = Registry(autoload=False)  # the built-ins only: test_random_search is not in it
+    blocks = [("optimizers.rs", "optimizer", {"type": "test_random_search"})]
+    assert validate_plugin_blocks(blocks) == []
+    ((path, message),) = validate_plugin_blocks(blocks, own)
+    assert path == ("optimizers", "rs", "type") and message.startswith("No optimizer named 'test_random_search'")
+
+
+def test_without_a_plugin_lookup_the_checks_say_so_in_one_line(monkeypatch):
+    from invphys.core import spec_lookup
+    from invphys.core.errors import InvphysError
+    from invphys.core.spec import validate_plugin_blocks
+
+    monkeypatch.setattr(spec_lookup, "_default", None)
+    with pytest.raises(InvphysError, match="no plugin registry") as err:
+        validate_plugin_blocks([("simulator", "simulator", {"type": "test_line"})])
+    assert "\n" not in str(err.value)

@@ -60,7 +60,6 @@ SIBLINGS_APART = ({"invphys_orange_peel", "invphys_cheese_cut", "invphys_toy_spr
 
 #: (importer, imported) pairs that look up today, with why; remove an entry when its import goes
 KNOWN_UPWARD: dict[tuple[str, str], str] = {
-    ("invphys.core.spec", "invphys.registry"): "spec validation checks each plugin block's config",
 }
 
 #: import circles today (strongly connected modules); each found circle must lie inside one of these
