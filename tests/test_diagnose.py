@@ -282,3 +282,9 @@ def test_diagnose_fits_the_failure_warning_from_validated_answers_and_keeps_it(b
     assert "Failure warning (answer-level" in (bundle / "diagnostics" / "summary.md").read_text()
     kept = diagnose(load_inverter(bundle), draws=20).calibration["failure"]  # no --failures: the stored one stays
     assert kept["threshold"] == f["threshold"] and "previous diagnostics" in kept["kept"]
+    from invphys.evaluation.diagnose import _failure
+
+    (bundle / "diagnostics" / "calibration.json").write_text("{not json")  # unreadable: nothing to keep, no stop
+    from invphys.inverter.bundle import Bundle
+
+    assert _failure(type("Inv", (), {"bundle": Bundle(bundle, verify=False)})(), None) is None

@@ -216,7 +216,11 @@ def _failure(inverter: Any, failures: Any, keep_training: bool = False) -> dict[
     if failures is None:
         from invphys.evaluation.ood import load_diagnostics
 
-        old = (load_diagnostics(bundle) or {})
+        try:
+            old = load_diagnostics(bundle) or {}
+        except InvphysError as exc:  # unreadable diagnostics: this run replaces them, with no model to keep
+            _LOG.warning("%s", exc)
+            old = {}
         kept = old.get("failure")
         if kept and old.get("bundle_id") == bundle.manifest.get("bundle_id"):
             return {**kept, "kept": "from the bundle's previous diagnostics (no --failures given)"}
