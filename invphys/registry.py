@@ -94,6 +94,7 @@ class Registry:
         self._dist_of: dict[int, tuple[str, str]] = {}  # id(module/object) -> (dist, version)
         self._tables: dict[str, dict[str, PluginInfo]] | None = None
         self._loaded_entry_points = False
+        self._loaded_builtins = False
 
     # -- registration --------------------------------------------------------------------------
     def register(self, plugin: object, distribution: str = "<local>", version: str = "",
@@ -116,12 +117,15 @@ class Registry:
         return os.environ.get(AUTOLOAD_ENV, "").strip().lower() not in {"1", "true", "yes"}
 
     def _load_builtins(self) -> None:
-        """invphys's own entry points (its built-in plugins), whatever :data:`AUTOLOAD_ENV` says."""
+        """invphys's own entry points (its built-in plugins), whatever :data:`AUTOLOAD_ENV` says (once)."""
+        if self._loaded_builtins:
+            return
         version = _version_of(BUILTIN_DISTRIBUTION)
         for ep in _builtin_entry_points():
             if self.pm.get_plugin(f"{BUILTIN_DISTRIBUTION}:{ep.name}") is None:
                 self.register(_load(ep, BUILTIN_DISTRIBUTION), BUILTIN_DISTRIBUTION, version,
                               name=f"{BUILTIN_DISTRIBUTION}:{ep.name}")
+        self._loaded_builtins = True
 
     def _load_entry_points(self) -> None:
         """Other distributions' entry points (once; skipped when :data:`AUTOLOAD_ENV` says so)."""
