@@ -13,10 +13,10 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from invphys import registry  # noqa: F401  (installs the plugin lookup the spec checks in core use)
 from invphys.core.hookspecs import hookimpl
 from invphys.core.objectives import recovery_reward
 from invphys.core.params import Parameter, ParameterSpace
+from invphys.core.spec_lookup import install_default
 from invphys.core.version import __version__
 from invphys.plugins.simulators.from_function import simulator_from_function
 
@@ -28,6 +28,17 @@ if TYPE_CHECKING:
 
     from invphys.core.spec import ExperimentSpec
     from invphys.inverter import Inverter
+    from invphys.registry import Registry
+
+
+def _default_registry() -> Registry:
+    """The process's plugin registry, imported on first use."""
+    from invphys.registry import default_registry
+
+    return default_registry()
+
+
+install_default(_default_registry)  # the spec checks (in core, below the registry) look plugins up here
 
 
 def load_spec(path: str | Path) -> ExperimentSpec:

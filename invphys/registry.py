@@ -43,7 +43,6 @@ from invphys.core.errors import (
     PluginNotFoundError,
     did_you_mean,
 )
-from invphys.core.spec_lookup import install_default
 
 ENTRY_POINT_GROUP = "invphys"
 AUTOLOAD_ENV = "INVPHYS_DISABLE_PLUGIN_AUTOLOAD"
@@ -347,9 +346,6 @@ def default_registry() -> Registry:
         if _default is None:
             _default = Registry()
         return _default
-
-
-install_default(default_registry)  # the spec checks (core) find plugins here without importing this module
 
 
 def get(kind: str, name: str) -> type[Any]:

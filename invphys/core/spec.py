@@ -26,7 +26,7 @@ The spec code lives in modules of one concept each; this module is the import pa
 * :mod:`~invphys.core.spec_references`: pass 3 (:func:`validate_references`);
 * :mod:`~invphys.core.spec_problems`: problem paths, YAML lines and the message;
 * :mod:`~invphys.core.spec_output`: where a command may write (:func:`check_output_directory`);
-* :mod:`~invphys.core.spec_lookup`: how the checks find plugins (the registry installs itself there).
+* :mod:`~invphys.core.spec_lookup`: how the checks find plugins (the package root installs the registry).
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """How the spec checks find plugins without core importing the registry (a layer above it).
 
 The checks take a :class:`PluginLookup` (anything with the registry's ``get``/``create``/``infos``); when
-given none they use the process's default, which :mod:`invphys.registry` installs when it is imported (the
-package root imports it, so every ``import invphys...`` has one).
+given none they use the process's default, which the package root installs (``invphys/__init__.py``: the
+registry's ``default_registry``, imported on first use), so every ``import invphys...`` has one.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ _default: Callable[[], PluginLookup] | None = None
 
 
 def install_default(default: Callable[[], PluginLookup]) -> None:
-    """Make ``default()`` the lookup of checks given none (the registry calls this with its ``default_registry``)."""
+    """Make ``default()`` the lookup of checks given none (the package root installs the registry's)."""
     global _default
     _default = default
 
@@ -37,5 +37,5 @@ def plugin_lookup(given: PluginLookup | None = None) -> PluginLookup:
     if given is not None:
         return given
     if _default is None:
-        raise InvphysError("no plugin registry to check the spec's plugin blocks by: import invphys.registry")
+        raise InvphysError("no plugin registry to check the spec's plugin blocks by (invphys.core.spec_lookup.install_default)")
     return _default()
