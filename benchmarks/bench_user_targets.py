@@ -165,7 +165,7 @@ def _score(results: list[Any], validated: bool) -> np.ndarray:
 
 
 #: the out-of-distribution warning of a bundle with diagnostics (invphys.inverter.diagnosed)
-OOD_WARNING = "unusual target"
+OOD_WARNING = ("unusual target", "may not reproduce the target")
 
 
 def _recall(warned: np.ndarray, failing: np.ndarray) -> dict[str, Any]:
@@ -180,7 +180,7 @@ def _warning_rank(results: list[Any], r: np.ndarray) -> dict[str, Any]:
     failing = r < FAIL_BELOW
     return {"failing": int(failing.sum()),
             "any": _recall(np.array([bool(res.warnings) for res in results]), failing),
-            "out_of_distribution": _recall(np.array([any(OOD_WARNING in w for w in res.warnings)
+            "out_of_distribution": _recall(np.array([any(p in w for p in OOD_WARNING for w in res.warnings)
                                                      for res in results]), failing)}
 
 

@@ -27,6 +27,9 @@ def diagnose(
     seed: int = typer.Option(0, "--seed", min=0, help="seed of the posterior draws and bootstraps"),
     method: str = typer.Option(None, "--method", help="the method whose posterior is checked (default: the "
                                                       "bundle's default or first with a posterior)"),
+    failures: str = typer.Option(None, "--failures", help="FILE[:SET]: held-out targets' default answers re-simulated "
+                                 "(bench_user_targets.py --validate --per-target-out); fits the answer-level failure "
+                                 "warning (default: keep the bundle's stored one)"),
     as_json: bool = typer.Option(False, "--json", help="print the report as JSON"),
 ) -> None:
     """Measure a bundle on rows it never trained on: coverage, TARP, SBC, recalibration, OOD, error bars."""
@@ -39,7 +42,7 @@ def diagnose(
     if out is not None and (out.is_file() or (out.is_dir() and any(out.iterdir()))):
         raise InvphysError(f"{out} exists and is not empty; name a new or empty directory")
     inv = load_inverter(bundle)
-    result = run(inv, stores=data or None, rows=rows, draws=draws, seed=seed, method=method)
+    result = run(inv, stores=data or None, rows=rows, draws=draws, seed=seed, method=method, failures=failures)
     written = [str(p) for p in write_report(result, out)] if out is not None else []
     if write:
         written.append(str(write_into_bundle(result, inv.bundle.root)))

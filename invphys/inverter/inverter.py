@@ -26,7 +26,7 @@ from invphys.core.errors import InvphysError, did_you_mean
 from invphys.core.user_targets import UserTargets, from_array, from_mappings
 from invphys.inverter.answers import MethodAnswers, quiet_cma
 from invphys.inverter.bundle import Bundle
-from invphys.inverter.diagnosed import feature_std, ood_warning, recalibrated
+from invphys.inverter.diagnosed import failure_score, feature_std, ood_warning, recalibrated
 from invphys.inverter.draws import PosteriorDraws
 from invphys.inverter.objective import MaskedRecovery, masked_recovery
 from invphys.inverter.pool import POOL_METHOD, PoolSettings
@@ -362,13 +362,14 @@ class Inverter:
                                                                                   "refine"))
             spent += extra
         self._calibrate_error_bars(cands)
-        warn = (self._warnings(values, mask) + ood_warning(self.bundle, values, mask)
+        warn = (self._warnings(values, mask) + ood_warning(self.bundle, values, mask, cands[0].theta)
                 + answer_warnings(unc, self.parameter_names, cands[0].theta, mask))
         return InversionResult(
             label=t.labels[i], method=answers.label, target=values, mask=mask, candidates=cands,
             parameter_names=self.parameter_names, parameter_units=tuple(p.unit for p in self.bundle.space.parameters),
             feature_names=self.feature_names, feature_units=self.bundle.feature_units, evaluations=spent,
             wall_time_s=time.perf_counter() - t0, warnings=warn,
+            failure_score=failure_score(self.bundle, values, mask, cands[0].theta),
             bundle_id=str(self.bundle.manifest.get("bundle_id", "")), parameter_uncertainty=unc, space=self.bundle.space)
 
     def invert_array(self, values: np.ndarray, method: str | None = None) -> np.ndarray:

@@ -57,6 +57,9 @@ class InversionResult:
     polish: dict[str, Any] | None = None
     parameter_uncertainty: Uncertainty = field(default_factory=Uncertainty)
     space: Any = None
+    #: the bundle's failure model's probability that the best answer fails on the simulator (R_actual < 0.8;
+    #: None without one: ``invphys diagnose --write --failures``)
+    failure_score: float | None = None
 
     @property
     def posterior(self) -> str:
@@ -161,7 +164,7 @@ class InversionResult:
             "partial": not bool(np.all(self.mask)),
             "evaluations": int(self.evaluations), "wall_time_s": round(float(self.wall_time_s), 6),
             "candidates": [candidate(i + 1, c) for i, c in enumerate(self.candidates)],
-            "warnings": list(self.warnings)}
+            "warnings": list(self.warnings), "failure_score": _f(self.failure_score)}
         if self.polish is not None:
             data["polish"] = {k: _f(v) if isinstance(v, float) else v for k, v in self.polish.items()}
         if len(self.candidates) > 1:
