@@ -1,9 +1,9 @@
-"""One GPU against two in the same call: the ``ray_actors`` executor (one warm simulator actor per GPU)
+"""One GPU against several in the same call: the ``ray_actors`` executor (one warm simulator actor per GPU)
 running a simulator with continuous batching over ``--runs`` random parameter vectors: the cheese cut
 (``--scene cheese_cut``, default) or the orange peel (``--scene orange_peel``, its ``--preset``, e.g. paper).
 
 Both actors are started and warmed up first (kernels compiled at the measured slot count, untimed);
-then all rows run on 2 actors (2 GPUs) and again on the first actor alone (1 GPU), each through
+then all rows run on ``--gpus`` actors (one per GPU) and again on the first actor alone (1 GPU), each through
 ``RayActorsExecutor.run`` with chunks of ``--chunk`` rows pulled by idle actors and features extracted
 on the actors, as dataset generation does. Records runs/s, the speed-up, and per actor its GPU, rows,
 chunks, busy time and slot efficiency (useful slot-substeps / launched ones), with the simulator's
@@ -11,8 +11,8 @@ version and config hash and the command. The cheese scene is its ``full`` preset
 ~48k particles, the orange peel paper preset's size, as in ``bench_gpu_throughput.py``); the orange peel
 runs its preset unchanged (``--dx`` ignored), warmed up by one stream of ``slots + 8`` runs.
 
-    PYTHONPATH=$PWD/benchmarks:... python benchmarks/bench_multi_gpu.py --gpus 2 --runs 256 \\
-        --out benchmarks/results/multi_gpu_h200x2.json
+    PYTHONPATH=$PWD/benchmarks:... python benchmarks/bench_multi_gpu.py --scene orange_peel --gpus 4 --runs 512 \\
+        --slots 32 --chunk 32 --min-chunk 16 --extract-workers 3 --out benchmarks/results/multi_gpu_orange_peel_h200x4.json
 
 On a CPU (a check of the whole path): ``--arch cpu --gpus 0 --preset tiny --dx 0 --runs 8 --slots 2
 --chunk 4`` (add ``--scene orange_peel`` for the orange peel).
