@@ -59,8 +59,14 @@ def main(argv: list[str] | None = None) -> int:
     method = args.method or inv.default_method
     model, comps = fs.fit_from_file(inv.bundle, args.calibration, method, keep_training=args.keep_training)
     cal_failed = comps.pop("failed")
-    result: dict[str, Any] = {"bundle": args.bundle, "command": " ".join(["python", *sys.argv]), "model": model,
-                              "sets": {}}
+    if str(Path(__file__).parent) not in sys.path:
+        sys.path.insert(0, str(Path(__file__).parent))
+    import _machine
+
+    result: dict[str, Any] = {**_machine.provenance(), "bundle": args.bundle,
+                              "device": f"fit on cpu ({_machine.cpu_name()}); R_actual of the answers from the files' "
+                                        "simulator runs (the committed ones: one NVIDIA H200)",
+                              "model": model, "sets": {}}
     for spec in args.report:
         rpath, rnames = _sets(spec)
         for name, s in fs.validated_answers(rpath, method, rnames).items():
