@@ -157,3 +157,56 @@ def test_cli_answers_with_the_pool(inv, rows, tmp_path) -> None:
     assert res.exit_code == 0, res.output
     data = json.loads(res.stdout)
     assert data["method"] == "pool" and data["results"][0]["posterior"] is not None
+
+
+@pytest.fixture()
+def second_npe(inv):
+    """A second posterior method (the same saved flow under another label: its own per-target stream)."""
+    methods = inv.bundle.methods
+    methods["npe_b"] = dict(methods["npe_best64"])
+    try:
+        yield "npe_b"
+    finally:
+        methods.pop("npe_b")
+        inv._plugins.pop("npe_b", None)
+
+
+def test_an_ensemble_pool_joins_the_draws_of_every_member(inv, rows, second_npe) -> None:
+    """``extra`` adds each member's draws (its own per-target stream) to the pool: with no moves and no
+    penalty the answer is the best by the surrogate of both members' draws and the nearest rows."""
+    from invphys.inverter.pool import PoolSettings, nearest_rows
+
+    base = PoolSettings(moves=0, lam=0.0)
+    inv.pool_settings = base.with_(extra=[second_npe])
+    try:
+        assert inv.pool_settings.extra == (second_npe,)
+        ens = inv.invert_many(rows[:6], method="pool", seed=3, draws=64)
+    finally:
+        inv.pool_settings = PoolSettings()
+    own = inv.posterior(rows[:6], n=64, seed=3, method="npe_best64", recalibrate=False).samples
+    member = inv.posterior(rows[:6], n=64, seed=3, method=second_npe, recalibrate=False).samples
+    assert not np.array_equal(own, member)
+    theta, y = inv.bundle.data("train")
+    z = y / np.maximum(inv.bundle.scales, 1e-12)
+    full = np.ones(rows.shape[1], bool)
+    wins = 0
+    for i, res in enumerate(ens):
+        near = theta[nearest_rows(z, rows[i], full, inv.bundle.scales, base.neighbours)]
+        union = np.concatenate([own[i], member[i], near])
+        r = _penalised(inv, union, rows[i], 0.0)
+        np.testing.assert_allclose(_penalised(inv, res.theta, rows[i], 0.0)[0], r.max(), rtol=1e-6)
+        wins += int(np.argmax(r) in range(64, 128))
+    assert wins  # the member's draws do win some targets
+
+
+def test_an_extra_posterior_that_is_not_one_is_refused(inv, rows) -> None:
+    from invphys.inverter.pool import PoolSettings
+
+    with pytest.raises(InvphysError, match="extra"):
+        PoolSettings().with_(extra=[3])
+    inv.pool_settings = PoolSettings(extra=("lookup_nowhere",))
+    try:
+        with pytest.raises(InvphysError, match="lookup_nowhere"):
+            inv.invert(rows[0], method="pool")
+    finally:
+        inv.pool_settings = PoolSettings()

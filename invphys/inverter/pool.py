@@ -3,7 +3,9 @@
 For one target the pool holds
 
 * the first ``draws`` truncated posterior draws of the bundle's NPE (the same draws, from the same
-  per-target stream, as the posterior method's own answer and intervals);
+  per-target stream, as the posterior method's own answer and intervals), and ``draws`` more from each
+  posterior method named in ``extra`` (an NPE ensemble: each member's draws from its own per-target
+  stream; the intervals are then the mixture's);
 * the ``neighbours`` training rows nearest the target by the recovery metric (features divided by the
   scales s_k, over the given features): where the posterior is poor (the box's faces and corners) a
   row that was really simulated near the target is often the better start;
@@ -26,7 +28,7 @@ import numpy as np
 from invphys.core.errors import InvphysError
 from invphys.inverter.answers import Pool, PosteriorAnswers
 from invphys.inverter.objective import masked_recovery
-from invphys.inverter.seeds import target_rng
+from invphys.inverter.seeds import target_rng, target_seed
 
 #: the label ``invphys invert --method`` knows the pool by (any bundle holding a posterior method)
 POOL_METHOD = "pool"
@@ -43,6 +45,8 @@ class PoolSettings:
     starts: int = 4
     step: float = 0.03
     lam: float = 0.5
+    #: other posterior methods of the bundle whose draws join the pool (an ensemble of NPEs)
+    extra: tuple[str, ...] = ()
 
     def checked(self) -> PoolSettings:
         """``self``, or :class:`InvphysError` naming the first setting out of range."""
@@ -54,7 +58,10 @@ class PoolSettings:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float, np.number)) or not ok(float(v)):
                 raise InvphysError(f"pool {name} must be a number {rule}, got {v!r}")
-        return self
+        extra = (self.extra,) if isinstance(self.extra, str) else self.extra
+        if not isinstance(extra, (list, tuple)) or not all(isinstance(e, str) and e for e in extra):
+            raise InvphysError(f"pool extra must be a list of method labels, got {self.extra!r}")
+        return self if isinstance(self.extra, tuple) else replace(self, extra=tuple(extra))
 
     def with_(self, **kw: Any) -> PoolSettings:
         return replace(self, **kw).checked()
@@ -82,10 +89,38 @@ class PoolAnswers(PosteriorAnswers):
         super().__init__(inv, label, entry, plugin)
         self.posterior_label, self.settings = posterior_label, settings.checked()
         self.answer_draws = self.settings.draws
+        self.members = [self._member(m) for m in self.settings.extra]
         theta, y = self.bundle.data("train")
         ok = np.all(np.isfinite(y), axis=1)
         self.train_theta = np.asarray(theta[ok], dtype=np.float64)
         self.z_train = np.asarray(y[ok], dtype=np.float64) / np.maximum(self.bundle.scales, 1e-12)
+
+    def _member(self, label: str) -> Any:
+        """The plugin of the extra posterior method ``label`` (an NPE of the same bundle)."""
+        from invphys.inverter.draws import has_posterior
+
+        entry = self.bundle.methods.get(label)
+        plugin = None if entry is None or entry.get("type") == POOL_METHOD else self.inv._plugin(label, entry)[0]
+        if plugin is None or not has_posterior(plugin):
+            raise InvphysError(f"method {self.label!r}: extra posterior {label!r} is not a posterior method "
+                               f"of the bundle ({', '.join(self.bundle.methods)})")
+        return plugin
+
+    def draw(self, values: np.ndarray, masks: np.ndarray, seed: int, n: int) -> tuple[list[np.ndarray], Any]:
+        """The posterior's draws, with ``draws`` from each extra posterior (its own per-target stream)
+        placed after the first ``draws``: the pool's candidates (and the intervals) use them all."""
+        from invphys.inverter.draws import sample_posterior
+
+        conds, d = super().draw(values, masks, seed, n)
+        if not self.members:
+            return conds, d
+        k = self.settings.draws
+        blocks = [d.samples[:, :k]]
+        for label, plugin in zip(self.settings.extra, self.members, strict=True):
+            seeds = [target_seed(seed, label, v, m, "posterior") for v, m in zip(values, masks, strict=True)]
+            blocks.append(sample_posterior(plugin, conds, seeds, k).samples)
+        d.samples = np.concatenate([*blocks, d.samples[:, k:]], axis=1)
+        return conds, d
 
     @property
     def lam(self) -> float:
@@ -93,7 +128,7 @@ class PoolAnswers(PosteriorAnswers):
 
     def max_top_k(self) -> int:
         s = self.settings
-        return s.draws + s.neighbours + s.moves
+        return s.draws * (1 + len(s.extra)) + s.neighbours + s.moves
 
     def score(self, thetas: np.ndarray, values: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """(P,) R_surr over the given features minus lam x the normalised ensemble std."""
@@ -107,8 +142,9 @@ class PoolAnswers(PosteriorAnswers):
                    cond: np.ndarray) -> Pool:
         s = self.settings
         near = self.train_theta[nearest_rows(self.z_train, values, mask, self.bundle.scales, s.neighbours)]
-        thetas = np.concatenate([samples[:s.draws], near])
-        sources = [f"{self.label} (posterior)"] * s.draws + [f"{self.label} (neighbour)"] * len(near)
+        n_post = s.draws * (1 + len(s.extra))
+        thetas = np.concatenate([samples[:n_post], near])
+        sources = [f"{self.label} (posterior)"] * n_post + [f"{self.label} (neighbour)"] * len(near)
         scores = self.score(thetas, values, mask)
         if s.moves:
             moved = self._moves(thetas, scores, values, mask, seed)
