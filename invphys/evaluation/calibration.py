@@ -14,7 +14,10 @@ B rows the posterior never trained on (normalised units, the prior's box [0, 1]^
 * :func:`fit_recalibration` / :func:`apply_recalibration`: per-parameter quantile recalibration
   (Kuleshov et al. 2018): a monotone map of the posterior CDF level (as a normal score, so that tails
   beyond the draws can widen) fitted on one set of rows, applied to each draw through its own marginal
-  level, so the corrected draws keep the posterior's dependence.
+  level, so the corrected draws keep the posterior's dependence;
+* :func:`fit_posterior_recalibration` / :func:`apply_posterior_recalibration`: those maps, then the joint
+  step of :mod:`~invphys.evaluation.joint_calibration` (each row's marginals moved by where its posterior
+  sits), the whole stored as plain numbers; :func:`recalibrated_samples` applies a bundle's stored block.
 """
 
 from __future__ import annotations
@@ -23,17 +26,18 @@ from typing import Any
 
 import numpy as np
 
+from invphys.core.errors import InvphysError
+from invphys.evaluation.joint_calibration import apply_location_shift, fit_location_shift
+from invphys.evaluation.posterior_quantiles import check as _check
+from invphys.evaluation.posterior_quantiles import extrap as _extrap
+from invphys.evaluation.posterior_quantiles import move, pit_z
+from invphys.evaluation.posterior_quantiles import row_levels as _row_levels
+
 LEVELS: tuple[float, ...] = (0.5, 0.8, 0.9, 0.95)
 #: knots of a stored recalibration map (levels in [0, 1])
 KNOTS = 21
-
-
-def _check(draws: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    draws = np.asarray(draws, dtype=np.float64)
-    theta = np.asarray(theta, dtype=np.float64)
-    if draws.ndim != 3 or theta.shape != (draws.shape[0], draws.shape[2]):
-        raise ValueError(f"draws (B, S, d) and theta (B, d) expected, got {draws.shape} and {theta.shape}")
-    return draws, theta
+#: reference points per row of TARP's multi-reference estimate (``tarp(...)["levels_refs"]``)
+TARP_REFS = 20
 
 
 def boot_rate(hits: np.ndarray, n_boot: int = 1000, seed: int = 0) -> dict[str, Any]:
@@ -63,24 +67,34 @@ def central_coverage(draws: np.ndarray, theta: np.ndarray, levels: tuple[float, 
     return out
 
 
-def tarp_values(draws: np.ndarray, theta: np.ndarray, seed: int = 0) -> np.ndarray:
-    """(B,) per row: the share of draws closer (L2) to a reference point drawn uniformly in the box than
-    the truth is. A calibrated posterior makes these uniform on [0, 1]."""
+def tarp_values(draws: np.ndarray, theta: np.ndarray, seed: int = 0, n_refs: int = 1) -> np.ndarray:
+    """Per row: the share of draws closer (L2) to a reference point drawn uniformly in the box than the
+    truth is; (B,) for one reference per row (sbi's TARP), (B, n_refs) for more. A calibrated posterior
+    makes these uniform on [0, 1]. The first reference of each row is the one-reference estimate's."""
     draws, theta = _check(draws, theta)
-    ref = np.random.default_rng(seed).uniform(0.0, 1.0, size=theta.shape)
-    d_draws = np.linalg.norm(draws - ref[:, None, :], axis=2)
-    d_true = np.linalg.norm(theta - ref, axis=1)
-    return (d_draws < d_true[:, None]).mean(axis=1)
+    ref = np.random.default_rng(seed).uniform(0.0, 1.0, size=(n_refs, *theta.shape))  # (R, B, d)
+    out = np.empty((len(theta), n_refs))
+    for i in range(0, len(theta), 25):  # (rows, R, S) distances a chunk at a time
+        r = np.swapaxes(ref[:, i:i + 25], 0, 1)  # (b, R, d)
+        d_draws = np.linalg.norm(draws[i:i + 25, None, :, :] - r[:, :, None, :], axis=3)
+        d_true = np.linalg.norm(theta[i:i + 25, None, :] - r, axis=2)
+        out[i:i + 25] = (d_draws < d_true[:, :, None]).mean(axis=2)
+    return out[:, 0] if n_refs == 1 else out
 
 
 def tarp(draws: np.ndarray, theta: np.ndarray, levels: tuple[float, ...] = LEVELS, n_boot: int = 1000,
-         seed: int = 0) -> dict[str, Any]:
+         seed: int = 0, n_refs: int = TARP_REFS) -> dict[str, Any]:
     """Joint expected coverage per level (with intervals), sbi's area to curve (``atc``: < 0 too narrow)
-    and its KS p-value of the coverage curve against the diagonal."""
-    f = tarp_values(draws, theta, seed)
-    out: dict[str, Any] = {"levels": {}}
+    and its KS p-value of the coverage curve against the diagonal, from one reference point per row
+    (``levels``, as sbi's ``run_tarp``); ``levels_refs``: the same expected coverage averaged over
+    ``n_refs`` reference points per row (the first being the one above), whose bootstrap over rows
+    carries less of the reference points' own noise."""
+    many = tarp_values(draws, theta, seed, n_refs).reshape(len(theta), n_refs)
+    f = many[:, 0]
+    out: dict[str, Any] = {"levels": {}, "levels_refs": {}, "n_refs": int(n_refs)}
     for level in levels:
         out["levels"][f"{level:g}"] = boot_rate(f < level, n_boot, seed)
+        out["levels_refs"][f"{level:g}"] = boot_rate((many < level).mean(axis=1), n_boot, seed)
     alpha = np.linspace(0.0, 1.0, 101)
     ecp = np.array([np.mean(f < a) for a in alpha])
     out["curve"] = {"alpha": alpha.tolist(), "ecp": ecp.tolist()}
@@ -130,48 +144,6 @@ def sbc(draws: np.ndarray, theta: np.ndarray, bins: int = 20) -> dict[str, Any]:
             "histograms": hist, "n_draws": int(s), "n_rows": len(r)}
 
 
-_EPS = 1e-6
-
-
-def _logit(x: np.ndarray) -> np.ndarray:
-    x = np.clip(np.asarray(x, dtype=np.float64), _EPS, 1.0 - _EPS)
-    return np.log(x) - np.log1p(-x)
-
-
-def _extrap(x: np.ndarray, xp: np.ndarray, fp: np.ndarray, lo_slope: float, hi_slope: float) -> np.ndarray:
-    """``np.interp`` continued linearly beyond the ends with the given slopes (df/dx)."""
-    y = np.interp(x, xp, fp)
-    y = np.where(x < xp[0], fp[0] - (xp[0] - x) * lo_slope, y)
-    return np.where(x > xp[-1], fp[-1] + (x - xp[-1]) * hi_slope, y)
-
-
-def _row_levels(s: int) -> np.ndarray:
-    """Normal scores of the levels (i + 0.5) / s of a row's sorted draws."""
-    from scipy.stats import norm
-
-    return np.asarray(norm.ppf((np.arange(s) + 0.5) / s))
-
-
-def pit_z(draws: np.ndarray, theta: np.ndarray) -> np.ndarray:
-    """(B, d) the truth's normal score under each marginal, continuous also beyond the draws.
-
-    Each marginal's quantile function is the sorted draws against their normal scores, in logit
-    space (so it never leaves the box), continued past the extreme draws with slope = the logit
-    draws' std (a normal tail). A calibrated posterior gives scores distributed N(0, 1).
-    """
-    draws, theta = _check(draws, theta)
-    b, s, d = draws.shape
-    zl = _row_levels(s)
-    ld, lt = np.sort(_logit(draws), axis=1), _logit(theta)
-    sd = np.maximum(ld.std(axis=1), 1e-6)  # (B, d)
-    out = np.empty((b, d))
-    for i in range(b):
-        for j in range(d):
-            xp, ok = np.unique(ld[i, :, j], return_index=True)
-            out[i, j] = _extrap(lt[i:i + 1, j], xp, zl[ok], 1 / sd[i, j], 1 / sd[i, j])[0]
-    return out
-
-
 def fit_recalibration(z: np.ndarray, knots: int = KNOTS) -> list[dict[str, list[float]]]:
     """Per parameter, a monotone map g of normal scores: g(z) = Phi^-1(P(score <= z)) over the truth's
     scores ``z`` (B, d) of :func:`pit_z` (smoothed by one pseudo-row on the diagonal), at ``knots``
@@ -203,20 +175,11 @@ def apply_recalibration(draws: np.ndarray, maps: list[dict[str, list[float]] | N
     its row's quantile (:func:`pit_z`'s quantile function) at normal score g^-1(its own score), keeping
     the draws' order, hence their dependence. ``None`` keeps a parameter as it is; draws stay in the box."""
     draws = np.asarray(draws, dtype=np.float64)
-    b, s, _ = draws.shape
     out = draws.copy()
-    zl = _row_levels(s)
+    zl = _row_levels(draws.shape[1])
     for j, curve in enumerate(maps):
-        if curve is None:
-            continue
-        target = _inverse(curve, zl)
-        order = np.argsort(draws[:, :, j], axis=1, kind="stable")
-        ld = np.take_along_axis(_logit(draws[:, :, j]), order, axis=1)
-        sd = np.maximum(ld.std(axis=1), 1e-6)
-        moved = np.empty((b, s))
-        for i in range(b):
-            moved[i] = _extrap(target, zl, ld[i], sd[i], sd[i])
-        np.put_along_axis(out[:, :, j], order, 1.0 / (1.0 + np.exp(-moved)), axis=1)
+        if curve is not None:
+            out[:, :, j] = move(draws[:, :, j], _inverse(curve, zl))
     return out
 
 
@@ -225,13 +188,42 @@ def worst_error(coverage: dict[str, Any], j: int) -> float:
     return max(abs(v["coverage"][j] - float(k)) for k, v in coverage.items())
 
 
+def fit_posterior_recalibration(draws: np.ndarray, theta: np.ndarray, keep: Any = None) -> dict[str, Any]:
+    """The stored recalibration block fitted on rows ``draws`` (B, S, d) / ``theta`` (B, d): per-parameter
+    quantile maps (``maps``; only where ``keep[j]`` when given, else ``None``), then the joint step
+    (``location_shift``, :mod:`~invphys.evaluation.joint_calibration`) fitted on the mapped draws."""
+    draws, theta = _check(draws, theta)
+    maps: list[dict[str, list[float]] | None] = list(fit_recalibration(pit_z(draws, theta)))
+    if keep is not None:
+        maps = [m if k else None for m, k in zip(maps, keep, strict=True)]
+    mapped = apply_recalibration(draws, maps)
+    return {"knots": KNOTS, "maps": maps, "location_shift": fit_location_shift(mapped, theta),
+            "steps": ["maps", "location_shift"]}
+
+
+def apply_posterior_recalibration(draws: np.ndarray, block: dict[str, Any]) -> np.ndarray:
+    """Draws (B, S, d) corrected by a recalibration block: its ``maps``, then its ``location_shift`` when
+    it holds one (blocks written before the joint step hold maps only)."""
+    draws = np.asarray(draws, dtype=np.float64)
+    maps = block.get("maps") or [None] * draws.shape[-1]
+    if not isinstance(maps, list) or len(maps) != draws.shape[-1]:
+        raise InvphysError(f"the stored recalibration has {len(maps) if isinstance(maps, list) else maps!r} "
+                           f"parameters, the draws {draws.shape[-1]}")
+    out = apply_recalibration(draws, maps) if any(m is not None for m in maps) else draws
+    shift = block.get("location_shift")
+    return apply_location_shift(out, shift) if shift else out
+
+
+def has_recalibration(diagnostics: dict[str, Any] | None) -> bool:
+    """Whether a bundle's stored diagnostics change its posterior draws."""
+    block = ((diagnostics or {}).get("posterior") or {}).get("recalibration") or {}
+    return any(m is not None for m in block.get("maps") or []) or bool(block.get("location_shift"))
+
+
 def recalibrated_samples(samples: np.ndarray, diagnostics: dict[str, Any] | None) -> np.ndarray:
     """Posterior draws (B, S, d) corrected by a bundle's stored recalibration (``diagnostics/calibration.json``,
-    block ``posterior.recalibration``); unchanged when the bundle holds none."""
-    block = ((diagnostics or {}).get("posterior") or {}).get("recalibration") or {}
-    maps = block.get("maps")
-    if not maps or all(m is None for m in maps):
+    block ``posterior.recalibration``: its maps, then its location shift); unchanged when it holds none."""
+    if not has_recalibration(diagnostics):
         return np.asarray(samples, dtype=np.float64)
-    if len(maps) != np.asarray(samples).shape[-1]:
-        raise ValueError(f"the stored recalibration has {len(maps)} parameters, the draws {np.shape(samples)[-1]}")
-    return apply_recalibration(samples, maps)
+    block = diagnostics["posterior"]["recalibration"]  # type: ignore[index]
+    return apply_posterior_recalibration(samples, block)
