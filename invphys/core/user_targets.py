@@ -12,7 +12,12 @@ File shapes accepted (JSON and YAML alike)::
     {targets: [{id: firm, final_separation: -1.9, ...}]}  # several, with labels
 
 A CSV file has a header of feature names (and optionally an ``id`` column) and one target per row;
-an empty cell is a missing feature. Files are read by :mod:`invphys.core.safe_read`: a UTF-8 BOM (as
+an empty cell is a missing feature.
+
+Observation noise: a target may give a standard deviation per feature, as a column (CSV) or key
+``<feature>_std``, as ``{feature: {value: v, std: s}}``, or as a ``std: {feature: s, ...}`` mapping
+beside the values. A std is a finite number >= 0 (0: exact) given only with its feature's value;
+:attr:`UserTargets.std` holds them (NaN where none was given). Files are read by :mod:`invphys.core.safe_read`: a UTF-8 BOM (as
 spreadsheets save) is accepted; a key or column given twice is refused naming both places.
 """
 
@@ -42,13 +47,15 @@ class UserTargets:
     """Targets as arrays in a feature order.
 
     ``values`` (N, M) holds NaN where a feature is missing; ``mask`` (N, M) is True where given;
-    ``labels`` names each target (its ``id``, or ``t0``, ``t1``, ...).
+    ``labels`` names each target (its ``id``, or ``t0``, ``t1``, ...); ``std`` (N, M): the observation
+    noise per feature (a standard deviation; NaN where none was given), or None when no target gives one.
     """
 
     values: np.ndarray
     mask: np.ndarray
     labels: list[str]
     feature_names: tuple[str, ...]
+    std: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.values.shape[0])
@@ -56,6 +63,12 @@ class UserTargets:
     @property
     def complete(self) -> bool:
         return bool(self.mask.all())
+
+    def noisy(self) -> np.ndarray:
+        """(N,) True for a target that gives a std > 0 for at least one feature."""
+        if self.std is None:
+            return np.zeros(len(self), dtype=bool)
+        return np.asarray(np.nan_to_num(self.std, nan=0.0).max(axis=1) > 0)
 
 
 def _number(value: Any, feature: str, where: str) -> float:
@@ -85,6 +98,7 @@ def from_mappings(rows: Sequence[Mapping[str, Any]], feature_names: Sequence[str
     if not rows:
         raise TargetError(f"{source}: no targets given")
     values = np.full((len(rows), len(names)), np.nan)
+    std = np.full(values.shape, np.nan)
     labels: list[str] = []
     for i, row in enumerate(rows):
         where = source if len(rows) == 1 else f"{source} #{i + 1}"
@@ -93,24 +107,79 @@ def from_mappings(rows: Sequence[Mapping[str, Any]], feature_names: Sequence[str
                               f"{type(row).__name__}")
         label = next((str(row[k]) for k in LABEL_KEYS if k in row and k not in index), f"t{i}")
         labels.append(label)
+        row, noise = _split_noise(row, index, where)
         unknown = [str(k) for k in row if k not in index and k not in LABEL_KEYS]
         if unknown:
             hints = "; ".join(f"{u!r}.{did_you_mean(u, names)}" for u in unknown)
             raise TargetError(f"{where}: unknown feature {hints} Features: {', '.join(names)}")
         for key, value in row.items():
-            if key in index and not (value is None or (isinstance(value, str) and not value.strip())):
+            if key in index and not _blank(value):
                 values[i, index[key]] = _number(value, str(key), where)
+        for key, value in noise.items():
+            if np.isnan(values[i, index[key]]):
+                raise TargetError(f"{where}: a std for {key} without its value")
+            std[i, index[key]] = _std(value, key, where)
         missing = [n for n, j in index.items() if np.isnan(values[i, j])]
         if missing and not partial:
             raise TargetError(f"{where}: missing feature(s) {', '.join(missing)} (give all {len(names)}, "
                               f"or allow partial targets: they are left out of R)")
         if len(missing) == len(names):
             raise TargetError(f"{where}: no feature values given")
-    return UserTargets(values=values, mask=np.isfinite(values), labels=labels, feature_names=names)
+    return UserTargets(values=values, mask=np.isfinite(values), labels=labels, feature_names=names,
+                       std=std if np.isfinite(std).any() else None)
 
 
-def from_array(values: Any, feature_names: Sequence[str], source: str = "target") -> UserTargets:
-    """Targets given as an array (M,) or (N, M) in the order of ``feature_names``."""
+def _blank(value: Any) -> bool:
+    return value is None or (isinstance(value, str) and not value.strip())
+
+
+def _std(value: Any, feature: str, where: str) -> float:
+    """A standard deviation: a finite number >= 0."""
+    if isinstance(value, str) and value.strip().lower() == "nan":
+        raise TargetError(f"{where}: std of {feature} = {value!r} is not a number >= 0")
+    x = _number(value, f"std of {feature}", where)
+    if x < 0:
+        raise TargetError(f"{where}: std of {feature} = {x:g} is negative (a standard deviation is >= 0)")
+    return x
+
+
+def _split_noise(row: Mapping[str, Any], index: Mapping[str, int], where: str
+                 ) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(values by key, std by feature) of one row: ``{f: {value, std}}``, ``f_std`` keys and a ``std:``
+    mapping become stds; a std given twice for one feature is refused."""
+    values: dict[str, Any] = {}
+    noise: dict[str, Any] = {}
+
+    def put(feature: str, value: Any) -> None:
+        if feature in noise:
+            raise TargetError(f"{where}: the std of {feature} is given twice")
+        if not _blank(value):
+            noise[feature] = value
+
+    for key, value in row.items():
+        if key in index and isinstance(value, Mapping):
+            extra = sorted(set(map(str, value)) - {"value", "std"})
+            if extra or "value" not in value:
+                raise TargetError(f"{where}: {key} as a mapping takes value (and std), got keys "
+                                  f"{', '.join(map(str, value)) or 'none'}")
+            values[key] = value["value"]
+            if "std" in value:
+                put(key, value["std"])
+        elif key == "std" and key not in index and isinstance(value, Mapping):
+            for name, s in value.items():
+                if name not in index:
+                    raise TargetError(f"{where}: std of unknown feature {str(name)!r}.{did_you_mean(str(name), index)}")
+                put(str(name), s)
+        elif isinstance(key, str) and key.endswith("_std") and key not in index and key[:-4] in index:
+            put(key[:-4], value)
+        else:
+            values[key] = value
+    return values, noise
+
+
+def from_array(values: Any, feature_names: Sequence[str], source: str = "target", std: Any = None) -> UserTargets:
+    """Targets given as an array (M,) or (N, M) in the order of ``feature_names``; ``std``: their
+    observation noise, an array of the same shape (or (M,) for every target), finite and >= 0."""
     names = tuple(feature_names)
     try:
         arr = np.asarray(values, dtype=np.float64)
@@ -126,7 +195,20 @@ def from_array(values: Any, feature_names: Sequence[str], source: str = "target"
         i, j = bad[0]
         raise TargetError(f"{source}: {names[j]} = {arr[i, j]} is not finite")
     return UserTargets(values=arr.copy(), mask=np.ones(arr.shape, dtype=bool),
-                       labels=[f"t{i}" for i in range(len(arr))], feature_names=names)
+                       labels=[f"t{i}" for i in range(len(arr))], feature_names=names,
+                       std=None if std is None else _std_array(std, arr.shape, names, source))
+
+
+def _std_array(std: Any, shape: tuple[int, ...], names: tuple[str, ...], source: str) -> np.ndarray:
+    try:
+        s = np.array(np.broadcast_to(np.asarray(std, dtype=np.float64), shape))
+    except (TypeError, ValueError):
+        raise TargetError(f"{source}: std must be numbers of shape {shape} (or one per feature)") from None
+    bad = np.argwhere(~(np.isfinite(s) & (s >= 0)))
+    if len(bad):
+        i, j = bad[0]
+        raise TargetError(f"{source}: std of {names[j]} = {s[i, j]} is not a finite number >= 0")
+    return s
 
 
 def _rows_of(data: Any, source: str) -> list[Any]:

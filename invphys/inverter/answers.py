@@ -97,19 +97,18 @@ class PosteriorAnswers(MethodAnswers):
     posterior_label: str = ""
     #: draws per target the answer itself uses (before the intervals' ``draws``)
     answer_draws: int = 1
+    #: (B, M) observation noise (std; NaN: none) of the targets :meth:`answer_all` answers, or None: a
+    #: target with noise is drawn from its noisy posterior (:mod:`~invphys.inverter.noise`)
+    noise: np.ndarray | None = None
+    _noise_rows: np.ndarray | None = None
 
     def draw(self, values: np.ndarray, masks: np.ndarray, seed: int, n: int) -> tuple[list[np.ndarray], Any]:
         """(conditions per target, :class:`~invphys.inverter.draws.PosteriorDraws`) of every target, drawn
         together (each from its own stream: the same draws as alone)."""
-        from invphys.inverter.draws import completions, sample_posterior
+        from invphys.inverter.noise import posterior_draws
 
-        train_y = None if masks.all() else self.bundle.data("train")[1]
-        mean = np.asarray(self.bundle.manifest["features"]["mean"], dtype=np.float64)
-        conds = [completions(v, m, None if m.all() else train_y, mean, self.bundle.scales)
-                 for v, m in zip(values, masks, strict=True)]
-        label = self.posterior_label or self.label
-        seeds = [target_seed(seed, label, v, m, "posterior") for v, m in zip(values, masks, strict=True)]
-        return conds, sample_posterior(self.plugin, conds, seeds, n)
+        return posterior_draws(self.bundle, self.plugin, self.posterior_label or self.label, values, masks,
+                               self._noise_rows, seed, n)
 
     def answer(self, values: np.ndarray, mask: np.ndarray, top_k: int, seed: int, draws: int
                ) -> tuple[Pool, Uncertainty]:
@@ -121,6 +120,7 @@ class PosteriorAnswers(MethodAnswers):
         step = max(1, min(DRAW_BATCH, DRAW_ROWS // n))
         for a in range(0, len(values), step):
             v, m = values[a:a + step], masks[a:a + step]
+            self._noise_rows = None if self.noise is None else self.noise[a:a + step]
             conds, d = self.draw(v, m, seed, n)
             for i in range(len(v)):
                 unc = Uncertainty("posterior", d.samples[i], outside_fraction=float(d.outside_fraction[i]),

@@ -24,10 +24,11 @@ import numpy as np
 
 from invphys.core.errors import InvphysError, did_you_mean
 from invphys.core.user_targets import UserTargets, from_array, from_mappings
-from invphys.inverter.answers import MethodAnswers, quiet_cma
+from invphys.inverter.answers import MethodAnswers, PosteriorAnswers, quiet_cma
 from invphys.inverter.bundle import Bundle
 from invphys.inverter.diagnosed import failure_score, feature_std, ood_warning, recalibrated
 from invphys.inverter.draws import PosteriorDraws
+from invphys.inverter.noise import noise_warnings, noisy_rows, posterior_draws
 from invphys.inverter.objective import MaskedRecovery, masked_recovery
 from invphys.inverter.pool import POOL_METHOD, PoolSettings
 from invphys.inverter.quiet import quiet
@@ -284,27 +285,25 @@ class Inverter:
                   partial: bool = False, recalibrate: bool = True) -> PosteriorDraws:
         """Posterior draws of every target: a :class:`~invphys.inverter.draws.PosteriorDraws` whose
         ``samples`` are (B, n, d) in normalised units ([0, 1]^d, the space's order; physical units:
-        ``inv.parameter_space.denormalize``). Draws lie in the box by rejection (``outside_fraction``),
+        ``inv.parameter_space.denormalize``). A target with observation noise (a std per feature) is
+        drawn from its noisy posterior under the surrogate (:mod:`~invphys.inverter.noise`). Draws lie
+        in the box by rejection (``outside_fraction``),
         each target's from its own stream (seed, method, target), so they do not depend on the batch.
         They are the draws :meth:`invert` uses: corrected by the bundle's stored recalibration (``invphys
         diagnose --write``) unless ``recalibrate`` is False (the posterior's own draws, which ``diagnose``
         measures; the first k of n of those are the same for any n >= k)."""
-        from invphys.inverter.draws import completions, sample_posterior
-
         seed = check_seed(seed)
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 1 <= n <= MAX_DRAWS:
             raise InvphysError(f"posterior draws must be a whole number in 1 .. {MAX_DRAWS}, got {n!r}")
         t = self.targets(targets, partial)
         label = self.posterior_method(method)
         plugin = self._plugin(label, self._entry(label)[1])[0]
-        mean = np.asarray(self.bundle.manifest["features"]["mean"], dtype=np.float64)
-        train_y = None if t.mask.all() else self.bundle.data("train")[1]
-        conds = [completions(t.values[i], t.mask[i], train_y, mean, self.bundle.scales) for i in range(len(t))]
-        seeds = [target_seed(seed, label, t.values[i], t.mask[i], "posterior") for i in range(len(t))]
-        with quiet():
-            draws = sample_posterior(plugin, conds, seeds, int(n))
-        if recalibrate:
-            draws.samples = np.stack([recalibrated(self.bundle, s)[0] for s in draws.samples])
+        with quiet(), blas_threads(self.threads if len(t) >= BLAS_LIMIT_ROWS or t.noisy().any() else None):
+            draws = posterior_draws(self.bundle, plugin, label, t.values, t.mask, t.std, seed, int(n))[1]
+        if recalibrate:  # the recalibration measured the amortised posterior: a noisy target's draws keep theirs
+            noisy = noisy_rows(t.std, len(t))
+            draws.samples = np.stack([s if z else recalibrated(self.bundle, s)[0]
+                                      for s, z in zip(draws.samples, noisy, strict=True)])
         return draws
 
     # -- inversion ----------------------------------------------------------------------------------
@@ -338,9 +337,11 @@ class Inverter:
             raise InvphysError(f"draws must be at most {MAX_DRAWS} per target, got {draws}")
         t = self.targets(targets, partial)
         label, entry = self._entry(method)
-        with quiet(), blas_threads(self.threads if len(t) >= BLAS_LIMIT_ROWS else None):
+        with quiet(), blas_threads(self.threads if len(t) >= BLAS_LIMIT_ROWS or t.noisy().any() else None):
             answers = self._answers(label, entry)
             answers.check_top_k(top_k)
+            if t.std is not None and isinstance(answers, PosteriorAnswers):
+                answers.noise = t.std
             out, t0 = [], time.perf_counter()
             for i, ans in enumerate(answers.answer_all(t.values, t.mask, top_k, seed, draws)):
                 out.append(self._answer_one(answers, ans, t, i, refine, seed, level, top_k, t0))
@@ -352,9 +353,11 @@ class Inverter:
         """The result of target ``i`` from its method's pool ``ans``; ``t0``: when its answer began (work
         shared across targets counts towards the target that waited for it)."""
         values, mask = t.values[i], t.mask[i]
+        std = None if t.std is None else t.std[i]
+        noisy = bool(noisy_rows(None if std is None else std[None, :], 1)[0])
         (thetas, sources, spent), unc = ans
         unc.level = level
-        if unc.kind == "posterior" and unc.has_draws:
+        if unc.kind == "posterior" and unc.has_draws and not noisy:
             unc.draws, unc.recalibrated = recalibrated(self.bundle, unc.draws)
         cands = self._select(thetas, sources, values, mask, top_k, float(getattr(answers, "lam", 0.0)))
         if refine:
@@ -363,14 +366,15 @@ class Inverter:
             spent += extra
         self._calibrate_error_bars(cands)
         warn = (self._warnings(values, mask) + ood_warning(self.bundle, values, mask, cands[0].theta)
-                + answer_warnings(unc, self.parameter_names, cands[0].theta, mask))
+                + answer_warnings(unc, self.parameter_names, cands[0].theta, mask) + noise_warnings(noisy, unc.kind))
         return InversionResult(
             label=t.labels[i], method=answers.label, target=values, mask=mask, candidates=cands,
             parameter_names=self.parameter_names, parameter_units=tuple(p.unit for p in self.bundle.space.parameters),
             feature_names=self.feature_names, feature_units=self.bundle.feature_units, evaluations=spent,
             wall_time_s=time.perf_counter() - t0, warnings=warn,
             failure_score=failure_score(self.bundle, values, mask, cands[0].theta),
-            bundle_id=str(self.bundle.manifest.get("bundle_id", "")), parameter_uncertainty=unc, space=self.bundle.space)
+            bundle_id=str(self.bundle.manifest.get("bundle_id", "")), parameter_uncertainty=unc, space=self.bundle.space,
+            target_std=std, noise_posterior=noisy and unc.kind == "posterior")
 
     def invert_array(self, values: np.ndarray, method: str | None = None) -> np.ndarray:
         """The fast path: normalised parameters (N, d) for complete targets (N, M) by a bundle policy or

@@ -75,6 +75,10 @@ def table_rows(results: Sequence[InversionResult]) -> list[dict[str, Any]]:
                 row[f"{name}_low"], row[f"{name}_median"], row[f"{name}_high"] = iv[name]
             if name in ident:
                 row[f"{name}_identified"] = ident[name]
+        if r.target_std is not None:
+            row["noise"] = " ".join(f"{n}={s:.6g}" for n, s, g in zip(r.feature_names, r.target_std, r.mask, strict=True)
+                                    if g and np.isfinite(s) and s > 0)
+            row["chi2"] = r.chi2()
         row["at_bound"] = " ".join(r.at_bound)
         row["warnings"] = " | ".join(r.warnings)
         rows.append(row)

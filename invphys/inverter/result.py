@@ -60,6 +60,10 @@ class InversionResult:
     #: the bundle's failure model's probability that the best answer fails on the simulator (R_actual < 0.8;
     #: None without one: ``invphys diagnose --write --failures``)
     failure_score: float | None = None
+    #: the observation noise the target gave (a std per feature, NaN where none; None: an exact target)
+    target_std: np.ndarray | None = None
+    #: the posterior's draws account for that noise (:mod:`~invphys.inverter.noise`)
+    noise_posterior: bool = False
 
     @property
     def posterior(self) -> str:
@@ -137,6 +141,27 @@ class InversionResult:
         t = np.array([c.theta for c in self.candidates])
         return dict(zip(self.parameter_names, map(float, t.max(axis=0) - t.min(axis=0)), strict=True))
 
+    def chi2(self, c: Candidate | None = None) -> float | None:
+        """The noise-normalised misfit of a candidate (default: the best) over the given features:
+        mean of (predicted - target)² / (std² + ensemble std²); about 1 when the answer fits the target
+        as well as its noise allows, >> 1 when it does not. None for an exact target."""
+        if self.target_std is None:
+            return None
+        c = c or self.best
+        m = self.mask
+        var = np.nan_to_num(self.target_std[m], nan=0.0) ** 2 + np.asarray(c.std, dtype=np.float64)[m] ** 2
+        r = np.asarray(c.predicted, dtype=np.float64)[m] - self.target[m]
+        return float(np.mean(r * r / np.maximum(var, 1e-300)))
+
+    def noise(self) -> dict[str, Any] | None:
+        """What noise was assumed: per feature the std given (None: exact), whether the posterior used
+        it, and the best answer's :meth:`chi2`; None for an exact target."""
+        if self.target_std is None:
+            return None
+        std = {n: (_f(s) if g else None) for n, s, g in zip(self.feature_names, self.target_std, self.mask, strict=True)}
+        return {"std": std, "model": "independent Gaussian per feature, variance std^2 + surrogate spread^2",
+                "posterior": self.noise_posterior, "chi2": _f(self.chi2())}
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready: target, and per candidate the parameters (value, unit) and features side by side."""
         def candidate(rank: int, c: Candidate) -> dict[str, Any]:
@@ -145,6 +170,8 @@ class InversionResult:
                 row: dict[str, Any] = {"target": _f(self.target[j]) if self.mask[j] else None,
                                        "predicted": _f(c.predicted[j]), "std": _f(c.std[j]),
                                        "unit": self.feature_units[j]}
+                if self.target_std is not None and self.mask[j]:
+                    row["target_std"] = _f(self.target_std[j])
                 if c.actual is not None:
                     row["actual"] = _f(c.actual[j])
                 if not self.mask[j]:
@@ -155,6 +182,8 @@ class InversionResult:
                 "parameters": {n: {"value": _f(v), "unit": u} for n, v, u in
                                zip(self.parameter_names, c.params, self.parameter_units, strict=True)},
                 "theta": [_f(v) for v in c.theta], "r_surrogate": _f(c.r_surrogate), "features": feats}
+            if self.target_std is not None:
+                out["chi2"] = _f(self.chi2(c))
             if c.r_actual is not None or c.failure:
                 out.update(r_actual=_f(c.r_actual), gap=_f(c.gap), failure=c.failure)
             return out
@@ -165,6 +194,7 @@ class InversionResult:
             "evaluations": int(self.evaluations), "wall_time_s": round(float(self.wall_time_s), 6),
             "candidates": [candidate(i + 1, c) for i, c in enumerate(self.candidates)],
             "warnings": list(self.warnings), "failure_score": _f(self.failure_score)}
+        data["noise"] = self.noise()
         if self.polish is not None:
             data["polish"] = {k: _f(v) if isinstance(v, float) else v for k, v in self.polish.items()}
         if len(self.candidates) > 1:
