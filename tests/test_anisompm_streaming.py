@@ -306,3 +306,41 @@ def test_a_function_path_evaluates_its_origin_once_and_moves_as_before():
     assert np.array_equal(first, want) and np.array_equal(second, want[::-1])
     assert calls.count(()) == 1 + 1                     # fn(0) once for the path, once for `want` above
     assert path == FunctionPath(fn)                     # the cache is not a field
+
+
+@pytest.mark.parametrize("per_feed", [1, 3])
+def test_an_open_stream_fed_as_results_come_equals_lockstep(per_feed: int) -> None:
+    """``Engine.stream_feed``: runs handed in while others are in flight (the next ones only once a result came
+    back, as a refine asks its next generation) get the lock-step records bit for bit, numbered in feed order."""
+    engine = Engine(SCENE, backend="taichi", arch="cpu")
+    plain = engine.run(MODEL, frames=FRAMES, record_every=3)
+    order = [3, 0, 4, 1, 2]
+    fed: list[int] = []
+    ready = order[:per_feed]
+    polls = []
+
+    def feeder(free: int):
+        polls.append(free)
+        if not ready:
+            return None
+        take = ready[:]
+        ready.clear()
+        fed.extend(take)
+        return MODEL.take(np.array(take))
+
+    got = {}
+    for i, rec in engine.stream_feed(feeder, frames=FRAMES, record_every=3, batch_size=2):
+        got[fed[i]] = rec
+        nxt = order[len(fed) + len(ready):][:per_feed]   # a result back: the next runs become ready
+        ready.extend(nxt)
+    assert sorted(got) == list(range(len(E))) and fed == order
+    assert max(polls) <= 2   # never asked for more runs than free slots
+    for i, ref in enumerate(plain):
+        rec = got[i]
+        assert (rec.failure, rec.substeps, rec.frames) == (ref.failure, ref.substeps, ref.frames)
+        for a, b in zip(rec.positions + rec.damage, ref.positions + ref.damage, strict=True):
+            np.testing.assert_array_equal(a, b)
+        for name in ref.series:
+            np.testing.assert_array_equal(rec.series_array(name), ref.series_array(name), err_msg=name)
+    assert not engine._streaming   # the slots are free again
+    assert list(engine.stream_feed(lambda free: None, frames=FRAMES, record_every=3, batch_size=2)) == []

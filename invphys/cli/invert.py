@@ -61,6 +61,17 @@ def invert(
     polish_confirm_candidates: int | None = typer.Option(
         None, "--polish-confirm-candidates", help="candidates per target that --polish-confirm re-simulates "
         "(default 4; cost: candidates x K runs per target)"),
+    sim_refine: int | None = typer.Option(
+        None, "--sim-refine", help="refine each answer on the simulator with N runs per target (its top "
+        "candidates, then CMA-ES from the best), all targets in one continuous-batching stream"),
+    sim_refine_starts: int = typer.Option(4, "--sim-refine-starts", min=1,
+                                          help="candidates per target that --sim-refine starts from (default 4)"),
+    sim_refine_popsize: int | None = typer.Option(None, "--sim-refine-popsize",
+                                                  help="--sim-refine: points per generation (default 8)"),
+    sim_refine_sigma: float | None = typer.Option(None, "--sim-refine-sigma",
+                                                  help="--sim-refine: step in the [0, 1] cube (default 0.012)"),
+    sim_refine_log: Path | None = typer.Option(None, "--sim-refine-log",
+                                               help="log of --sim-refine's runs: a stopped refine resumes from it"),
     seed: int = typer.Option(0, "--seed", help="seed of every random draw (with the target and the method it "
                              "decides the answer; a target's position in the file does not)"),
     level: float = typer.Option(0.9, "--level", help="level of the central intervals (posterior methods)"),
@@ -85,11 +96,14 @@ def invert(
     check_seed(seed), check_level(level)
     polish_settings = _polish_settings(polish, polish_below, polish_sigma, polish_popsize, polish_log,
                                        polish_confirm, polish_confirm_candidates)
+    refine_settings = _refine_settings(sim_refine, sim_refine_popsize, sim_refine_sigma, sim_refine_log)
     files = _output_files(samples, samples_out, plot, csv_out)
     inv = load_inverter(bundle, strict=not allow_mismatch)
     targets = cli_targets(inv, target, feature or [], observed or [], partial)  # a bad target: its one line only
     for note in inv.notes:
         console.print(f"[yellow]warning:[/] {escape(note)}", soft_wrap=True)
+    if refine_settings:
+        top_k = max(top_k, sim_refine_starts)
     results = inv.invert_many(targets, method=method, top_k=top_k, refine=refine, seed=seed, level=level,
                               draws=max(samples or 0, INTERVAL_DRAWS))
     if samples and not results[0].parameter_uncertainty.has_draws:
@@ -103,9 +117,12 @@ def invert(
         _validate(inv, results, overrides, sim_batch)
     if polish_settings:
         _polish(inv, results, overrides, seed, batch_size=sim_batch, **polish_settings)
+    records = _sim_refine(inv, results, overrides, seed, sim_batch, **refine_settings) if refine_settings else []
     _write_files(results, samples, files)
-    data = {"bundle": str(bundle), "method": results[0].method, "seed": seed, "level": level,
-            "results": [r.to_dict() for r in results]}
+    dicts = [r.to_dict() for r in results]
+    for d, rec in zip(dicts, records, strict=False):
+        d["sim_refine"] = rec
+    data = {"bundle": str(bundle), "method": results[0].method, "seed": seed, "level": level, "results": dicts}
 
     def render(_: Any) -> None:
         for r in results:
@@ -233,6 +250,54 @@ def _polish(inv: Any, results: list[Any], overrides: dict[str, Any], seed: int, 
     if call.get("replayed_runs"):
         console.print(f"polish: {call['replayed_runs']} of {call['runs']} runs replayed from {escape(str(call['log']))}",
                       soft_wrap=True)
+
+
+def _refine_settings(budget: int | None, popsize: int | None, sigma: float | None, log: Path | None
+                     ) -> dict[str, Any]:
+    """The ``--sim-refine*`` options ({} without ``--sim-refine``), checked before anything runs."""
+    from invphys.inverter.refine import REFINE_POPSIZE, REFINE_SIGMA0
+
+    if budget is None:
+        given = [n for n, v in (("--sim-refine-popsize", popsize), ("--sim-refine-sigma", sigma),
+                                ("--sim-refine-log", log)) if v is not None]
+        if given:
+            raise InvphysError(f"{', '.join(given)} needs --sim-refine N (simulator runs per target)")
+        return {}
+    if not 1 <= budget <= 100_000:
+        raise InvphysError(f"--sim-refine must be in 1 .. 100000 simulator runs per target, got {budget}")
+    if popsize is not None and not 2 <= popsize <= 10_000:
+        raise InvphysError(f"--sim-refine-popsize must be in 2 .. 10000, got {popsize}")
+    if sigma is not None and not 0 < sigma <= 10:
+        raise InvphysError(f"--sim-refine-sigma must be in (0, 10], got {sigma}")
+    if log is not None:
+        from invphys.plugins.evaluators.stream_refine import RunLog
+
+        RunLog(log, key="")._check()  # its place, before anything is simulated (its key is checked on use)
+    return {"budget": budget, "popsize": popsize or REFINE_POPSIZE, "sigma0": sigma or REFINE_SIGMA0, "log": log}
+
+
+def _sim_refine(inv: Any, results: list[Any], overrides: dict[str, Any], seed: int, batch_size: int,
+                **settings: Any) -> list[dict[str, Any]]:
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from invphys.inverter.refine import refine
+
+    total = settings["budget"] * len(results)
+    with Progress(TextColumn("refining"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=console, transient=False) as bar:
+        task = bar.add_task("refining", total=total)
+        records = refine(inv, results, overrides=overrides, seed=seed, batch_size=batch_size,
+                         on_run=lambda runs, _replayed: bar.advance(task, runs), **settings)
+        bar.update(task, completed=total)
+    for r, rec in zip(results, records, strict=True):
+        console.print(f"refine {escape(r.label)}: R_actual {_r(rec['start_r_actual'])} ({escape(rec['start_source'])})"
+                      f" -> {_r(rec['r_actual'])} ({rec['runs']} simulator runs, {rec['simulator_s']:.1f} "
+                      f"simulator-s{'' if rec['improved'] else ', start kept'})", soft_wrap=True)
+    call = records[0]["call"] if records else {}
+    if call.get("replayed_runs"):
+        console.print(f"refine: {call['replayed_runs']} of {call['runs']} runs replayed from {escape(str(call['log']))}",
+                      soft_wrap=True)
+    return records
 
 
 def _none_nan(value: float | None) -> float:

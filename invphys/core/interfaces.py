@@ -125,6 +125,55 @@ class Simulator(Plugin):
             for j, res in enumerate(self.simulate(params[start:start + step])):
                 yield start + j, res
 
+    #: True when :meth:`simulate_feed` takes new rows into slots as they free while other runs go on (an
+    #: open continuous-batching stream); False: the default below, which simulates what is ready in chunks.
+    native_feed: ClassVar[bool] = False
+
+    def simulate_feed(self, feeder: Callable[[int], np.ndarray | None], batch_size: int | None = None
+                      ) -> Iterator[tuple[int, SimulationResult]]:
+        """An open stream: yield ``(i, result)`` for rows that ``feeder`` hands in while earlier rows run.
+
+        ``feeder(free)`` is called whenever up to ``free`` runs could start and returns new rows (k, d) of
+        physical parameters (k may exceed ``free``: the rest wait), or None / no rows when no work is ready
+        yet. ``i`` counts fed rows from 0 in the order they were fed; results come in any order. The
+        stream ends when the feeder has nothing while no run is in flight and every result was handed
+        out. This default asks for ``batch_size`` rows (None: all that are ready), simulates them through
+        :meth:`simulate_stream` and asks again when they are done; a chunk that raises
+        :class:`~invphys.core.errors.SimulationFailed` is re-run row by row, a failing row giving a failed
+        result. A simulator with a warm device engine overrides it (and sets :attr:`native_feed`).
+        """
+        from invphys.core.errors import SimulationFailed
+
+        ask = int(batch_size) if batch_size else 1 << 30
+        fed = 0
+        while True:
+            rows = feeder(ask)
+            rows = np.empty((0, 0)) if rows is None else np.atleast_2d(np.asarray(rows, dtype=np.float64))
+            if rows.size == 0:
+                return
+            done: set[int] = set()
+            try:
+                for j, res in self.simulate_stream(rows, batch_size):
+                    done.add(j)
+                    yield fed + j, res
+            except SimulationFailed:
+                for j in range(len(rows)):
+                    if j not in done:
+                        yield fed + j, self._one_or_failure(rows[j])
+            fed += len(rows)
+
+    def _one_or_failure(self, row: np.ndarray) -> SimulationResult:
+        """One row simulated alone; a :class:`SimulationFailed` becomes a failed result."""
+        from invphys.core.errors import SimulationFailed
+        from invphys.core.results import RunStats
+
+        try:
+            return self.simulate(row[None, :])[0]
+        except SimulationFailed as exc:
+            return SimulationResult(params=row, ok=False, stats=RunStats(simulator=self.name,
+                                                                          simulator_version=self.version),
+                                    failure=exc.reason)
+
     def describe(self) -> dict[str, Any]:
         """Provenance recorded with datasets (name, version, config)."""
         return {"simulator": self.name, "version": self.version, "config": self.config.model_dump()}

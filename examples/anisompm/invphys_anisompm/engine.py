@@ -225,6 +225,15 @@ class Engine:
         return stream_runs(self, model, frames, record_every, batch_size, min_chunk=min_chunk,
                            counters=self.counters, order=queue_order, cost=cost)
 
+    def stream_feed(self, feeder: Callable[[int], Model | None], frames: int, record_every: int, batch_size: int,
+                    min_chunk: int = 1):
+        """Continuous batching over an open stream: ``feeder(free)`` gives a :class:`Model` of new runs whenever
+        slots are free (None: none ready yet); yields ``(i, record)``, ``i`` counting fed runs from 0 (see
+        :func:`invphys_anisompm.streaming.feed_runs`)."""
+        from invphys_anisompm.streaming import feed_runs
+
+        return feed_runs(self, feeder, frames, record_every, batch_size, min_chunk=min_chunk, counters=self.counters)
+
     def run(self, model: Model, frames: int, record_every: int) -> list[RunRecord]:
         """Simulate every run of ``model`` as one batch: settling, then ``frames`` frames, recording
         particles every ``record_every`` frames (and the last); returns one record per run."""

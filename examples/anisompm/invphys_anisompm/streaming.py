@@ -83,6 +83,61 @@ def queue_order(cost: np.ndarray, order: str = "longest_first") -> np.ndarray:
     return np.argsort(-cost, kind="stable")
 
 
+class _Runs:
+    """The inputs of a stream's runs by run number (kernel tables, frictions, substeps, dt, energy bounds);
+    an open stream adds models as they are fed. Every value is per run, so a run's inputs never depend on
+    which other runs were fed with it."""
+
+    def __init__(self, engine, frames: int) -> None:
+        self.engine, self.frames = engine, frames
+        self.table: np.ndarray | None = None
+        self.fric: np.ndarray | None = None
+        self.nsub = np.zeros(0, np.int64)
+        self.dt = np.zeros(0)
+        self.bound = np.zeros(0)
+
+    def add(self, model: Model) -> list[int]:
+        """Add the runs of ``model``; their run numbers."""
+        scene = self.engine.scene
+        o = scene.options
+        nsub, dt = frame_plan(o.fps, run_dt_bound(model, self.frames))
+        bound = energy_bound(model.total_mass(), model.wave_speed(), kinematic_speed(scene, self.frames),
+                             o.energy_factor)
+        first = len(self.nsub)
+        table, fric = model.table(), model.friction
+        self.table = table if self.table is None else np.concatenate([self.table, table])
+        self.fric = fric if self.fric is None else np.concatenate([self.fric, fric])
+        self.nsub, self.dt = np.concatenate([self.nsub, nsub]), np.concatenate([self.dt, dt])
+        self.bound = np.concatenate([self.bound, bound])
+        return list(range(first, first + model.n_envs))
+
+
+class _Queue:
+    """A closed stream's runs in queue order."""
+
+    def __init__(self, order: np.ndarray) -> None:
+        self.queue = [int(i) for i in order][::-1]   # pop() = the next run
+
+    def take(self, n: int) -> list[int]:
+        return [self.queue.pop() for _ in range(min(n, len(self.queue)))]
+
+
+class _Feed:
+    """An open stream's runs: ``feeder(free)`` gives a model of new runs (or None: none ready now); runs fed
+    beyond the free slots wait here, in feed order."""
+
+    def __init__(self, runs: _Runs, feeder) -> None:
+        self.runs, self.feeder, self.waiting = runs, feeder, []
+
+    def take(self, n: int) -> list[int]:
+        if n > len(self.waiting):
+            model = self.feeder(n - len(self.waiting))
+            if model is not None and model.n_envs > 0:
+                self.waiting += self.runs.add(model)
+        out, self.waiting = self.waiting[:n], self.waiting[n:]
+        return out
+
+
 class EngineBusyError(RuntimeError):
     """The engine's backend for this many slots is serving a stream that has not finished."""
 
@@ -101,19 +156,46 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
     n_slots = min(int(batch_size), model.n_envs)
     if n_slots <= 0:
         return
+    if cost is None:
+        cost = engine.estimate_cost(model, frames)
+    if len(cost) != model.n_envs:
+        raise ValueError(f"cost has {len(cost)} entries for {model.n_envs} runs")
+    runs = _Runs(engine, frames)
+    runs.add(model)
     engine.claim_slots(n_slots)
     try:
-        yield from _stream_runs(engine, model, frames, record_every, n_slots, min_chunk, counters, order, cost)
+        yield from _stream_runs(engine, runs, _Queue(queue_order(cost, order)), frames, record_every, n_slots,
+                                min_chunk, counters)
     finally:
         engine.release_slots(n_slots)
 
 
-def _stream_runs(engine, model: Model, frames: int, record_every: int, B: int, min_chunk: int,
-                 counters: SlotCounters | None, order: str, cost: np.ndarray | None
-                 ) -> Iterator[tuple[int, RunRecord]]:
-    """:func:`stream_runs`'s loop over ``B`` (>= 1) claimed slots."""
+def feed_runs(engine, feeder, frames: int, record_every: int, batch_size: int, min_chunk: int = 1,
+              counters: SlotCounters | None = None) -> Iterator[tuple[int, RunRecord]]:
+    """An open stream: yield ``(i, record)`` for runs that ``feeder`` hands in while others run.
+
+    ``feeder(free)`` is called whenever slots are free and returns a :class:`Model` of new runs (more
+    than ``free`` may come: the rest wait for slots) or None when none is ready yet; ``i`` counts fed runs
+    from 0 in feed order. Slots take runs in feed order. The stream ends when the feeder has nothing
+    while no run is in flight and every finished run was handed out (the caller feeds new runs when it
+    gets results). A run's record is the one :func:`stream_runs` gives it, whatever else was fed.
+    """
+    n_slots = int(batch_size)
+    if n_slots <= 0:
+        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    runs = _Runs(engine, frames)
+    engine.claim_slots(n_slots)
+    try:
+        yield from _stream_runs(engine, runs, _Feed(runs, feeder), frames, record_every, n_slots, min_chunk,
+                                counters)
+    finally:
+        engine.release_slots(n_slots)
+
+
+def _stream_runs(engine, runs: _Runs, source, frames: int, record_every: int, B: int, min_chunk: int,
+                 counters: SlotCounters | None) -> Iterator[tuple[int, RunRecord]]:
+    """The stream's loop over ``B`` (>= 1) claimed slots; ``source.take(n)`` gives up to ``n`` new run numbers."""
     scene, o = engine.scene, engine.scene.options
-    n_runs = model.n_envs
     backend = engine.backend(B)
     fresh = bool(getattr(backend, "reads_are_new", False))
     read_later = getattr(backend, "read_slots_later", None)
@@ -125,14 +207,6 @@ def _stream_runs(engine, model: Model, frames: int, record_every: int, B: int, m
     names = scene.kinematic_names
     nk = len(names)
     counts = np.array([max(b.count, 1) for b in scene.bodies], float)
-    table_all, fric_all = model.table(), model.friction
-    nsub_all, dt_all = frame_plan(fps, run_dt_bound(model, frames))
-    bound_all = energy_bound(model.total_mass(), model.wave_speed(), kinematic_speed(scene, frames), o.energy_factor)
-    if cost is None:
-        cost = engine.estimate_cost(model, frames)
-    if len(cost) != n_runs:
-        raise ValueError(f"cost has {len(cost)} entries for {n_runs} runs")
-    queue = [int(i) for i in queue_order(cost, order)][::-1]  # pop() = the next run
 
     run = np.full(B, -1, np.int64)
     step = np.zeros(B, np.int64)            # frames done: settling ones first, then 0..frames-1
@@ -165,18 +239,18 @@ def _stream_runs(engine, model: Model, frames: int, record_every: int, B: int, m
         for b in ending:
             nxt = int(step[b]) + 1 - n_settle   # the frame after this one (negative: still settling)
             if 0 <= nxt < frames:
-                kin_table(nxt, int(nsub_all[run[b]]))
+                kin_table(nxt, int(runs.nsub[run[b]]))
 
     def begin_frame(b: int) -> str | None:
         settling = step[b] < n_settle
         frame = -1 - int(step[b]) if settling else int(step[b]) - n_settle
         i = run[b]
         vmax = float(stats_prev[b, STAT_VMAX])
-        nsub = velocity_guard_one(int(nsub_all[i]), vmax, dx, fps, o.velocity_cfl)
+        nsub = velocity_guard_one(int(runs.nsub[i]), vmax, dx, fps, o.velocity_cfl)
         reason = substep_failure(nsub, o.max_substeps_per_frame, frame, vmax)
         if reason:
             return reason
-        if nsub > nsub_all[i]:
+        if nsub > runs.nsub[i]:
             records[b].guard_frames += 1
         cur_nsub[b], cur_dt[b], off[b] = nsub, frame_dt / nsub, 0
         kin_slot[b] = np.zeros((nsub, max(nk, 1), 6)) if settling else kin_table(frame, nsub)
@@ -249,15 +323,15 @@ def _stream_runs(engine, model: Model, frames: int, record_every: int, B: int, m
     while True:
         # refill empty slots from the queue (one device reset for all of them)
         empty = [b for b in range(B) if run[b] < 0]
-        new = [(b, queue.pop()) for b in empty[:len(queue)]]
+        new = list(zip(empty, source.take(len(empty)), strict=False))
         if new:
             slots = np.array([b for b, _ in new])
             idx = np.array([i for _, i in new])
-            backend.load_slots(slots, table_all[idx], fric_all[idx])
+            backend.load_slots(slots, runs.table[idx], runs.fric[idx])
             init_stats = backend.frame_stats(lo, hi, slots) if n_settle == 0 else None
             for b, i in new:
                 run[b], step[b], started[b] = i, 0, time.perf_counter()
-                records[b] = RunRecord(dt=float(dt_all[i]))
+                records[b] = RunRecord(dt=float(runs.dt[i]))
                 stats_prev[b] = init_stats[b] if init_stats is not None else 0.0
                 work[b] = imp_acc[b] = w_acc[b] = last_force[b] = 0.0
                 if n_settle == 0:
@@ -270,10 +344,11 @@ def _stream_runs(engine, model: Model, frames: int, record_every: int, B: int, m
         active = run >= 0
         if not active.any():
             write()
+            handed = bool(done)
             yield from done
             done = []
-            if queue:
-                continue   # every new run failed at once: refill again
+            if handed:
+                continue   # new runs failed at once, or the caller may feed more after these: refill again
             return
         rem = np.where(active, cur_nsub - off, 0)
         K = int(max(rem[active].min(), min(int(min_chunk), rem.max())))
@@ -306,7 +381,7 @@ def _stream_runs(engine, model: Model, frames: int, record_every: int, B: int, m
         # is done for all of them at once, and a message is built only for a run that looks unhealthy
         ends = stats[ending]
         extra = imp_acc[ending, :nk].reshape(len(ending), -1).sum(axis=1) + w_acc[ending, :nk].sum(axis=1)
-        suspect = unhealthy(ends, bound_all[run[ending]], extra)
+        suspect = unhealthy(ends, runs.bound[run[ending]], extra)
         stats_prev[ending] = ends
         last_force[ending] = imp_acc[ending] * fps
         was_settling_all = step[ending] < n_settle
@@ -323,7 +398,7 @@ def _stream_runs(engine, model: Model, frames: int, record_every: int, B: int, m
                 rec.settle_substeps += int(cur_nsub[b])
             else:
                 rec.substeps += int(cur_nsub[b])
-            reason = frame_failure(ends[j], float(bound_all[run[b]]), frame + 1, float(extra[j])) \
+            reason = frame_failure(ends[j], float(runs.bound[run[b]]), frame + 1, float(extra[j])) \
                 if suspect[j] else None   # unhealthy() flags exactly the rows frame_failure fails
             if reason:
                 rec.failure = reason
@@ -349,4 +424,4 @@ def _stream_runs(engine, model: Model, frames: int, record_every: int, B: int, m
                 done.append(finish(b))
 
 
-__all__ = ["QUEUE_ORDERS", "EngineBusyError", "SlotCounters", "queue_order", "stream_runs"]
+__all__ = ["QUEUE_ORDERS", "EngineBusyError", "SlotCounters", "feed_runs", "queue_order", "stream_runs"]

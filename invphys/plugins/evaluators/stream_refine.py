@@ -1,0 +1,340 @@
+"""Refine many targets on the simulator through one open stream: generations overlap across targets.
+
+Each target runs its own search: first its start points (those not simulated yet), then ask/tell CMA-ES
+(in [0, 1]^d, seeded per target) from its best start. A target's next generation is asked as soon as its
+own runs are back, and its rows join the stream (:meth:`Simulator.simulate_feed`) while other targets'
+runs are still in flight, so no generation waits for another target's slow run. A generation is told in
+the order of its asks, never of completion: the answers do not depend on completion order, batch size
+or the other targets. :class:`RunLog` records every finished run (target id, run number, point,
+features, seconds, device); a re-run replays the logged runs and simulates only the rest.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from invphys.core.errors import InvphysError
+from invphys.core.safe_read import UserFileError
+
+REFINE_LOG_FORMAT = "invphys.refine_log"
+REFINE_LOG_VERSION = 1
+_ARRAYS = {"format", "version", "key", "tid", "seq", "theta", "y", "seconds", "device"}
+
+
+def _log_error(path: Path, problem: str) -> UserFileError:
+    return UserFileError("refine log", path, problem)
+
+
+class RunLog:
+    """Every finished run of a refine, by (target id, run number); appended atomically every ``flush`` runs.
+
+    ``key`` names what the runs depend on besides the target (bundle, simulator config): a log made for
+    another key is refused, as is any existing file that is not a refine log (it is never overwritten).
+    """
+
+    def __init__(self, path: str | Path | None, key: str, flush: int = 16) -> None:
+        self.path = None if path is None else Path(path)
+        self.key, self.flush = key, max(1, int(flush))
+        self.rows: dict[tuple[str, int], tuple[np.ndarray, np.ndarray, float, str]] = {}
+        self._unsaved = 0
+        if self.path is not None:
+            self._check()
+            if self.path.exists():
+                self._read()
+
+    def _check(self) -> None:
+        p = self.path
+        assert p is not None
+        if p.is_symlink() or p.is_dir():
+            raise _log_error(p, "name a regular file (e.g. refine.npz)")
+        parent = p.absolute().parent
+        if not parent.is_dir():
+            raise _log_error(p, f"{str(parent)!r} is not a directory")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise _log_error(p, f"cannot write in {str(parent)!r} (permission denied)")
+
+    def _read(self) -> None:
+        from invphys.core import safe_read
+
+        p = self.path
+        assert p is not None
+        safe_read.check_regular_file(p, what="refine log", max_bytes=safe_read.NPZ_MAX_BYTES)
+        with open(p, "rb") as fh:
+            if fh.read(4) != b"PK\x03\x04":
+                raise _log_error(p, "it exists and is not a refine log written by invphys; refusing to overwrite "
+                                    "it (name another file)")
+        z = safe_read.load_user_npz(p, what="refine log")
+        if set(z) != _ARRAYS or str(z["format"]) != REFINE_LOG_FORMAT:
+            raise _log_error(p, "it exists and is not a refine log written by invphys; refusing to overwrite it "
+                                "(name another file)")
+        if int(z["version"]) > REFINE_LOG_VERSION:
+            raise _log_error(p, f"format version {int(z['version'])} is newer than this invphys reads; upgrade")
+        if str(z["key"]) != self.key:
+            raise _log_error(p, "it was made for another bundle or simulator config; name another file, or remove "
+                                "this one to refine afresh")
+        try:
+            tid, seq, theta, y = z["tid"], z["seq"], np.asarray(z["theta"], float), np.asarray(z["y"], float)
+            sec, dev = np.asarray(z["seconds"], float), z["device"]
+            if not (len(tid) == len(seq) == len(theta) == len(y) == len(sec) == len(dev)) or theta.ndim != 2:
+                raise ValueError("its arrays differ in length")
+            for i in range(len(tid)):
+                self.rows[(str(tid[i]), int(seq[i]))] = (theta[i], y[i], float(sec[i]), str(dev[i]))
+        except (ValueError, TypeError, IndexError) as exc:
+            raise _log_error(p, f"corrupt refine log ({exc}); move it away or name another file") from None
+
+    def get(self, tid: str, seq: int, theta: np.ndarray) -> tuple[np.ndarray, float, str] | None:
+        """The logged features, seconds and device of run ``seq`` of target ``tid`` at ``theta`` (else None)."""
+        row = self.rows.get((tid, seq))
+        if row is None or row[0].shape != theta.shape or not np.allclose(row[0], theta, rtol=0.0, atol=1e-9):
+            return None
+        return row[1], row[2], row[3]
+
+    def add(self, tid: str, seq: int, theta: np.ndarray, y: np.ndarray, seconds: float, device: str) -> None:
+        self.rows[(tid, seq)] = (np.array(theta, float), np.array(y, float), float(seconds), device)
+        self._unsaved += 1
+        if self._unsaved >= self.flush:
+            self.save()
+
+    def save(self) -> None:
+        """Write every run so far (atomically)."""
+        if self.path is None or not self._unsaved:
+            return
+        from invphys.core.atomic import atomic_write_bytes
+
+        keys = sorted(self.rows)
+        vals = [self.rows[k] for k in keys]
+        buf = io.BytesIO()
+        np.savez_compressed(buf, format=np.array(REFINE_LOG_FORMAT), version=np.array(REFINE_LOG_VERSION),
+                            key=np.array(self.key), tid=np.array([k[0] for k in keys], dtype=str),
+                            seq=np.array([k[1] for k in keys], dtype=np.int64),
+                            theta=np.stack([v[0] for v in vals]), y=np.stack([v[1] for v in vals]),
+                            seconds=np.array([v[2] for v in vals], float),
+                            device=np.array([v[3] for v in vals], dtype=str))
+        try:
+            atomic_write_bytes(self.path, buf.getvalue())
+        except OSError as exc:
+            raise _log_error(self.path, f"cannot write it: {exc.strerror or exc}") from None
+        self._unsaved = 0
+
+
+@dataclass
+class TargetRefine:
+    """One target's refine: its id, target features, starts and their known features (NaN rows: to
+    simulate), and the outcome (best point, score, features, every point simulated, runs, seconds)."""
+
+    tid: str
+    target: np.ndarray
+    starts: np.ndarray
+    known: np.ndarray
+    seed: int
+    theta: np.ndarray | None = None
+    score: float = -np.inf
+    features: np.ndarray | None = None
+    best_index: int = -1           # index into ``points`` of the answer
+    points: list[tuple[np.ndarray, float, np.ndarray]] = field(default_factory=list)
+    runs: int = 0                  # simulator runs spent (replayed ones included)
+    replayed: int = 0
+    seconds: float = 0.0
+    start_scores: np.ndarray | None = None
+
+
+class _Search:
+    """A target's state: the generation in flight (asked points and their results by ask order)."""
+
+    def __init__(self, t: TargetRefine, budget: int, popsize: int, sigma0: float, d: int) -> None:
+        self.t, self.budget, self.popsize, self.sigma0, self.d = t, budget, popsize, sigma0, d
+        self.cma: Any = None
+        self.asked = np.empty((0, d))
+        self.results: list[tuple[np.ndarray, float, str, bool] | None] = []
+        self.phase = "starts"
+
+    def next_points(self) -> np.ndarray:
+        """The next generation (empty: the target is finished)."""
+        left = self.budget - self.t.runs
+        if self.phase == "starts":
+            todo = ~np.all(np.isfinite(self.t.known), axis=1)
+            return self.t.starts[todo][:max(left, 0)]
+        if left <= 0:
+            return np.empty((0, self.d))
+        if self.cma is None:
+            from invphys.core.spaces import raw_space
+            from invphys.plugins.optimizers.cma_es import CMAES
+
+            cma = CMAES(popsize=self.popsize, sigma0=self.sigma0, budget=left, restarts=True)
+            self.cma = cma.ask_tell(raw_space(self.d), self.t.seed, self.t.theta, left)
+        pts = self.cma.ask() if not self.cma.done else np.empty((0, self.d))
+        return np.clip(np.asarray(pts, float).reshape(-1, self.d)[:left], 0.0, 1.0)
+
+
+def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int], np.ndarray | None]],
+                                                                 Iterator[tuple[int, np.ndarray, float, str]]],
+                  score: Callable[[np.ndarray, np.ndarray], np.ndarray], budget: int, popsize: int = 8,
+                  sigma0: float = 0.012, log: RunLog | None = None,
+                  on_run: Callable[[int, bool], None] | None = None) -> list[TargetRefine]:
+    """Refine every target with ``budget`` simulator runs (its unsimulated starts included), one open stream.
+
+    ``simulate(feeder)`` yields ``(i, features (M,) or NaN, seconds, device)`` for the rows (normalised,
+    (k, d)) that ``feeder(free)`` hands it, ``i`` counting fed rows from 0 (e.g. through
+    :meth:`Simulator.simulate_feed`). ``score(features (B, M), targets (B, M)) -> (B,)``. Each target's
+    answer is its best simulated point, starts included. ``on_run(runs, replayed)`` reports progress.
+    """
+    if budget < 0 or popsize < 2 or not sigma0 > 0:
+        raise InvphysError(f"refine: budget >= 0, popsize >= 2 and sigma0 > 0 needed, got {budget}, {popsize}, "
+                           f"{sigma0}")
+    note = on_run or (lambda _n, _r: None)
+    d = targets[0].starts.shape[1] if targets else 0
+    searches = [_Search(t, budget, popsize, sigma0, d) for t in targets]
+    queue: list[tuple[int, int]] = []        # (search, member) rows waiting for a slot
+    fed: list[tuple[int, int]] = []          # row i of the stream -> (search, member)
+
+    def start_known(s: _Search) -> None:
+        t = s.t
+        ok = np.all(np.isfinite(t.known), axis=1)
+        sc = _scores(score, t.known, t.target)
+        t.start_scores = np.where(ok, sc, np.nan)
+        for j in np.flatnonzero(ok):
+            _record(t, t.starts[j], float(sc[j]), t.known[j])
+
+    def advance(k: int) -> None:
+        """Ask target ``k``'s next generation; replay what the log holds, queue the rest (repeat while the
+        log answers whole generations)."""
+        s = searches[k]
+        while True:
+            pts = s.next_points()
+            if len(pts) == 0 and s.phase == "starts":
+                _finish_starts(s)
+                continue
+            if len(pts) == 0:
+                s.phase = "done"
+                return
+            s.asked, s.results = pts, [None] * len(pts)
+            for j, p in enumerate(pts):
+                hit = log.get(s.t.tid, s.t.runs + j, p) if log is not None else None
+                if hit is not None:
+                    s.results[j] = (hit[0], hit[1], hit[2], True)
+                else:
+                    queue.append((k, j))
+            if any(r is None for r in s.results):
+                return
+            tell(k)
+
+    def tell(k: int) -> None:
+        """Every result of target ``k``'s generation is in: tell them in ask order."""
+        s, t = searches[k], searches[k].t
+        ys = np.array([r[0] for r in s.results])  # type: ignore[index]
+        sc = _scores(score, ys, t.target)
+        for j, (p, r) in enumerate(zip(s.asked, s.results, strict=True)):
+            assert r is not None
+            t.runs += 1
+            t.seconds += r[1]
+            t.replayed += int(r[3])
+            _record(t, p, float(sc[j]), ys[j])
+        note(len(s.asked), all(r[3] for r in s.results))  # type: ignore[index]
+        if s.phase == "starts":
+            todo = ~np.all(np.isfinite(t.known), axis=1)
+            t.known = t.known.copy()
+            t.known[np.flatnonzero(todo)[:len(ys)]] = ys
+            assert t.start_scores is not None
+            t.start_scores[np.flatnonzero(todo)[:len(ys)]] = np.where(np.isfinite(sc), sc, np.nan)
+            _finish_starts(s)
+        elif s.cma is not None:
+            s.cma.tell(s.asked, sc)
+
+    def _finish_starts(s: _Search) -> None:
+        s.phase = "search"
+        if s.t.theta is None:  # no start simulated successfully: search from the first start
+            s.t.theta = s.t.starts[0].copy()
+
+    def feeder(free: int) -> np.ndarray | None:
+        if not queue:
+            return None
+        rows, queue[:] = queue[:], []
+        fed.extend(rows)
+        return np.array([searches[k].asked[j] for k, j in rows])
+
+    for k, s in enumerate(searches):
+        start_known(s)
+        advance(k)
+    for i, y, seconds, device in simulate(feeder):
+        k, j = fed[i]
+        s = searches[k]
+        if log is not None:
+            log.add(s.t.tid, s.t.runs + j, s.asked[j], y, seconds, device)
+        s.results[j] = (np.asarray(y, float), float(seconds), device, False)
+        if all(r is not None for r in s.results):
+            tell(k)
+            advance(k)
+    if log is not None:
+        log.save()
+    if queue or any(s.phase != "done" for s in searches):
+        raise InvphysError("refine: the simulator stream ended before every asked run came back")
+    return targets
+
+
+def _scores(score: Callable[[np.ndarray, np.ndarray], np.ndarray], y: np.ndarray, target: np.ndarray) -> np.ndarray:
+    y = np.atleast_2d(np.asarray(y, float))
+    if len(y) == 0:
+        return np.zeros(0)
+    ok = np.all(np.isfinite(y), axis=1)
+    s = np.asarray(score(np.where(ok[:, None], y, 0.0), np.tile(target, (len(y), 1))), float)
+    return np.where(ok & np.isfinite(s), s, -np.inf)
+
+
+def _record(t: TargetRefine, theta: np.ndarray, score: float, y: np.ndarray) -> None:
+    """A simulated point of target ``t``; it becomes the answer when strictly better (ties: the earlier)."""
+    t.points.append((np.array(theta, float), score, np.array(y, float)))
+    if t.theta is None or score > t.score:
+        t.theta, t.score, t.features, t.best_index = np.array(theta, float), score, np.array(y, float), len(t.points) - 1
+
+
+def feed_features(simulator: Any, extractor: Any, batch_size: int | None
+                  ) -> Callable[[Callable[[int], np.ndarray | None]], Iterator[tuple[int, np.ndarray, float, str]]]:
+    """``simulate`` for :func:`stream_refine`: normalised rows through ``simulator.simulate_feed``, features
+    extracted as each run ends (NaN for a failed run or extraction), with the run's seconds and device."""
+    from invphys.plugins.validators.simulator import SimulatorValidator
+
+    space = simulator.parameter_space()
+    m = len(extractor.feature_names)
+
+    def run(feeder: Callable[[int], np.ndarray | None]) -> Iterator[tuple[int, np.ndarray, float, str]]:
+        def physical(free: int) -> np.ndarray | None:
+            rows = feeder(free)
+            return None if rows is None or len(rows) == 0 else space.denormalize(np.clip(rows, 0.0, 1.0))
+
+        for i, res in simulator.simulate_feed(physical, batch_size):
+            feats, _failure, stats = SimulatorValidator._outcome(res, extractor, m)
+            y = np.full(m, np.nan) if feats is None else feats
+            yield i, y, float(stats.wall_time_s) if stats is not None else 0.0, \
+                str(stats.device) if stats is not None else ""
+
+    return run
+
+
+def timed(run: Callable[..., Iterator[Any]]) -> tuple[Callable[..., Iterator[Any]], dict[str, float]]:
+    """``run`` wrapped to measure its wall time (``clock["wall_s"]``) while it yields."""
+    clock = {"wall_s": 0.0}
+
+    def wrapped(*args: Any) -> Iterator[Any]:
+        t0 = time.perf_counter()
+        try:
+            yield from run(*args)
+        finally:
+            clock["wall_s"] += time.perf_counter() - t0
+
+    return wrapped, clock
+
+
+def log_key(parts: dict[str, Any]) -> str:
+    """A short stable hash of ``parts`` (JSON)."""
+    import hashlib
+
+    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:24]
