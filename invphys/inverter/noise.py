@@ -175,6 +175,7 @@ def noise_warnings(noisy: bool, kind: str) -> list[str]:
     """What a user should know when a noisy target meets a method without a posterior."""
     if not noisy or kind == "posterior":
         return []
-    return [f"the target's noise does not change this answer (the method answers with a {kind or 'point'}, "
-            f"not a posterior): use a posterior method (e.g. npe) for intervals under the noise"]
+    what = "the nearest training rows" if kind == "neighbours" else "a point"
+    return [f"the target's noise does not change this answer (the method answers with {what}, not a "
+            f"posterior): use a posterior method (e.g. npe) for intervals under the noise"]
 
