@@ -8,17 +8,28 @@ defaults; a scene plugin maps its parameters onto it with :meth:`Model.set_mater
 from __future__ import annotations
 
 from dataclasses import asdict
+from typing import Any, Protocol
 
 import numpy as np
 
+from invphys_anisompm.errors import SceneError
 from invphys_anisompm.materials import M_ETA, MaterialSpec, material_columns, wave_speed
-from invphys_anisompm.scene import Scene, SceneError
+
+
+class SceneLike(Protocol):
+    """What a model reads of its :class:`~invphys_anisompm.scene.Scene` (typed structurally, so that the
+    model does not import the scene module, whose ``Scene.model`` builds models)."""
+
+    bodies: tuple[Any, ...]
+    colliders: tuple[Any, ...]
+    volume: np.ndarray
+    body: np.ndarray
 
 
 class Model:
     """Materials (per run, per body) and frictions (per run, per collider) of ``n_envs`` runs."""
 
-    def __init__(self, scene: Scene, n_envs: int) -> None:
+    def __init__(self, scene: SceneLike, n_envs: int) -> None:
         if n_envs < 1:
             raise SceneError(f"n_envs must be >= 1, got {n_envs}")
         self.scene = scene
@@ -83,4 +94,4 @@ class Model:
         return rho @ vol
 
 
-__all__ = ["Model"]
+__all__ = ["Model", "SceneLike"]

@@ -21,6 +21,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from invphys_anisompm.errors import SceneError
 from invphys_anisompm.materials import MaterialSpec
 from invphys_anisompm.paths import Path, Static
 from invphys_anisompm.regions import Box, Cylinder, HalfSpace, Region, lattice
@@ -136,10 +137,6 @@ class HostReduction:
     name: str
     fn: Callable[..., np.ndarray]
     every: int = 1
-
-
-class SceneError(ValueError):
-    """An inconsistent scene (duplicate names, empty bodies, particles outside the domain)."""
 
 
 class SceneBuilder:

@@ -17,6 +17,7 @@ import taichi as ti
 from invphys.core.errors import DeviceUnavailableError, InvphysError
 from invphys_anisompm.backends import quiet_library
 from invphys_anisompm.backends.particle_order import ORDERS
+from invphys_anisompm.backends.taichi_common import _element_type, load_mat3, matrix_nd, store_mat3
 from invphys_anisompm.backends.taichi_host_copy import HostCopy, HostUpload, LaterCopies
 from invphys_anisompm.failure import BODY0, n_stats
 from invphys_anisompm.materials import M_ALPHA, M_DMG, M_ETA, M_KF, M_LAM, M_MU, M_RES, M_RHO, M_SC, N_MAT
@@ -178,31 +179,6 @@ def _collider_normal(kind: ti.i32, a: vec3, bb: vec3, p: vec3):
 
 
 P2GTerms = ti.types.struct(affine=mat3, mv=vec3, mass=ti.f32)
-
-
-def matrix_nd(component_major: bool):
-    """The kernels' annotation of a particle matrix array in either layout (``MATRIX_STATE``)."""
-    return ND(ti.f32, 3) if component_major else ND(mat3, 2)
-
-
-@ti.func
-def load_mat3(A: ti.template(), b, p):
-    """Particle ``p``'s matrix of run ``b`` from ``A`` in either layout (``MATRIX_STATE``)."""
-    if ti.static(len(A.shape) == 3):   # component-major (B, 9, N)
-        return ti.Matrix([[A[b, 0, p], A[b, 1, p], A[b, 2, p]], [A[b, 3, p], A[b, 4, p], A[b, 5, p]],
-                          [A[b, 6, p], A[b, 7, p], A[b, 8, p]]])
-    else:
-        return A[b, p]
-
-
-@ti.func
-def store_mat3(A: ti.template(), b, p, M):
-    """Write ``M`` as particle ``p``'s matrix of run ``b`` into ``A`` in either layout."""
-    if ti.static(len(A.shape) == 3):
-        for i, j in ti.static(ti.ndrange(3, 3)):
-            A[b, 3 * i + j, p] = M[i, j]
-    else:
-        A[b, p] = M
 
 
 @ti.func
@@ -841,15 +817,6 @@ _STAGE_ARGS = {
 _BOUND_ARGS = tuple(dict.fromkeys(n for names in _STAGE_ARGS.values() for n in names if n != "k"))
 #: substeps per graph launch in ``advance`` (a frame's remainder goes one substep at a time)
 GRAPH_SUBSTEPS = 8
-
-
-def _element_type(arr):
-    """A Taichi ndarray's element type as a graph argument takes it: a scalar, vector or matrix type."""
-    if hasattr(arr, "m"):
-        return ti.types.matrix(arr.n, arr.m, arr.dtype)
-    if hasattr(arr, "n"):
-        return ti.types.vector(arr.n, arr.dtype)
-    return arr.dtype
 
 
 class TaichiBackend:

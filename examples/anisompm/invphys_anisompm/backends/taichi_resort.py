@@ -14,7 +14,7 @@ sort moves only per-run state; reads return the scene's order whatever the sorts
 
 import taichi as ti
 
-from invphys_anisompm.backends.taichi_backend import _element_type, load_mat3, matrix_nd, store_mat3
+from invphys_anisompm.backends.taichi_common import _element_type, load_mat3, matrix_nd, store_mat3
 
 vec3 = ti.math.vec3
 ND = ti.types.ndarray
