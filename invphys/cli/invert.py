@@ -272,7 +272,7 @@ def _refine_settings(budget: int | None, popsize: int | None, sigma: float | Non
     if log is not None:
         from invphys.plugins.evaluators.stream_refine import RunLog
 
-        RunLog(log, key="")._check()  # its place, before anything is simulated (its key is checked on use)
+        RunLog(log, key=None)  # the file and its place, before anything runs (what it was made for: on use)
     return {"budget": budget, "popsize": popsize or REFINE_POPSIZE, "sigma0": sigma or REFINE_SIGMA0, "log": log}
 
 

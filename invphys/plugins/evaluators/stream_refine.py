@@ -16,6 +16,7 @@ import json
 import os
 import time
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -38,10 +39,11 @@ class RunLog:
     """Every finished run of a refine, by (target id, run number); appended atomically every ``flush`` runs.
 
     ``key`` names what the runs depend on besides the target (bundle, simulator config): a log made for
-    another key is refused, as is any existing file that is not a refine log (it is never overwritten).
+    another key is refused, as is any existing file that is not a refine log (it is never overwritten);
+    ``key`` None checks the file alone (before anything runs).
     """
 
-    def __init__(self, path: str | Path | None, key: str, flush: int = 16) -> None:
+    def __init__(self, path: str | Path | None, key: str | None, flush: int = 16) -> None:
         self.path = None if path is None else Path(path)
         self.key, self.flush = key, max(1, int(flush))
         self.rows: dict[tuple[str, int], tuple[np.ndarray, np.ndarray, float, str]] = {}
@@ -78,7 +80,7 @@ class RunLog:
                                 "(name another file)")
         if int(z["version"]) > REFINE_LOG_VERSION:
             raise _log_error(p, f"format version {int(z['version'])} is newer than this invphys reads; upgrade")
-        if str(z["key"]) != self.key:
+        if self.key is not None and str(z["key"]) != self.key:
             raise _log_error(p, "it was made for another bundle or simulator config; name another file, or remove "
                                 "this one to refine afresh")
         try:
@@ -114,7 +116,7 @@ class RunLog:
         vals = [self.rows[k] for k in keys]
         buf = io.BytesIO()
         np.savez_compressed(buf, format=np.array(REFINE_LOG_FORMAT), version=np.array(REFINE_LOG_VERSION),
-                            key=np.array(self.key), tid=np.array([k[0] for k in keys], dtype=str),
+                            key=np.array(self.key or ""), tid=np.array([k[0] for k in keys], dtype=str),
                             seq=np.array([k[1] for k in keys], dtype=np.int64),
                             theta=np.stack([v[0] for v in vals]), y=np.stack([v[1] for v in vals]),
                             seconds=np.array([v[2] for v in vals], float),
@@ -156,6 +158,7 @@ class _Search:
         self.asked = np.empty((0, d))
         self.results: list[tuple[np.ndarray, float, str, bool] | None] = []
         self.phase = "starts"
+        self._random: Any = None
 
     def next_points(self) -> np.ndarray:
         """The next generation (empty: the target is finished)."""
@@ -165,14 +168,33 @@ class _Search:
             return self.t.starts[todo][:max(left, 0)]
         if left <= 0:
             return np.empty((0, self.d))
-        if self.cma is None:
-            from invphys.core.spaces import raw_space
-            from invphys.plugins.optimizers.cma_es import CMAES
+        with self.own_random():
+            if self.cma is None:
+                from invphys.core.spaces import raw_space
+                from invphys.plugins.optimizers.cma_es import CMAES
 
-            cma = CMAES(popsize=self.popsize, sigma0=self.sigma0, budget=left, restarts=True)
-            self.cma = cma.ask_tell(raw_space(self.d), self.t.seed, self.t.theta, left)
-        pts = self.cma.ask() if not self.cma.done else np.empty((0, self.d))
+                cma = CMAES(popsize=self.popsize, sigma0=self.sigma0, budget=left, restarts=True)
+                self.cma = cma.ask_tell(raw_space(self.d), self.t.seed, self.t.theta, left)
+            pts = self.cma.ask() if not self.cma.done else np.empty((0, self.d))
         return np.clip(np.asarray(pts, float).reshape(-1, self.d)[:left], 0.0, 1.0)
+
+    def tell(self, scores: np.ndarray) -> None:
+        if self.cma is not None:
+            with self.own_random():
+                self.cma.tell(self.asked, scores)
+
+    @contextmanager
+    def own_random(self) -> Iterator[None]:
+        """The ``cma`` package draws from NumPy's global random state: each search gets a state of its own, so
+        the searches' draws do not depend on the order in which targets ask."""
+        outer = np.random.get_state()
+        np.random.set_state(self._random if self._random is not None else
+                            np.random.RandomState(self.t.seed % (2**32)).get_state())
+        try:
+            yield
+        finally:
+            self._random = np.random.get_state()
+            np.random.set_state(outer)
 
 
 def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int], np.ndarray | None]],
@@ -246,8 +268,8 @@ def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int
             assert t.start_scores is not None
             t.start_scores[np.flatnonzero(todo)[:len(ys)]] = np.where(np.isfinite(sc), sc, np.nan)
             _finish_starts(s)
-        elif s.cma is not None:
-            s.cma.tell(s.asked, sc)
+        else:
+            s.tell(sc)
 
     def _finish_starts(s: _Search) -> None:
         s.phase = "search"
