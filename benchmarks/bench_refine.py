@@ -65,7 +65,9 @@ def native_feed(sim: Any) -> bool:
 
     if type(sim).simulate_feed is not Simulator.simulate_feed:
         return True
-    if getattr(sim, "name", "") != "orange_peel":
+    needs = ("engine", "engine_scene", "frames", "record_every", "min_chunk", "batch_size", "result_from_record", "_check")
+    if getattr(sim, "name", "") != "orange_peel" or not all(hasattr(sim, n) for n in needs) \
+            or not hasattr(sim.engine, "stream_feed"):
         return False
     from invphys_orange_peel.engine_scene import model_for
 
