@@ -44,7 +44,7 @@ def main() -> None:
     import numpy as np
 
     import invphys
-    from invphys.inverter.objective import masked_recovery
+    from invphys.core.masked_recovery import masked_recovery
 
     t0 = time.perf_counter()
     cli = subprocess.run([sys.executable, "-m", "invphys.cli", "invert", args.bundle, "--target", args.targets,

@@ -48,7 +48,7 @@ def main() -> None:
 
     from invphys import registry
     from invphys.core.objectives import percentile_scales, recovery_reward
-    from invphys.core.targets import select_targets
+    from invphys.core.target_selection import select_targets
     from invphys.plugins.baselines import NearestNeighbour
     from invphys.plugins.evaluators.simulator_loop import SimulatorEvaluator, refine_targets
     from invphys.plugins.validators.simulator import SimulatorValidator

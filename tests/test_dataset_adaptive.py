@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import yaml
 
-from invphys.core.adaptive import PLAN_FILE, pick_spread
+from invphys.core.adaptive_plan import PLAN_FILE, pick_spread
 from invphys.core.dataset import DatasetStore
 from invphys.core.errors import InvphysError
 from invphys.core.interfaces import FeatureExtractor, PluginConfig, Simulator

@@ -67,7 +67,7 @@ def test_extra_rows_join_training_only_and_the_held_out_split_is_unchanged(store
     assert np.array_equal(alone.scales(), joined.scales())
     from invphys.core.objectives import percentile_scales
     assert not np.allclose(percentile_scales(d1.y[tr1]), joined.scales())  # the extras would have moved them
-    from invphys.core.targets import select_targets
+    from invphys.core.target_selection import select_targets
     from invphys.pipeline.stages.invert import select
 
     targets = "targets: {n: 6, selection: farthest_point}\n"

@@ -9,7 +9,7 @@ from models_data import smooth
 
 from invphys.core.objectives import RecoveryObjective, recovery_reward
 from invphys.core.spaces import build_problem, raw_space
-from invphys.evaluation.protocol import actual_score, protocol_summary
+from invphys.evaluation.method_summary import actual_score, protocol_summary
 from invphys.evaluation.stats import bootstrap_mean_ci, mean_with_ci, paired_difference, spearman
 
 

@@ -28,7 +28,7 @@ def target(inv):
 
 
 def test_result_by_name_with_units(inv, target) -> None:
-    from invphys.inverter.objective import masked_recovery
+    from invphys.core.masked_recovery import masked_recovery
 
     res = inv.invert(target)
     assert res.method == inv.default_method and res.evaluations == 8
@@ -77,7 +77,7 @@ def test_every_bundle_method_a_registry_optimiser_and_a_baseline(inv, target) ->
 
 
 def test_partial_targets_score_only_given_features(inv, target) -> None:
-    from invphys.inverter.objective import masked_recovery
+    from invphys.core.masked_recovery import masked_recovery
 
     given = {k: target[k] for k in ("peak_abs", "log_decay")}
     with pytest.raises(Exception, match="missing feature"):

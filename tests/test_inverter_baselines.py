@@ -89,8 +89,8 @@ def test_a_partial_target_picks_the_draw_that_best_fits_the_given_features(run, 
     """Missing features enter a baseline as the training mean, so for a partial target the inverter chooses
     among the baseline's candidates by R over the given features only; a complete target keeps the
     baseline's own answer."""
+    from invphys.core.masked_recovery import masked_recovery
     from invphys.inverter import load_inverter
-    from invphys.inverter.objective import masked_recovery
 
     inv = load_inverter(run / "inverter")
     _, y_test = inv.bundle.data("test")

@@ -43,7 +43,7 @@ def sim_rows(monkeypatch):
 
 def _check_scores(inv, res) -> None:
     """Every simulated candidate's R_actual is the masked R of its features; gap = R_surr - R_actual."""
-    from invphys.inverter.objective import masked_recovery
+    from invphys.core.masked_recovery import masked_recovery
 
     b = inv.bundle
     for c in res.candidates:
@@ -251,7 +251,7 @@ def chaotic(monkeypatch):
 
 
 def test_confirm_answers_with_the_best_mean_candidate_and_records_its_runs(inv, chaotic) -> None:
-    from invphys.inverter.objective import masked_recovery
+    from invphys.core.masked_recovery import masked_recovery
 
     _, y = inv.bundle.data("test")
     base = inv.validate(inv.invert_many(y[:6]))

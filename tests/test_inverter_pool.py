@@ -25,7 +25,7 @@ def rows(inv):
 
 
 def _penalised(inv, theta, target, lam):
-    from invphys.inverter.objective import masked_recovery
+    from invphys.core.masked_recovery import masked_recovery
     from invphys.plugins.evaluators.uncertainty import normalised_std
 
     mean, std = inv.bundle.surrogate.predict_with_uncertainty(np.atleast_2d(theta))

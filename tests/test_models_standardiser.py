@@ -24,7 +24,7 @@ def test_the_rule_centres_constant_columns_and_ignores_nans() -> None:
 
 def test_target_selection_and_objectives_use_it() -> None:
     from invphys.core.objectives import feature_standardiser
-    from invphys.core.targets import standardise
+    from invphys.core.target_selection import standardise
 
     y = np.random.default_rng(0).normal(3.0, 2.0, size=(50, 4))
     ref = y[:20]

@@ -14,7 +14,7 @@ import pytest
 
 from invphys.core.objectives import RecoveryObjective, percentile_scales
 from invphys.core.spaces import build_problem, latent_space, make_predict, raw_space
-from invphys.core.targets import farthest_point_indices, select_targets
+from invphys.core.target_selection import farthest_point_indices, select_targets
 
 DATA = Path(__file__).parent / "data" / "orange_tiny.npz"
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from invphys.core.errors import InvphysError
 from invphys.core.interfaces import Problem, SearchSpace
-from invphys.core.protocols import FeatureHead, LatentCodec, Predictor
+from invphys.core.model_protocols import FeatureHead, LatentCodec, Predictor
 
 EVALUATORS = ("shared", "own_head")
 

@@ -127,7 +127,7 @@ class DatasetSection(_Section):
     @model_validator(mode="after")
     def _adaptive_fits(self) -> DatasetSection:
         if self.adaptive is not None:
-            from invphys.core.adaptive import AdaptiveSettings
+            from invphys.core.adaptive_plan import AdaptiveSettings
 
             try:
                 AdaptiveSettings.of(self.adaptive, self.n)  # the check generation makes, at spec time

@@ -13,7 +13,7 @@ Each round's points are written to ``_design.json`` in the store before they are
 or time-limited generation resumes the same points (no refit). One process grows a design at a time
 (``.design.lock``; a second one fails with one line). Raising ``n`` and ``rounds`` together adds
 rounds to a finished design (the planned ones keep their points); other settings than the stored plan's
-are refused. The settings and the plan file are :mod:`invphys.core.adaptive`. Rows are stored as any generation's (a session per round in the metadata, with its
+are refused. The settings and the plan file are :mod:`invphys.core.adaptive_plan`. Rows are stored as any generation's (a session per round in the metadata, with its
 round number), so the store reads, verifies and joins like any other.
 
 Why: on the orange peel's paper preset, two adaptive designs of 1,600 runs (800 uniform + 4 rounds of 200)
@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from invphys.core.adaptive import (
+from invphys.core.adaptive_plan import (
     DESIGN_LOCK,
     PLAN_FILE,
     AdaptiveSettings,

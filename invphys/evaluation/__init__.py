@@ -1,7 +1,7 @@
 """The evaluation protocol (docs/evaluation.md).
 
 * :mod:`~invphys.evaluation.stats`: bootstrap intervals of means and of paired differences;
-* :mod:`~invphys.evaluation.protocol`: the per-method summary of ``report.json`` (R_actual with its
+* :mod:`~invphys.evaluation.method_summary`: the per-method summary of ``report.json`` (R_actual with its
   interval, the paired difference against the nearest-neighbour baseline, cost per target);
 * :mod:`~invphys.evaluation.parameters`: recovered parameters per target and method, their error in
   normalised parameter space and the parameters the data cannot pin down;

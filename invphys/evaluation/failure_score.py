@@ -65,7 +65,7 @@ def local_error(bundle: Any, targets: Any, k: int = K_LOCAL) -> np.ndarray:
 
 def components(bundle: Any, targets: Any, answers: np.ndarray) -> dict[str, np.ndarray]:
     """Every score of :data:`SCORES` for targets (B, M) and their answers (B, d) in normalised units."""
-    from invphys.inverter.objective import masked_recovery
+    from invphys.core.masked_recovery import masked_recovery
 
     t = feature_targets(bundle, targets)
     theta = np.atleast_2d(np.asarray(answers, dtype=np.float64))

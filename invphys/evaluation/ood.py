@@ -126,7 +126,7 @@ def score_components(bundle: Any, targets: Any, answers: np.ndarray | None = Non
     """Every score of ``names`` that the inputs allow: ``answers`` (B, d) normalised parameters of the
     answers, ``draws`` a :class:`~invphys.inverter.draws.PosteriorDraws` (or anything with ``samples``
     and ``outside_fraction``)."""
-    from invphys.inverter.objective import masked_recovery
+    from invphys.core.masked_recovery import masked_recovery
     from invphys.plugins.evaluators.uncertainty import normalised_std
 
     t = feature_targets(bundle, targets)

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from invphys.evaluation.protocol import actual_score
+from invphys.evaluation.method_summary import actual_score
 
 PRIOR_STD = float(np.sqrt(1.0 / 12.0))
 

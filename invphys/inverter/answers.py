@@ -20,7 +20,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from invphys.core.errors import InvphysError
-from invphys.inverter.objective import MaskedRecovery
+from invphys.core.masked_recovery import MaskedRecovery
 from invphys.inverter.seeds import target_seed
 from invphys.inverter.uncertainty import NEIGHBOUR_ROWS, Uncertainty
 

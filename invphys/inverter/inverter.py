@@ -23,13 +23,13 @@ from typing import Any
 import numpy as np
 
 from invphys.core.errors import InvphysError, did_you_mean
+from invphys.core.masked_recovery import MaskedRecovery, masked_recovery
 from invphys.core.user_targets import UserTargets, from_array, from_mappings
 from invphys.inverter.answers import MethodAnswers, PosteriorAnswers, quiet_cma
 from invphys.inverter.bundle import Bundle
 from invphys.inverter.diagnosed import failure_score, feature_std, ood_warning, recalibrated
 from invphys.inverter.draws import PosteriorDraws
 from invphys.inverter.noise import noise_warnings, noisy_rows, posterior_draws
-from invphys.inverter.objective import MaskedRecovery, masked_recovery
 from invphys.inverter.pool import POOL_METHOD, PoolSettings
 from invphys.inverter.quiet import quiet
 from invphys.inverter.result import Candidate, InversionResult

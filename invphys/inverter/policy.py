@@ -16,8 +16,8 @@ import numpy as np
 
 from invphys.core.errors import InvphysError
 from invphys.core.interfaces import Problem
+from invphys.core.masked_recovery import masked_recovery
 from invphys.core.results import OptimizationResult
-from invphys.inverter.objective import masked_recovery
 
 #: longest episode a bundle's policy may describe (the paper's T is 8)
 MAX_HORIZON = 10_000

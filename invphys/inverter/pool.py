@@ -26,8 +26,8 @@ from typing import Any
 import numpy as np
 
 from invphys.core.errors import InvphysError
+from invphys.core.masked_recovery import masked_recovery
 from invphys.inverter.answers import Pool, PosteriorAnswers
-from invphys.inverter.objective import masked_recovery
 from invphys.inverter.seeds import target_rng, target_seed
 
 #: the label ``invphys invert --method`` knows the pool by (any bundle holding a posterior method)

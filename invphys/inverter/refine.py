@@ -92,7 +92,7 @@ def _apply(inv: Any, r: InversionResult, t: Any, budget: int, popsize: int, sigm
            ) -> dict[str, Any]:
     """Put the refined answer first: a start candidate (moved first, its simulation filled in) or a new
     candidate ``"<best start's source> + sim-refine"``; the record of what was done."""
-    from invphys.inverter.objective import masked_recovery
+    from invphys.core.masked_recovery import masked_recovery
 
     b = inv.bundle
     for c, y in zip(r.candidates, t.known, strict=True):  # starts simulated by the refine: their R_actual

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from invphys.core.errors import InvphysError
-from invphys.inverter.objective import masked_recovery
+from invphys.core.masked_recovery import masked_recovery
 from invphys.inverter.result import Candidate, InversionResult
 from invphys.inverter.settings import PolishSettings
 

@@ -135,7 +135,7 @@ class Reader(StoreBase):
     def info(self) -> dict[str, Any]:
         """A JSON-ready summary: counts, failures by reason, provenance, feature percentiles and, for an
         adaptive design, its settings and rounds (``design``; None otherwise)."""
-        from invphys.core.adaptive import describe_design
+        from invphys.core.adaptive_plan import describe_design
 
         meta = self.metadata
         df = self.frame()

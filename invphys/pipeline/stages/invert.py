@@ -1,7 +1,7 @@
 """The ``invert`` stage: run every optimiser entry on the held-out targets and the named objectives.
 
 1. Chooses ``targets.n`` held-out targets from the test partition (farthest-point sampling in
-   standardised feature space, :mod:`invphys.core.targets`) and writes ``targets.json``.
+   standardised feature space, :mod:`invphys.core.target_selection`) and writes ``targets.json``.
 2. For each ``optimizers`` entry builds its search space (``space: raw`` or a latent model's label)
    and evaluator (``evaluator: shared`` = decode then the shared surrogate, ``own_head`` = the latent
    model's own head). Goal-conditioned entries are trained once on the training partition's features
@@ -41,7 +41,7 @@ def select(ctx: StageContext) -> dict[str, Any]:
     With ``targets.values`` or ``targets.file`` these are the user's own targets instead: no dataset
     rows and no ground truth (``rows`` are None, ``theta`` and ``params`` are None).
     """
-    from invphys.core.targets import select_targets
+    from invphys.core.target_selection import select_targets
 
     data = ctx.dataset()
     spec_t = ctx.spec.targets

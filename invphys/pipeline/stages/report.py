@@ -435,9 +435,9 @@ def _evaluation_rows(ctx: StageContext, targets: dict[str, Any]) -> list[dict[st
 
 def protocol_block(ctx: StageContext, merged: list[dict[str, Any]], targets: dict[str, Any]) -> dict[str, Any]:
     """The evaluation protocol's statistics, recovered parameters and uncertainty check."""
-    from invphys.core.targets import target_set_labels
+    from invphys.core.target_selection import target_set_labels
+    from invphys.evaluation.method_summary import protocol_summary
     from invphys.evaluation.parameters import parameter_report
-    from invphys.evaluation.protocol import protocol_summary
     from invphys.evaluation.uncertainty import uncertainty_check
 
     ev = ctx.spec.evaluation

@@ -1,4 +1,5 @@
-"""R_gt over the features a target gives (partial targets leave the others out of R)."""
+"""R_gt over the features a target gives (partial targets leave the others out of R): the score every inverter
+answer, baseline and diagnosis ranks by, below them all in core."""
 
 from __future__ import annotations
 
