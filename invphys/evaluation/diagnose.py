@@ -81,15 +81,13 @@ def calibration_block(draws: np.ndarray, theta: np.ndarray, seed: int) -> dict[s
 
 
 def _recalibration(draws_fit: np.ndarray, theta_fit: np.ndarray, names: list[str], seed: int
-                   ) -> tuple[list[dict[str, list[float]] | None], list[str]]:
-    """Maps fitted on the fit half, kept only for parameters whose fit-half calibration is off."""
+                   ) -> tuple[dict[str, Any], list[str]]:
+    """The recalibration block fitted on the fit half: quantile maps for the parameters whose fit-half
+    calibration is off, then the joint step (a location shift of every parameter)."""
     block = calibration_block(draws_fit, theta_fit, seed)
-    maps = cal.fit_recalibration(cal.pit_z(draws_fit, theta_fit))
-    keep: list[dict[str, list[float]] | None] = []
-    for j, _ in enumerate(names):
-        off = cal.worst_error(block["coverage"], j) > RECALIBRATE_ABOVE or block["sbc"]["ks_pvalue"][j] < 0.01
-        keep.append(maps[j] if off else None)
-    return keep, [n for n, m in zip(names, keep, strict=True) if m is not None]
+    keep = [cal.worst_error(block["coverage"], j) > RECALIBRATE_ABOVE or block["sbc"]["ks_pvalue"][j] < 0.01
+            for j, _ in enumerate(names)]
+    return cal.fit_posterior_recalibration(draws_fit, theta_fit, keep), [n for n, k in zip(names, keep, strict=True) if k]
 
 
 def _verdicts(after: dict[str, Any], names: list[str]) -> list[dict[str, Any]]:
@@ -180,11 +178,11 @@ def _posterior(inverter: Any, held: HeldOut, fit: np.ndarray, draws: int, seed: 
     names = list(inverter.bundle.space.names)
     samples, outside, clipped = _draws_in_chunks(inverter, held.y, draws, seed, label)
     before_all = calibration_block(samples, held.theta, seed)
-    maps, recalibrated = _recalibration(samples[fit], held.theta[fit], names, seed)
-    fixed = cal.apply_recalibration(samples[~fit], maps)
+    recal, recalibrated = _recalibration(samples[fit], held.theta[fit], names, seed)
+    fixed = cal.apply_posterior_recalibration(samples[~fit], recal)
     after = calibration_block(fixed, held.theta[~fit], seed)
-    swapped_maps, _ = _recalibration(samples[~fit], held.theta[~fit], names, seed)  # the other direction
-    swapped = calibration_block(cal.apply_recalibration(samples[fit], swapped_maps), held.theta[fit], seed)
+    swapped_recal, _ = _recalibration(samples[~fit], held.theta[~fit], names, seed)  # the other direction
+    swapped = calibration_block(cal.apply_posterior_recalibration(samples[fit], swapped_recal), held.theta[fit], seed)
     width90 = np.asarray(before_all["coverage"]["0.9"]["width"])
     blocks = {"posterior_method": label, "draws_per_row": int(draws),
               "outside_box": {"mean_outside_fraction": float(outside.mean()),
@@ -201,7 +199,7 @@ def _posterior(inverter: Any, held: HeldOut, fit: np.ndarray, draws: int, seed: 
                                   "(not pooled with check_after: two folds pooled cancel each other's errors)",
                           "before": calibration_block(samples[fit], held.theta[fit], seed), "after": swapped},
               "after_recalibration_not_uniform": _verdicts(after, names)}
-    calib = {"method": label, "parameters": names, "recalibration": {"knots": cal.KNOTS, "maps": maps}}
+    calib = {"method": label, "parameters": names, "recalibration": recal}
     figures = {"ranks_before": cal.ranks(samples[~fit], held.theta[~fit]), "ranks_after": cal.ranks(fixed, held.theta[~fit])}
     return blocks, calib, _Draws(samples, outside), figures
 

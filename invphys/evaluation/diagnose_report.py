@@ -63,6 +63,12 @@ def _posterior_lines(report: dict[str, Any]) -> list[str]:
     tb, ta = b["tarp"]["levels"], a["tarp"]["levels"]
     lines.append("| joint (TARP) | " + " | ".join(f"{_pct(tb[k]['rate'])} -> {_pct(ta[k]['rate'])}"
                                                   for k in ("0.5", "0.8", "0.9", "0.95")) + " | | |")
+    rb, ra = b["tarp"].get("levels_refs"), a["tarp"].get("levels_refs")
+    if rb and ra:  # the same expected coverage over several reference points per row: less noise
+        lines.append(f"| joint (TARP, {a['tarp'].get('n_refs')} references per row) | "
+                     + " | ".join(f"{_pct(rb[k]['rate'])} -> {_pct(ra[k]['rate'])} "
+                                  f"[{_pct(ra[k]['ci95'][0])}, {_pct(ra[k]['ci95'][1])}]"
+                                  for k in ("0.5", "0.8", "0.9", "0.95")) + " | | |")
     lines += ["", f"Recalibrated: {', '.join(report['recalibrated']) or 'none'}. "
               f"Not identified (90 % interval wider than {report['identified']['max_width90']:.0%} of the range): "
               f"{', '.join(report['identified']['not_identified']) or 'none'}. "

@@ -32,12 +32,11 @@ def diagnostics(bundle: Any) -> dict[str, Any] | None:
 
 def recalibrated(bundle: Any, draws: np.ndarray) -> tuple[np.ndarray, bool]:
     """(draws (S, d) corrected by the stored recalibration, whether a correction applied)."""
-    from invphys.evaluation.calibration import recalibrated_samples
+    from invphys.evaluation.calibration import has_recalibration, recalibrated_samples
 
     diag = diagnostics(bundle)
     out = recalibrated_samples(np.asarray(draws, dtype=np.float64)[None], diag)[0]
-    block = ((diag or {}).get("posterior") or {}).get("recalibration") or {}
-    return out, any(m is not None for m in block.get("maps") or [])
+    return out, has_recalibration(diag)
 
 
 def feature_std(bundle: Any, std: np.ndarray) -> np.ndarray:
