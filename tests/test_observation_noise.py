@@ -189,6 +189,8 @@ def test_a_noisy_answer_says_its_noise_and_does_not_depend_on_the_batch(inv) -> 
     d = json.loads(json.dumps(alone.to_dict()))
     assert d["noise"]["std"] == dict(zip(FEATURES, SIGMA.tolist(), strict=True)) and d["noise"]["posterior"] is True
     assert 0 < d["noise"]["chi2"] < 10 and d["candidates"][0]["features"]["y1"]["target_std"] == 0.1
+    given = inv.evaluate(theta=alone.theta, target=from_array(y[2], inv.feature_names, std=SIGMA))
+    assert given.chi2() == pytest.approx(alone.chi2()) and given.noise()["posterior"] is False  # type: ignore[index]
     exact = inv.invert(dict(zip(FEATURES, y[2], strict=True)), method="post")
     assert exact.to_dict()["noise"] is None and "chi2" not in exact.to_dict()["candidates"][0]
 

@@ -97,8 +97,8 @@ class PosteriorAnswers(MethodAnswers):
     posterior_label: str = ""
     #: draws per target the answer itself uses (before the intervals' ``draws``)
     answer_draws: int = 1
-    #: (B, M) observation noise (std; NaN: none) of the targets :meth:`answer_all` answers, or None: a
-    #: target with noise is drawn from its noisy posterior (:mod:`~invphys.inverter.noise`)
+    #: (B, M) observation noise (std; NaN: none), row for row the targets the next :meth:`answer_all`
+    #: answers, or None: a target with noise is drawn from its noisy posterior (:mod:`~invphys.inverter.noise`)
     noise: np.ndarray | None = None
     _noise_rows: np.ndarray | None = None
 

@@ -484,7 +484,8 @@ class Inverter:
                                parameter_units=tuple(p.unit for p in space.parameters),
                                feature_names=self.feature_names, feature_units=self.bundle.feature_units,
                                warnings=self._warnings(t.values[0], t.mask[0]),
-                               bundle_id=str(self.bundle.manifest.get("bundle_id", "")))
+                               bundle_id=str(self.bundle.manifest.get("bundle_id", "")),
+                               target_std=None if t.std is None else t.std[0])
 
     # -- validation ---------------------------------------------------------------------------------
     def simulator(self, overrides: Mapping[str, Any] | None = None) -> Any:
