@@ -2,14 +2,19 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar
 
 import numpy as np
+from invphys_anisompm.simulator import (
+    ENGINE_BLOCK_HELP,
+    EngineSettings,
+    EngineSimulator,
+    EngineSimulatorConfig,
+)
 from pydantic import Field, field_validator
 
-from invphys.core.interfaces import PluginConfig, Simulator
+from invphys.core.interfaces import PluginConfig
 from invphys.core.params import ParameterSpace
 from invphys.core.results import Rendering, RunStats, SimulationResult, TimeSeries, Trajectory
 from invphys_cheese_cut import SIMULATOR_VERSION
@@ -31,7 +36,11 @@ SERIES: dict[str, tuple[str, str]] = {
 }
 
 
-class CheeseCutSimulator(Simulator):
+class CheeseEngine(EngineSettings):
+    """The engine's settings of the cheese cut (its ``engine:`` block): the common ones, as they were."""
+
+
+class CheeseCutSimulator(EngineSimulator):
     """A block of cheese on a board cut by a wire pressed down and slid along its axis (a wire-cutting test).
 
     Each row of ``params`` is one run (7 parameters, physical units: E, nu, rho, fracture_stretch, eta,
@@ -46,26 +55,13 @@ class CheeseCutSimulator(Simulator):
     #: identical; force and work sums agree to float32 rounding), so it does not enter the config hash
     identity_ignores: ClassVar[tuple[str, ...]] = ("scheduling",)
 
-    class Config(PluginConfig):
-        """Settings of the cheese-cut simulator."""
+    class Config(CheeseEngine, EngineSimulatorConfig):
+        """Settings of the cheese-cut simulator; the engine's may also be given as one ``engine:`` block."""
 
-        backend: Literal["taichi", "warp"] = Field("taichi", description="compute backend of the engine")
+        engine: CheeseEngine | None = Field(None, exclude=True, description=ENGINE_BLOCK_HELP)  # type: ignore[assignment]
         preset: str = Field("quick", description="scene resolution: full, quick or tiny")
-        arch: Literal["cpu", "cuda", "auto"] = Field("auto", description="device; auto = CUDA if present")
-        allow_cpu_fallback: bool = Field(False, description="run on CPU when CUDA is asked for but absent")
-        batch_size: int = Field(16, ge=1, le=4096, description="runs advanced together by one launch")
         record_every: int | None = Field(None, ge=1, description="frame stride of particle frames "
                                                                  "(default: the preset's)")
-        cfl: float = Field(0.4, gt=0, le=10, description="elastic-wave CFL number")
-        velocity_cfl: float = Field(0.3, gt=0, le=10, description="particle-velocity CFL number")
-        eta_dt_factor: float = Field(0.1, gt=0, le=10, description="dt <= this * eta: damage resolved in time")
-        max_substeps_per_frame: int = Field(4000, ge=1, description="more than this fails the run")
-        damage: bool = Field(True, description="evolve the phase-field damage")
-        deterministic: bool = Field(True, description="serialise CPU scatter so runs repeat bit-for-bit")
-        scheduling: Literal["lockstep", "continuous"] = Field(
-            "lockstep", description="lockstep: batches of similar cost run together until the slowest ends; "
-                                    "continuous: batch_size slots stay full, a finished run's slot takes the "
-                                    "next run at once (results stream out as runs finish)")
 
         @field_validator("preset")
         @classmethod
@@ -77,7 +73,6 @@ class CheeseCutSimulator(Simulator):
     def __init__(self, config: PluginConfig | dict[str, Any] | None = None, **settings: Any) -> None:
         super().__init__(config, **settings)
         self._scene = None
-        self._engine = None
 
     def parameter_space(self) -> ParameterSpace:
         return parameter_space()
@@ -86,11 +81,12 @@ class CheeseCutSimulator(Simulator):
         return "cheese_cut_features"
 
     @property
-    def preset(self) -> Preset:
+    def preset(self) -> Preset:  # type: ignore[override]
         return get_preset(self.config.preset)
 
     @property
     def scene(self):
+        """The engine scene of this config (built once)."""
         if self._scene is None:
             c = self.config
             self._scene = build_scene(self.preset, cfl=c.cfl, velocity_cfl=c.velocity_cfl,
@@ -98,64 +94,18 @@ class CheeseCutSimulator(Simulator):
                                       damage=c.damage, deterministic=c.deterministic)
         return self._scene
 
-    @property
-    def engine(self):
-        if self._engine is None:
-            from invphys_anisompm import Engine
+    def build_engine_scene(self) -> Any:
+        return self.scene
 
-            self._engine = Engine(self.scene, backend=self.config.backend, arch=self.config.arch,
-                                  allow_cpu_fallback=self.config.allow_cpu_fallback)
-        return self._engine
+    def model_for_params(self, x: np.ndarray) -> Any:
+        return model_for(self.scene, x)
 
-    @property
-    def record_every(self) -> int:
-        return self.config.record_every or self.preset.record_every
-
-    @property
-    def native_stream(self) -> bool:  # type: ignore[override]
-        return self.config.scheduling == "continuous"
-
-    def simulate(self, params: np.ndarray,
-                 on_result: Callable[[int, SimulationResult], None] | None = None) -> list[SimulationResult]:
-        """Simulate each row of ``params`` (B, 7); see :meth:`Simulator.simulate`."""
-        x = self._check(params)
-        results: list[SimulationResult | None] = [None] * len(x)
-
-        def done(i: int, rec: Any) -> None:
-            results[i] = res = self._finished(x[i], rec)
-            if on_result is not None:
-                on_result(i, res)
-
-        if self.config.scheduling == "continuous":
-            for i, rec in self.engine.stream(model_for(self.scene, x), self.preset.frames, self.record_every,
-                                             self.config.batch_size):
-                done(i, rec)
-        else:
-            self.engine.run_batched(model_for(self.scene, x), self.preset.frames, self.record_every,
-                                    self.config.batch_size, on_result=done)
-        return [r for r in results if r is not None]
-
-    def simulate_stream(self, params: np.ndarray, batch_size: int | None = None):
-        """Yield ``(i, result)`` as runs finish: continuous batching over every row, ``batch_size`` (default:
-        the config's) slots kept full on the warm engine, whatever ``scheduling`` says."""
-        x = self._check(params)
-        for i, rec in self.engine.stream(model_for(self.scene, x), self.preset.frames, self.record_every,
-                                         int(batch_size or self.config.batch_size)):
-            yield i, self._finished(x[i], rec)
-
-    def estimate_cost(self, params: np.ndarray) -> np.ndarray:
-        """Each run's estimated substeps: host arithmetic, no kernels."""
-        return self.engine.estimate_cost(model_for(self.scene, self._check(params)), self.preset.frames)
-
-    def _check(self, params: np.ndarray) -> np.ndarray:
-        space = self.parameter_space()
-        return space.check(np.atleast_2d(np.asarray(params, dtype=np.float64))).reshape(-1, space.dim)
+    def record_result(self, params: np.ndarray, rec: Any, stats: RunStats) -> SimulationResult:
+        return self._result(params, rec, stats)
 
     def _finished(self, params: np.ndarray, rec: Any) -> SimulationResult:
-        stats = RunStats(substeps=rec.substeps + rec.settle_substeps, wall_time_s=rec.wall_time_s,
-                         backend=self.config.backend, device=self.engine.device, preset=self.preset.name,
-                         simulator=self.name, simulator_version=self.version)
-        return self._result(params, rec, stats)
+        """The result of a run record (the name benchmarks use; :meth:`result_from_record`)."""
+        return self.result_from_record(params, rec)
 
     def _result(self, params: np.ndarray, rec: Any, stats: RunStats) -> SimulationResult:
         if rec.failure is not None:

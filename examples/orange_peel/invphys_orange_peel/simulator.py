@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
 from typing import Any, ClassVar, Literal
 
 import numpy as np
+from invphys_anisompm.simulator import (
+    ENGINE_BLOCK_HELP,
+    EngineSettings,
+    EngineSimulator,
+    EngineSimulatorConfig,
+)
 from pydantic import Field, field_validator
 
-from invphys.core.interfaces import PluginConfig, Simulator
+from invphys.core.interfaces import PluginConfig
 from invphys.core.params import ParameterSpace
 from invphys.core.results import RunStats, SimulationResult, TimeSeries, Trajectory
 from invphys_orange_peel import SIMULATOR_VERSION
@@ -38,7 +43,51 @@ SERIES: dict[str, tuple[str, str]] = {
 }
 
 
-class OrangePeelSimulator(Simulator):
+class OrangeEngine(EngineSettings):
+    """The engine's settings of the orange peel (its ``engine:`` block): the common ones with this food's
+    defaults, and the scheduling and kernel knobs it tunes for GPUs."""
+
+    batch_size: int | None = Field(None, ge=1, le=4096,
+                                   description="runs advanced together by one launch (slots); None = 64 for "
+                                               "Taichi on CUDA, else 16")
+    min_substeps_per_frame: int = Field(4, ge=1, description="dt cap: at least this many substeps/frame")
+    max_substeps_per_frame: int = Field(2000, ge=1, description="more than this fails the run")
+    eta_dt_factor: float = Field(0.1, gt=0, le=1e6, description="dt <= this * min(eta_s, eta_i): damage "
+                                                                "resolved in time")
+    l0_cells: float = Field(0.5, gt=0, le=4, description="phase-field length scale l0 in grid cells")
+    apic_blend: float = Field(0.0, ge=0, le=1, description="0 = PIC (damped), 1 = APIC")
+    energy_factor: float = Field(4.0, gt=0, description="kinetic-energy blow-up bound factor")
+    scheduling: Literal["auto", "lockstep", "continuous"] = Field(
+        "auto", description="lockstep: batches of similar cost run together until the slowest ends; "
+                            "continuous: batch_size slots stay full, a finished run's slot takes the "
+                            "next run at once (results stream out as runs finish); auto = continuous for "
+                            "Taichi on CUDA (768-run datasets 1.08x faster on an H100), else lockstep")
+    queue_order: Literal["longest_first", "given"] = Field(
+        "longest_first", description="continuous: order in which free slots take runs; longest_first "
+                                     "starts the costliest (estimated substeps) at once, given keeps row "
+                                     "order (results and their row indices are the same either way)")
+    min_chunk: int | None = Field(None, ge=1, le=4096,
+                                  description="continuous: fewest substeps per host round trip (larger: fewer "
+                                              "round trips, slots idle past their frame end); None = 64 for "
+                                              "Taichi on CUDA, else 1")
+    warp_graphs: bool | None = Field(None, description="Warp on CUDA: replay substeps as CUDA graphs "
+                                                       "(None: on for CUDA)")
+    gpu_deterministic: bool = Field(False, description="Warp on CUDA: deterministic scatter atomics "
+                                                       "(slower; runs repeat bit for bit)")
+    taichi_p2g: Literal["auto", "atomic", "tiled"] = Field(
+        "auto", description="Taichi scatter: atomic (global float atomics), tiled (CUDA only: tiles of "
+                            "particles summed in shared memory first; 1.25x faster runs), auto = tiled on "
+                            "CUDA, atomic on the CPU")
+    taichi_g2p: Literal["auto", "unrolled", "loop"] = Field(
+        "auto", description="Taichi g2p: 27 nodes unrolled, or loops over two axes (half the registers; "
+                            "1.23x faster kernel on an H100), auto = loop on CUDA, unrolled on the CPU")
+    taichi_resort_every: int | None = Field(
+        None, ge=0, description="Taichi: substeps between re-sorts of each run's particles into the curve "
+                                "order of their current cells (keeps the tiled scatter's tiles compact as "
+                                "the orange tears); 0 = never, None = 128 with the tiled scatter, else never")
+
+
+class OrangePeelSimulator(EngineSimulator):
     """Half an orange peeled by a gripper along a fixed arc, simulated with AnisoMPM-style MPM.
 
     Each row of ``params`` is one run (9 parameters of paper Table 1, physical units). The scene is an
@@ -56,62 +105,18 @@ class OrangePeelSimulator(Simulator):
                                                    "queue_order", "min_chunk", "taichi_p2g",
                                                    "taichi_g2p", "taichi_resort_every")
 
-    class Config(PluginConfig):
-        """Settings of the orange-peel simulator."""
+    class Config(OrangeEngine, EngineSimulatorConfig):
+        """Settings of the orange-peel simulator; the engine's may also be given as one ``engine:`` block."""
 
-        backend: Literal["taichi", "warp"] = Field("taichi", description="compute backend")
+        engine: OrangeEngine | None = Field(None, exclude=True, description=ENGINE_BLOCK_HELP)  # type: ignore[assignment]
         preset: str = Field("quick", description="scene resolution: paper, quick or tiny")
-        arch: Literal["cpu", "cuda", "auto"] = Field("auto", description="device; auto = CUDA if present")
-        allow_cpu_fallback: bool = Field(False, description="run on CPU when CUDA is asked for but absent")
-        batch_size: int | None = Field(None, ge=1, le=4096,
-                                       description="runs advanced together by one launch (slots); None = 64 for "
-                                                   "Taichi on CUDA, else 16")
         record_every: int | None = Field(None, ge=1, description="frame stride of trajectories "
                                                                  "(default: the preset's)")
         frames: int | None = Field(None, ge=1, description="override the preset's frame count")
-        cfl: float = Field(0.4, gt=0, le=10, description="elastic-wave CFL number")
-        velocity_cfl: float = Field(0.3, gt=0, le=10, description="particle-velocity CFL number")
-        min_substeps_per_frame: int = Field(4, ge=1, description="dt cap: at least this many substeps/frame")
-        max_substeps_per_frame: int = Field(2000, ge=1, description="more than this fails the run")
-        eta_dt_factor: float = Field(0.1, gt=0, le=1e6, description="dt <= this * min(eta_s, eta_i): damage "
-                                                                    "resolved in time")
         gravity: float = Field(GRAVITY, le=0, description="vertical gravity in m/s^2 (<= 0)")
         settle_seconds: float = Field(0.5, ge=0, le=10, description="gravity-only settling before frame 0 "
                                                                     "(gripper at rest, damage frozen)")
-        l0_cells: float = Field(0.5, gt=0, le=4, description="phase-field length scale l0 in grid cells")
-        apic_blend: float = Field(0.0, ge=0, le=1, description="0 = PIC (damped), 1 = APIC")
         gripper: bool = Field(True, description="drive the gripper (False: no load at all)")
-        damage: bool = Field(True, description="evolve the phase-field damage")
-        deterministic: bool = Field(True, description="serialise CPU scatter so runs repeat bit-for-bit")
-        energy_factor: float = Field(4.0, gt=0, description="kinetic-energy blow-up bound factor")
-        scheduling: Literal["auto", "lockstep", "continuous"] = Field(
-            "auto", description="lockstep: batches of similar cost run together until the slowest ends; "
-                                "continuous: batch_size slots stay full, a finished run's slot takes the "
-                                "next run at once (results stream out as runs finish); auto = continuous for "
-                                "Taichi on CUDA (768-run datasets 1.08x faster on an H100), else lockstep")
-        queue_order: Literal["longest_first", "given"] = Field(
-            "longest_first", description="continuous: order in which free slots take runs; longest_first "
-                                         "starts the costliest (estimated substeps) at once, given keeps row "
-                                         "order (results and their row indices are the same either way)")
-        min_chunk: int | None = Field(None, ge=1, le=4096,
-                                      description="continuous: fewest substeps per host round trip (larger: fewer "
-                                                  "round trips, slots idle past their frame end); None = 64 for "
-                                                  "Taichi on CUDA, else 1")
-        warp_graphs: bool | None = Field(None, description="Warp on CUDA: replay substeps as CUDA graphs "
-                                                           "(None: on for CUDA)")
-        gpu_deterministic: bool = Field(False, description="Warp on CUDA: deterministic scatter atomics "
-                                                           "(slower; runs repeat bit for bit)")
-        taichi_p2g: Literal["auto", "atomic", "tiled"] = Field(
-            "auto", description="Taichi scatter: atomic (global float atomics), tiled (CUDA only: tiles of "
-                                "particles summed in shared memory first; 1.25x faster runs), auto = tiled on "
-                                "CUDA, atomic on the CPU")
-        taichi_g2p: Literal["auto", "unrolled", "loop"] = Field(
-            "auto", description="Taichi g2p: 27 nodes unrolled, or loops over two axes (half the registers; "
-                                "1.23x faster kernel on an H100), auto = loop on CUDA, unrolled on the CPU")
-        taichi_resort_every: int | None = Field(
-            None, ge=0, description="Taichi: substeps between re-sorts of each run's particles into the curve "
-                                    "order of their current cells (keeps the tiled scatter's tiles compact as "
-                                    "the orange tears); 0 = never, None = 128 with the tiled scatter, else never")
 
         @field_validator("preset")
         @classmethod
@@ -125,7 +130,6 @@ class OrangePeelSimulator(Simulator):
         self._scene: Scene | None = None
         self._scene_separation: float | None = None
         self._engine_scene: OrangeScene | None = None
-        self._engine: Any = None
         self._cuda_probed: bool | None = None   # arch "auto": whether a CUDA GPU was found (probed once)
 
     # -- description --------------------------------------------------------------------------
@@ -159,27 +163,6 @@ class OrangePeelSimulator(Simulator):
         if self._engine_scene is None:
             self._engine_scene = build_orange_scene(self.scene, self.engine_options(), gripper=self.config.gripper)
         return self._engine_scene
-
-    @property
-    def engine(self) -> Any:
-        """The warm :class:`invphys_anisompm.Engine` (kernels compiled and fields allocated once)."""
-        if self._engine is None:
-            from invphys_anisompm import Engine
-
-            c = self.config
-            opts = ({"use_graphs": c.warp_graphs, "gpu_deterministic": c.gpu_deterministic} if c.backend == "warp"
-                    else {"p2g": c.taichi_p2g, "g2p": c.taichi_g2p, "resort_every": c.taichi_resort_every})
-            self._engine = Engine(self.engine_scene.engine, backend=c.backend, arch=c.arch,
-                                  allow_cpu_fallback=c.allow_cpu_fallback, **opts)
-        return self._engine
-
-    @property
-    def frames(self) -> int:
-        return self.config.frames or self.preset.frames
-
-    @property
-    def record_every(self) -> int:
-        return self.config.record_every or self.preset.record_every
 
     @property
     def on_cuda(self) -> bool:
@@ -225,10 +208,6 @@ class OrangePeelSimulator(Simulator):
         """The case the ``auto`` defaults were measured for: the Taichi backend on a CUDA GPU."""
         return self.config.backend == "taichi" and self.on_cuda
 
-    @property
-    def native_stream(self) -> bool:  # type: ignore[override]
-        return self.scheduling == "continuous"
-
     def engine_options(self) -> Any:
         """The engine's :class:`~invphys_anisompm.EngineOptions` of this config (no settling damping: the
         orange settles under gravity alone; the gripper is slow, so no kinematic CFL bound applies)."""
@@ -242,55 +221,23 @@ class OrangePeelSimulator(Simulator):
                              kinematic_cfl=1e9, apic_blend=c.apic_blend, l0_cells=c.l0_cells,
                              damage=c.damage, deterministic=c.deterministic, energy_factor=c.energy_factor)
 
-    # -- simulation ---------------------------------------------------------------------------
-    def simulate(self, params: np.ndarray,
-                 on_result: Callable[[int, SimulationResult], None] | None = None) -> list[SimulationResult]:
-        """Simulate each row of ``params`` (B, 9); see :class:`Simulator.simulate`."""
-        x = self._check(params)
-        results: list[SimulationResult | None] = [None] * len(x)
+    # -- the engine's hooks -----------------------------------------------------------------------
+    def build_engine_scene(self) -> Any:
+        return self.engine_scene.engine
 
-        def done(i: int, rec: Any) -> None:
-            results[i] = res = self.result_from_record(x[i], rec)
-            if on_result is not None:
-                on_result(i, res)
+    def model_for_params(self, x: np.ndarray) -> Any:
+        return model_for(self.engine_scene, x)
 
-        model = model_for(self.engine_scene, x)
-        if self.scheduling == "continuous":
-            for i, rec in self._stream(model, self.batch_size):
-                done(i, rec)
-        else:
-            self.engine.run_batched(model, self.frames, self.record_every, self.batch_size, on_result=done)
-        return [r for r in results if r is not None]
-
-    def simulate_stream(self, params: np.ndarray, batch_size: int | None = None
-                        ) -> Iterator[tuple[int, SimulationResult]]:
-        """Yield ``(i, result)`` as runs finish: continuous batching over every row, ``batch_size`` (default:
-        the config's) slots kept full on the warm engine, whatever ``scheduling`` says."""
-        x = self._check(params)
-        for i, rec in self._stream(model_for(self.engine_scene, x), int(batch_size or self.batch_size)):
-            yield i, self.result_from_record(x[i], rec)
-
-    def _stream(self, model: Any, batch_size: int) -> Iterator[tuple[int, Any]]:
+    def backend_options(self) -> dict[str, Any]:
         c = self.config
-        return self.engine.stream(model, self.frames, self.record_every, batch_size, min_chunk=self.min_chunk,
-                                  queue_order=c.queue_order)
+        if c.backend == "warp":
+            return {"use_graphs": c.warp_graphs, "gpu_deterministic": c.gpu_deterministic}
+        return {"p2g": c.taichi_p2g, "g2p": c.taichi_g2p, "resort_every": c.taichi_resort_every}
 
-    def estimate_cost(self, params: np.ndarray) -> np.ndarray:
-        """Each run's estimated substeps (settling included): host arithmetic, no kernels."""
-        return self.engine.estimate_cost(model_for(self.engine_scene, self._check(params)), self.frames)
+    def stream_options(self) -> dict[str, Any]:
+        return {"min_chunk": self.min_chunk, "queue_order": self.config.queue_order}
 
-    def _check(self, params: np.ndarray) -> np.ndarray:
-        space = self.parameter_space()
-        return space.check(np.atleast_2d(np.asarray(params, dtype=np.float64))).reshape(-1, space.dim)
-
-    def result_from_record(self, params: np.ndarray, rec: Any) -> SimulationResult:
-        """The :class:`SimulationResult` of parameters ``params`` (9,) from the engine's run record (for
-        callers that drive :attr:`engine` themselves, e.g. benchmarks timing a warm engine)."""
-        stats = RunStats(substeps=rec.substeps + rec.settle_substeps, wall_time_s=rec.wall_time_s,
-                         backend=self.config.backend, device=self.engine.device, preset=self.preset.name,
-                         simulator=self.name, simulator_version=self.version)
-        if rec.failure is not None:
-            return SimulationResult(params=params, ok=False, stats=stats, failure=rec.failure)
+    def record_result(self, params: np.ndarray, rec: Any, stats: RunStats) -> SimulationResult:
         return SimulationResult(params=params, ok=True, stats=stats, trajectory=self._trajectory(rec))
 
     def _trajectory(self, rec: Any) -> Trajectory:
