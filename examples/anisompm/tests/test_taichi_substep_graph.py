@@ -12,8 +12,8 @@ import pytest
 
 pytest.importorskip("taichi")
 
-from anisompm_scene import build_scene
 from invphys_anisompm.backends.taichi_backend import GRAPH_SUBSTEPS, TaichiBackend
+from invphys_anisompm.testing import build_scene
 
 SCENE = build_scene(settle_seconds=0.06)
 MODEL = SCENE.model(2).set_material("paste", E=[3e4, 6e4], eta=[0.02, 0.05]).set_friction("wire", [0.3, 0.0])

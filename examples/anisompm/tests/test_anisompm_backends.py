@@ -13,8 +13,8 @@ import pytest
 
 pytest.importorskip("taichi")
 
-from anisompm_scene import DX, FLOOR, build_scene, has_warp
 from invphys_anisompm import Box, Engine, EngineOptions, HalfSpace, MaterialSpec, SceneBuilder
+from invphys_anisompm.testing import DX, FLOOR, build_scene, has_warp
 
 SCENE = build_scene(settle_seconds=0.06)
 MODEL = SCENE.model(2).set_material("paste", E=[3e4, 6e4], eta=[0.02, 0.05]).set_friction("wire", [0.3, 0.0])

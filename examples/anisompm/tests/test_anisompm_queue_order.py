@@ -12,9 +12,9 @@ import pytest
 
 pytest.importorskip("taichi")
 
-from anisompm_scene import build_scene
 from invphys_anisompm import Engine, SceneError
 from invphys_anisompm.streaming import queue_order
+from invphys_anisompm.testing import build_scene
 
 FRAMES = 4
 SCENE = build_scene(settle_seconds=0.04)
