@@ -59,17 +59,27 @@ def _options(items: list[str]) -> dict[str, Any]:
 
 
 def native_feed(sim: Any) -> bool:
-    """Give an orange-peel simulator without its own ``simulate_feed`` one on its warm engine (an open stream:
-    ``Engine.stream_feed``); True when done. The same code as the override proposed for the simulator."""
+    """Give an engine simulator (orange peel) without its own ``simulate_feed`` one on its warm engine (an open
+    stream: ``Engine.stream_feed``); True when it has one now. The same code as the override proposed for the
+    simulator; it works with the simulator before and after the ``EngineSimulator`` base."""
     from invphys.core.interfaces import Simulator
 
     if type(sim).simulate_feed is not Simulator.simulate_feed:
         return True
-    needs = ("engine", "engine_scene", "frames", "record_every", "min_chunk", "batch_size", "result_from_record", "_check")
-    if getattr(sim, "name", "") != "orange_peel" or not all(hasattr(sim, n) for n in needs) \
-            or not hasattr(sim.engine, "stream_feed"):
+    needs = ("engine", "frames", "record_every", "batch_size", "result_from_record", "_check")
+    if not all(hasattr(sim, n) for n in needs) or not hasattr(sim.engine, "stream_feed"):
         return False
-    from invphys_orange_peel.engine_scene import model_for
+    if hasattr(sim, "model_for_params"):
+        to_model = sim.model_for_params
+    elif getattr(sim, "name", "") == "orange_peel":
+        from invphys_orange_peel.engine_scene import model_for
+
+        def to_model(x: np.ndarray) -> Any:
+            return model_for(sim.engine_scene, x)
+    else:
+        return False
+    opts = sim.stream_options() if hasattr(sim, "stream_options") else {}
+    min_chunk = int(opts.get("min_chunk") or getattr(sim, "min_chunk", 1) or 1)
 
     def simulate_feed(feeder: Any, batch_size: int | None = None) -> Any:
         fed: list[np.ndarray] = []
@@ -80,10 +90,10 @@ def native_feed(sim: Any) -> bool:
                 return None
             x = sim._check(rows)
             fed.extend(x)
-            return model_for(sim.engine_scene, x)
+            return to_model(x)
 
         for i, rec in sim.engine.stream_feed(models, sim.frames, sim.record_every, int(batch_size or sim.batch_size),
-                                             min_chunk=sim.min_chunk):
+                                             min_chunk=min_chunk):
             yield i, sim.result_from_record(fed[i], rec)
 
     sim.simulate_feed = simulate_feed
