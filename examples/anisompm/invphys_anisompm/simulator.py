@@ -90,6 +90,16 @@ class EngineSimulator(Simulator):
         super().__init__(config, **settings)
         self._engine: Any = None
 
+    @classmethod
+    def canonical_block(cls, block: dict[str, Any]) -> dict[str, Any]:
+        """A spec block with its ``engine:`` block folded into flat keys (a flat key wins), unvalidated: the form
+        whose stage keys equal those of a spec written flat (for a cache that hashes raw blocks)."""
+        engine = block.get("engine")
+        if not isinstance(engine, dict):
+            return dict(block)
+        flat = {k: v for k, v in block.items() if k != "engine"}
+        return {**engine, **flat}
+
     # -- what a food gives ----------------------------------------------------------------------
     preset: Any  # the food's preset (name, frames, record_every, fps)
 

@@ -81,3 +81,11 @@ def test_the_base_runs_a_food_both_ways() -> None:
         if r.ok:
             np.testing.assert_array_equal(r.trajectory.positions, streamed[i].trajectory.positions)
     assert sim.estimate_cost(x).shape == (3,)
+
+
+def test_canonical_block_folds_the_engine_block() -> None:
+    block = {"type": "cheese_cut", "preset": "tiny", "arch": "cpu", "engine": {"arch": "cuda", "batch_size": 4}}
+    assert CheeseCutSimulator.canonical_block(block) == {"type": "cheese_cut", "preset": "tiny", "arch": "cpu",
+                                                         "batch_size": 4}
+    flat = {"type": "cheese_cut", "preset": "tiny"}
+    assert CheeseCutSimulator.canonical_block(flat) == flat
