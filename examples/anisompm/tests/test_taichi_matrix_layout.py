@@ -14,9 +14,7 @@ import pytest
 pytest.importorskip("taichi")
 
 from invphys_anisompm.backends.taichi_backend import MATRIX_STATE, TaichiBackend
-from invphys_orange_peel.engine_scene import model_for
-from invphys_orange_peel.parameters import parameter_space
-from invphys_orange_peel.simulator import OrangePeelSimulator
+from invphys_anisompm.testing import build_scene
 
 PARTICLE = ("x", "v", "C", "F", "d", "dtil")
 
@@ -29,10 +27,8 @@ def _state(B: int, N: int) -> dict[str, np.ndarray]:
 
 
 def _substeps(component_major: bool, n: int) -> tuple[TaichiBackend, dict[str, np.ndarray]]:
-    sim = OrangePeelSimulator(backend="taichi", preset="tiny", arch="cpu", batch_size=2)
-    scene = sim.engine_scene.engine
-    space = parameter_space()
-    model = model_for(sim.engine_scene, space.denormalize(np.random.default_rng(3).uniform(size=(2, space.dim))))
+    scene = build_scene(0.0)
+    model = scene.model(2).set_material("paste", E=[2e4, 6e4]).set_material("rind", eta=[0.01, 0.05])
     backend = TaichiBackend(scene, 2, arch="cpu", component_major=component_major)
     backend.load(model.table(), model.friction)
     for name, values in _state(2, scene.n_particles).items():
@@ -48,8 +44,7 @@ def _substeps(component_major: bool, n: int) -> tuple[TaichiBackend, dict[str, n
 
 
 def test_the_cpu_keeps_matrices_per_particle_and_cuda_would_store_them_component_major():
-    sim = OrangePeelSimulator(backend="taichi", preset="tiny", arch="cpu", batch_size=2)
-    scene = sim.engine_scene.engine
+    scene = build_scene(0.0)
     N = scene.n_particles
     assert TaichiBackend(scene, 2, arch="cpu").F.shape == (2, N)
     backend = TaichiBackend(scene, 2, arch="cpu", component_major=True)
