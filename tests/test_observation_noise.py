@@ -189,6 +189,11 @@ def test_a_noisy_answer_says_its_noise_and_does_not_depend_on_the_batch(inv) -> 
     d = json.loads(json.dumps(alone.to_dict()))
     assert d["noise"]["std"] == dict(zip(FEATURES, SIGMA.tolist(), strict=True)) and d["noise"]["posterior"] is True
     assert 0 < d["noise"]["chi2"] < 10 and d["candidates"][0]["features"]["y1"]["target_std"] == 0.1
+    from invphys.inverter.noise import log_likelihood
+
+    first = alone.parameter_uncertainty.draws[:16]  # the method's samples: 16
+    ll = log_likelihood(inv.bundle.surrogate, first, y[2], np.ones(3, bool), SIGMA, inv.bundle.scales)
+    assert alone.theta.tolist() == first[int(np.argmax(ll))].tolist()  # the likeliest draw under the noise
     given = inv.evaluate(theta=alone.theta, target=from_array(y[2], inv.feature_names, std=SIGMA))
     assert given.chi2() == pytest.approx(alone.chi2()) and given.noise()["posterior"] is False  # type: ignore[index]
     exact = inv.invert(dict(zip(FEATURES, y[2], strict=True)), method="post")

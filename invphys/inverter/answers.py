@@ -101,6 +101,8 @@ class PosteriorAnswers(MethodAnswers):
     #: answers, or None: a target with noise is drawn from its noisy posterior (:mod:`~invphys.inverter.noise`)
     noise: np.ndarray | None = None
     _noise_rows: np.ndarray | None = None
+    #: (values, mask, std) of the noisy target being answered (None: an exact one), for :meth:`_choose`
+    _noisy_now: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def draw(self, values: np.ndarray, masks: np.ndarray, seed: int, n: int) -> tuple[list[np.ndarray], Any]:
         """(conditions per target, :class:`~invphys.inverter.draws.PosteriorDraws`) of every target, drawn
@@ -123,6 +125,9 @@ class PosteriorAnswers(MethodAnswers):
             self._noise_rows = None if self.noise is None else self.noise[a:a + step]
             conds, d = self.draw(v, m, seed, n)
             for i in range(len(v)):
+                std = None if self._noise_rows is None else self._noise_rows[i]
+                noisy = std is not None and bool(np.nan_to_num(std, nan=0.0).max() > 0)
+                self._noisy_now = (v[i], m[i], std) if noisy and std is not None else None
                 unc = Uncertainty("posterior", d.samples[i], outside_fraction=float(d.outside_fraction[i]),
                                   clipped=int(d.clipped[i]), completions=int(d.completions[i]))
                 yield self.from_draws(v[i], m[i], top_k, seed, d.samples[i], conds[i]), unc
@@ -136,11 +141,18 @@ class PosteriorAnswers(MethodAnswers):
         return pool, [self.label] * len(pool), spent
 
     def _choose(self, first: np.ndarray, cond: np.ndarray, goal: np.ndarray) -> tuple[np.ndarray, int]:
-        """The method's answer among its draws (mean, best log-prob, best by the surrogate) and the
-        evaluations spent (as the baseline counts them: its candidates and the answer)."""
+        """The method's answer among its draws (mean, best log-prob, best by the surrogate; for a noisy
+        target, other than mean: the most likely under its noise) and the evaluations spent (as the
+        baseline counts them: its candidates and the answer)."""
         how = getattr(self.plugin.config, "answer", "best_surrogate")
         if how == "mean":
             return first.mean(axis=0), 1
+        if self._noisy_now is not None:  # the draw the noise makes likeliest (the prior is flat on the box)
+            from invphys.inverter.noise import log_likelihood
+
+            values, mask, std = self._noisy_now
+            ll = log_likelihood(self.bundle.surrogate, first, values, mask, std, self.bundle.scales)
+            return first[int(np.argmax(ll))], len(first) + 1
         if how == "best_log_prob":
             from invphys.inverter.draws import log_prob
 
