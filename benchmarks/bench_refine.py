@@ -137,14 +137,14 @@ def _dataset(sim: Any, ext: Any, params: np.ndarray, batch: int) -> dict[str, An
 
 def _summary(records: list[dict[str, Any]]) -> dict[str, Any]:
     def mean(key: str) -> float | None:
-        v = np.array([r[key] for r in records], float)
+        v = np.array([np.nan if r[key] is None else r[key] for r in records], float)
         v = np.where(np.isfinite(v), v, 0.0)   # a failed answer counts as R 0
         return float(v.mean()) if len(v) else None
 
     return {"r_answer": mean("r_answer"), "r_best_start": mean("start_r_actual"), "r_refined": mean("r_actual"),
             "improved": int(sum(r["improved"] for r in records)),
-            "never_worse": bool(all(not r["r_actual"] < r["start_r_actual"] for r in records
-                                    if np.isfinite(r["start_r_actual"])))}
+            "never_worse": bool(all(r["r_actual"] is not None and r["r_actual"] >= r["start_r_actual"]
+                                    for r in records if r["start_r_actual"] is not None))}
 
 
 def main(argv: list[str] | None = None) -> int:

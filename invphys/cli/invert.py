@@ -290,8 +290,8 @@ def _sim_refine(inv: Any, results: list[Any], overrides: dict[str, Any], seed: i
                          on_run=lambda runs, _replayed: bar.advance(task, runs), **settings)
         bar.update(task, completed=total)
     for r, rec in zip(results, records, strict=True):
-        console.print(f"refine {escape(r.label)}: R_actual {_r(rec['start_r_actual'])} ({escape(rec['start_source'])})"
-                      f" -> {_r(rec['r_actual'])} ({rec['runs']} simulator runs, {rec['simulator_s']:.1f} "
+        console.print(f"refine {escape(r.label)}: R_actual {_r(_none_nan(rec['start_r_actual']))} "
+                      f"({escape(rec['start_source'])}) -> {_r(_none_nan(rec['r_actual']))} ({rec['runs']} simulator runs, {rec['simulator_s']:.1f} "
                       f"simulator-s{'' if rec['improved'] else ', start kept'})", soft_wrap=True)
     call = records[0]["call"] if records else {}
     if call.get("replayed_runs"):

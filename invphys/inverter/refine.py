@@ -117,7 +117,9 @@ def _apply(inv: Any, r: InversionResult, t: Any, budget: int, popsize: int, sigm
             cand.gap = cand.r_surrogate - cand.r_actual
             r.candidates.insert(0, cand)
             improved = True
+    def f(v: float) -> float | None:  # JSON has no NaN: a failed simulation is None
+        return float(v) if np.isfinite(v) else None
+
     return {"budget": budget, "runs": t.runs, "replayed_runs": t.replayed, "simulator_s": t.seconds,
-            "r_answer": first, "start_source": source, "start_r_actual": start_r,
-            "r_actual": float(t.score) if np.isfinite(t.score) else float("nan"), "improved": improved,
-            "settings": {"popsize": popsize, "sigma0": sigma0, "seed": seed}}
+            "r_answer": f(first), "start_source": source, "start_r_actual": f(start_r), "r_actual": f(t.score),
+            "improved": improved, "settings": {"popsize": popsize, "sigma0": sigma0, "seed": seed}}
