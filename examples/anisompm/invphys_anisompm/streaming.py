@@ -90,6 +90,7 @@ class _Runs:
 
     def __init__(self, engine, frames: int) -> None:
         self.engine, self.frames = engine, frames
+        self.kinematic_speed = kinematic_speed(engine.scene, frames)   # the scene's, the same for every run
         self.table: np.ndarray | None = None
         self.fric: np.ndarray | None = None
         self.nsub = np.zeros(0, np.int64)
@@ -101,8 +102,7 @@ class _Runs:
         scene = self.engine.scene
         o = scene.options
         nsub, dt = frame_plan(o.fps, run_dt_bound(model, self.frames))
-        bound = energy_bound(model.total_mass(), model.wave_speed(), kinematic_speed(scene, self.frames),
-                             o.energy_factor)
+        bound = energy_bound(model.total_mass(), model.wave_speed(), self.kinematic_speed, o.energy_factor)
         first = len(self.nsub)
         table, fric = model.table(), model.friction
         self.table = table if self.table is None else np.concatenate([self.table, table])
