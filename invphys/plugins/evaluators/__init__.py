@@ -6,5 +6,7 @@
   batch, with a budget in simulator runs, and the ask/tell driver that refines many targets at once;
 * :mod:`~invphys.plugins.evaluators.polish`: that driver from answers already simulated (only those
   below a threshold), with a log of simulated batches that a re-run replays (``active.polish``), and
-  ``confirm``: re-simulate each target's best points and answer with the best mean R.
+  ``confirm``: re-simulate each target's best points and answer with the best mean R;
+* :mod:`~invphys.plugins.evaluators.stream_refine`: per-target searches on the simulator through one open
+  stream (``Simulator.simulate_feed``), generations overlapping across targets, with a per-run log.
 """
