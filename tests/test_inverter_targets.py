@@ -255,3 +255,23 @@ def test_spec_values_and_file_targets(tmp_path) -> None:
     bad = {**yaml.safe_load(USER_SPEC), "targets": {"values": [GOOD], "file": "x.csv"}}
     with pytest.raises(SpecError, match="not both"):
         validate_spec(bad)
+
+
+def test_spec_targets_with_noise_are_refused_before_running(tmp_path) -> None:
+    """A spec's invert stage answers exact targets: a per-feature std (which `invphys invert` uses) is one
+    located error at validation, for values and for a file, instead of being dropped silently."""
+    import yaml
+
+    from invphys.core.errors import SpecError
+    from invphys.core.spec import validate_spec
+
+    name = NAMES[0]
+    noisy = {**yaml.safe_load(USER_SPEC), "targets": {"values": [{**GOOD, f"{name}_std": 0.1}]}}
+    with pytest.raises(SpecError, match="noisy observation"):
+        validate_spec(noisy)
+    csv = tmp_path / "noisy.csv"
+    csv.write_text(",".join(NAMES) + f",{name}_std\n0.9,0.2,-0.5,1,0.1,0.05\n")
+    with pytest.raises(SpecError, match="noisy observation"):
+        validate_spec({**yaml.safe_load(USER_SPEC), "targets": {"file": str(csv)}})
+    exact = {**yaml.safe_load(USER_SPEC), "targets": {"values": [{**GOOD, f"{name}_std": 0}]}}
+    validate_spec(exact)  # a zero std is an exact target

@@ -323,7 +323,8 @@ def _render(result: Any) -> None:
         out_console.print(_parameter_table(d, c))
         feats = Table("feature", "target", "predicted", "± std", "unit", *(["actual"] if "r_actual" in c else []))
         for name, f in c["features"].items():
-            row = [name, "-" if f["target"] is None else f"{f['target']:.5g}", f"{f['predicted']:.5g}",
+            noise = f" ± {f['target_std']:.2g}" if f.get("target_std") else ""
+            row = [name, "-" if f["target"] is None else f"{f['target']:.5g}{noise}", f"{f['predicted']:.5g}",
                    f"{f['std']:.2g}", f["unit"]]
             if "r_actual" in c:
                 row.append("-" if f.get("actual") is None else f"{f['actual']:.5g}")
@@ -359,8 +360,15 @@ def _parameter_table(d: dict[str, Any], c: dict[str, Any]) -> Any:
 
 
 def _uncertainty_line(d: dict[str, Any]) -> None:
-    post = d.get("posterior")
-    if post is not None:
+    post, noise = d.get("posterior"), d.get("noise")
+    if noise:
+        given = ", ".join(f"{escape(k)} ± {v:.3g}" for k, v in noise["std"].items() if v)
+        how = "the posterior accounts for it" if noise["posterior"] else "this method's answer ignores it"
+        out_console.print(f"noise assumed: {given or 'none (exact)'} (independent Gaussian; {how}); chi2 {noise['chi2']:.2f}")
+    if post is not None and noise and noise["posterior"]:
+        out_console.print(f"posterior: {post['draws']} draws of the noisy posterior under the surrogate "
+                          f"(sequential Monte Carlo)")
+    elif post is not None:
         out_console.print(f"posterior: {post['draws']} draws in the parameter box "
                           f"({post['outside_fraction']:.0%} of raw draws fell outside and were rejected"
                           f"{'; ' + str(post['clipped']) + ' clipped' if post['clipped'] else ''})")

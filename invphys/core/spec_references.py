@@ -60,7 +60,7 @@ def validate_references(spec: ExperimentSpec, registry: PluginLookup | None = No
 def _target_problems(spec: ExperimentSpec, reg: Any) -> list[tuple[tuple[str, ...], str]]:
     """``targets.values`` / ``targets.file``: read and checked against the extractor's feature names as the
     invert stage will (a file that is missing, unreadable or names an unknown feature is refused now)."""
-    from invphys.core.user_targets import from_mappings, read_target_file
+    from invphys.core.user_targets import from_mappings, read_target_file, require_exact
 
     tg = spec.targets
     if tg.values is None and tg.file is None:
@@ -74,12 +74,12 @@ def _target_problems(spec: ExperimentSpec, reg: Any) -> list[tuple[tuple[str, ..
                 kind = "a directory" if p.is_dir() else "not a regular file" if p.exists() else "absent"
                 return [(where, f"{tg.file!r} is {kind}: name a JSON, YAML or CSV file of targets")]
             if names is not None:
-                read_target_file(p, names)
+                require_exact(read_target_file(p, names), "targets.file")
             else:  # the features cannot be known without running: at least the file must be readable
                 with p.open("rb"):
                     pass
         elif names is not None:
-            from_mappings(tg.values or [], names, source="targets.values")
+            require_exact(from_mappings(tg.values or [], names, source="targets.values"), "targets.values")
     except InvphysError as exc:
         return [(where, str(exc).removeprefix("targets.values: "))]
     except OSError as exc:

@@ -224,6 +224,16 @@ def _rows_of(data: Any, source: str) -> list[Any]:
                       f"{{targets: [...]}}; got {type(data).__name__}")
 
 
+def require_exact(user: UserTargets, source: str) -> UserTargets:
+    """``user`` unchanged when no target gives a standard deviation; otherwise one :class:`TargetError`: an
+    experiment's invert stage answers exact targets, noisy ones are for ``invphys invert`` (posterior methods)."""
+    if user.std is not None and bool(np.any(np.nan_to_num(user.std) > 0)):
+        raise TargetError(f"{source}: gives a standard deviation per feature (a noisy observation); an experiment "
+                          "spec's targets are exact values: drop the std, or answer the noisy targets with "
+                          "`invphys invert BUNDLE --target FILE` (its posterior methods use the noise)")
+    return user
+
+
 def read_target_file(path: str | Path, feature_names: Sequence[str], partial: bool = False,
                      max_bytes: int | None = None) -> UserTargets:
     """Targets from a JSON, YAML or CSV file (see the module docstring for the shapes), read by the

@@ -46,12 +46,13 @@ def select(ctx: StageContext) -> dict[str, Any]:
     data = ctx.dataset()
     spec_t = ctx.spec.targets
     if spec_t.values is not None or spec_t.file is not None:
-        from invphys.core.user_targets import from_mappings, read_target_file
+        from invphys.core.user_targets import from_mappings, read_target_file, require_exact
 
         if spec_t.file is not None:
-            user = read_target_file(spec_t.file, data.feature_names)
+            user = require_exact(read_target_file(spec_t.file, data.feature_names), "targets.file")
         else:
-            user = from_mappings(spec_t.values, data.feature_names, source="targets.values")
+            user = require_exact(from_mappings(spec_t.values, data.feature_names, source="targets.values"),
+                                 "targets.values")
         return {"rows": [None] * len(user), "features": user.values.tolist(), "theta": None, "params": None,
                 "ground_truth": False, "labels": user.labels, "feature_names": list(data.feature_names),
                 "param_names": list(data.param_names), "scales": ctx.scales().tolist(),
