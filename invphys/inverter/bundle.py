@@ -199,6 +199,21 @@ class Bundle:
     def default_method(self) -> str | None:
         return self.manifest.get("default_method")
 
+    def unfitted_method_error(self, label: str, typ: str) -> InvphysError:
+        """The one-line refusal of ``method=label``: a trained estimator of type ``typ`` (npe, ...) that the
+        bundle does not hold. A bundle is never fitted at answer time (that took about a minute a call): the
+        message names the bundle's own fit of that type, else its methods and how to add one."""
+        root = str(self.root)
+        same = [k for k, m in self.methods.items() if m.get("type") == typ]
+        if same:
+            return InvphysError(f"method {label!r} is not in bundle {root!r}; its fitted {typ} is "
+                                f"{', '.join(same)}: use --method {same[0]}")
+        return InvphysError(
+            f"method {label!r} needs a fitted {typ} and bundle {root!r} holds none (its methods: "
+            f"{', '.join(self.methods) or 'none'}); to add one, list e.g. '{typ}_best64: {{type: {typ}, samples: 64, "
+            f"answer: best_surrogate}}' under optimizers in the bundle's spec, then invphys run SPEC --out RUN and "
+            f"invphys export RUN --out BUNDLE")
+
     def check_installation(self, strict: bool = True) -> list[str]:
         """Compare the bundle's simulator version and features with the installed plugins.
 
