@@ -115,7 +115,7 @@ def test_a_bundle_without_a_posterior_gets_its_ood_threshold_and_error_bars(tmp_
     from invphys.evaluation.diagnose_report import write_report
     from invphys.inverter import load_inverter
 
-    d = diagnose(load_inverter("inverters/cheese_cut_quick"), draws=10)
+    d = diagnose(load_inverter("inverters/orange_peel_quick"), draws=10)
     assert d.report["posterior_method"] is None and "no method with a posterior" in d.report["note"]
     assert d.report["heldout"]["rows_used"] == 400 and d.report["heldout"]["training_rows_found"] == 1600
     assert "posterior" not in d.calibration and d.calibration["ood"]["score"] == "knn"

@@ -61,10 +61,15 @@ def key_inputs(spec: Any, sections: tuple[str, ...], registry: Any, execution: b
         if not isinstance(block, dict):
             continue
         try:
-            ignores = getattr(registry.info(kind, str(block.get("type"))).cls, "identity_ignores", ())
+            cls = registry.info(kind, str(block.get("type"))).cls
         except Exception:  # reported by validation; a key must not fail
-            ignores = ()
-        for name in ignores:
+            cls = None
+        canonical = getattr(cls, "canonical_block", None)
+        if canonical is not None:  # one form per config (e.g. an ``engine:`` block folded into flat keys)
+            folded = canonical(block)
+            block.clear()
+            block.update(folded)
+        for name in getattr(cls, "identity_ignores", ()):
             block.pop(name, None)
     return inputs
 

@@ -183,6 +183,28 @@ class EngineSimulator(Simulator):
         for i, rec in self._stream(self.model_for_params(x), int(batch_size or self.batch_size)):
             yield i, self.result_from_record(x[i], rec)
 
+    @property
+    def native_feed(self) -> bool:  # type: ignore[override]
+        return True
+
+    def simulate_feed(self, feeder: Any, batch_size: int | None = None) -> Iterator[tuple[int, SimulationResult]]:
+        """An open stream on the warm engine (:meth:`Engine.stream_feed`): ``feeder(free)`` gives new rows while
+        other runs are in flight (nothing: none ready yet); yields ``(i, result)``, ``i`` counting fed rows."""
+        fed: list[np.ndarray] = []
+
+        def models(free: int) -> Any:
+            rows = feeder(free)
+            if rows is None or len(rows) == 0:
+                return None
+            x = self._check(np.asarray(rows, dtype=np.float64))
+            fed.extend(x)
+            return self.model_for_params(x)
+
+        min_chunk = int(self.stream_options().get("min_chunk") or 1)
+        for i, rec in self.engine.stream_feed(models, self.frames, self.record_every,
+                                              int(batch_size or self.batch_size), min_chunk=min_chunk):
+            yield i, self.result_from_record(fed[i], rec)
+
     def _stream(self, model: Any, batch_size: int) -> Iterator[tuple[int, Any]]:
         return self.engine.stream(model, self.frames, self.record_every, batch_size, **self.stream_options())
 
