@@ -87,3 +87,22 @@ def test_the_refusal_of_an_unfitted_npe_names_the_fitted_one_or_how_to_add_one(i
     quick = invphys.load_inverter(ROOT / "inverters" / "orange_peel_quick").bundle
     there = str(quick.unfitted_method_error("npe", "npe"))
     assert "holds none" in there and all(m in there for m in quick.methods) and "invphys export" in there
+
+
+@pytest.mark.parametrize("name", ["cheese_cut_quick", "orange_peel_quick"])
+def test_invert_with_an_unfitted_npe_type_is_one_line_and_exit_2_without_fitting(inv, name) -> None:
+    import time
+
+    import invphys
+
+    bundle = ROOT / "inverters" / name
+    other = invphys.load_inverter(bundle)
+    items = [a for n, v in zip(other.feature_names, other.bundle.data("test")[1][0].tolist(), strict=True)
+             for a in ("--feature", f"{n}={v!r}")]
+    t0 = time.perf_counter()
+    res = subprocess.run([sys.executable, "-m", "invphys.cli", "invert", str(bundle), "--method", "npe", *items],
+                         capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert res.returncode == 2 and time.perf_counter() - t0 < 30, (res.returncode, res.stderr)
+    line = res.stderr.strip()
+    assert line.startswith("error:") and "\n" not in line and "Traceback" not in line
+    assert ("--method npe_best64" in line) if name == "cheese_cut_quick" else ("holds none" in line)

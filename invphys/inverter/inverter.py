@@ -220,6 +220,8 @@ class Inverter:
             if entry.get("path") and hasattr(type(plugin), "load"):
                 plugin = self.bundle._plugin_load("optimizer", entry)  # fitted when the bundle was made
             elif learns_from_rows(plugin):
+                if hasattr(plugin, "fit_key"):  # a trained estimator (npe): never fitted at answer time
+                    raise self.bundle.unfitted_method_error(label, entry["type"])
                 theta, y = self.bundle.data("train")
                 plugin.fit(theta, y, self.bundle.scales)  # a dataset baseline learns from the training rows
             else:
