@@ -28,14 +28,6 @@ from typing import Any
 import numpy as np
 
 from invphys_anisompm.backends import ReadyRead
-from invphys_anisompm.engine import (
-    RunRecord,
-    frame_plan,
-    kinematic_speed,
-    kinematic_table,
-    run_dt_bound,
-    velocity_guard_one,
-)
 from invphys_anisompm.failure import (
     BODY0,
     STAT_KE,
@@ -46,6 +38,14 @@ from invphys_anisompm.failure import (
     unhealthy,
 )
 from invphys_anisompm.model import Model
+from invphys_anisompm.record import RunRecord
+from invphys_anisompm.stepping import (
+    frame_plan,
+    kinematic_speed,
+    kinematic_table,
+    run_dt_bound,
+    velocity_guard_one,
+)
 
 
 class SlotCounters:
