@@ -15,6 +15,17 @@ from collections import Counter, defaultdict
 from collections.abc import Callable, Iterator
 from typing import Any
 
+#: marks a patched method that ``cls`` inherited (restored by deleting the patch)
+_INHERITED = object()
+
+
+def _inherited(cls: type, name: str) -> Any:
+    """``name`` as defined on ``cls`` or the first base in its MRO that defines it (the function, unbound)."""
+    for klass in cls.__mro__:
+        if name in klass.__dict__:
+            return klass.__dict__[name]
+    raise AttributeError(f"{cls.__name__} has no {name!r}")
+
 
 class TimeSplit:
     """Seconds and calls per label, gathered by patched methods until the block exits."""
@@ -26,7 +37,7 @@ class TimeSplit:
 
     def wrap(self, cls: type, name: str, label: str | None = None) -> None:
         """Time every call of ``cls.name`` under ``label`` (default ``Class.name``)."""
-        original = cls.__dict__[name]
+        original = _inherited(cls, name)
         key = label or f"{cls.__name__}.{name}"
 
         @functools.wraps(original)
@@ -43,7 +54,7 @@ class TimeSplit:
     def wrap_generator(self, cls: type, name: str, label: str | None = None) -> None:
         """Split the iteration of generator method ``cls.name`` into ``<label> inside`` (producing items) and
         ``<label> consumer`` (the caller's time between receiving an item and asking for the next)."""
-        original = cls.__dict__[name]
+        original = _inherited(cls, name)
         key = label or f"{cls.__name__}.{name}"
 
         @functools.wraps(original)
@@ -71,8 +82,9 @@ class TimeSplit:
         self._patch(cls, name, original, timed)
 
     def _patch(self, cls: type, name: str, original: Any, replacement: Callable[..., Any]) -> None:
+        own = name in cls.__dict__  # a method inherited from a base is patched on ``cls`` and removed after
         setattr(cls, name, replacement)
-        self._undo.append((cls, name, original))
+        self._undo.append((cls, name, original if own else _INHERITED))
 
     def report(self, wall_s: float) -> dict[str, Any]:
         """Per label: seconds, share of ``wall_s`` and calls."""
@@ -86,5 +98,8 @@ class TimeSplit:
 
     def __exit__(self, *exc: object) -> None:
         for cls, name, original in reversed(self._undo):
-            setattr(cls, name, original)
+            if original is _INHERITED:
+                delattr(cls, name)
+            else:
+                setattr(cls, name, original)
         self._undo.clear()
