@@ -106,19 +106,36 @@ def invert(
         top_k = max(top_k, sim_refine_starts)
     results = inv.invert_many(targets, method=method, top_k=top_k, refine=refine, seed=seed, level=level,
                               draws=max(samples or 0, INTERVAL_DRAWS))
+    _check_results(results, samples)
+    records = _simulate(inv, results, sim_option or [], seed, sim_batch, validate, polish_settings, refine_settings)
+    _write_files(results, samples, files)
+    _emit_results(bundle, results, records, seed, level, as_json)
+
+
+def _check_results(results: list[Any], samples: int | None) -> None:
+    """Refuse ``--samples`` for a method without draws; print each target's warnings."""
     if samples and not results[0].parameter_uncertainty.has_draws:
         raise InvphysError(f"--samples: method {results[0].method!r} has no posterior draws "
                            f"(posterior: {results[0].posterior})")
     for r in results:
         for w in r.warnings:
             console.print(f"[yellow]warning:[/] target {escape(r.label)}: {escape(w)}", soft_wrap=True)
-    overrides = _options(sim_option or [])
+
+
+def _simulate(inv: Any, results: list[Any], sim_option: list[str], seed: int, sim_batch: int, validate: bool,
+              polish_settings: dict[str, Any], refine_settings: dict[str, Any]) -> list[dict[str, Any]]:
+    """``--validate``, ``--polish`` and ``--sim-refine`` on the simulator, in that order; the refine records."""
+    overrides = _options(sim_option)
     if validate or polish_settings:
         _validate(inv, results, overrides, sim_batch)
     if polish_settings:
         _polish(inv, results, overrides, seed, batch_size=sim_batch, **polish_settings)
-    records = _sim_refine(inv, results, overrides, seed, sim_batch, **refine_settings) if refine_settings else []
-    _write_files(results, samples, files)
+    return _sim_refine(inv, results, overrides, seed, sim_batch, **refine_settings) if refine_settings else []
+
+
+def _emit_results(bundle: Path, results: list[Any], records: list[dict[str, Any]], seed: int, level: float,
+                  as_json: bool) -> None:
+    """The answers (with their refine records) as JSON or tables."""
     dicts = [r.to_dict() for r in results]
     for d, rec in zip(dicts, records, strict=False):
         d["sim_refine"] = rec

@@ -218,14 +218,6 @@ def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int
     queue: list[tuple[int, int]] = []        # (search, member) rows waiting for a slot
     fed: list[tuple[int, int]] = []          # row i of the stream -> (search, member)
 
-    def start_known(s: _Search) -> None:
-        t = s.t
-        ok = np.all(np.isfinite(t.known), axis=1)
-        sc = _scores(score, t.known, t.target)
-        t.start_scores = np.where(ok, sc, np.nan)
-        for j in np.flatnonzero(ok):
-            _record(t, t.starts[j], float(sc[j]), t.known[j])
-
     def advance(k: int) -> None:
         """Ask target ``k``'s next generation; replay what the log holds, queue the rest (repeat while the
         log answers whole generations)."""
@@ -247,34 +239,7 @@ def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int
                     queue.append((k, j))
             if any(r is None for r in s.results):
                 return
-            tell(k)
-
-    def tell(k: int) -> None:
-        """Every result of target ``k``'s generation is in: tell them in ask order."""
-        s, t = searches[k], searches[k].t
-        ys = np.array([r[0] for r in s.results])  # type: ignore[index]
-        sc = _scores(score, ys, t.target)
-        for j, (p, r) in enumerate(zip(s.asked, s.results, strict=True)):
-            assert r is not None
-            t.runs += 1
-            t.seconds += r[1]
-            t.replayed += int(r[3])
-            _record(t, p, float(sc[j]), ys[j])
-        note(len(s.asked), all(r[3] for r in s.results))  # type: ignore[index]
-        if s.phase == "starts":
-            todo = ~np.all(np.isfinite(t.known), axis=1)
-            t.known = t.known.copy()
-            t.known[np.flatnonzero(todo)[:len(ys)]] = ys
-            assert t.start_scores is not None
-            t.start_scores[np.flatnonzero(todo)[:len(ys)]] = np.where(np.isfinite(sc), sc, np.nan)
-            _finish_starts(s)
-        else:
-            s.tell(sc)
-
-    def _finish_starts(s: _Search) -> None:
-        s.phase = "search"
-        if s.t.theta is None:  # no start simulated successfully: search from the first start
-            s.t.theta = s.t.starts[0].copy()
+            _tell(searches[k], score, note)
 
     def feeder(free: int) -> np.ndarray | None:
         if not queue:
@@ -284,7 +249,7 @@ def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int
         return np.array([searches[k].asked[j] for k, j in rows])
 
     for k, s in enumerate(searches):
-        start_known(s)
+        _start_known(s, score)
         advance(k)
     for i, y, seconds, device in simulate(feeder):
         k, j = fed[i]
@@ -293,13 +258,53 @@ def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int
             log.add(s.t.tid, s.t.runs + j, s.asked[j], y, seconds, device)
         s.results[j] = (np.asarray(y, float), float(seconds), device, False)
         if all(r is not None for r in s.results):
-            tell(k)
+            _tell(searches[k], score, note)
             advance(k)
     if log is not None:
         log.save()
     if queue or any(s.phase != "done" for s in searches):
         raise InvphysError("refine: the simulator stream ended before every asked run came back")
     return targets
+
+
+def _start_known(s: _Search, score: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> None:
+    """Score and record the starts whose features are known already (the others: NaN start scores)."""
+    t = s.t
+    ok = np.all(np.isfinite(t.known), axis=1)
+    sc = _scores(score, t.known, t.target)
+    t.start_scores = np.where(ok, sc, np.nan)
+    for j in np.flatnonzero(ok):
+        _record(t, t.starts[j], float(sc[j]), t.known[j])
+
+
+def _tell(s: _Search, score: Callable[[np.ndarray, np.ndarray], np.ndarray],
+          note: Callable[[int, bool], None]) -> None:
+    """Every result of ``s``'s generation is in: tell them in ask order."""
+    t = s.t
+    ys = np.array([r[0] for r in s.results])  # type: ignore[index]
+    sc = _scores(score, ys, t.target)
+    for j, (p, r) in enumerate(zip(s.asked, s.results, strict=True)):
+        assert r is not None
+        t.runs += 1
+        t.seconds += r[1]
+        t.replayed += int(r[3])
+        _record(t, p, float(sc[j]), ys[j])
+    note(len(s.asked), all(r[3] for r in s.results))  # type: ignore[index]
+    if s.phase == "starts":
+        todo = ~np.all(np.isfinite(t.known), axis=1)
+        t.known = t.known.copy()
+        t.known[np.flatnonzero(todo)[:len(ys)]] = ys
+        assert t.start_scores is not None
+        t.start_scores[np.flatnonzero(todo)[:len(ys)]] = np.where(np.isfinite(sc), sc, np.nan)
+        _finish_starts(s)
+    else:
+        s.tell(sc)
+
+
+def _finish_starts(s: _Search) -> None:
+    s.phase = "search"
+    if s.t.theta is None:  # no start simulated successfully: search from the first start
+        s.t.theta = s.t.starts[0].copy()
 
 
 def _scores(score: Callable[[np.ndarray, np.ndarray], np.ndarray], y: np.ndarray, target: np.ndarray) -> np.ndarray:
