@@ -135,3 +135,15 @@ def test_ray_tasks_and_actors_interrupt_a_stuck_extraction(monkeypatch) -> None:
         _check(dict(actors.run({"type": SIM, "substeps": 1}, STUCK, _params(), 5)))
     finally:
         ray.shutdown()
+
+
+def test_a_disposable_process_with_captured_stderr_still_extracts(monkeypatch) -> None:
+    """Where ``sys.stderr`` has no file descriptor (a test runner's or a CLI runner's capture), the hard stop is
+    armed on the real stderr or not at all: the extraction runs (it raised 'fileno' and failed every row)."""
+    import io
+
+    from invphys.plugins.executors import _deadline
+
+    monkeypatch.setattr(_deadline, "DISPOSABLE", True)
+    monkeypatch.setattr("sys.stderr", io.StringIO())
+    assert _deadline.call(lambda x: x + 1, 5.0, 41) == 42

@@ -68,6 +68,18 @@ def _hard_stop_after(timeout_s: float) -> float:
     return timeout_s + min(timeout_s, 30.0)
 
 
+def _arm_hard_stop(timeout_s: float) -> bool:
+    """faulthandler's watchdog on the process's real stderr (``sys.stderr`` may be a capture without a file
+    descriptor, e.g. under a test runner); False where it cannot be armed (no hard stop then)."""
+    import faulthandler
+
+    try:
+        faulthandler.dump_traceback_later(_hard_stop_after(timeout_s), exit=True, file=sys.__stderr__)
+    except (AttributeError, OSError, TypeError, ValueError):  # io.UnsupportedOperation is an OSError/ValueError
+        return False
+    return True
+
+
 def call(fn: Callable[..., T], timeout_s: float | None, *args: Any) -> T:
     """``fn(*args)`` under the extraction timeout (see the module's text): raises ExtractionTimedOut."""
     global _ARMED, _WARNED
@@ -80,12 +92,8 @@ def call(fn: Callable[..., T], timeout_s: float | None, *args: Any) -> T:
                          "of a POSIX process with SIGALRM free); set extract_workers >= 1 to have one",
                          "this thread" if sys.platform != "win32" else "this process")
         return fn(*args)
-    hard = DISPOSABLE
+    hard = DISPOSABLE and _arm_hard_stop(timeout_s)
     previous = signal.signal(signal.SIGALRM, _on_alarm)
-    if hard:
-        import faulthandler
-
-        faulthandler.dump_traceback_later(_hard_stop_after(timeout_s), exit=True)
     try:
         _ARMED = True
         signal.setitimer(signal.ITIMER_REAL, timeout_s)
@@ -100,5 +108,7 @@ def call(fn: Callable[..., T], timeout_s: float | None, *args: Any) -> T:
         _ARMED = False
         signal.setitimer(signal.ITIMER_REAL, 0)
         if hard:
+            import faulthandler
+
             faulthandler.cancel_dump_traceback_later()
         signal.signal(signal.SIGALRM, previous)
