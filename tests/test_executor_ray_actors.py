@@ -208,9 +208,12 @@ class _StubActor:
     """A local :class:`SimulatorActor` whose next calls (``run`` or ``ping``) raise the scripted errors."""
 
     def __init__(self, errors: list[Exception]) -> None:
+        from invphys.plugins.executors import _deadline
         from invphys.plugins.executors.ray_actors import SimulatorActor
 
+        disposable = _deadline.DISPOSABLE
         self.actor, self.errors, self.calls = SimulatorActor({}), list(errors), []
+        _deadline.DISPOSABLE = disposable  # an actor marks its process disposable; this one is the test's own
         self.run, self.ping = self._method("run"), self._method("ping")
 
     def _method(self, name: str):
