@@ -12,8 +12,8 @@ import pytest
 
 pytest.importorskip("taichi")
 
-from anisompm_scene import build_scene, has_warp
 from invphys_anisompm import Engine
+from invphys_anisompm.testing import build_scene, has_warp
 
 FRAMES = 6
 

@@ -14,8 +14,8 @@ from benchmark_modules import load
 
 pytest.importorskip("taichi")
 
-from anisompm_scene import build_scene
 from invphys_anisompm.backends.taichi_backend import BOX_LAST, BOX_NEXT, TaichiBackend
+from invphys_anisompm.testing import build_scene
 
 #: the host's computation of a scatter's node box, which the GPU check (benchmarks/check_grid_box.py) uses too
 scatter_box = load("check_grid_box").scatter_box
