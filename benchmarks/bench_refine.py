@@ -6,9 +6,9 @@ all targets in one open stream (``Simulator.simulate_feed``), (2) dataset genera
 the refine simulated (``simulate_stream``, the same slots, features extracted as runs end; with
 ``--random-dataset`` also as many uniformly random runs). Reports wall
 seconds per run of each and their ratio, and R_actual before (the amortised answer; the best of its
-starts) and after the refine. With ``--native-feed`` (default on) an orange-peel simulator without its own
-``simulate_feed`` streams through ``Engine.stream_feed`` (slots refilled as runs end); ``--no-native-feed``
-measures the default (chunks of what is ready). Example (GPU)::
+starts) and after the refine. A simulator with its own ``simulate_feed`` (the AnisoMPM foods:
+``Engine.stream_feed``, slots refilled as runs end) streams through it; ``--no-native-feed`` measures the
+default instead (chunks of what is ready). Example (GPU)::
 
     python benchmarks/bench_refine.py --bundle inverters/orange_peel_paper \\
         --targets datasets/orange_peel_paper_fresh_uniform --limit 32 --budget 32 --sim-batch 64 \\
@@ -58,46 +58,14 @@ def _options(items: list[str]) -> dict[str, Any]:
     return {k: yaml.safe_load(v) for k, _, v in (i.partition("=") for i in items)}
 
 
-def native_feed(sim: Any) -> bool:
-    """Give an engine simulator (orange peel) without its own ``simulate_feed`` one on its warm engine (an open
-    stream: ``Engine.stream_feed``); True when it has one now. The same code as the override proposed for the
-    simulator; it works with the simulator before and after the ``EngineSimulator`` base."""
+def use_default_feed(sim: Any) -> None:
+    """Make ``sim`` stream through :meth:`Simulator.simulate_feed`'s default (chunks of the rows that are
+    ready) even when it has its own open stream, to measure what that stream buys."""
+    import types
+
     from invphys.core.interfaces import Simulator
 
-    if type(sim).simulate_feed is not Simulator.simulate_feed:
-        return True
-    needs = ("engine", "frames", "record_every", "batch_size", "result_from_record", "_check")
-    if not all(hasattr(sim, n) for n in needs) or not hasattr(sim.engine, "stream_feed"):
-        return False
-    if hasattr(sim, "model_for_params"):
-        to_model = sim.model_for_params
-    elif getattr(sim, "name", "") == "orange_peel":
-        from invphys_orange_peel.engine_scene import model_for
-
-        def to_model(x: np.ndarray) -> Any:
-            return model_for(sim.engine_scene, x)
-    else:
-        return False
-    opts = sim.stream_options() if hasattr(sim, "stream_options") else {}
-    min_chunk = int(opts.get("min_chunk") or getattr(sim, "min_chunk", 1) or 1)
-
-    def simulate_feed(feeder: Any, batch_size: int | None = None) -> Any:
-        fed: list[np.ndarray] = []
-
-        def models(free: int) -> Any:
-            rows = feeder(free)
-            if rows is None or len(rows) == 0:
-                return None
-            x = sim._check(rows)
-            fed.extend(x)
-            return to_model(x)
-
-        for i, rec in sim.engine.stream_feed(models, sim.frames, sim.record_every, int(batch_size or sim.batch_size),
-                                             min_chunk=min_chunk):
-            yield i, sim.result_from_record(fed[i], rec)
-
-    sim.simulate_feed = simulate_feed
-    return True
+    sim.simulate_feed = types.MethodType(Simulator.simulate_feed, sim)
 
 
 def _recording(sim: Any) -> list[np.ndarray]:
@@ -180,8 +148,10 @@ def main(argv: list[str] | None = None) -> int:
     from invphys.core.interfaces import Simulator
 
     own = type(sim).simulate_feed is not Simulator.simulate_feed
-    feed = ("the simulator's own" if own else "native (Engine.stream_feed, benchmark's copy of the proposed override)"
-            if a.native_feed and native_feed(sim) else "default (chunks of ready rows)")
+    if own and not a.native_feed:
+        use_default_feed(sim)
+    feed = ("the simulator's own (an open stream)" if own and a.native_feed
+            else "default (chunks of ready rows)")
     t0 = time.perf_counter()
     results = inv.invert_many(y, method=a.method, top_k=a.starts, seed=a.seed)
     answer_s = time.perf_counter() - t0
