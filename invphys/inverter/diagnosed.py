@@ -63,13 +63,15 @@ def failure_score(bundle: Any, values: np.ndarray, mask: np.ndarray, theta: np.n
     return float(probability(model, comps)[0])
 
 
-def ood_warning(bundle: Any, values: np.ndarray, mask: np.ndarray, theta: np.ndarray | None = None) -> list[str]:
-    """A warning for an answer likely to fail on the simulator (with ``theta`` and a stored failure model),
-    else for a target farther from the training data than the calibrated threshold (none without
-    diagnostics, or for a score that needs more than the target)."""
+def ood_warning(bundle: Any, values: np.ndarray, mask: np.ndarray, theta: np.ndarray | None = None,
+                score: float | None = None) -> list[str]:
+    """A warning for an answer likely to fail on the simulator (with ``theta`` and a stored failure model;
+    ``score``: its :func:`failure_score` when already computed), else for a target farther from the training
+    data than the calibrated threshold (none without diagnostics, or for a score that needs more than the
+    target)."""
     diag = diagnostics(bundle)
     if theta is not None and (diag or {}).get("failure"):
-        return failure_warning(bundle, values, mask, theta)
+        return failure_warning(bundle, values, mask, theta, score)
     from invphys.evaluation.ood import NEEDS, ood_score, ood_settings
 
     settings = ood_settings(diag)
@@ -84,10 +86,12 @@ def ood_warning(bundle: Any, values: np.ndarray, mask: np.ndarray, theta: np.nda
             f"({settings['score']} score {score:.3g} > {threshold:.3g}); its answer and intervals are less reliable"]
 
 
-def failure_warning(bundle: Any, values: np.ndarray, mask: np.ndarray, theta: np.ndarray) -> list[str]:
-    """The answer-level warning: its failure score at or above the stored threshold."""
+def failure_warning(bundle: Any, values: np.ndarray, mask: np.ndarray, theta: np.ndarray,
+                    score: float | None = None) -> list[str]:
+    """The answer-level warning: its failure score (``score``, or computed here) at or above the stored
+    threshold."""
     model = (diagnostics(bundle) or {})["failure"]
-    p = failure_score(bundle, values, mask, theta)
+    p = failure_score(bundle, values, mask, theta) if score is None else score
     if p is None or p < float(model["threshold"]):
         return []
     cal = model.get("calibration") or {}

@@ -367,14 +367,15 @@ class Inverter:
                                                                                   "refine"))
             spent += extra
         self._calibrate_error_bars(cands)
-        warn = (self._warnings(values, mask) + ood_warning(self.bundle, values, mask, cands[0].theta)
+        fail_p = failure_score(self.bundle, values, mask, cands[0].theta)
+        warn = (self._warnings(values, mask) + ood_warning(self.bundle, values, mask, cands[0].theta, fail_p)
                 + answer_warnings(unc, self.parameter_names, cands[0].theta, mask) + noise_warnings(noisy, unc.kind))
         return InversionResult(
             label=t.labels[i], method=answers.label, target=values, mask=mask, candidates=cands,
             parameter_names=self.parameter_names, parameter_units=tuple(p.unit for p in self.bundle.space.parameters),
             feature_names=self.feature_names, feature_units=self.bundle.feature_units, evaluations=spent,
             wall_time_s=time.perf_counter() - t0, warnings=warn,
-            failure_score=failure_score(self.bundle, values, mask, cands[0].theta),
+            failure_score=fail_p,
             bundle_id=str(self.bundle.manifest.get("bundle_id", "")), parameter_uncertainty=unc, space=self.bundle.space,
             target_std=std, noise_posterior=noisy and unc.kind == "posterior")
 
