@@ -2,7 +2,7 @@
 
 The cheapest refined method: answer each target with its nearest training row (the lookup, no
 surrogate), then run ask/tell CMA-ES on the real simulator from that row
-(:func:`invphys.plugins.evaluators.polish.polish`, the function behind ``active.polish`` and
+(:func:`invphys.evaluators.polish.polish`, the function behind ``active.polish`` and
 ``invphys invert --polish``) on the targets whose lookup R_actual is below ``--below``. No surrogate,
 no active learning, no retraining: what does the simulator alone buy per run?
 
@@ -133,8 +133,8 @@ def main(argv: list[str] | None = None) -> int:
     from invphys.core.objectives import recovery_reward
     from invphys.evaluation.stats import mean_with_ci, paired_difference
     from invphys.inverter import load_inverter
-    from invphys.plugins.evaluators.polish import BatchLog, polish
-    from invphys.plugins.evaluators.simulator_loop import SimulatorEvaluator
+    from invphys.evaluators.polish import BatchLog, polish
+    from invphys.evaluators.simulator_loop import SimulatorEvaluator
 
     report = json.loads(a.report.read_text())
     inv = load_inverter(a.bundle)

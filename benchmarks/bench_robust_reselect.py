@@ -56,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     from invphys.core.objectives import recovery_reward
     from invphys.evaluation.stats import mean_with_ci, paired_difference
     from invphys.inverter import load_inverter
-    from invphys.plugins.evaluators.simulator_loop import SimulatorEvaluator
+    from invphys.evaluators.simulator_loop import SimulatorEvaluator
 
     pj = json.loads(a.polish.read_text())
     if "recheck" not in pj:

@@ -7,7 +7,7 @@ Targets are held-out rows of the committed fixture ``tests/data/orange_tiny.npz`
 runs; 80/20 split, seed 0; farthest-point targets in the test rows). For each target:
 
 1. the nearest-neighbour baseline answers from the training rows (no model, no simulation);
-2. ask/tell CMA-ES (``invphys.plugins.evaluators.simulator_loop.refine_targets``) refines that answer
+2. ask/tell CMA-ES (``invphys.evaluators.simulator_loop.refine_targets``) refines that answer
    on the real simulator: the start is simulated, then each generation of *every* target is one
    simulator batch, ``--budget`` runs per target in all;
 3. the targets' features are those of today's simulator at the rows' true parameters (simulated
@@ -50,7 +50,7 @@ def main() -> None:
     from invphys.core.objectives import percentile_scales, recovery_reward
     from invphys.core.target_selection import select_targets
     from invphys.plugins.baselines import NearestNeighbour
-    from invphys.plugins.evaluators.simulator_loop import SimulatorEvaluator, refine_targets
+    from invphys.evaluators.simulator_loop import SimulatorEvaluator, refine_targets
     from invphys.plugins.validators.simulator import SimulatorValidator
 
     with np.load(ROOT / "tests" / "data" / "orange_tiny.npz") as f:

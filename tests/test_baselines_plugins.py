@@ -87,7 +87,7 @@ def test_a_baseline_is_an_optimiser_over_a_problem_and_says_when_it_was_not_fitt
 
 
 def test_a_baseline_as_a_penalised_optimiser_chooses_by_the_penalised_score() -> None:
-    from invphys.plugins.evaluators.uncertainty import penalised_problem
+    from invphys.evaluators.uncertainty import penalised_problem
 
     tt, yt, _te, ye = orange_split()
     scales = percentile_scales(yt)
@@ -171,7 +171,7 @@ class _StdGrowsWithHiddenParameter:
 
 def test_npe_penalised_pick_prefers_draws_the_ensemble_agrees_on(npe_fitted) -> None:
     from invphys.evaluation.answers import baseline_rows
-    from invphys.plugins.evaluators.uncertainty import UncertaintyPenalty
+    from invphys.evaluators.uncertainty import UncertaintyPenalty
 
     theta, y = _hidden_parameter_problem(10, seed=7)
     surrogate, scales = _StdGrowsWithHiddenParameter(), npe_fitted._scales

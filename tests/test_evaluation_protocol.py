@@ -256,7 +256,7 @@ class _QuadSim:
 
 def test_polish_never_worse_respects_budget_and_replays_its_log(tmp_path) -> None:
     from invphys.core.objectives import recovery_reward
-    from invphys.plugins.evaluators.polish import BatchLog, polish
+    from invphys.evaluators.polish import BatchLog, polish
 
     rng = np.random.default_rng(0)
     targets = rng.uniform(0.2, 0.8, (6, 3))

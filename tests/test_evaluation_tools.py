@@ -84,7 +84,7 @@ def test_ask_tell_cma_es_matches_optimize_and_finds_a_minimum() -> None:
 
 
 def test_refine_targets_batches_every_generation_and_never_loses_its_start() -> None:
-    from invphys.plugins.evaluators.simulator_loop import SimulatorEvaluator, refine_targets
+    from invphys.evaluators.simulator_loop import SimulatorEvaluator, refine_targets
 
     class Sim:  # a "simulator" with features y = (theta_0 + theta_1, theta_0 * theta_2, theta_1)
         calls: list[int] = []
@@ -128,7 +128,7 @@ def ensemble():
 
 def test_uncertainty_penalty_subtracts_lambda_times_the_normalised_std(ensemble) -> None:
     from invphys.envs.task import InverseTask
-    from invphys.plugins.evaluators.uncertainty import UncertaintyPenalty, normalised_std, penalised_problem
+    from invphys.evaluators.uncertainty import UncertaintyPenalty, normalised_std, penalised_problem
 
     theta, y = smooth(20, seed=1)
     scales = np.full(5, 0.5)
@@ -156,7 +156,7 @@ def test_uncertainty_penalty_subtracts_lambda_times_the_normalised_std(ensemble)
 
 
 def test_penalised_cma_es_stays_where_the_ensemble_agrees(ensemble) -> None:
-    from invphys.plugins.evaluators.uncertainty import normalised_std, penalised_problem
+    from invphys.evaluators.uncertainty import normalised_std, penalised_problem
     from invphys.plugins.optimizers.cma_es import CMAES
 
     scales = np.full(5, 0.5)

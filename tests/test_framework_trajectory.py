@@ -106,7 +106,7 @@ def test_truncated_corrupt_and_inconsistent_files_are_one_line(tmp_path) -> None
     `invert --observed`; a file whose arrays disagree loaded and failed later."""
     from invphys.core.trajectory_io import TrajectoryFileError, load_with_header
     from invphys.core.user_targets import TargetError
-    from invphys.inverter.targets import load_trajectory as observed
+    from invphys.inverter.target_input import load_trajectory as observed
 
     traj = Trajectory(positions=np.zeros((2, 3, 3)), damage=np.zeros((2, 3)), frame_indices=[0, 1], fps=1.0)
     data = save_trajectory(traj, tmp_path / "ok.npz").read_bytes()

@@ -143,7 +143,7 @@ def test_the_log_never_overwrites_a_file_that_is_not_a_polish_log(inv, sim_rows,
 def test_check_polish_log_refuses_bad_places_before_anything_runs(tmp_path) -> None:
     import os
 
-    from invphys.plugins.evaluators.polish import check_polish_log
+    from invphys.evaluators.polish import check_polish_log
 
     (tmp_path / "file").write_text("x")
     for path, needle in ((tmp_path / "file" / "p.npz", "is a file, not a directory"),

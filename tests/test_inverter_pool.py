@@ -26,7 +26,7 @@ def rows(inv):
 
 def _penalised(inv, theta, target, lam):
     from invphys.core.masked_recovery import masked_recovery
-    from invphys.plugins.evaluators.uncertainty import normalised_std
+    from invphys.evaluators.uncertainty import normalised_std
 
     mean, std = inv.bundle.surrogate.predict_with_uncertainty(np.atleast_2d(theta))
     r = masked_recovery(mean, target, inv.bundle.scales, None, inv.bundle.kappa)
@@ -78,7 +78,7 @@ def test_the_pool_scores_at_least_as_well_as_its_parts(inv, rows) -> None:
 
 def test_a_larger_penalty_keeps_the_answer_where_the_ensemble_agrees(inv, rows) -> None:
     from invphys.inverter.pool import PoolSettings
-    from invphys.plugins.evaluators.uncertainty import normalised_std
+    from invphys.evaluators.uncertainty import normalised_std
 
     def spread(lam):
         inv.pool_settings = PoolSettings(lam=lam)

@@ -8,7 +8,8 @@ The layers, lowest first (a module may import its own layer and those below it):
     pipeline                   runner, stages, stage context
     inversion_env              the Gymnasium env invphys/Inversion-v0 (from a surrogate or a bundle)
     evaluation  inverter       recovery statistics, trained bundles (these may use one another)
-    plugins  envs              built-in plugins (surrogates, latents, optimisers, baselines, executors, ...),
+    plugins  evaluators  envs  built-in plugins (surrogates, latents, optimisers, baselines, executors, ...),
+                               what searches score (uncertainty penalty, the simulator in the loop, polish, refine),
                                Gymnasium environments (the PPO optimisers train on them)
     data                       dataset generation and adaptive design (they build plugins)
     models                     networks and training loops
@@ -45,7 +46,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("invphys.registry", "invphys.testing"),
     ("invphys.tracking",),
     ("invphys.models",),
-    ("invphys.plugins", "invphys.envs"),
+    ("invphys.plugins", "invphys.evaluators", "invphys.envs"),
     ("invphys.data",),
     ("invphys.evaluation", "invphys.inverter"),
     ("invphys.inversion_env",),

@@ -90,7 +90,7 @@ def invert(
     from invphys.inverter import load_inverter
     from invphys.inverter.inverter import INTERVAL_DRAWS
     from invphys.inverter.seeds import check_seed
-    from invphys.inverter.targets import cli_targets
+    from invphys.inverter.target_input import cli_targets
     from invphys.inverter.uncertainty import check_level
 
     check_seed(seed), check_level(level)
@@ -181,7 +181,7 @@ def _polish_settings(budget: int | None, below: float | None, sigma: float | Non
     settings = PolishSettings.checked(names=_POLISH_NAMES, budget=budget, below=below, sigma0=sigma, popsize=popsize,
                                       confirm=confirm, confirm_candidates=candidates)
     if log is not None:
-        from invphys.plugins.evaluators.polish import check_polish_log
+        from invphys.evaluators.polish import check_polish_log
 
         check_polish_log(log)
     return {"settings": settings, "log": log}
@@ -287,7 +287,7 @@ def _refine_settings(budget: int | None, popsize: int | None, sigma: float | Non
     if sigma is not None and not 0 < sigma <= 10:
         raise InvphysError(f"--sim-refine-sigma must be in (0, 10], got {sigma}")
     if log is not None:
-        from invphys.plugins.evaluators.stream_refine import RunLog
+        from invphys.evaluators.stream_refine import RunLog
 
         RunLog(log, key=None)  # the file and its place, before anything runs (what it was made for: on use)
     return {"budget": budget, "popsize": popsize or REFINE_POPSIZE, "sigma0": sigma or REFINE_SIGMA0, "log": log}

@@ -101,12 +101,12 @@ def refine_rows(label: str, method: Any, starts: dict[int, np.ndarray], targets:
     """One evaluation ``method`` (spec ``evaluation.methods.<label>``) on the targets in ``starts``.
 
     ``evaluator: simulator`` scores populations with ``sim_evaluator`` (a
-    :class:`~invphys.plugins.evaluators.simulator_loop.SimulatorEvaluator`), every target's generation
+    :class:`~invphys.evaluators.simulator_loop.SimulatorEvaluator`), every target's generation
     in one batch; ``surrogate`` scores them on the surrogate, minus ``uncertainty_penalty`` times the
     ensemble's normalised std. Rows report the plain R_surr of the answer.
     """
-    from invphys.plugins.evaluators.simulator_loop import refine_targets
-    from invphys.plugins.evaluators.uncertainty import UncertaintyPenalty
+    from invphys.evaluators.simulator_loop import refine_targets
+    from invphys.evaluators.uncertainty import UncertaintyPenalty
 
     ks = sorted(starts)
     if not ks:

@@ -127,7 +127,7 @@ def score_components(bundle: Any, targets: Any, answers: np.ndarray | None = Non
     answers, ``draws`` a :class:`~invphys.inverter.draws.PosteriorDraws` (or anything with ``samples``
     and ``outside_fraction``)."""
     from invphys.core.masked_recovery import masked_recovery
-    from invphys.plugins.evaluators.uncertainty import normalised_std
+    from invphys.evaluators.uncertainty import normalised_std
 
     t = feature_targets(bundle, targets)
     out: dict[str, np.ndarray] = {}

@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from invphys.evaluation.stats import spearman
-from invphys.plugins.evaluators.uncertainty import normalised_std
+from invphys.evaluators.uncertainty import normalised_std
 
 
 def uncertainty_check(surrogate: Any, theta: np.ndarray, y: np.ndarray, scales: np.ndarray,

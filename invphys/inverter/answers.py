@@ -163,7 +163,7 @@ class PosteriorAnswers(MethodAnswers):
         lam = float(getattr(self.plugin.config, "uncertainty_penalty", 0.0) or 0.0)
         predict, penalty = sur.predict, None
         if lam > 0:
-            from invphys.plugins.evaluators.uncertainty import UncertaintyPenalty
+            from invphys.evaluators.uncertainty import UncertaintyPenalty
 
             pen = UncertaintyPenalty(sur, self.bundle.scales, lam)
             predict, penalty = pen.predict, pen.penalty

@@ -432,7 +432,7 @@ class Inverter:
                 k: int, lam: float = 0.0) -> list[Candidate]:
         """The best ``k`` candidates that are at least :data:`MIN_DISTANCE` apart (best: highest R_surr,
         minus ``lam`` x the normalised ensemble std where a method scores so)."""
-        from invphys.plugins.evaluators.uncertainty import normalised_std
+        from invphys.evaluators.uncertainty import normalised_std
 
         cands = self._candidates(thetas, sources, target, mask)
         pen = lam * normalised_std(np.array([c.std for c in cands]), self.bundle.scales) if lam else np.zeros(len(cands))
@@ -554,7 +554,7 @@ class Inverter:
         its ``r_actual`` (its ``actual`` stays the features of the run that found it; other candidates
         keep their single-run R). ``result.polish["confirm"]`` records ``r_selected`` (best of N),
         ``r_confirmed``, every run's R and whether the answer changed
-        (:func:`~invphys.plugins.evaluators.polish.confirm`). Cost: K x candidates runs per result.
+        (:func:`~invphys.evaluators.polish.confirm`). Cost: K x candidates runs per result.
         """
         from invphys.inverter.simulate import polish
 

@@ -13,7 +13,7 @@ For one target the pool holds
   candidates so far, from a random stream of the target's own (:func:`~invphys.inverter.seeds.target_rng`).
 
 Every candidate is scored ``R_surr - lam x normalised ensemble std`` (the std on the scales s_k, as
-:func:`~invphys.plugins.evaluators.uncertainty.normalised_std`): the penalty keeps the answer away from
+:func:`~invphys.evaluators.uncertainty.normalised_std`): the penalty keeps the answer away from
 where the surrogate's members disagree, i.e. where its R is least trustworthy. The answer is the best
 scored candidate. Nothing depends on other targets or their order.
 """
@@ -132,7 +132,7 @@ class PoolAnswers(PosteriorAnswers):
 
     def score(self, thetas: np.ndarray, values: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """(P,) R_surr over the given features minus lam x the normalised ensemble std."""
-        from invphys.plugins.evaluators.uncertainty import normalised_std
+        from invphys.evaluators.uncertainty import normalised_std
 
         mean, std = self.bundle.surrogate.predict_with_uncertainty(np.clip(thetas, 0.0, 1.0))
         r = masked_recovery(mean, values, self.bundle.scales, mask, self.bundle.kappa)

@@ -2,7 +2,7 @@
 
 From each result's best candidates (its top-k, the amortised answer first), a per-target search on the
 real simulator: the candidates not simulated yet are simulated, then ask/tell CMA-ES from the best of
-them (:func:`~invphys.plugins.evaluators.stream_refine.stream_refine`), ``budget`` runs per target in
+them (:func:`~invphys.evaluators.stream_refine.stream_refine`), ``budget`` runs per target in
 all. Every target's runs share one open stream, so a target's next generation starts while other
 targets' runs are still in flight. The answer is the best simulated point, so never worse than the
 best simulated start; the same targets, seed and settings give the same answers whatever the order,
@@ -38,7 +38,7 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
     flight at once (None: the simulator's own); ``log``: a refine log (``.npz``) that a re-run replays;
     ``simulator``: use this simulator object instead of building the bundle's (e.g. one already warm).
     """
-    from invphys.plugins.evaluators.stream_refine import (
+    from invphys.evaluators.stream_refine import (
         RunLog,
         feed_features,
         log_key,
@@ -75,7 +75,7 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
 
 def _target(inv: Any, r: InversionResult, budget: int, popsize: int, sigma0: float, seed: int) -> Any:
     """The refine of result ``r``: its candidates as starts (simulated ones with their features)."""
-    from invphys.plugins.evaluators.stream_refine import TargetRefine, log_key
+    from invphys.evaluators.stream_refine import TargetRefine, log_key
 
     mf = len(inv.feature_names)
     starts = np.array([c.theta for c in r.candidates], dtype=np.float64)

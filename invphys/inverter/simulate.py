@@ -87,10 +87,10 @@ def _best_simulated(r: InversionResult) -> Candidate:
 def polish(inv: Any, items: list[InversionResult], ps: PolishSettings, overrides: Mapping[str, Any] | None,
            batch_size: int, log: str | Path | None, seed: int, on_batch: Callable[[int, bool], None] | None) -> None:
     """:meth:`Inverter.polish` on ``items`` (updated in place)."""
-    from invphys.plugins.evaluators.polish import BatchLog, Polished, check_polish_log
-    from invphys.plugins.evaluators.polish import confirm as confirm_answers
-    from invphys.plugins.evaluators.polish import polish as run_polish
-    from invphys.plugins.evaluators.simulator_loop import SimulatorEvaluator
+    from invphys.evaluators.polish import BatchLog, Polished, check_polish_log
+    from invphys.evaluators.polish import confirm as confirm_answers
+    from invphys.evaluators.polish import polish as run_polish
+    from invphys.evaluators.simulator_loop import SimulatorEvaluator
 
     if log is not None:
         check_polish_log(log)  # before anything is simulated

@@ -156,7 +156,7 @@ class _Entries:
         lam = penalty_of(self.blocks[label])
         extra: dict[str, Any] = {}
         if lam:
-            from invphys.plugins.evaluators.uncertainty import UncertaintyPenalty
+            from invphys.evaluators.uncertainty import UncertaintyPenalty
 
             if "penalty" not in inspect.signature(plugin.prepare).parameters:
                 raise InvphysError(f"optimizers.{label}.uncertainty_penalty: {plugin.name} cannot train with a penalty")
@@ -244,7 +244,7 @@ def run(ctx: StageContext) -> dict[str, Any]:
                                     seed=ctx.seed * 1000 + n, feature_mean=mean, feature_std=std)
             lam = penalty_of(entries.blocks[label])
             if lam:  # score = R - lambda * normalised ensemble std (the row keeps the plain R_surr)
-                from invphys.plugins.evaluators.uncertainty import penalised_problem
+                from invphys.evaluators.uncertainty import penalised_problem
 
                 problem = penalised_problem(problem, surrogate, scales, lam)
             problem.info["tracker"] = ctx.tracker.scoped(f"invert/{label}/{problem_id}")

@@ -244,7 +244,7 @@ def evaluation_rows(ctx: StageContext, rows: list[dict[str, Any]], targets: dict
                     simulator: Any, extractor: Any, ckpt: Any = None) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Baseline rows (every target), noise-floor and method rows (validated targets), and their metrics."""
     from invphys.evaluation.answers import noise_floor_rows, refine_rows
-    from invphys.plugins.evaluators.simulator_loop import SimulatorEvaluator
+    from invphys.evaluators.simulator_loop import SimulatorEvaluator
 
     ev = ctx.spec.evaluation
     n_val = min(int(ctx.spec.targets.validate_n), len(targets["rows"]))

@@ -55,7 +55,7 @@ def answer_with_penalty(plugin: Any, targets: np.ndarray, predict_theta: Any, su
         return plugin.answer(targets, predict_theta)
     if surrogate is None or not hasattr(surrogate, "predict_with_uncertainty"):
         raise InvphysError(f"{where}.uncertainty_penalty needs a surrogate with uncertainty (the ensemble)")
-    from invphys.plugins.evaluators.uncertainty import UncertaintyPenalty
+    from invphys.evaluators.uncertainty import UncertaintyPenalty
 
     pen = UncertaintyPenalty(surrogate, scales, lam)
     return plugin.answer(targets, pen.predict, pen.penalty)
@@ -116,7 +116,7 @@ class DatasetBaseline(BuiltinOptimizer):
 
         ``penalty(features (N, M)) -> (N,)`` is subtracted from R_gt where an option chooses among
         candidates by the surrogate (e.g. :meth:`UncertaintyPenalty.penalty
-        <invphys.plugins.evaluators.uncertainty.UncertaintyPenalty.penalty>` with ``predict_theta`` its
+        <invphys.evaluators.uncertainty.UncertaintyPenalty.penalty>` with ``predict_theta`` its
         ``predict``).
         """
         if not self.fitted:

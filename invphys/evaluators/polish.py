@@ -1,6 +1,6 @@
 """Simulator-in-the-loop polish of answers that were already simulated (``active.polish``).
 
-:func:`polish` runs :func:`~invphys.plugins.evaluators.simulator_loop.refine_targets` (ask/tell
+:func:`polish` runs :func:`~invphys.evaluators.simulator_loop.refine_targets` (ask/tell
 CMA-ES on the real simulator, each generation of all targets in one batch) from each target's best
 simulated answer, only for targets whose R_actual is below a threshold. The starts' features are
 known, so they are not simulated again; a target's answer is the best simulated point, its start
@@ -120,7 +120,7 @@ def _read_log(p: Path) -> tuple[list[dict[str, Any]], str]:
 class BatchLog:
     """Memoised batches of a deterministic search: replay the logged ones, simulate and log the rest.
 
-    ``evaluator`` is a :class:`~invphys.plugins.evaluators.simulator_loop.SimulatorEvaluator` (or
+    ``evaluator`` is a :class:`~invphys.evaluators.simulator_loop.SimulatorEvaluator` (or
     anything with ``__call__``, ``wall_time_s`` and ``device``). Batch ``i`` of a run is replayed when
     the logged batch ``i`` has the same points (within ``atol``); the first mismatch drops the rest of
     the log (the search diverged) and simulates from there. ``key`` names what the log was made for: a
@@ -229,7 +229,7 @@ def polish(targets: np.ndarray, theta: np.ndarray, r_actual: np.ndarray, feature
     ``score(features (B, M), targets (B, M)) -> (B,)`` scores points and must match how ``r_actual``
     was computed (default: R_gt with kappa 3 over every feature; the inverter passes a masked R).
     """
-    from invphys.plugins.evaluators.simulator_loop import refine_targets
+    from invphys.evaluators.simulator_loop import refine_targets
 
     theta, r_actual = np.array(theta, dtype=np.float64), np.array(r_actual, dtype=np.float64)
     features = np.array(features, dtype=np.float64)
