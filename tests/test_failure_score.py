@@ -69,7 +69,7 @@ def test_the_fitted_model_is_plain_json_ranks_planted_failures_first_and_meets_i
 
     y, _, answers, bad = _planted(paper)
     comps = components(paper, y, answers)
-    model = fit(comps, bad, recall=0.8)
+    model = fit(comps, bad, recall=0.8, rule="recall")
     loaded = json.loads(json.dumps(model, allow_nan=False))  # strict JSON, nothing pickled
     p = probability(loaded, comps)
     np.testing.assert_allclose(p, probability(model, comps))
@@ -79,6 +79,27 @@ def test_the_fitted_model_is_plain_json_ranks_planted_failures_first_and_meets_i
     assert measure(p, bad, np.nextafter(model["threshold"], 1.0))["recall"] < 0.8  # the largest such threshold
     with pytest.raises(InvphysError, match=">= 5 failing"):
         fit(comps, np.zeros(len(bad), dtype=bool))
+
+
+def test_the_default_threshold_bounds_false_alarms_on_typical_answers(paper) -> None:
+    """The ``alarms`` rule: at most 10 % - 1.5 SE of the typical calibration answers are warned, and the
+    smallest such threshold (one step lower warns one more)."""
+    from invphys.evaluation.failure_score import components, fit, probability, threshold
+
+    y, _, answers, bad = _planted(paper)
+    comps = components(paper, y, answers)
+    model = fit(comps, bad)
+    p = probability(model, comps)
+    rule = model["threshold_rule"]
+    assert rule["rule"] == "alarms" and 0 < rule["allowed"] < 0.10
+    fires = p >= model["threshold"]
+    assert fires[~bad].mean() <= rule["allowed"]
+    typical = np.sort(p[~bad])
+    below = typical[typical < model["threshold"]]
+    assert (p[~bad] >= below.max()).mean() > rule["allowed"]  # lowering it to the next typical score is too many
+    assert model["calibration"]["alarm_rate"] == fires[~bad].mean()
+    with pytest.raises(InvphysError, match="unknown failure-threshold rule"):
+        threshold(p, bad, "median")
 
 
 def _validated(path: Path, y, truth, answers, bad, method: str = "npe_best64") -> Path:

@@ -13,7 +13,12 @@ answer (larger: more likely to fail), each a function of the two alone:
 
 A logistic regression on their logs (standardised), fitted on held-out answers re-simulated on the
 simulator (``labels``: R_actual < 0.8), gives each answer a failure probability; the warning fires at or
-above a threshold chosen on the same rows for a recall target. The model is a handful of plain numbers
+above a threshold chosen on the same rows. The default rule (``alarms``) bounds false alarms: the threshold
+is the quantile of the calibration rows' *typical* answers (those that reproduce their target) at which at
+most ``ALARMS`` of them are warned, lowered by a margin of 1.5 standard errors of that rate on those rows, so
+the warning fires on few typical targets and catches what stands out (distant targets, edges of the box).
+The ``recall`` rule instead takes the largest threshold catching ``RECALL`` of the failing answers (it
+fired on a third of typical answers for the paper bundle). The model is a handful of plain numbers
 (:func:`fit` returns them as a JSON-ready dict, stored as ``failure`` in a bundle's diagnostics).
 """
 
@@ -33,8 +38,12 @@ SCORES: tuple[str, ...] = ("knn", "misfit", "local_error")
 K_LOCAL = 20
 #: an answer fails when its re-simulated R_actual is below this
 FAIL_BELOW = 0.8
-#: the share of failing calibration answers the warning must catch
+#: the share of failing calibration answers the warning must catch (the ``recall`` rule)
 RECALL = 0.8
+#: the share of typical calibration answers the warning may fire on (the default ``alarms`` rule)
+ALARMS = 0.10
+#: standard errors of that share taken off it, so a new set's alarm rate stays below ``ALARMS``
+ALARM_MARGIN_SE = 1.5
 #: L2 penalty of the logistic regression (on standardised scores; the intercept is not penalised)
 PENALTY = 1.0
 #: added before the log of each score (a misfit or distance of exactly 0 stays finite)
@@ -108,9 +117,9 @@ def probability(model: dict[str, Any], comps: dict[str, np.ndarray]) -> np.ndarr
 
 
 def fit(comps: dict[str, np.ndarray], failed: np.ndarray, recall: float = RECALL,
-        names: tuple[str, ...] = SCORES) -> dict[str, Any]:
+        names: tuple[str, ...] = SCORES, rule: str = "alarms", alarms: float = ALARMS) -> dict[str, Any]:
     """The failure model (plain numbers) fitted on calibration answers: ``comps`` their components,
-    ``failed`` whether each failed on the simulator; the threshold catches ``recall`` of the failures."""
+    ``failed`` whether each failed on the simulator; the threshold by ``rule`` (:func:`threshold`)."""
     failed = np.asarray(failed, dtype=bool)
     if failed.sum() < 5 or (~failed).sum() < 5:
         raise InvphysError(f"fitting a failure warning needs >= 5 failing and >= 5 other answers; got "
@@ -122,14 +131,30 @@ def fit(comps: dict[str, np.ndarray], failed: np.ndarray, recall: float = RECALL
     coef, intercept = _logistic((x - mean) / std, failed.astype(np.float64))
     model = {"format": FORMAT, "scores": list(names), "offsets": offsets, "transform": "log(score + offset)",
              "mean": mean.tolist(), "std": std.tolist(), "coef": coef.tolist(), "intercept": intercept,
-             "fail_below": FAIL_BELOW, "recall_target": float(recall), "k": K, "k_local": K_LOCAL}
+             "fail_below": FAIL_BELOW, "k": K, "k_local": K_LOCAL}
     p = probability(model, comps)
-    # the largest threshold whose warning (p >= threshold) catches >= recall of the failing answers
-    ranked = np.sort(p[failed])[::-1]
-    model["threshold"] = float(ranked[int(np.ceil(recall * len(ranked))) - 1])
+    model["threshold"], model["threshold_rule"] = threshold(p, failed, rule, recall, alarms)
     model["calibration"] = measure(p, failed, model["threshold"])
     model["calibration"]["auroc_each"] = {n: auroc(comps[n], failed) for n in names}
     return model
+
+
+def threshold(p: np.ndarray, failed: np.ndarray, rule: str = "alarms", recall: float = RECALL,
+              alarms: float = ALARMS) -> tuple[float, dict[str, Any]]:
+    """(the warning's threshold on failure probabilities ``p``, the rule as plain numbers). ``alarms``: the
+    smallest threshold firing on at most ``alarms - 1.5 SE`` of the typical (not failing) answers;
+    ``recall``: the largest threshold catching at least ``recall`` of the failing answers."""
+    if rule == "recall":
+        ranked = np.sort(p[failed])[::-1]
+        return float(ranked[int(np.ceil(recall * len(ranked))) - 1]), {"rule": "recall", "recall": float(recall)}
+    if rule != "alarms":
+        raise InvphysError(f"unknown failure-threshold rule {rule!r} (alarms or recall)")
+    typical = np.sort(p[~failed])
+    n = len(typical)
+    allowed = max(alarms - ALARM_MARGIN_SE * np.sqrt(alarms * (1 - alarms) / n), 0.0)
+    k = int(np.floor(allowed * n))  # at most k typical answers at or above the threshold
+    thr = float(np.nextafter(typical[n - k - 1], np.inf)) if k < n else float(typical[0])
+    return thr, {"rule": "alarms", "alarms": float(alarms), "margin_se": ALARM_MARGIN_SE, "allowed": float(allowed)}
 
 
 def measure(p: np.ndarray, failed: np.ndarray, threshold: float) -> dict[str, Any]:
@@ -187,7 +212,7 @@ def training_rows(bundle: Any, truth_theta: np.ndarray | None) -> np.ndarray:
     return np.asarray(d < 1e-9)
 
 
-def fit_from_file(bundle: Any, failures: Any, method: str, keep_training: bool = False
+def fit_from_file(bundle: Any, failures: Any, method: str, keep_training: bool = False, rule: str = "alarms"
                   ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """(the failure model, the components it was fitted on) from validated answers ``failures`` (``FILE`` or
     ``FILE:SET[,SET]``): rows whose true parameters are training rows of the bundle are left out unless
@@ -204,7 +229,7 @@ def fit_from_file(bundle: Any, failures: Any, method: str, keep_training: bool =
                             else np.zeros(len(s["y"]), dtype=bool) for s in sets.values()])
     use = np.ones(len(y), dtype=bool) if keep_training else ~train
     comps = components(bundle, y[use], theta[use])
-    model = fit(comps, failed[use])
+    model = fit(comps, failed[use], rule=rule)
     model.update(method=method, rows={"file": Path(path).name, "sets": list(sets), "given": len(y),
                                       "training_rows": int(train.sum()), "training_rows_used": bool(keep_training),
                                       "used": int(use.sum())})
