@@ -277,7 +277,8 @@ def test_diagnose_fits_the_failure_warning_from_validated_answers_and_keeps_it(b
     d = diagnose(inv, draws=20, failures=path)
     f = d.calibration["failure"]
     assert f == d.report["failure"] and f["rows"]["used"] == len(held) and f["rows"]["training_rows"] == 0
-    assert f["calibration"]["recall"] >= 0.8 and f["scores"] == ["knn", "misfit", "local_error"]
+    assert f["threshold_rule"]["rule"] == "alarms" and f["scores"] == ["knn", "misfit", "local_error"]
+    assert f["calibration"]["alarm_rate"] <= f["threshold_rule"]["allowed"] and f["calibration"]["recall"] > 0
     write_into_bundle(d, bundle)
     assert "Failure warning (answer-level" in (bundle / "diagnostics" / "summary.md").read_text()
     kept = diagnose(load_inverter(bundle), draws=20).calibration["failure"]  # no --failures: the stored one stays
