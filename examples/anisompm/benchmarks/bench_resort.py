@@ -9,8 +9,8 @@ yardstick), and records per setting the wall seconds per run (lock-step batches 
 untimed two-run pass), the ratio to the paper's 156 s, the re-sorts done, and the features' agreement
 with the first setting.
 
-    python benchmarks/bench_resort.py --preset paper --runs 128 --batch 64 --every 0 128 32 \\
-        --out benchmarks/results/resort_paper_h100.json
+    python examples/anisompm/benchmarks/bench_resort.py --preset paper --runs 128 --batch 64 --every 0 128 32 \\
+        --out examples/anisompm/benchmarks/results/resort_paper_h100.json
 """
 
 from __future__ import annotations
@@ -23,8 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-for p in (ROOT, ROOT / "examples" / "orange_peel", ROOT / "examples" / "anisompm", Path(__file__).parent):
+ROOT = Path(__file__).resolve().parents[3]
+for p in (ROOT, ROOT / "examples" / "orange_peel", ROOT / "examples" / "anisompm", ROOT / "benchmarks",
+          Path(__file__).parent):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 

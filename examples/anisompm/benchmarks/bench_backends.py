@@ -6,10 +6,10 @@ Both modes simulate the same fixed parameter vectors (``--n`` uniform draws in t
 12 features with :class:`invphys_orange_peel.features.OrangePeelFeatures`.
 
     # CPU parity at the tiny preset (writes backends_cpu_parity.json)
-    python benchmarks/bench_backends.py parity --preset tiny --n 16 --batch 4 --out benchmarks/results
+    python examples/anisompm/benchmarks/bench_backends.py parity --preset tiny --n 16 --batch 4 --out examples/anisompm/benchmarks/results
 
     # GPU speed at the paper preset, each backend in its own process (writes backends_gpu.json)
-    python benchmarks/bench_backends.py gpu --preset paper --n 16 --repeats 3 --out benchmarks/results
+    python examples/anisompm/benchmarks/bench_backends.py gpu --preset paper --n 16 --repeats 3 --out examples/anisompm/benchmarks/results
 
 ``gpu`` runs Taichi ``--taichi-repeats`` times and Warp ``--repeats`` times (run-to-run spread), while
 ``--budget-s`` allows; it also times one run alone for 24 frames (Warp with and without CUDA graphs).
@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[3]
 for p in (ROOT, ROOT / "examples" / "orange_peel", ROOT / "examples" / "anisompm"):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
@@ -305,7 +305,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--arch", default="cuda")
     ap.add_argument("--backend", default="warp")
     ap.add_argument("--budget-s", type=float, default=480.0)
-    ap.add_argument("--out", default="benchmarks/results")
+    ap.add_argument("--out", default="examples/anisompm/benchmarks/results")
     ap.add_argument("--json", default=None, help="_one: where to write its result")
     ap.add_argument("inputs", nargs="*", help="markdown: result JSON files")
     args = ap.parse_args(argv)

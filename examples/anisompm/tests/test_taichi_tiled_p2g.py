@@ -1,8 +1,8 @@
 """The tiled P2G's CPU-checkable parts: particle orders, reads in the scene's order, clear errors.
 
-The tiled scatter itself needs CUDA shared memory; on a GPU ``benchmarks/bench_tiled_p2g.py`` checks
-that its grid equals the atomic scatter's to float rounding and that whole runs agree as closely as two
-atomic runs do (``benchmarks/results/tiled_p2g_paper_h200.json``).
+The tiled scatter itself needs CUDA shared memory; on a GPU ``examples/anisompm/benchmarks/bench_tiled_p2g.py``
+checks that its grid equals the atomic scatter's to float rounding and that whole runs agree as closely as two
+atomic runs do (``examples/anisompm/benchmarks/results/tiled_p2g_fixed_point_sums_paper_h100.json``).
 """
 
 from __future__ import annotations

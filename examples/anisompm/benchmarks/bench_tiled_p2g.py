@@ -14,7 +14,7 @@ parameter vectors (seed 0) of the orange peel at ``--preset``:
    90th percentile and worst relative difference per feature, and of the feature means) of tiled against
    atomic, next to atomic against atomic (GPU float atomics alone make two atomic runs differ).
 
-    python benchmarks/bench_tiled_p2g.py --preset paper --runs 64 --batch 64 --out benchmarks/results/tiled_p2g_fixed_point_sums_paper_h100.json
+    python examples/anisompm/benchmarks/bench_tiled_p2g.py --preset paper --runs 64 --batch 64 --out examples/anisompm/benchmarks/results/tiled_p2g_fixed_point_sums_paper_h100.json
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[3]
 for p in (ROOT, ROOT / "examples" / "orange_peel", ROOT / "examples" / "anisompm"):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))

@@ -9,7 +9,7 @@ device-to-host copy (a stream's frame end or particle read): the host's work bet
 
     nsys profile -t cuda --sample=none --cpuctxsw=none -o trace python3 benchmarks/bench_dataset.py ...
     nsys stats -r cuda_gpu_trace,cuda_api_trace --format csv -o trace trace.nsys-rep
-    python3 benchmarks/gpu_timeline_gaps.py trace_cuda_gpu_trace.csv trace_cuda_api_trace.csv --last-s 30 \
+    python3 examples/anisompm/benchmarks/gpu_timeline_gaps.py trace_cuda_gpu_trace.csv trace_cuda_api_trace.csv --last-s 30 \
         --skip-last-s 12 --out gaps.json
 """
 

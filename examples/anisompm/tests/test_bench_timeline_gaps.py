@@ -1,5 +1,5 @@
-"""benchmarks/gpu_timeline_gaps.py (GPU idle gaps from an Nsight Systems trace) and bench_host_reads.py's CPU
-check of the direct reads and uploads (issue 16)."""
+"""``examples/anisompm/benchmarks/gpu_timeline_gaps.py`` (GPU idle gaps from an Nsight Systems trace) and
+``bench_host_reads.py``'s CPU check of the direct reads and uploads (issue 16)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import csv
 import json
 
 import pytest
-from benchmark_modules import load
+from engine_benchmarks import load
 
 
 def _trace(path, rows):

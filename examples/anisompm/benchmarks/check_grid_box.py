@@ -7,7 +7,7 @@ a random batch (a deformed, fractured state), then launches ``--steps`` substeps
 each one, for every active run, that the box is exactly the nodes its particles' scatter touches (computed on
 the host from the positions) and that no node outside it holds anything.
 
-    python benchmarks/check_grid_box.py --preset paper --batch 16 --frames 60 --out grid_box_paper.json
+    python examples/anisompm/benchmarks/check_grid_box.py --preset paper --batch 16 --frames 60 --out grid_box_paper.json
 """
 
 from __future__ import annotations
@@ -20,8 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-for p in (ROOT, ROOT / "examples" / "orange_peel", ROOT / "examples" / "anisompm", Path(__file__).parent):
+ROOT = Path(__file__).resolve().parents[3]
+for p in (ROOT, ROOT / "examples" / "orange_peel", ROOT / "examples" / "anisompm",
+          ROOT / "benchmarks"):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 

@@ -16,7 +16,7 @@ Also times ``frame_end`` (the statistics of a frame end: a mask upload, a kernel
 equal bit for bit (``same_arrays``); ``frame_end``'s statistics are float sums whose order GPU atomics vary
 between calls, so their largest relative difference is recorded instead.
 
-    python benchmarks/bench_host_reads.py --preset paper --batch 64 --slots 60 --out benchmarks/results/host_reads_uploads_paper_h100.json
+    python examples/anisompm/benchmarks/bench_host_reads.py --preset paper --batch 64 --slots 60 --out examples/anisompm/benchmarks/results/host_reads_uploads_paper_h100.json
 """
 
 from __future__ import annotations
@@ -30,8 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-for p in (ROOT, ROOT / "examples" / "orange_peel", ROOT / "examples" / "anisompm", Path(__file__).parent):
+ROOT = Path(__file__).resolve().parents[3]
+for p in (ROOT, ROOT / "examples" / "orange_peel", ROOT / "examples" / "anisompm",
+          ROOT / "benchmarks"):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 

@@ -8,8 +8,8 @@ the ratio to the paper's 156 s per run, useful particle-substeps per second and 
 (useful slot-substeps / launched ones). Results are written to ``--out`` after every measurement, so a
 run cut short still leaves its numbers.
 
-    python benchmarks/bench_gpu_throughput.py --arch cuda --runs 256 --batch 64 \\
-        --out benchmarks/results/gpu_throughput.json
+    python examples/anisompm/benchmarks/bench_gpu_throughput.py --arch cuda --runs 256 --batch 64 \\
+        --out examples/anisompm/benchmarks/results/gpu_throughput.json
 """
 
 from __future__ import annotations
@@ -148,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reference-steps", type=int, default=200)
     ap.add_argument("--deadline-s", type=float, default=1e9, help="skip measurements started after this")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", default="benchmarks/results/gpu_throughput.json")
+    ap.add_argument("--out", default="examples/anisompm/benchmarks/results/gpu_throughput.json")
     a = ap.parse_args(argv)
     t_start = time.perf_counter()
 

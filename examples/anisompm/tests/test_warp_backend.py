@@ -23,8 +23,8 @@ from invphys_orange_peel.simulator import OrangePeelSimulator
 from invphys.core.errors import DeviceUnavailableError, InvphysError
 
 SPACE = parameter_space()
-#: the benchmark's fixed vectors (benchmarks/bench_backends.py, seed 0); rows 4, 12, 13, 2 are the
-#: cheapest at the tiny preset (480-600 substeps) and all of them fracture
+#: the benchmark's fixed vectors (examples/anisompm/benchmarks/bench_backends.py, seed 0); rows 4, 12, 13, 2
+#: are the cheapest at the tiny preset (480-600 substeps) and all of them fracture
 BENCH_UNIT = np.random.default_rng(0).uniform(size=(16, SPACE.dim))
 FRACTURE_ROWS = [4, 12, 13, 2]
 
@@ -63,8 +63,9 @@ def test_fracture_features_match_taichi(fracture_runs) -> None:
     """With fracture, every feature of four runs agrees to 1e-3 (median) and 3e-2 (worst), relative.
 
     The issue asks for <= 5% (median); measured over 16 vectors the backends agree to 5e-5 (median)
-    and 4.5e-3 (worst, row 2 of these four), see benchmarks/results/backends_cpu_parity.json. Float32
-    round-off is amplified where cracks form, so the worst-run floor keeps a margin for other CPUs.
+    and 4.5e-3 (worst, row 2 of these four), see
+    ``examples/anisompm/benchmarks/results/backends_cpu_parity.json``. Float32 round-off is amplified where
+    cracks form, so the worst-run floor keeps a margin for other CPUs.
     """
     fe = OrangePeelFeatures()
     fw = np.array([fe.extract(r.trajectory) for r in fracture_runs["warp"]])

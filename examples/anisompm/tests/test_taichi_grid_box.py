@@ -10,14 +10,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from benchmark_modules import load
+from engine_benchmarks import load
 
 pytest.importorskip("taichi")
 
 from invphys_anisompm.backends.taichi_backend import BOX_LAST, BOX_NEXT, TaichiBackend
 from invphys_anisompm.testing import build_scene
 
-#: the host's computation of a scatter's node box, which the GPU check (benchmarks/check_grid_box.py) uses too
+#: the host's computation of a scatter's node box, which the GPU check uses too
+#: (examples/anisompm/benchmarks/check_grid_box.py)
 scatter_box = load("check_grid_box").scatter_box
 
 SCENE = build_scene(settle_seconds=0.06)

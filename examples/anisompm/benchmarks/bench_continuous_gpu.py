@@ -2,7 +2,7 @@
 
 Example (one GPU; Taichi CUDA)::
 
-    python benchmarks/bench_continuous_gpu.py --preset paper --runs 256 --batch 64 \\
+    python examples/anisompm/benchmarks/bench_continuous_gpu.py --preset paper --runs 256 --batch 64 \\
         --cases continuous:16:longest_first continuous:16:given lockstep --budget 420
 
 One process, kernels compiled before timing. ``--cases`` are run in the order given, each only if the
@@ -13,7 +13,7 @@ efficiency, host chunks, substep launches, useful particle-substeps/s, ratio to 
 run, failures, and the features' agreement with the first case on the same rows (GPU atomics make runs
 differ by round-off). ``--profile`` first times one substep with 64, 32, ... 1 active slots of the batch
 (what an idle slot costs) and one chunk's host round trip (uploads, frame statistics and force sums).
-Writes ``benchmarks/results/continuous_<preset>_<device>[_<tag>].json`` (or ``--out``).
+Writes ``examples/anisompm/benchmarks/results/continuous_<preset>_<device>[_<tag>].json`` (or ``--out``).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[3]
 # this tree's packages, unless the path lists them already (a device run may put an older copy first)
 for _p in (str(ROOT), str(ROOT / "examples" / "orange_peel"), str(ROOT / "examples" / "anisompm"),):
     if _p not in sys.path:
@@ -169,7 +169,7 @@ def main(argv: list[str] | None = None) -> dict:
     import taichi as ti
 
     out = {"benchmark": "bench_continuous_gpu", "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-           "command": "python benchmarks/bench_continuous_gpu.py " + " ".join(sys.argv[1:] if argv is None else argv),
+           "command": "python examples/anisompm/benchmarks/bench_continuous_gpu.py " + " ".join(sys.argv[1:] if argv is None else argv),
            "device": sim.engine.device, "backend": "taichi", "taichi": ".".join(map(str, ti.__version__)), "simulator": sim.name, "simulator_version": sim.version,
            "p2g": sim.engine.backend(args.batch).p2g, "resort_every": sim.engine.backend(args.batch).resort_every,
            "config_hash": RunIdentity.of(sim).config, "config": sim.config.model_dump(mode="json"),
@@ -178,7 +178,7 @@ def main(argv: list[str] | None = None) -> dict:
            "host": {"cpus": os.cpu_count(), "python": platform.python_version()},
            "warmup_compile_s": warmup, "cases": []}
     dev = "h100" if "H100" in out["device"] else "h200" if "H200" in out["device"] else args.arch
-    path = args.out or ROOT / "benchmarks" / "results" / (
+    path = args.out or Path(__file__).resolve().parent / "results" / (
         f"continuous_{args.preset}_{dev}" + (f"_{args.tag}" if args.tag else "") + ".json")
     path.parent.mkdir(parents=True, exist_ok=True)
     if args.profile:
