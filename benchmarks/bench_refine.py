@@ -86,19 +86,17 @@ def _recording(sim: Any) -> list[np.ndarray]:
     return rows
 
 
-def _dataset(sim: Any, ext: Any, params: np.ndarray, batch: int) -> dict[str, Any]:
-    """Runs of ``params`` through ``simulate_stream`` (dataset generation's continuous batching), features
-    extracted as runs end (wall time)."""
-    from invphys.plugins.validators.simulator import SimulatorValidator
+def _dataset(sim: Any, ext: Any, params: np.ndarray, batch: int, pool: Any = None) -> dict[str, Any]:
+    """Runs of ``params`` the way dataset generation runs them (``stream_rows``: continuous batching, features
+    extracted as runs end, in ``pool``'s worker processes where one is given), wall time."""
+    from invphys.plugins.executors._batch import stream_rows
 
     n = len(params)
-    m = len(ext.feature_names)
     t0 = time.perf_counter()
     ok = sim_s = 0.0
-    for _i, res in sim.simulate_stream(params, batch):
-        feats, _fail, stats = SimulatorValidator._outcome(res, ext, m)
-        ok += feats is not None
-        sim_s += stats.wall_time_s if stats is not None else 0.0
+    for _i, res in stream_rows(sim, ext, params, batch, pool=pool):
+        ok += bool(res.ok and res.features is not None)
+        sim_s += res.stats.wall_time_s if res.stats is not None else 0.0
     wall = time.perf_counter() - t0
     return {"runs": n, "ok": int(ok), "wall_s": wall, "s_per_run": wall / n, "simulator_s": sim_s}
 
@@ -131,6 +129,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--skip-dataset", action="store_true", help="measure the refine only")
     p.add_argument("--random-dataset", action="store_true",
                    help="also time dataset generation of as many uniformly random runs")
+    p.add_argument("--extract-workers", type=int, default=0,
+                   help="feature-extraction processes for both measurements (0: in this process)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=None)
     a = p.parse_args(argv)
@@ -157,17 +157,24 @@ def main(argv: list[str] | None = None) -> int:
     answer_s = time.perf_counter() - t0
     space = sim.parameter_space()
     rng = np.random.default_rng(a.seed + 1)
-    warm = _dataset(sim, ext, space.denormalize(rng.random((a.sim_batch, space.dim))), a.sim_batch)  # compiles
+    pool = None
+    if a.extract_workers:
+        from invphys.plugins.executors._extract_pool import ExtractionPool
+
+        pool = ExtractionPool(ext, a.extract_workers)
+    warm = _dataset(sim, ext, space.denormalize(rng.random((a.sim_batch, space.dim))), a.sim_batch, pool)  # compiles
     fed = _recording(sim)
     t0 = time.perf_counter()
     records = refine(inv, results, a.budget, a.popsize, a.sigma0, overrides=overrides, batch_size=a.sim_batch,
-                     seed=a.seed, simulator=sim)
+                     seed=a.seed, simulator=sim, extract_workers=a.extract_workers)
     wall = time.perf_counter() - t0
     spent = sum(r["runs"] for r in records)
     # dataset generation of the very runs the refine simulated (same parameters, so the same cost per run)
-    data = None if a.skip_dataset else _dataset(sim, ext, np.array(fed), a.sim_batch)
-    rand = _dataset(sim, ext, space.denormalize(rng.random((len(fed), space.dim))), a.sim_batch) \
+    data = None if a.skip_dataset else _dataset(sim, ext, np.array(fed), a.sim_batch, pool)
+    rand = _dataset(sim, ext, space.denormalize(rng.random((len(fed), space.dim))), a.sim_batch, pool) \
         if a.random_dataset else None
+    if pool is not None:
+        pool.close()
     ref = {"targets": len(y), "budget": a.budget, "starts": a.starts, "popsize": a.popsize, "sigma0": a.sigma0,
            "runs": spent, "wall_s": wall, "s_per_run": wall / max(spent, 1),
            "simulator_s": float(sum(r["simulator_s"] for r in records)), **_summary(records)}
@@ -175,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
               "device": _device(sim), "simulator": sim.name, "simulator_version": sim.version,
               "simulator_config": sim.config.model_dump(), "overrides": overrides, "feed": feed,
               "bundle": a.bundle, "method": results[0].method if results else a.method, "targets": a.targets,
-              "sim_batch": a.sim_batch, "answer_s": answer_s, "warmup": warm, "dataset": data, "dataset_random": rand, "refine": ref,
+              "sim_batch": a.sim_batch, "extract_workers": a.extract_workers, "answer_s": answer_s, "warmup": warm, "dataset": data, "dataset_random": rand, "refine": ref,
               "refine_over_dataset": None if data is None else ref["s_per_run"] / data["s_per_run"],
               "per_target": [{k: v for k, v in r.items() if k not in ("call", "settings")} for r in records]}
     _machine().emit(result, a.out)

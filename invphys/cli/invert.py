@@ -72,6 +72,9 @@ def invert(
                                                   help="--sim-refine: step in the [0, 1] cube (default 0.012)"),
     sim_refine_log: Path | None = typer.Option(None, "--sim-refine-log",
                                                help="log of --sim-refine's runs: a stopped refine resumes from it"),
+    sim_refine_workers: int | None = typer.Option(
+        None, "--sim-refine-workers", help="--sim-refine: extract features in N worker processes while the "
+        "simulator goes on (default 0: in this process; on a GPU 4 keeps it busy, as for dataset generation)"),
     seed: int = typer.Option(0, "--seed", help="seed of every random draw (with the target and the method it "
                              "decides the answer; a target's position in the file does not)"),
     level: float = typer.Option(0.9, "--level", help="level of the central intervals (posterior methods)"),
@@ -96,7 +99,8 @@ def invert(
     check_seed(seed), check_level(level)
     polish_settings = _polish_settings(polish, polish_below, polish_sigma, polish_popsize, polish_log,
                                        polish_confirm, polish_confirm_candidates)
-    refine_settings = _refine_settings(sim_refine, sim_refine_popsize, sim_refine_sigma, sim_refine_log)
+    refine_settings = _refine_settings(sim_refine, sim_refine_popsize, sim_refine_sigma, sim_refine_log,
+                                       sim_refine_workers)
     files = _output_files(samples, samples_out, plot, csv_out)
     inv = load_inverter(bundle, strict=not allow_mismatch)
     targets = cli_targets(inv, target, feature or [], observed or [], partial)  # a bad target: its one line only
@@ -269,14 +273,14 @@ def _polish(inv: Any, results: list[Any], overrides: dict[str, Any], seed: int, 
                       soft_wrap=True)
 
 
-def _refine_settings(budget: int | None, popsize: int | None, sigma: float | None, log: Path | None
-                     ) -> dict[str, Any]:
+def _refine_settings(budget: int | None, popsize: int | None, sigma: float | None, log: Path | None,
+                     workers: int | None = None) -> dict[str, Any]:
     """The ``--sim-refine*`` options ({} without ``--sim-refine``), checked before anything runs."""
     from invphys.inverter.refine import REFINE_POPSIZE, REFINE_SIGMA0
 
     if budget is None:
         given = [n for n, v in (("--sim-refine-popsize", popsize), ("--sim-refine-sigma", sigma),
-                                ("--sim-refine-log", log)) if v is not None]
+                                ("--sim-refine-log", log), ("--sim-refine-workers", workers)) if v is not None]
         if given:
             raise InvphysError(f"{', '.join(given)} needs --sim-refine N (simulator runs per target)")
         return {}
@@ -286,11 +290,14 @@ def _refine_settings(budget: int | None, popsize: int | None, sigma: float | Non
         raise InvphysError(f"--sim-refine-popsize must be in 2 .. 10000, got {popsize}")
     if sigma is not None and not 0 < sigma <= 10:
         raise InvphysError(f"--sim-refine-sigma must be in (0, 10], got {sigma}")
+    if workers is not None and not 0 <= workers <= 256:
+        raise InvphysError(f"--sim-refine-workers must be in 0 .. 256, got {workers}")
     if log is not None:
         from invphys.evaluators.stream_refine import RunLog
 
         RunLog(log, key=None)  # the file and its place, before anything runs (what it was made for: on use)
-    return {"budget": budget, "popsize": popsize or REFINE_POPSIZE, "sigma0": sigma or REFINE_SIGMA0, "log": log}
+    return {"budget": budget, "popsize": popsize or REFINE_POPSIZE, "sigma0": sigma or REFINE_SIGMA0, "log": log,
+            "extract_workers": workers or 0}
 
 
 def _sim_refine(inv: Any, results: list[Any], overrides: dict[str, Any], seed: int, batch_size: int,

@@ -323,27 +323,65 @@ def _record(t: TargetRefine, theta: np.ndarray, score: float, y: np.ndarray) -> 
         t.theta, t.score, t.features, t.best_index = np.array(theta, float), score, np.array(y, float), len(t.points) - 1
 
 
-def feed_features(simulator: Any, extractor: Any, batch_size: int | None
+def feed_features(simulator: Any, extractor: Any, batch_size: int | None, pool: Any = None
                   ) -> Callable[[Callable[[int], np.ndarray | None]], Iterator[tuple[int, np.ndarray, float, str]]]:
     """``simulate`` for :func:`stream_refine`: normalised rows through ``simulator.simulate_feed``, features
-    extracted as each run ends (NaN for a failed run or extraction), with the run's seconds and device."""
-    from invphys.plugins.validators.simulator import SimulatorValidator
+    extracted as each run ends (NaN for a failed run or extraction), with the run's seconds and device.
 
+    With ``pool`` (an :class:`~invphys.plugins.executors._extract_pool.ExtractionPool`) features are extracted
+    in its worker processes while the simulator goes on, as dataset generation does, and each run is yielded
+    once its features are back (out of finishing order: :func:`stream_refine` tells in ask order). A stream
+    that runs dry while features are still being extracted is opened again for the rows their targets ask
+    next, until a stream is given no rows."""
     space = simulator.parameter_space()
     m = len(extractor.feature_names)
 
     def run(feeder: Callable[[int], np.ndarray | None]) -> Iterator[tuple[int, np.ndarray, float, str]]:
+        offset, fed = 0, [0]
+
         def physical(free: int) -> np.ndarray | None:
             rows = feeder(free)
-            return None if rows is None or len(rows) == 0 else space.denormalize(np.clip(rows, 0.0, 1.0))
+            if rows is None or len(rows) == 0:
+                return None
+            fed[0] += len(rows)
+            return space.denormalize(np.clip(rows, 0.0, 1.0))
 
-        for i, res in simulator.simulate_feed(physical, batch_size):
-            feats, _failure, stats = SimulatorValidator._outcome(res, extractor, m)
-            y = np.full(m, np.nan) if feats is None else feats
-            yield i, y, float(stats.wall_time_s) if stats is not None else 0.0, \
-                str(stats.device) if stats is not None else ""
+        while True:
+            fed[0] = 0
+            pending: dict[int, tuple[Any, Any]] = {}
+            for i, res in simulator.simulate_feed(physical, batch_size):
+                if pool is None:
+                    yield _fed_outcome(offset + i, res, extractor, m)
+                    continue
+                pending[offset + i] = (res, pool.submit(res))
+                yield from _ready(pending, extractor, m, wait=False)
+            yield from _ready(pending, extractor, m, wait=True)
+            if pool is None or fed[0] == 0:
+                return
+            offset += fed[0]
 
     return run
+
+
+def _ready(pending: dict[int, tuple[Any, Any]], extractor: Any, m: int, wait: bool
+           ) -> Iterator[tuple[int, np.ndarray, float, str]]:
+    """The pending runs whose features are back (``wait``: all of them, in feeding order)."""
+    for i in sorted(i for i, (_, fut) in pending.items() if wait or fut is None or fut.done()):
+        res, fut = pending.pop(i)
+        yield _fed_outcome(i, res, extractor, m, fut)
+
+
+def _fed_outcome(i: int, res: Any, extractor: Any, m: int, fut: Any = None) -> tuple[int, np.ndarray, float, str]:
+    from invphys.plugins.validators.simulator import SimulatorValidator
+
+    try:
+        feats, _failure, stats = SimulatorValidator._outcome(res, extractor, m, fut)
+    except InvphysError:
+        raise
+    except Exception:  # the extractor raised in a worker, or the worker died: a failed run
+        feats, stats = None, getattr(res, "stats", None)
+    y = np.full(m, np.nan) if feats is None else feats
+    return i, y, float(stats.wall_time_s) if stats is not None else 0.0, str(stats.device) if stats is not None else ""
 
 
 def timed(run: Callable[..., Iterator[Any]]) -> tuple[Callable[..., Iterator[Any]], dict[str, float]]:

@@ -31,12 +31,14 @@ REFINE_SIGMA0 = 0.012
 def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = REFINE_POPSIZE,
            sigma0: float = REFINE_SIGMA0, overrides: Mapping[str, Any] | None = None, batch_size: int | None = None,
            log: str | Path | None = None, seed: int = 0, on_run: Callable[[int, bool], None] | None = None,
-           simulator: Any = None) -> list[dict[str, Any]]:
+           simulator: Any = None, extract_workers: int = 0) -> list[dict[str, Any]]:
     """Refine ``items`` in place (answer first); return one record per result (runs, seconds, R before/after).
 
     ``budget``: simulator runs per target, its unsimulated candidates included; ``batch_size``: runs in
     flight at once (None: the simulator's own); ``log``: a refine log (``.npz``) that a re-run replays;
-    ``simulator``: use this simulator object instead of building the bundle's (e.g. one already warm).
+    ``simulator``: use this simulator object instead of building the bundle's (e.g. one already warm);
+    ``extract_workers``: extract features in this many worker processes while the simulator goes on (0: in
+    this process, between launches); the answers are the same either way.
     """
     from invphys.evaluators.stream_refine import (
         RunLog,
@@ -57,9 +59,14 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
                    "version": getattr(sim, "version", "")})
     runlog = None if log is None else RunLog(log, key, flush=int(batch_size or 16))
     targets = [_target(inv, r, budget, popsize, sigma0, seed) for r in items]
-    run = feed_features(sim, ext, batch_size)
+    pool = _extraction_pool(ext, extract_workers)
     t0 = time.perf_counter()
-    stream_refine(targets, run, masked_score(inv), budget, popsize, sigma0, log=runlog, on_run=on_run)
+    try:
+        stream_refine(targets, feed_features(sim, ext, batch_size, pool), masked_score(inv), budget, popsize,
+                      sigma0, log=runlog, on_run=on_run)
+    finally:
+        if pool is not None:
+            pool.close()
     wall = time.perf_counter() - t0
     records = []
     for r, t in zip(items, targets, strict=True):
@@ -71,6 +78,16 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
     for rec in records:
         rec["call"] = call
     return records
+
+
+def _extraction_pool(extractor: Any, workers: int) -> Any:
+    if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or not 0 <= workers <= 256:
+        raise InvphysError(f"extract workers must be a whole number in 0 .. 256, got {workers!r}")
+    if not workers:
+        return None
+    from invphys.plugins.executors._extract_pool import ExtractionPool
+
+    return ExtractionPool(extractor, int(workers))
 
 
 def _target(inv: Any, r: InversionResult, budget: int, popsize: int, sigma0: float, seed: int) -> Any:
