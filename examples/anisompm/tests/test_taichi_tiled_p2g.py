@@ -3,6 +3,8 @@
 The tiled scatter itself needs CUDA shared memory; on a GPU ``examples/anisompm/benchmarks/bench_tiled_p2g.py``
 checks that its grid equals the atomic scatter's to float rounding and that whole runs agree as closely as two
 atomic runs do (``examples/anisompm/benchmarks/results/tiled_p2g_fixed_point_sums_paper_h100.json``).
+The engine's test scene (``invphys_anisompm.testing``) serves as the scene; the orange peel where a paper-sized
+scene is needed (the tiles' compactness over ~200 tiles) and where its config's ``taichi_*`` knobs are tested.
 """
 
 from __future__ import annotations
@@ -15,11 +17,15 @@ pytest.importorskip("taichi")
 from invphys_anisompm import Engine
 from invphys_anisompm.backends.particle_order import hilbert_index, hilbert_order, morton_order
 from invphys_anisompm.backends.taichi_backend import TaichiBackend
+from invphys_anisompm.testing import build_scene
 from invphys_orange_peel.parameters import parameter_space
 from invphys_orange_peel.simulator import OrangePeelSimulator
 
 from invphys.core.dataset import RunIdentity
 from invphys.core.errors import InvphysError
+
+SCENE = build_scene(settle_seconds=0.04)
+MODEL = SCENE.model(2).set_material("paste", E=[3e4, 6e4], eta=[0.02, 0.05]).set_friction("wire", [0.3, 0.0])
 
 
 def _tiny(**kw) -> OrangePeelSimulator:
@@ -59,7 +65,7 @@ def test_hilbert_index_visits_every_cell_once_stepping_to_a_neighbour(bits):
 
 
 def test_tiled_scatter_needs_cuda_and_auto_picks_atomic_on_cpu():
-    scene = _tiny().engine_scene.engine
+    scene = SCENE
     with pytest.raises(InvphysError, match="needs CUDA"):
         TaichiBackend(scene, 2, arch="cpu", p2g="tiled")
     with pytest.raises(InvphysError, match="p2g must be"):
@@ -72,57 +78,50 @@ def test_tiled_scatter_needs_cuda_and_auto_picks_atomic_on_cpu():
         sim.simulate(parameter_space().denormalize(np.full((1, parameter_space().dim), 0.5)))
 
 
-def test_scatter_choice_is_not_part_of_the_run_identity():
+def test_scatter_and_g2p_choices_are_not_part_of_the_run_identity():
     assert RunIdentity.of(_tiny(taichi_p2g="tiled")) == RunIdentity.of(_tiny(taichi_p2g="atomic")) \
         == RunIdentity.of(_tiny())
+    looped = _tiny(taichi_g2p="loop")
+    assert RunIdentity.of(looped) == RunIdentity.of(_tiny())
+    assert looped.engine.backend(2).g2p == "loop"   # the food's knob reaches the backend
 
 
 @pytest.mark.parametrize("order", ["hilbert", "morton"])
 def test_curve_particle_order_returns_the_scene_order(order):
     """The same runs with the device's particles along a curve (Hilbert: the tiled scatter's order) and in
     the scene's: every record comes back in the scene's order and agrees up to the scatter's summation order."""
-    space = parameter_space()
-    params = space.denormalize(np.random.default_rng(3).uniform(size=(2, space.dim)))
-    plain = _tiny()
-    curve = _tiny()
-    curve._engine = Engine(curve.engine_scene.engine, backend="taichi", arch="cpu", particle_order=order)
-    a, b = plain.simulate(params), curve.simulate(params)
+    a = Engine(SCENE, backend="taichi", arch="cpu").run(MODEL, 3, 1)
+    b = Engine(SCENE, backend="taichi", arch="cpu", particle_order=order).run(MODEL, 3, 1)
     for ra, rb in zip(a, b, strict=True):
         assert ra.ok and rb.ok
-        pa, pb = ra.trajectory.positions, rb.trajectory.positions
+        pa, pb = np.stack(ra.positions), np.stack(rb.positions)
         assert pa.shape == pb.shape
         scale = np.abs(pa - pa[0]).max()  # how far the particles moved
+        assert scale > 1e-4
         assert np.abs(pb - pa).max() < 1e-3 * scale
-        np.testing.assert_allclose(rb.trajectory.damage, ra.trajectory.damage, atol=1e-4)
+        np.testing.assert_allclose(np.stack(rb.damage), np.stack(ra.damage), atol=1e-4)
 
 
 
-def _load(backend, sim: OrangePeelSimulator, params: np.ndarray) -> None:
-    from invphys_orange_peel.engine_scene import model_for
-
-    model = model_for(sim.engine_scene, params)
-    backend.load(model.table(), model.friction)
-
-
-def _advance(backend, sim: OrangePeelSimulator, n: int) -> None:
+def _advance(backend, n: int) -> None:
     """``n`` substeps of dt 2e-4 with damage on and the grips still."""
     B = backend.batch
-    nk = max(len(sim.engine_scene.engine.kinematic_names), 1)
+    nk = max(len(backend.scene.kinematic_names), 1)
     backend.set_frame(np.full(B, 2e-4), np.full(B, n), np.zeros((B, n, nk, 6)), damage_on=True)
     backend.advance(n)
 
 
-def _substeps(sim: OrangePeelSimulator, params: np.ndarray, n: int = 3) -> dict[str, np.ndarray]:
-    """``n`` substeps from the loaded runs with random damage, deformation and velocities already present
+def _substeps(engine: Engine, n: int = 3) -> dict[str, np.ndarray]:
+    """``n`` substeps from MODEL's loaded runs with random damage, deformation and velocities already present
     (so the stress, g2p's damage Laplacian and the APIC terms all act); the particle state after them."""
-    B, N = len(params), sim.engine_scene.engine.n_particles
-    backend = sim.engine.backend(B)
-    _load(backend, sim, params)
+    B, N = MODEL.n_envs, SCENE.n_particles
+    backend = engine.backend(B)
+    backend.load(MODEL.table(), MODEL.friction)
     rng = np.random.default_rng(0)
     backend.set_particle_array("d", rng.uniform(0.0, 0.6, (B, N)))
     backend.set_particle_array("F", np.eye(3) + 0.05 * rng.standard_normal((B, N, 3, 3)))
     backend.set_particle_array("v", 0.1 * rng.standard_normal((B, N, 3)))
-    _advance(backend, sim, n)
+    _advance(backend, n)
     backend.sync()
     return {k: backend.particle_array(k) for k in ("x", "v", "C", "F", "d")}
 
@@ -131,40 +130,34 @@ def test_looped_g2p_does_the_same_sums_on_cpu_and_auto_keeps_the_cpu_unrolled():
     """g2p with loops over two axes (CUDA's default: half the registers) does the same sums in the same
     order as the 27 unrolled nodes: the runs agree to float rounding (the compiler contracts products
     differently); ``auto`` keeps the CPU on the unrolled form, so CPU results stay bit for bit."""
-    space = parameter_space()
-    params = space.denormalize(np.random.default_rng(5).uniform(size=(2, space.dim)))
-    auto_sim = _tiny()
-    assert auto_sim.engine.backend(2).g2p == "unrolled"
-    plain = _substeps(auto_sim, params)
-    looped_sim = _tiny(taichi_g2p="loop")
-    assert looped_sim.engine.backend(2).g2p == "loop"
-    looped = _substeps(looped_sim, params)
+    auto = Engine(SCENE, backend="taichi", arch="cpu")
+    assert auto.backend(2).g2p == "unrolled"
+    plain = _substeps(auto)
+    looped_engine = Engine(SCENE, backend="taichi", arch="cpu", g2p="loop")
+    assert looped_engine.backend(2).g2p == "loop"
+    looped = _substeps(looped_engine)
     for k, ref in plain.items():   # measured: <= 8e-7 of each array's largest value
         scale = float(np.abs(ref).max())
         assert np.abs(looped[k] - ref).max() <= 2e-6 * scale, (k, np.abs(looped[k] - ref).max() / scale)
     # the damage moved in these substeps (g2p's Laplacian term acts), and both forms moved it alike
     start = np.random.default_rng(0).uniform(0.0, 0.6, plain["d"].shape).astype(np.float32)
     assert np.abs(plain["d"] - start).max() > 0.05
-    assert RunIdentity.of(looped_sim) == RunIdentity.of(_tiny())
     with pytest.raises(InvphysError, match="g2p must be"):
-        TaichiBackend(auto_sim.engine_scene.engine, 2, arch="cpu", g2p="rolled")
+        TaichiBackend(SCENE, 2, arch="cpu", g2p="rolled")
 
 
 def test_reads_are_new_arrays_in_the_scene_order():
     """``read``/``read_slots`` return new host arrays in the scene's particle order (the device gathers
     them), so records may keep views: a later substep does not change what an earlier read returned."""
-    space = parameter_space()
-    params = space.denormalize(np.random.default_rng(3).uniform(size=(2, space.dim)))
-    sim = _tiny()
-    scene = sim.engine_scene.engine
+    scene = SCENE
     for order in ("scene", "hilbert"):
         backend = TaichiBackend(scene, 2, arch="cpu", particle_order=order)
         assert backend.reads_are_new
-        _load(backend, sim, params)
+        backend.load(MODEL.table(), MODEL.friction)
         x0, _ = backend.read()
         np.testing.assert_array_equal(x0[1], scene.positions.astype(np.float32))   # scene order
         kept = x0.copy()
-        _advance(backend, sim, 2)
+        _advance(backend, 2)
         x1, _ = backend.read()
         xs, ds = backend.read_slots(np.array([1]))
         assert not np.shares_memory(x0, x1) and not np.array_equal(x1, kept)
