@@ -1,10 +1,10 @@
-"""Regenerate ``tests/data/orange_peel_reference_tiny.npz``: the orange peel's features and per-frame series
+"""Regenerate ``examples/orange_peel/tests/data/orange_peel_reference_tiny.npz``: the orange peel's features and per-frame series
 at the ``tiny`` preset on the CPU, the reference that the engine-based simulator is held to.
 
 The committed file was made with the orange peel's own kernels (simulator 0.2.0, before the port onto
 ``invphys-anisompm``; the commit is stored in the file). Usage::
 
-    nice -n 19 .venv/bin/python tests/data/make_orange_reference.py
+    nice -n 19 .venv/bin/python examples/orange_peel/tests/data/make_orange_reference.py
 
 Rows: the centre of the space, a weak skin (sigma_s = 0.05), a strong skin (sigma_s = 0.5) and four
 fracturing vectors of the backend benchmark (seed 0, rows 4, 12, 13, 2); Taichi on the CPU, serialised

@@ -200,6 +200,17 @@ def test_out_of_range_parameter_names_it_and_its_range() -> None:
         sim.simulate(np.stack([SPACE.center(), too_stiff]))
 
 
+def test_device_and_launch_batching_are_not_part_of_a_run() -> None:
+    """Rows made on another device or in other batches are the same stored rows; another frame count is not
+    (the simulator's ``identity_ignores``; the store side: tests/test_dataset_process_workers.py)."""
+    from invphys.core.dataset import RunIdentity
+
+    block = {"preset": "tiny", "arch": "cpu", "batch_size": 2, "frames": 48}
+    config = RunIdentity.of(OrangePeelSimulator(**block)).config
+    assert RunIdentity.of(OrangePeelSimulator(**{**block, "arch": "auto", "batch_size": 8})).config == config
+    assert RunIdentity.of(OrangePeelSimulator(**{**block, "frames": 47})).config != config
+
+
 def test_unknown_preset_suggests_the_closest() -> None:
     with pytest.raises(UnknownPresetError, match="Did you mean 'tiny'"):
         get_preset("tiyn")

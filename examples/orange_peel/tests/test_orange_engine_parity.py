@@ -1,8 +1,8 @@
 """The orange peel on the AnisoMPM engine reproduces the orange peel's own kernels (before the port).
 
-`tests/data/orange_peel_reference_tiny.npz` holds the 12 features, substeps and per-frame series of seven
-tiny-preset runs made on the CPU by the orange peel's own Taichi and Warp kernels (simulator 0.2.0,
-commit in the file; `tests/data/make_orange_reference.py`). The engine-based simulator must give the same
+`data/orange_peel_reference_tiny.npz` (beside this file) holds the 12 features, substeps and per-frame
+series of seven tiny-preset runs made on the CPU by the orange peel's own Taichi and Warp kernels (simulator
+0.2.0, commit in the file; `data/make_orange_reference.py`). The engine-based simulator must give the same
 substeps and the same features to float32 round-off amplified by fracture. The stored features are in
 0.2.0's linear units; 0.3.0 reports four of them in log10 (`log_units`, the physics is unchanged), so the
 reference is converted with that function and those four are compared by their difference in log10, which
