@@ -95,15 +95,6 @@ def test_piped_tables_keep_full_names() -> None:
     assert "invphys.plugins.optimizers.cma_es:CMAES" in row
 
 
-def test_out_naming_a_file_is_a_user_error(tmp_path) -> None:
-    taken = tmp_path / "taken"
-    taken.write_text("precious")
-    result = invphys_cli("simulate", "--simulator", "orange_peel", "--preset", "tiny", "--out", str(taken))
-    assert result.returncode == 2, result.stderr
-    assert result.stderr.strip() == f"error: --out '{taken}' is a file; name a new or existing directory"
-    assert taken.read_text() == "precious"
-
-
 # -- Ctrl-C and -q/-qq tell the truth (issue 50) ---------------------------------------------------------
 TESTS = str(Path(__file__).resolve().parent)
 SLOW = """\
@@ -123,6 +114,16 @@ stages: [dataset]
 def _env() -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if k != "INVPHYS_DEBUG"}  # an in-process --debug test sets it
     return {**env, "PYTHONPATH": os.pathsep.join([TESTS, os.environ.get("PYTHONPATH", "")])}
+
+
+def test_out_naming_a_file_is_a_user_error(tmp_path) -> None:
+    taken = tmp_path / "taken"
+    taken.write_text("precious")
+    result = subprocess.run([sys.executable, "-m", "invphys.cli", "simulate", "--simulator", "test_dataset_toy:ToyOscillator",
+                             "--out", str(taken)], env=_env(), capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip() == f"error: --out '{taken}' is a file; name a new or existing directory"
+    assert taken.read_text() == "precious"
 
 
 @pytest.mark.parametrize("command", [["run", "spec.yaml", "--out", "run"],

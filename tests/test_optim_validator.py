@@ -10,22 +10,25 @@ from invphys.core.objectives import recovery_reward
 from invphys.plugins.validators import SimulatorValidator
 
 
-def test_validator_matches_a_direct_orange_peel_run() -> None:
-    pytest.importorskip("invphys_orange_peel", reason="the orange-peel example distribution is not installed")
+def test_validator_matches_a_direct_run() -> None:
+    from test_dataset_toy import SIM
+
     from invphys.registry import Registry
 
-    reg = Registry()  # with entry points: the orange peel registers itself
-    block = {"type": "orange_peel", "preset": "tiny", "arch": "cpu", "frames": 36, "batch_size": 2}
+    reg = Registry()
+    block = {"type": SIM, "n_frames": 36}
     sim = reg.create("simulator", block)
     ext = reg.create("feature_extractor", sim.default_feature_extractor())
     rng = np.random.default_rng(0)
-    theta = rng.uniform(0.2, 0.8, size=(2, 9))
+    theta = rng.uniform(0.2, 0.8, size=(2, 3))
     # validation on a shorter run than the spec's simulator: overrides are applied
-    val = SimulatorValidator(overrides={"frames": 24}, batch_size=2)
-    direct_sim = reg.create("simulator", {**block, "frames": 24})
+    val = SimulatorValidator(overrides={"n_frames": 24}, batch_size=2)
+    direct_sim = reg.create("simulator", {**block, "n_frames": 24})
     direct = direct_sim.simulate(direct_sim.parameter_space().denormalize(theta))
     assert all(r.ok for r in direct)
     actual = np.stack([ext.extract(r.trajectory) for r in direct])
+    longer = sim.simulate(sim.parameter_space().denormalize(theta))
+    assert not np.allclose(np.stack([ext.extract(r.trajectory) for r in longer]), actual)  # the override counts
     targets = actual[::-1] + 0.01  # target of row 0 is row 1's behaviour, and vice versa
     predicted = actual + 0.005
     scales = np.abs(actual).mean(axis=0) + 1e-3

@@ -85,31 +85,30 @@ def test_final_metrics_and_artifacts_of_each_stage(events) -> None:
         assert f"`{name}`" in text and str(out / name) in text
 
 
-def test_the_quick_start_spec_itself_writes_events(tmp_path) -> None:
-    """The shipped quick-start spec, shrunk to a few epochs and steps, on its committed dataset."""
-    from pathlib import Path
-
-    import yaml
+def test_a_run_on_a_stored_dataset_writes_events(tmp_path) -> None:
+    """The quick start's shape: a dataset stage that reads a stored dataset (``dataset.path``), an MLP, a
+    RealNVP flow and a goal-conditioned PPO policy in the flow's latent space, shrunk to a few epochs/steps."""
     from rich.console import Console
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     from invphys.core.spec import validate_spec
+    from invphys.data.generate import generate_dataset
     from invphys.pipeline.runner import run_spec
 
-    root = Path(__file__).resolve().parent.parent
-    spec_file = root / "examples" / "orange_peel" / "invphys_orange_peel" / "specs" / "quickstart.yaml"
-    data = yaml.safe_load(spec_file.read_text())
-    if not (root / data["dataset"]["path"]).is_dir():
-        pytest.skip("the committed quick-start dataset is absent")
-    data["dataset"]["path"] = str(root / data["dataset"]["path"])
-    data["stages"] = ["dataset", "train", "invert"]
-    data["surrogate"]["max_epochs"] = 3
-    data["latent_models"]["flow"]["max_epochs"] = 2
-    data["optimizers"] = {"gc_ppo_flow": {**data["optimizers"]["gc_ppo_flow"], "total_timesteps": 64,
-                                          "n_steps": 8, "net_arch": [8]}}
-    data["targets"] = {"n": 1, "validate": 0}
-    run_spec(validate_spec(data), tmp_path, progress=False, console=Console(file=io.StringIO()))
-    acc = EventAccumulator(str(tmp_path / "tensorboard"), size_guidance={"scalars": 0})
+    simulator = {"type": "test_dataset_toy:ToyOscillator", "substeps": 8}
+    store = tmp_path / "stored"
+    generate_dataset(store, simulator, n=48, batch_size=16, seed=3, progress=False)
+    data = {"name": "stored-quickstart", "seed": 0, "stages": ["dataset", "train", "invert"],
+            "simulator": simulator, "dataset": {"path": str(store), "test_fraction": 0.2},
+            "surrogate": {"type": "mlp", "hidden": [16, 16, 8], "max_epochs": 3},
+            "latent_models": {"flow": {"type": "realnvp", "latent_dim": 2, "n_couplings": 2, "max_epochs": 2}},
+            "optimizers": {"gc_ppo_flow": {"type": "gc_ppo", "space": "flow", "total_timesteps": 64, "n_envs": 8,
+                                           "n_steps": 8, "net_arch": [8]}},
+            "targets": {"n": 1, "validate": 0}}
+    out = tmp_path / "run"
+    summaries = run_spec(validate_spec(data), out, progress=False, console=Console(file=io.StringIO()))
+    assert summaries["dataset"]["generated"] is False  # the stored rows were read, none simulated
+    acc = EventAccumulator(str(out / "tensorboard"), size_guidance={"scalars": 0})
     acc.Reload()
     assert [e.step for e in acc.Scalars("train/surrogate/val_loss")] == [0, 1, 2]
     assert [e.step for e in acc.Scalars("train/latent_models/flow/val_loss")] == [0, 1]
