@@ -72,9 +72,8 @@ def invert(
                                                   help="--sim-refine: step in the [0, 1] cube (default 0.012)"),
     sim_refine_log: Path | None = typer.Option(None, "--sim-refine-log",
                                                help="log of --sim-refine's runs: a stopped refine resumes from it"),
-    sim_refine_workers: int | None = typer.Option(
-        None, "--sim-refine-workers", help="--sim-refine: extract features in N worker processes while the "
-        "simulator goes on (default 0: in this process; on a GPU 4 keeps it busy, as for dataset generation)"),
+    sim_refine_workers: int | None = typer.Option(None, "--sim-refine-workers", help="--sim-refine: extract features in N "
+                                                  "processes while the simulator goes on (default 0: here; GPU: 4)"),
     seed: int = typer.Option(0, "--seed", help="seed of every random draw (with the target and the method it "
                              "decides the answer; a target's position in the file does not)"),
     level: float = typer.Option(0.9, "--level", help="level of the central intervals (posterior methods)"),
@@ -106,8 +105,7 @@ def invert(
     targets = cli_targets(inv, target, feature or [], observed or [], partial)  # a bad target: its one line only
     for note in inv.notes:
         console.print(f"[yellow]warning:[/] {escape(note)}", soft_wrap=True)
-    if refine_settings:
-        top_k = max(top_k, sim_refine_starts)
+    top_k = max(top_k, sim_refine_starts) if refine_settings else top_k
     results = inv.invert_many(targets, method=method, top_k=top_k, refine=refine, seed=seed, level=level,
                               draws=max(samples or 0, INTERVAL_DRAWS))
     _check_results(results, samples)
