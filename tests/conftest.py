@@ -1,4 +1,8 @@
-"""Shared fixtures. Tests run on CPU, with tiny presets and small data."""
+"""Shared fixtures. Tests run on CPU, with tiny presets and small data.
+
+These are the framework's tests (a toy simulator where any simulator serves); an example's own tests live in
+its folder: examples/anisompm/tests (the engine), examples/orange_peel/tests, examples/cheese_cut/tests.
+"""
 
 from __future__ import annotations
 

@@ -27,7 +27,7 @@ def test_protocol_specs_meet_the_protocol(path: Path) -> None:
 
 
 def test_evaluation_section_errors_are_one_clear_line() -> None:
-    base = "name: x\nsimulator: {type: orange_peel, preset: tiny}\nsurrogate: {type: mlp}\n" \
+    base = "name: x\nsimulator: {type: 'test_dataset_toy:ToyOscillator'}\nsurrogate: {type: mlp}\n" \
            "optimizers: {cma: {type: cma_es}}\n"
     with pytest.raises(SpecError, match=r"evaluation\.methods\.m\.start.*'nearest_neighbor'.*Did you mean"):
         parse_spec(base + "evaluation: {methods: {m: {start: nearest_neighbor}}}\n")
