@@ -1,15 +1,22 @@
-"""The optional streaming hook: ``Simulator.simulate_stream`` (default and the cheese-cut override) and
-the local executor handing a ``native_stream`` simulator all its rows in one continuous-batching stream."""
+"""The optional streaming hook: ``Simulator.simulate_stream`` (the default) and the local executor handing a
+``native_stream`` simulator all its rows in one continuous-batching stream (the cheese cut's own stream:
+examples/cheese_cut/tests/test_cheese_cut_stream.py)."""
 
 from __future__ import annotations
 
-import numpy as np
-import pytest
-from test_dataset_toy import ToyOscillator
+from typing import ClassVar
 
-from invphys.core.dataset import config_hash
+import numpy as np
+from test_dataset_toy import FEATURES, SIM, ToyOscillator
+
 from invphys.plugins.executors import LocalExecutor
-from invphys.plugins.executors._batch import build_plugins
+
+STREAMING = "test_executors_stream:StreamingOscillator"
+
+
+def _params(n: int, seed: int = 1) -> np.ndarray:
+    space = ToyOscillator().parameter_space()
+    return space.denormalize(np.random.default_rng(seed).random((n, space.dim)))
 
 
 def test_default_stream_falls_back_to_the_batch_api() -> None:
@@ -27,33 +34,32 @@ def test_default_stream_falls_back_to_the_batch_api() -> None:
             np.testing.assert_array_equal(a, b)
 
 
-def test_local_executor_streams_a_continuous_cheese_simulator() -> None:
-    pytest.importorskip("taichi")
-    from invphys_cheese_cut.parameters import parameter_space
+class StreamingOscillator(ToyOscillator):
+    """The toy oscillator with a stream of its own: it notes how many rows each stream call gets and hands
+    the results back last row first (a warm engine hands them back as runs finish, in any order)."""
 
-    space = parameter_space()
-    params = space.denormalize(np.random.default_rng(1).random((5, space.dim)))
-    base = {"type": "cheese_cut", "preset": "tiny", "arch": "cpu", "batch_size": 2}
-    feats = {"type": "cheese_cut_features"}
-    out = {}
-    # the warm simulator the executor will use (cached per process: other tests may have used it before)
-    sim, _ = build_plugins({**base, "scheduling": "continuous"}, feats)
-    useful_before = sim.engine.counters.useful
-    for scheduling in ("lockstep", "continuous"):
-        spec = {**base, "scheduling": scheduling}
-        rows = list(LocalExecutor().run(spec, feats, params, batch_size=2))
-        assert sorted(i for i, _ in rows) == list(range(5))
-        out[scheduling] = dict(rows)
-    assert sim.native_stream
-    # one stream over all five rows on that warm simulator: its useful slot-substeps are exactly the runs'
-    assert sim.engine.counters.useful - useful_before == sum(out["continuous"][i].stats.substeps for i in range(5))
-    for i in range(5):
-        a, b = out["continuous"][i], out["lockstep"][i]
-        assert a.ok == b.ok and a.failure == b.failure
-        if a.ok:
-            np.testing.assert_allclose(a.features, b.features, rtol=1e-4, atol=1e-6)
-    assert config_hash(sim.config, sim.identity_ignores) == config_hash(
-        build_plugins({**base, "scheduling": "lockstep"}, feats)[0].config, sim.identity_ignores)
+    name = "streaming_oscillator"
+    native_stream = True
+    streams: ClassVar[list[int]] = []
+
+    def simulate_stream(self, params, batch_size=None):
+        type(self).streams.append(len(params))
+        results = self.simulate(params)
+        yield from reversed(list(enumerate(results)))
+
+
+def test_local_executor_hands_a_native_stream_all_its_rows_at_once() -> None:
+    """Continuous batching: one stream over every row (not a stream per batch), rows taken in the order they
+    come, each the row the batch API gives."""
+    params = _params(5)
+    StreamingOscillator.streams.clear()
+    rows = list(LocalExecutor().run({"type": STREAMING, "substeps": 8}, {"type": FEATURES}, params, batch_size=2))
+    assert StreamingOscillator.streams == [5]
+    assert [i for i, _ in rows] == [4, 3, 2, 1, 0]
+    batched = dict(LocalExecutor().run({"type": SIM, "substeps": 8}, {"type": FEATURES}, params, batch_size=2))
+    for i, res in rows:
+        assert res.ok and batched[i].ok and res.trajectory is None
+        np.testing.assert_array_equal(res.features, batched[i].features)
 
 
 def test_process_executor_gives_each_worker_one_gpu(monkeypatch) -> None:
