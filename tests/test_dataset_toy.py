@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import os
 import time
-from typing import Literal
+from types import SimpleNamespace
+from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
@@ -23,6 +24,7 @@ from invphys.core.results import RunStats, SimulationResult, Trajectory
 
 SIM = "test_dataset_toy:ToyOscillator"
 FEATURES = "test_dataset_toy:ToyFeatures"
+STREAMING = "test_dataset_toy:StreamingOscillator"
 
 
 class ToyOscillator(Simulator):
@@ -94,6 +96,29 @@ class ToyOscillator(Simulator):
                 on_result(i, res)
             results.append(res)
         return results
+
+
+class StreamingOscillator(ToyOscillator):
+    """The toy oscillator with a stream of its own (``native_stream``), as a simulator on a warm engine has:
+    it notes how many rows each stream call gets (``streams``, this process), hands the results back last row
+    first (an engine hands them back as runs finish) and counts the substeps it ran in
+    ``_engine.counters.useful`` (where executors read a warm engine's slot counters)."""
+
+    name = "streaming_oscillator"
+    native_stream = True
+    streams: ClassVar[list[int]] = []
+
+    def __init__(self, config=None, **settings) -> None:
+        super().__init__(config, **settings)
+        self._engine = SimpleNamespace(counters=SimpleNamespace(useful=0, launched=0))
+
+    def simulate_stream(self, params, batch_size=None):
+        type(self).streams.append(len(params))
+        results = self.simulate(params)
+        for i in reversed(range(len(results))):
+            self._engine.counters.useful += results[i].stats.substeps
+            self._engine.counters.launched += results[i].stats.substeps
+            yield i, results[i]
 
 
 class ToyFeatures(FeatureExtractor):

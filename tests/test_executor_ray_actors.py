@@ -1,6 +1,6 @@
 """The ``ray_actors`` executor on real Ray with CPU actors: warm actors (one plugin build each, the same
 process for every chunk), dynamic chunks spread over the actors, the same rows as the local executor
-(toy oscillator and the cheese-cut ``tiny`` preset with continuous batching), per-row failures when a
+(toy oscillators, batched and with a stream of their own), per-row failures when a
 row raises or kills its actor, and one-line errors (exit 2) without Ray or without GPUs."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_dataset_toy import FEATURES, SIM, ToyOscillator
+from test_dataset_toy import FEATURES, SIM, STREAMING, ToyOscillator
 from typer.testing import CliRunner
 
 from invphys import registry
@@ -144,19 +144,15 @@ def test_an_actor_that_dies_fails_only_its_row_and_generation_stores(ray_instanc
     assert len(DatasetStore(tmp_path / "ds").frame()) == 8
 
 
-def _cheese_tiny(n: int, seed: int) -> tuple[np.ndarray, dict, dict]:
-    """``n`` random cheese-cut parameter vectors and the tiny preset's continuous-batching blocks."""
-    pytest.importorskip("taichi")
-    from invphys_cheese_cut.parameters import parameter_space
-
-    space = parameter_space()
-    params = space.denormalize(np.random.default_rng(seed).random((n, space.dim)))
-    sim = {"type": "cheese_cut", "preset": "tiny", "arch": "cpu", "batch_size": 2, "scheduling": "continuous"}
-    return params, sim, {"type": "cheese_cut_features"}
+def _streaming(n: int, seed: int) -> tuple[np.ndarray, dict, dict]:
+    """``n`` random parameter vectors and the blocks of the toy with a stream of its own (``native_stream``)."""
+    return _params(n, seed), {"type": STREAMING, "substeps": 8}, {"type": FEATURES}
 
 
-def test_cheese_cut_tiny_continuous_on_two_actors_matches_local(ray_instance) -> None:
-    params, sim, feats = _cheese_tiny(6, seed=1)
+def test_a_native_stream_on_two_actors_matches_local(ray_instance) -> None:
+    """Each actor streams its chunk through its warm simulator (the slot counters count every run's
+    substeps), one build per actor, and the rows are the local executor's."""
+    params, sim, feats = _streaming(6, seed=1)
     local = dict(LocalExecutor().run(sim, feats, params, batch_size=3))
     ex = RayActorsExecutor(num_gpus=0, actors=2, chunk_size=3, keep_actors=True)
     try:
@@ -169,13 +165,13 @@ def test_cheese_cut_tiny_continuous_on_two_actors_matches_local(ray_instance) ->
     for i in range(6):
         assert got[i].ok == local[i].ok and got[i].failure == local[i].failure
         if local[i].ok:
-            np.testing.assert_allclose(got[i].features, local[i].features, rtol=1e-4, atol=1e-6)
+            np.testing.assert_array_equal(got[i].features, local[i].features)
 
 
 def test_actors_extract_in_worker_processes_with_the_same_features(ray_instance) -> None:
     """``extract_workers``: each actor extracts in its own warm processes (one pool per extractor spec, kept
     across chunks) while its simulator streams on; features equal the in-actor extraction's."""
-    params, sim, feats = _cheese_tiny(4, seed=2)
+    params, sim, feats = _streaming(4, seed=2)
     local = dict(LocalExecutor().run(sim, feats, params, batch_size=4))
     ex = RayActorsExecutor(num_gpus=0, actors=1, chunk_size=2, extract_workers=1, keep_actors=True)
     try:
@@ -187,7 +183,7 @@ def test_actors_extract_in_worker_processes_with_the_same_features(ray_instance)
     for i in range(4):
         assert got[i].ok == local[i].ok and got[i].trajectory is None
         if local[i].ok:
-            np.testing.assert_allclose(got[i].features, local[i].features, rtol=1e-4, atol=1e-6)
+            np.testing.assert_array_equal(got[i].features, local[i].features)
 
 
 

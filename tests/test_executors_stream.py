@@ -4,14 +4,10 @@ examples/cheese_cut/tests/test_cheese_cut_stream.py)."""
 
 from __future__ import annotations
 
-from typing import ClassVar
-
 import numpy as np
-from test_dataset_toy import FEATURES, SIM, ToyOscillator
+from test_dataset_toy import FEATURES, SIM, STREAMING, StreamingOscillator, ToyOscillator
 
 from invphys.plugins.executors import LocalExecutor
-
-STREAMING = "test_executors_stream:StreamingOscillator"
 
 
 def _params(n: int, seed: int = 1) -> np.ndarray:
@@ -32,20 +28,6 @@ def test_default_stream_falls_back_to_the_batch_api() -> None:
         for a, b in zip(res.trajectory.positions if res.ok else [], ref.trajectory.positions if ref.ok else [],
                         strict=True):
             np.testing.assert_array_equal(a, b)
-
-
-class StreamingOscillator(ToyOscillator):
-    """The toy oscillator with a stream of its own: it notes how many rows each stream call gets and hands
-    the results back last row first (a warm engine hands them back as runs finish, in any order)."""
-
-    name = "streaming_oscillator"
-    native_stream = True
-    streams: ClassVar[list[int]] = []
-
-    def simulate_stream(self, params, batch_size=None):
-        type(self).streams.append(len(params))
-        results = self.simulate(params)
-        yield from reversed(list(enumerate(results)))
 
 
 def test_local_executor_hands_a_native_stream_all_its_rows_at_once() -> None:
