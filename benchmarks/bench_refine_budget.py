@@ -54,7 +54,7 @@ import numpy as np
 
 METHODS = ("cma", "optuna_tpe", "optuna_cmaes", "optuna_gp", "botorch_qlogei")
 _NEEDS = {"optuna_tpe": "optuna", "optuna_cmaes": "optuna", "optuna_gp": "optuna", "botorch_qlogei": "botorch"}
-_TORCH = threading.Lock()   # torch's global random state and thread pool: one torch-using ask at a time
+_ASK = threading.Lock()   # one ask at a time (torch's random state, warnings' filters); the simulator goes on
 
 
 def _machine() -> Any:
@@ -96,7 +96,7 @@ class Search:
         self.history: list[tuple[np.ndarray, float]] = []   # (point, R or -inf), in tell order
         self.start_scores: np.ndarray | None = None
         self.lo = self.hi = None
-        self.clipped = self.fallbacks = 0
+        self.clipped = self.fallbacks = self.warnings = 0
         self.ask_s = 0.0
         self.rounds = 0
 
@@ -190,8 +190,6 @@ class OptunaSearch(Search):
         import optuna
 
         optuna.logging.set_verbosity(optuna.logging.WARNING)
-        warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
-        warnings.filterwarnings("ignore", category=FutureWarning, module="optuna")
         assert self.lo is not None and self.hi is not None
         self.dists = {f"x{i}": optuna.distributions.FloatDistribution(float(self.lo[i]), float(self.hi[i]))
                       for i in range(self.d)}
@@ -239,6 +237,9 @@ class OptunaGP(OptunaSearch):
 class BoTorchQLogEI(Search):
     """SingleTaskGP (inputs scaled to the box, outcomes standardised) + qLogEI, ``n`` points per round."""
 
+    #: optimize_acqf's effort (restarts, raw samples, L-BFGS-B iterations) and the qMC samples
+    restarts, raw_samples, maxiter, mc_samples = 4, 256, 100, 128
+
     def ask(self, n: int) -> np.ndarray:
         import torch
         from botorch.acquisition.logei import qLogExpectedImprovement
@@ -255,18 +256,17 @@ class BoTorchQLogEI(Search):
         y = np.array([s if np.isfinite(s) else 0.0 for _p, s in self.history])
         width = np.maximum(self.hi - self.lo, 1e-12)
         torch.manual_seed(self.seed + self.rounds)
-        warnings.filterwarnings("ignore", module="botorch")
-        warnings.filterwarnings("ignore", module="linear_operator")
         try:
             tx = torch.tensor((x - self.lo) / width, dtype=torch.float64)
             ty = torch.tensor(y[:, None], dtype=torch.float64)
             model = SingleTaskGP(tx, ty, outcome_transform=Standardize(m=1))
             fit_gpytorch_mll(ExactMarginalLogLikelihood(model.likelihood, model))
             acq = qLogExpectedImprovement(model, best_f=ty.max(), sampler=SobolQMCNormalSampler(
-                torch.Size([128]), seed=self.seed + self.rounds))
+                torch.Size([self.mc_samples]), seed=self.seed + self.rounds))
             bounds = torch.stack([torch.zeros(self.d), torch.ones(self.d)]).to(torch.float64)
-            cand, _v = optimize_acqf(acq, bounds=bounds, q=n, num_restarts=4, raw_samples=256,
-                                     options={"seed": self.seed + self.rounds, "maxiter": 100})
+            cand, _v = optimize_acqf(acq, bounds=bounds, q=n, num_restarts=self.restarts,
+                                     raw_samples=self.raw_samples,
+                                     options={"seed": self.seed + self.rounds, "maxiter": self.maxiter})
             pts = self.lo + cand.detach().numpy() * width
             if not np.all(np.isfinite(pts)):
                 raise ValueError("non-finite candidates")
@@ -383,14 +383,16 @@ class Stream:
 
 
 def _timed_ask(s: Search, n: int) -> np.ndarray:
-    if isinstance(s, (BoTorchQLogEI, OptunaGP)):
-        with _TORCH:
-            t0 = time.perf_counter()
-            pts = s.ask(n)
-    else:
+    """``s.ask(n)``, one ask at a time: torch's random state and ``warnings``' filters are process-wide (BoTorch's
+    fit retries on the warnings it records, so each ask records every warning itself, whatever the caller's
+    filters: the same answers in a script, under pytest and in any thread)."""
+    with _ASK:
         t0 = time.perf_counter()
-        pts = s.ask(n)
-    s.ask_s += time.perf_counter() - t0
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            pts = s.ask(n)
+        s.ask_s += time.perf_counter() - t0
+        s.warnings += len(caught)
     if len(pts) != n:
         raise RuntimeError(f"{s.key}: asked for {n} points, got {len(pts)}")
     return pts
@@ -431,6 +433,7 @@ def table(searches: list[Search], budgets: list[int], n_boot: int = 2000) -> dic
             rec: dict[str, Any] = {"targets": len(idx), "runs": [per[i].runs for i in idx],
                                    "clipped": sum(per[i].clipped for i in idx),
                                    "fallback_points": sum(per[i].fallbacks for i in idx),
+                                   "ask_warnings": sum(per[i].warnings for i in idx),
                                    "ask_s": sum(per[i].ask_s for i in idx), "budgets": {}}
             starts = [per[i].start_scores for i in idx]
             if all(s is not None for s in starts):
