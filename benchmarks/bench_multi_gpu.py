@@ -8,7 +8,7 @@ then all rows run on ``--gpus`` actors (one per GPU) and again on the first acto
 on the actors, as dataset generation does. Records runs/s, the speed-up, and per actor its GPU, rows,
 chunks, busy time and slot efficiency (useful slot-substeps / launched ones), with the simulator's
 version and config hash and the command. The cheese scene is its ``full`` preset at ``--dx`` (0.002:
-~48k particles, the orange peel paper preset's size, as in ``bench_gpu_throughput.py``); the orange peel
+~48k particles, the orange peel paper preset's size, as in ``examples/anisompm/benchmarks/bench_gpu_throughput.py``); the orange peel
 runs its preset unchanged (``--dx`` ignored), warmed up by one stream of ``slots + 8`` runs.
 
     PYTHONPATH=$PWD/benchmarks:... python benchmarks/bench_multi_gpu.py --scene orange_peel --gpus 4 --runs 512 \\

@@ -132,9 +132,9 @@ def main(argv: list[str] | None = None) -> int:
     from invphys.core.dataset import RunIdentity
     from invphys.core.objectives import recovery_reward
     from invphys.evaluation.stats import mean_with_ci, paired_difference
-    from invphys.inverter import load_inverter
     from invphys.evaluators.polish import BatchLog, polish
     from invphys.evaluators.simulator_loop import SimulatorEvaluator
+    from invphys.inverter import load_inverter
 
     report = json.loads(a.report.read_text())
     inv = load_inverter(a.bundle)

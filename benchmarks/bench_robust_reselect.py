@@ -55,8 +55,8 @@ def main(argv: list[str] | None = None) -> int:
     from invphys.core.dataset import RunIdentity
     from invphys.core.objectives import recovery_reward
     from invphys.evaluation.stats import mean_with_ci, paired_difference
-    from invphys.inverter import load_inverter
     from invphys.evaluators.simulator_loop import SimulatorEvaluator
+    from invphys.inverter import load_inverter
 
     pj = json.loads(a.polish.read_text())
     if "recheck" not in pj:

@@ -49,8 +49,8 @@ def main() -> None:
     from invphys import registry
     from invphys.core.objectives import percentile_scales, recovery_reward
     from invphys.core.target_selection import select_targets
-    from invphys.plugins.baselines import NearestNeighbour
     from invphys.evaluators.simulator_loop import SimulatorEvaluator, refine_targets
+    from invphys.plugins.baselines import NearestNeighbour
     from invphys.plugins.validators.simulator import SimulatorValidator
 
     with np.load(ROOT / "tests" / "data" / "orange_tiny.npz") as f:

@@ -77,8 +77,8 @@ def test_the_pool_scores_at_least_as_well_as_its_parts(inv, rows) -> None:
 
 
 def test_a_larger_penalty_keeps_the_answer_where_the_ensemble_agrees(inv, rows) -> None:
-    from invphys.inverter.pool import PoolSettings
     from invphys.evaluators.uncertainty import normalised_std
+    from invphys.inverter.pool import PoolSettings
 
     def spread(lam):
         inv.pool_settings = PoolSettings(lam=lam)

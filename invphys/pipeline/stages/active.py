@@ -162,8 +162,8 @@ def run(ctx: StageContext) -> dict[str, Any]:
 
 def _inputs(ctx: StageContext, sec: Any) -> tuple[_Inputs, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The rounds' inputs, and the start answers (theta, validated R_actual, features) they improve on."""
-    from invphys.pipeline.stages.invert import load_results
     from invphys.evaluators.simulator_loop import SimulatorEvaluator
+    from invphys.pipeline.stages.invert import load_results
 
     _, targets = load_results(ctx)
     n = min(sec.targets or int(ctx.spec.targets.validate_n) or len(targets["rows"]), len(targets["rows"]))
@@ -215,9 +215,9 @@ def _one_round(ctx: StageContext, sec: Any, r: int, inp: _Inputs, st: _State) ->
     record the round and the rows it adds."""
     from invphys.core.objectives import recovery_reward
     from invphys.evaluation.stats import bootstrap_mean_ci
-    from invphys.models.data import r2_scores
     from invphys.evaluators.simulator_loop import refine_targets
     from invphys.evaluators.uncertainty import UncertaintyPenalty
+    from invphys.models.data import r2_scores
 
     n, feats, scales, sim, data, test_idx = inp.n, inp.feats, inp.scales, inp.sim, inp.data, inp.test_idx
     t0 = time.perf_counter()
@@ -369,8 +369,8 @@ def _polish(ctx: StageContext, cfg: Any, key: str, n_rounds: int, feats: np.ndar
     """One polish pass: CMA-ES on the simulator from the answers below ``cfg.below``; every simulated
     batch is logged to ``polish.npz`` (pass ``k`` > 0: ``polish_pass<k+1>.npz``), and a re-run replays
     it (nothing finished is simulated twice)."""
-    from invphys.pipeline.cache import digest
     from invphys.evaluators.polish import BatchLog, confirm, polish
+    from invphys.pipeline.cache import digest
 
     fields = {"rounds": key, "n_rounds": n_rounds, "popsize": cfg.popsize, "sigma0": cfg.sigma0, "below": cfg.below}
     if index:  # a later pass depends on every earlier pass's settings (its starts are their answers)

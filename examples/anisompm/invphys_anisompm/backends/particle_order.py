@@ -6,7 +6,7 @@ by a space-filling curve through their P2G base cells. The Z-order (Morton) curv
 so a tile that straddles a jump spans two distant clusters; the Hilbert curve only ever steps to an
 adjacent cell, so its tiles leave the curve only where it leaves the body. On the orange peel's paper
 preset (256-particle tiles at rest) the Hilbert order's boxes are a third smaller (median 216 nodes
-against 288) and 4 of 200 tiles exceed 1,024 nodes against 12 (``tests/test_taichi_tiled_p2g.py``).
+against 288) and 4 of 200 tiles exceed 1,024 nodes against 12 (``examples/anisompm/tests/test_taichi_tiled_p2g.py``).
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ device buffer: a copy to the device, the kernel, a copy back. At the paper prese
 particles (~50 MB) that way with the GPU idle: 25 ms on an H200's host, 17 ms with :class:`HostCopy`, which
 copies the ndarray's own memory once (``cuMemcpyDtoH`` on CUDA, ``memmove`` on the CPU, where an ndarray lives
 in host memory). Of those 17 ms, 12 are the new host array's first-touch page faults
-(``benchmarks/bench_host_reads.py``).
+(``examples/anisompm/benchmarks/bench_host_reads.py``).
 
 ``from_numpy`` is dearer still: Taichi's CUDA launcher treats a host array argument as in-out, so every upload
 allocates a device buffer, copies the values in, synchronises, runs a kernel, synchronises again and copies them
