@@ -125,6 +125,39 @@ def test_a_bundle_without_a_posterior_gets_its_ood_threshold_and_error_bars(tmp_
     assert names == {"report.json", "calibration.json", "summary.md"}
 
 
+def test_the_paper_bundles_held_out_rows_hold_none_of_its_training_rows_whatever_store_they_sit_in() -> None:
+    """The shipped paper bundle trained on a join of stores, seed1_v030 among them: held-out rows are
+    picked by key, so its rows of that store that are training rows are left out (value-checked)."""
+    from scipy.spatial import cKDTree
+
+    from invphys.evaluation.heldout import heldout_rows
+    from invphys.inverter.bundle import Bundle
+
+    b = Bundle("inverters/orange_peel_paper", verify=False)
+    stores = [f"datasets/orange_peel_paper{s}" for s in ("", "_seed1_v030", "_adaptive", "_adaptive_seed3")]
+    held = heldout_rows(b, stores)
+    train = b.data("train")[0]
+    assert held.info["training_rows_found"] == len(train) == 8256
+    assert held.info["stores"]["datasets/orange_peel_paper_seed1_v030"]["training_rows"] == 6656
+    assert len(held) == 3344 and not held.info["skipped"]
+    assert cKDTree(train).query(held.theta)[0].min() > 1e-6  # by value too: no training row is held out
+
+
+def test_held_out_rows_are_picked_by_key_not_by_the_store_they_sit_in(bundle, tmp_path) -> None:
+    import shutil
+
+    from invphys.evaluation.heldout import heldout_rows
+    from invphys.inverter.bundle import Bundle
+
+    b = Bundle(bundle)
+    copy = tmp_path / "another_store"  # the training store under another name: its training rows are known by key
+    shutil.copytree(b.manifest["dataset"]["path"], copy)
+    held = heldout_rows(b, [copy])
+    assert held.info["stores"][str(copy)]["training_rows"] == b.manifest["dataset"]["n_train"]
+    assert len(held) == b.manifest["dataset"]["n_test"]
+    assert np.allclose(np.sort(held.theta, axis=0), np.sort(b.data("test")[0], axis=0))
+
+
 # -- end to end on a tiny trained bundle ------------------------------------------------------------
 
 

@@ -190,15 +190,17 @@ def worst_error(coverage: dict[str, Any], j: int) -> float:
 
 def fit_posterior_recalibration(draws: np.ndarray, theta: np.ndarray, keep: Any = None) -> dict[str, Any]:
     """The stored recalibration block fitted on rows ``draws`` (B, S, d) / ``theta`` (B, d): per-parameter
-    quantile maps (``maps``; only where ``keep[j]`` when given, else ``None``), then the joint step
-    (``location_shift``, :mod:`~invphys.evaluation.joint_calibration`) fitted on the mapped draws."""
+    quantile maps (``maps``), then the joint step (``location_shift``,
+    :mod:`~invphys.evaluation.joint_calibration`) fitted on the mapped draws; a parameter not in ``keep``
+    (when given) gets neither (``None``: the identity). Each parameter's map and shift read only its own
+    draws, so ``keep`` changes no other parameter's numbers."""
     draws, theta = _check(draws, theta)
     maps: list[dict[str, list[float]] | None] = list(fit_recalibration(pit_z(draws, theta)))
+    shift: list[dict[str, Any] | None] = list(fit_location_shift(apply_recalibration(draws, maps), theta))
     if keep is not None:
         maps = [m if k else None for m, k in zip(maps, keep, strict=True)]
-    mapped = apply_recalibration(draws, maps)
-    return {"knots": KNOTS, "maps": maps, "location_shift": fit_location_shift(mapped, theta),
-            "steps": ["maps", "location_shift"]}
+        shift = [s if k else None for s, k in zip(shift, keep, strict=True)]
+    return {"knots": KNOTS, "maps": maps, "location_shift": shift, "steps": ["maps", "location_shift"]}
 
 
 def apply_posterior_recalibration(draws: np.ndarray, block: dict[str, Any]) -> np.ndarray:
@@ -217,7 +219,8 @@ def apply_posterior_recalibration(draws: np.ndarray, block: dict[str, Any]) -> n
 def has_recalibration(diagnostics: dict[str, Any] | None) -> bool:
     """Whether a bundle's stored diagnostics change its posterior draws."""
     block = ((diagnostics or {}).get("posterior") or {}).get("recalibration") or {}
-    return any(m is not None for m in block.get("maps") or []) or bool(block.get("location_shift"))
+    parts = [block.get("maps"), block.get("location_shift")]  # a malformed one counts: applying it says why
+    return any(any(m is not None for m in p) if isinstance(p, list) else bool(p) for p in parts)
 
 
 def recalibrated_samples(samples: np.ndarray, diagnostics: dict[str, Any] | None) -> np.ndarray:

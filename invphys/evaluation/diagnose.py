@@ -2,10 +2,12 @@
 
 On rows the bundle never trained on (:mod:`~invphys.evaluation.heldout`, picked by key), split in two
 by key: the *fit* half fits the OOD score's choice and threshold and the surrogate's error-bar factors,
-the *check* half measures them; likewise the posterior's recalibration maps (stored for answers) are
-fitted on the fit half and checked on the check half. The other direction (fitted on the check half,
-checked on the fit half) is reported beside it, never pooled: two folds pooled cancel each other's
-errors and look better calibrated than either is. The result is
+the *check* half measures them. The posterior's recalibration is checked both ways (fitted on the fit
+half and checked on the check half, and the other direction): a parameter is recalibrated only when
+its correction helps out of fold, averaged over both (:mod:`~invphys.evaluation.recalibration_folds`), and the
+block stored for answers is then fitted on all held-out rows. The two directions are reported side by
+side, never pooled: two folds pooled cancel each other's errors and look better calibrated than
+either is. The result is
 ``report`` (everything measured) and ``calibration`` (the numbers answers use, stored as
 ``diagnostics/calibration.json`` in a bundle). Given validated answers (``failures``: held-out targets
 whose default answers were re-simulated), it also fits the answer-level failure warning
@@ -23,6 +25,7 @@ import numpy as np
 
 from invphys.core.errors import InvphysError
 from invphys.evaluation import calibration as cal
+from invphys.evaluation import recalibration_folds as rf
 from invphys.evaluation.heldout import HeldOut, heldout_rows
 from invphys.evaluation.ood import SCORES, auroc, score_components
 from invphys.evaluation.surrogate_errors import error_bar_coverage, fit_error_scales
@@ -42,8 +45,11 @@ OOD_QUANTILE = 0.92
 #: (R_surr < FAILURE_R), the held-out stand-in for R_actual < 0.8; ``misfit`` (1 - R_surr) is that
 #: label itself, so it cannot be picked by it
 CHOOSE_BY = "r_surr"
-#: recalibrate a parameter when its fit-half coverage is off by more than this at some level, or its SBC p < 0.01
-RECALIBRATE_ABOVE = 0.02
+#: which parameters are recalibrated (:mod:`~invphys.evaluation.recalibration_folds`)
+RECALIBRATION_RULE = ("a parameter is recalibrated (quantile map + location shift) only when its coverage error "
+                      "(mean |coverage - level| over 50/80/90/95 %) out of fold, averaged over the two directions "
+                      "(fitted on the fit half and checked on the check half, and the other way), is lower with the "
+                      "correction than without; else its posterior is left as it is")
 
 
 @dataclass
@@ -80,14 +86,28 @@ def calibration_block(draws: np.ndarray, theta: np.ndarray, seed: int) -> dict[s
             "tarp": cal.tarp(draws, theta, seed=seed), "sbc": cal.sbc(draws, theta)}
 
 
-def _recalibration(draws_fit: np.ndarray, theta_fit: np.ndarray, names: list[str], seed: int
-                   ) -> tuple[dict[str, Any], list[str]]:
-    """The recalibration block fitted on the fit half: quantile maps for the parameters whose fit-half
-    calibration is off, then the joint step (a location shift of every parameter)."""
-    block = calibration_block(draws_fit, theta_fit, seed)
-    keep = [cal.worst_error(block["coverage"], j) > RECALIBRATE_ABOVE or block["sbc"]["ks_pvalue"][j] < 0.01
-            for j, _ in enumerate(names)]
-    return cal.fit_posterior_recalibration(draws_fit, theta_fit, keep), [n for n, k in zip(names, keep, strict=True) if k]
+def _recalibration(samples: np.ndarray, theta: np.ndarray, fit: np.ndarray, names: list[str], seed: int
+                   ) -> tuple[dict[str, Any], dict[str, Any], np.ndarray]:
+    """(the stored block, the report's blocks, the check rows' corrected draws): per parameter, the
+    two-fold acceptance rule (:mod:`~invphys.evaluation.recalibration_folds`) on the fit/check halves
+    decides whether it is recalibrated; the stored block is fitted on all held-out rows for those
+    parameters. ``check_after`` / ``swapped`` are out of fold: each half corrected by the (masked) block
+    its other half fitted."""
+    folds = rf.two_fold(samples, theta, fit)
+    keep = folds["keep"]
+    block = cal.fit_posterior_recalibration(samples, theta, keep)
+    fixed = cal.apply_posterior_recalibration(samples[~fit], rf.masked(folds["blocks"]["a_to_b"], keep))
+    swapped = cal.apply_posterior_recalibration(samples[fit], rf.masked(folds["blocks"]["b_to_a"], keep))
+    report = {"recalibrated": [n for n, k in zip(names, keep, strict=True) if k],
+              "recalibration": {"rule": RECALIBRATION_RULE, "fitted_on": f"all {len(theta)} held-out rows",
+                                "parameters": rf.evidence(folds, names)},
+              "check_after": calibration_block(fixed, theta[~fit], seed),
+              "swapped": {"note": "the other direction: the block fitted on the check half (same parameters), "
+                                  "checked on the fit half (not pooled with check_after: two folds pooled cancel "
+                                  "each other's errors)",
+                          "before": calibration_block(samples[fit], theta[fit], seed),
+                          "after": calibration_block(swapped, theta[fit], seed)}}
+    return block, report, fixed
 
 
 def _verdicts(after: dict[str, Any], names: list[str]) -> list[dict[str, Any]]:
@@ -178,11 +198,8 @@ def _posterior(inverter: Any, held: HeldOut, fit: np.ndarray, draws: int, seed: 
     names = list(inverter.bundle.space.names)
     samples, outside, clipped = _draws_in_chunks(inverter, held.y, draws, seed, label)
     before_all = calibration_block(samples, held.theta, seed)
-    recal, recalibrated = _recalibration(samples[fit], held.theta[fit], names, seed)
-    fixed = cal.apply_posterior_recalibration(samples[~fit], recal)
-    after = calibration_block(fixed, held.theta[~fit], seed)
-    swapped_recal, _ = _recalibration(samples[~fit], held.theta[~fit], names, seed)  # the other direction
-    swapped = calibration_block(cal.apply_posterior_recalibration(samples[fit], swapped_recal), held.theta[fit], seed)
+    recal, rblocks, fixed = _recalibration(samples, held.theta, fit, names, seed)
+    after = rblocks["check_after"]
     width90 = np.asarray(before_all["coverage"]["0.9"]["width"])
     blocks = {"posterior_method": label, "draws_per_row": int(draws),
               "outside_box": {"mean_outside_fraction": float(outside.mean()),
@@ -194,11 +211,7 @@ def _posterior(inverter: Any, held: HeldOut, fit: np.ndarray, draws: int, seed: 
               "identified": {"max_width90": IDENTIFIED_WIDTH, "width90": width90.tolist(),
                              "not_identified": [n for n, w in zip(names, width90, strict=True) if w >= IDENTIFIED_WIDTH]},
               "all_rows": before_all, "check_before": calibration_block(samples[~fit], held.theta[~fit], seed),
-              "check_after": after, "recalibrated": recalibrated,
-              "swapped": {"note": "the other direction: maps fitted on the check half, checked on the fit half "
-                                  "(not pooled with check_after: two folds pooled cancel each other's errors)",
-                          "before": calibration_block(samples[fit], held.theta[fit], seed), "after": swapped},
-              "after_recalibration_not_uniform": _verdicts(after, names)}
+              **rblocks, "after_recalibration_not_uniform": _verdicts(after, names)}
     calib = {"method": label, "parameters": names, "recalibration": recal}
     figures = {"ranks_before": cal.ranks(samples[~fit], held.theta[~fit]), "ranks_after": cal.ranks(fixed, held.theta[~fit])}
     return blocks, calib, _Draws(samples, outside), figures

@@ -50,7 +50,7 @@ def _posterior_lines(report: dict[str, Any]) -> list[str]:
     names = report["parameters"]
     lines = [f"Posterior: {report['draws_per_row']} draws per row from `{report['posterior_method']}`.", "",
              "Central-interval coverage on the check rows, before -> after the recalibration fitted on the fit rows "
-             "(nominal 50/80/90/95 %):",
+             "(out of fold; nominal 50/80/90/95 %):",
              "", "| parameter | 50 % | 80 % | 90 % | 95 % | 90 % width | SBC p before -> after |",
              "|---|---|---|---|---|---|---|"]
     b, a = report["check_before"], report["check_after"]
@@ -69,6 +69,7 @@ def _posterior_lines(report: dict[str, Any]) -> list[str]:
                      + " | ".join(f"{_pct(rb[k]['rate'])} -> {_pct(ra[k]['rate'])} "
                                   f"[{_pct(ra[k]['ci95'][0])}, {_pct(ra[k]['ci95'][1])}]"
                                   for k in ("0.5", "0.8", "0.9", "0.95")) + " | | |")
+    lines += _fold_lines(report)
     lines += ["", f"Recalibrated: {', '.join(report['recalibrated']) or 'none'}. "
               f"Not identified (90 % interval wider than {report['identified']['max_width90']:.0%} of the range): "
               f"{', '.join(report['identified']['not_identified']) or 'none'}. "
@@ -86,6 +87,21 @@ def _posterior_lines(report: dict[str, Any]) -> list[str]:
     for v in report["after_recalibration_not_uniform"]:
         lines.append(f"SBC ranks of {v['parameter']} stay non-uniform after recalibration (p {v['ks_pvalue']:.2g}, "
                      f"bias {v['bias']:+.3f}): {v['reading']}.")
+    return lines
+
+
+def _fold_lines(report: dict[str, Any]) -> list[str]:
+    """The two-fold acceptance rule's evidence per parameter (reports written before it have none)."""
+    r = report.get("recalibration")
+    if not r:
+        return []
+    lines = ["", f"Which parameters are recalibrated: {r['rule']}; the stored recalibration is then fitted on "
+                 f"{r['fitted_on']}. Coverage error (mean |coverage - level| over the four levels), before -> after:",
+             "", "| parameter | recalibrated | fitted on fit rows, checked on check rows | fitted on check rows, "
+                 "checked on fit rows |", "|---|---|---|---|"]
+    for n, v in r["parameters"].items():
+        lines.append(f"| {n} | {'yes' if v['recalibrated'] else 'no'} | {v['a_to_b']['before']:.3f} -> "
+                     f"{v['a_to_b']['after']:.3f} | {v['b_to_a']['before']:.3f} -> {v['b_to_a']['after']:.3f} |")
     return lines
 
 

@@ -71,6 +71,8 @@ def move(column: np.ndarray, scores: np.ndarray) -> np.ndarray:
     moved = np.empty((b, s))
     for i in range(b):
         moved[i] = extrap(scores[i], zl, ld[i], sd[i], sd[i])
+    from scipy.special import expit  # the logistic without exp's overflow warning for far-out scores
+
     out = np.empty((b, s))
-    np.put_along_axis(out, order, 1.0 / (1.0 + np.exp(-moved)), axis=1)
+    np.put_along_axis(out, order, expit(moved), axis=1)
     return out
