@@ -361,3 +361,56 @@ def test_cli_polish_confirm_and_its_bad_values(inv, bundle, tmp_path, monkeypatc
                     ({"confirm": 1, "confirm_candidates": 0}, "confirm_candidates")):
         with pytest.raises(InvphysError, match=msg):
             inv.polish(r, **kw)
+
+
+# -- seeding: a target's polish depends on the target, never on its place in the file -----------------------
+def _target_file(inv, rows, path):
+    path.write_text(json.dumps([dict(zip(inv.feature_names, map(float, r), strict=True)) for r in rows]))
+    return path
+
+
+def test_cli_polish_answers_do_not_depend_on_the_target_order(inv, bundle, tmp_path, monkeypatch) -> None:
+    """Each target's CMA-ES was seeded by its position (seed + t) and all drew from cma's one global random
+    state: a reversed file got other polished answers. Now each target's search is seeded from its values."""
+    _, y = inv.bundle.data("test")
+    rows = y[:4]
+    monkeypatch.chdir(tmp_path)
+    answers = []
+    for name, order in (("fwd.json", rows), ("rev.json", rows[::-1])):
+        f = _target_file(inv, order, tmp_path / name)
+        res = _invoke("invert", str(bundle), "--target", str(f), "--polish", "12", "--polish-popsize", "4", "--json")
+        assert res.exit_code == 0, res.output
+        got = [(r["candidates"][0]["theta"], r["polish"]["r_actual"], r["polish"]["improved"])
+               for r in json.loads(res.stdout)["results"]]
+        answers.append(got if name == "fwd.json" else got[::-1])
+    assert any(imp for _, _, imp in answers[0])  # the polish moved some answers
+    for (ta, ra, ia), (tb, rb, ib) in zip(*answers, strict=True):
+        assert ta == tb and ra == rb and ia == ib
+
+
+def test_polish_of_a_target_alone_equals_its_polish_among_others(inv) -> None:
+    _, y = inv.bundle.data("test")
+    many = inv.polish(inv.validate(inv.invert_many(y[:3])), budget=12, popsize=4)
+    alone = inv.polish(inv.validate(inv.invert_many(y[2:3])), budget=12, popsize=4)
+    assert np.array_equal(many[2].theta, alone[0].theta) and many[2].r_actual == alone[0].r_actual
+
+
+def test_a_log_of_the_position_seeded_polish_is_refused(inv, bundle, tmp_path, monkeypatch) -> None:
+    """A log written before per-target seeding holds other searches' runs: refused with one error line
+    (exit 2), kept byte for byte, never replayed into the new searches."""
+    import invphys.inverter.simulate as simulate
+
+    _, y = inv.bundle.data("test")
+    f = _target_file(inv, y[:2], tmp_path / "t.json")
+    log = tmp_path / "old.npz"
+    real = simulate.polish_key
+    monkeypatch.setattr(simulate, "polish_key", lambda *a, **k: real(*a, **{**k, "legacy": True}))
+    args = ["invert", str(bundle), "--target", str(f), "--polish", "8", "--polish-popsize", "4", "--polish-log", str(log)]
+    assert _invoke(*args).exit_code == 0 and log.is_file()  # a log as the older invphys keyed it
+    monkeypatch.setattr(simulate, "polish_key", real)
+    kept = log.read_bytes()
+    bad = _invoke(*args)
+    errors = [ln for ln in bad.output.splitlines() if ln.startswith("error:")]
+    assert bad.exit_code == 2 and len(errors) == 1 and "Traceback" not in bad.output, bad.output
+    assert "older invphys" in errors[0] and "position" in errors[0] and str(log.name) in errors[0]
+    assert log.read_bytes() == kept

@@ -41,7 +41,14 @@ def _log_error(path: Path, problem: str) -> UserFileError:
     return UserFileError("polish log", path, problem)
 
 
-def check_polish_log(path: str | Path, key: str | None = None, replace_other: bool = False) -> list[dict[str, Any]]:
+#: why a log made before polish searches were seeded per target cannot be replayed
+OLD_SEEDING = ("it was written by an older invphys, whose polish seeded each target's search by its position in "
+               "the target file; this version seeds each target from its own values and cannot replay it: name "
+               "another file, or remove this one to polish afresh")
+
+
+def check_polish_log(path: str | Path, key: str | None = None, replace_other: bool = False,
+                     legacy_keys: tuple[str, ...] = ()) -> list[dict[str, Any]]:
     """Check, before anything is simulated, that ``path`` can be a polish log; return its logged batches.
 
     Refused with one :class:`~invphys.core.errors.InvphysError` line naming the file: a directory, a
@@ -49,6 +56,8 @@ def check_polish_log(path: str | Path, key: str | None = None, replace_other: bo
     not a polish log written by invphys (a user's CSV is never overwritten) or is truncated or corrupt.
     ``key`` (None: not checked yet): a log made for another bundle, target set or settings is refused too,
     unless ``replace_other`` (a log in invphys's own stage directory), when it counts as empty.
+    ``legacy_keys``: the keys the same polish had under the older, position-seeded searches (refused
+    with :data:`OLD_SEEDING`: their batches are not this version's).
     """
     p = Path(path)
     if p.is_symlink():
@@ -65,6 +74,8 @@ def check_polish_log(path: str | Path, key: str | None = None, replace_other: bo
         return batches
     if replace_other:
         return []
+    if logged_key in legacy_keys:
+        raise _log_error(p, OLD_SEEDING)
     raise _log_error(p, "it was made for another bundle, target set or polish settings; name another file, "
                         "or remove this one to polish afresh")
 
@@ -125,7 +136,8 @@ class BatchLog:
     the logged batch ``i`` has the same points (within ``atol``); the first mismatch drops the rest of
     the log (the search diverged) and simulates from there. ``key`` names what the log was made for: a
     log made for another key is refused (:func:`check_polish_log`; with ``replace_other``, e.g. a log
-    in a pipeline stage's own directory, it starts an empty log instead). An existing file that is not
+    in a pipeline stage's own directory, it starts an empty log instead; a key of ``legacy_keys`` is
+    refused as older seeding). An existing file that is not
     a polish log, or a truncated one, is refused and never overwritten; the log is written atomically.
     ``chunk``: a call with more points is simulated and logged in chunks of that many (a stop loses at
     most one chunk). ``on_batch(runs, replayed)`` is called after each batch (progress bars).
@@ -133,13 +145,14 @@ class BatchLog:
 
     def __init__(self, path: Path | None, key: str, evaluator: Any,
                  log: Callable[[str], None] | None = None, atol: float = 1e-9, chunk: int | None = None,
-                 on_batch: Callable[[int, bool], None] | None = None, replace_other: bool = False) -> None:
+                 on_batch: Callable[[int, bool], None] | None = None, replace_other: bool = False,
+                 legacy_keys: tuple[str, ...] = ()) -> None:
         self.path, self.key, self.evaluator, self.atol, self.chunk = path, key, evaluator, atol, chunk
         self._log = log or (lambda _msg: None)
         self._on_batch = on_batch or (lambda _runs, _replayed: None)
         self.batches: list[dict[str, Any]] = []
         if path is not None:
-            self.batches = check_polish_log(path, key, replace_other=replace_other)
+            self.batches = check_polish_log(path, key, replace_other=replace_other, legacy_keys=legacy_keys)
             if replace_other and Path(path).is_file() and not self.batches:
                 self._log(f"{Path(path).name} was made for other settings; polishing afresh")
         self.calls = 0
@@ -221,13 +234,17 @@ class Polished:
 def polish(targets: np.ndarray, theta: np.ndarray, r_actual: np.ndarray, features: np.ndarray,
            scales: np.ndarray, evaluate: Any, budget: int, popsize: int = 8, sigma0: float = 0.05,
            below: float = 0.95, seed: int = 0,
-           score: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> Polished:
+           score: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+           seeds: Any = None) -> Polished:
     """CMA-ES on the simulator from each answer with ``r_actual < below`` (``budget`` new runs each).
 
     ``evaluate``: a :class:`BatchLog` or a ``SimulatorEvaluator`` (features of normalised points,
     NaN rows for failures). A start whose ``features`` are not finite is simulated first (1 run).
     ``score(features (B, M), targets (B, M)) -> (B,)`` scores points and must match how ``r_actual``
     was computed (default: R_gt with kappa 3 over every feature; the inverter passes a masked R).
+    ``seeds``: one seed per target (default: from ``seed`` and each target's values,
+    :func:`~invphys.evaluators.simulator_loop.target_seeds`); a target's search never depends on its
+    position or on the other targets.
     """
     from invphys.evaluators.simulator_loop import refine_targets
 
@@ -255,7 +272,7 @@ def polish(targets: np.ndarray, theta: np.ndarray, r_actual: np.ndarray, feature
 
     targets = np.asarray(targets, dtype=np.float64)
     refined = refine_targets(targets[idx], theta[idx], scales, ev, budget + 1, popsize, sigma0, seed=seed, score=score,
-                             keep=True)
+                             keep=True, seeds=None if seeds is None else [int(seeds[i]) for i in idx])
     points: list[tuple[np.ndarray, np.ndarray, np.ndarray] | None] = [None] * n
     for j, (i, x) in enumerate(zip(idx, refined, strict=True)):
         points[i] = x.points

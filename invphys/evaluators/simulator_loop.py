@@ -6,12 +6,18 @@ many targets at once: each target has its own ask/tell search (CMA-ES in [0, 1]^
 given answer), and each generation of *all* targets is simulated as one batch, so on a GPU a
 generation costs about one batched run. Each target's answer is the best simulated point (its start
 included), so it has no reality gap by construction.
+
+Each target's search is seeded from the caller's seed and the target's own values (:func:`target_seeds`) and
+draws from a random state of its own (the ``cma`` package draws from NumPy's global one), so a target's
+answer does not depend on its position, on the other targets or on the batch.
 """
 
 from __future__ import annotations
 
+import hashlib
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -80,11 +86,54 @@ class Refined:
     points: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
+def row_seed(seed: int, row: np.ndarray, stream: str = "", copy: int = 0) -> int:
+    """A 32-bit seed from ``seed``, a ``stream`` name and the float64 values of ``row`` (NaN: missing,
+    -0.0 as 0.0); ``copy`` tells apart the copies of one row that ask for independent draws."""
+    row = np.asarray(row, dtype=np.float64).reshape(-1)
+    given = np.isfinite(row)
+    h = hashlib.sha256(b"invphys-row-seed-1\0")
+    h.update(int(seed).to_bytes(8, "little", signed=False) + int(copy).to_bytes(4, "little"))
+    h.update(stream.encode() + b"\0")
+    h.update(np.ascontiguousarray(np.where(given, row, 0.0) + 0.0, dtype="<f8").tobytes())
+    h.update(np.packbits(given).tobytes() + len(row).to_bytes(4, "little"))
+    return int.from_bytes(h.digest()[:4], "little")
+
+
+def target_seeds(seed: int, targets: np.ndarray, stream: str = "refine") -> list[int]:
+    """One seed per row of ``targets`` (T, M) from (``seed``, the row's values): the k-th copy of a row
+    (counted in order among equal rows) gets copy ``k``, so repeated targets get independent searches."""
+    seen: dict[bytes, int] = {}
+    out = []
+    for row in np.atleast_2d(np.asarray(targets, dtype=np.float64)):
+        key = (np.where(np.isfinite(row), row, np.inf) + 0.0).tobytes()
+        out.append(row_seed(seed, row, stream, seen.get(key, 0)))
+        seen[key] = seen.get(key, 0) + 1
+    return out
+
+
+class OwnRandom:
+    """A NumPy global random state of one's own (``cma`` draws from the global one): inside
+    :meth:`use`, ``np.random`` is this state; the caller's is restored after."""
+
+    def __init__(self, seed: int) -> None:
+        self._state: Any = np.random.RandomState(int(seed) % 2**32).get_state()
+
+    @contextmanager
+    def use(self) -> Iterator[None]:
+        outer = np.random.get_state()
+        np.random.set_state(self._state)
+        try:
+            yield
+        finally:
+            self._state = np.random.get_state()
+            np.random.set_state(outer)
+
+
 def refine_targets(targets: np.ndarray, starts: np.ndarray, scales: np.ndarray,
                    evaluate: Callable[[np.ndarray], np.ndarray], budget: int, popsize: int = 8,
                    sigma0: float = 0.1, seed: int = 0, kappa: float = 3.0,
                    score: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
-                   keep: bool = False) -> list[Refined]:
+                   keep: bool = False, seeds: Sequence[int] | None = None) -> list[Refined]:
     """Refine each target's start with ask/tell CMA-ES; one ``evaluate`` call per generation for all.
 
     Args:
@@ -93,6 +142,8 @@ def refine_targets(targets: np.ndarray, starts: np.ndarray, scales: np.ndarray,
         budget: evaluations per target, the start's included.
         score: ``score(features (B, M), targets (B, M)) -> (B,)``; default R_gt with ``kappa``.
         keep: fill each target's :attr:`Refined.points` (every point it simulated, in order).
+        seeds: one seed per target (default :func:`target_seeds` of ``seed`` and ``targets``); each
+            search draws from a random state of its own, so no answer depends on the other targets.
     """
     from invphys.core.spaces import raw_space
     from invphys.plugins.optimizers.cma_es import CMAES
@@ -112,7 +163,14 @@ def refine_targets(targets: np.ndarray, starts: np.ndarray, scales: np.ndarray,
     n_t, d = starts.shape
     space = raw_space(d)
     cma = CMAES(popsize=popsize, sigma0=sigma0, budget=max(budget - 1, 1), restarts=True)
-    searches = [cma.ask_tell(space, seed + t, starts[t], max(budget - 1, 1)) for t in range(n_t)]
+    seeds = target_seeds(seed, targets) if seeds is None else [int(s) for s in seeds]
+    if len(seeds) != n_t:
+        raise InvphysError(f"refine: {n_t} targets and {len(seeds)} seeds")
+    randoms = [OwnRandom(s) for s in seeds]
+    searches = []
+    for t in range(n_t):
+        with randoms[t].use():
+            searches.append(cma.ask_tell(space, seeds[t], starts[t], max(budget - 1, 1)))
     y0 = evaluate(starts)
     s0 = scored(y0, targets)
     out = [Refined(starts[t].copy(), float(s0[t]), y0[t].copy(), 1, [(1, float(s0[t]))]) for t in range(n_t)]
@@ -122,7 +180,8 @@ def refine_targets(targets: np.ndarray, starts: np.ndarray, scales: np.ndarray,
         asks = []
         for t, search in enumerate(searches):
             left = budget - out[t].evaluated
-            pts = search.ask() if left > 0 and not search.done else np.empty((0, d))
+            with randoms[t].use():
+                pts = search.ask() if left > 0 and not search.done else np.empty((0, d))
             asks.append(pts[:left])
         sizes = [len(a) for a in asks]
         if sum(sizes) == 0:
@@ -137,7 +196,8 @@ def refine_targets(targets: np.ndarray, starts: np.ndarray, scales: np.ndarray,
                 continue
             sl = slice(start, start + n)
             start += n
-            searches[t].tell(asks[t], s[sl])
+            with randoms[t].use():
+                searches[t].tell(asks[t], s[sl])
             if keep:
                 kept[t].append((np.array(asks[t]), s[sl].copy(), y[sl].copy()))
             out[t].evaluated += n

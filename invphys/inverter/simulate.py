@@ -66,18 +66,34 @@ def masked_score(inv: Any) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
     return score
 
 
+#: how polish searches are seeded (in the log's key: a log of the older position-seeded searches is told apart)
+POLISH_SEEDING = "per-target-1"
+
+
 def polish_key(inv: Any, targets: np.ndarray, theta: np.ndarray, chosen: np.ndarray, settings: dict[str, Any],
-               overrides: Mapping[str, Any] | None) -> str:
-    """What a polish log was made for: bundle, simulator config, targets, starts and settings (not the
-    budget: a larger budget replays the smaller one's batches)."""
+               overrides: Mapping[str, Any] | None, legacy: bool = False) -> str:
+    """What a polish log was made for: bundle, simulator config, targets, starts, settings (not the
+    budget: a larger budget replays the smaller one's batches) and the seeding (``legacy``: the key the
+    same polish had when searches were seeded by position)."""
     m = inv.bundle.manifest
     head = {"bundle": m.get("bundle_id", ""), "files": m.get("files", {}), "simulator": m["simulator"].get("config", {}),
             "overrides": dict(overrides or {}), "settings": {k: v for k, v in settings.items() if k != "budget"},
             "polished": chosen.tolist()}
+    if not legacy:
+        head["seeding"] = POLISH_SEEDING
     h = hashlib.sha256(json.dumps(head, sort_keys=True, default=str).encode())
     h.update(np.ascontiguousarray(targets, dtype=np.float64).tobytes())
     h.update(np.ascontiguousarray(theta, dtype=np.float64).tobytes())
     return h.hexdigest()[:24]
+
+
+def polish_seeds(items: list[InversionResult], ps: PolishSettings, seed: int) -> list[int]:
+    """Each target's polish seed: from the user's seed, the target's values and mask and the search
+    settings (:func:`~invphys.inverter.seeds.target_seed`), never from its place in the file."""
+    from invphys.inverter.seeds import target_seed
+
+    stream = f"{ps.popsize}/{ps.sigma0!r}"
+    return [target_seed(seed, "polish", r.target, r.mask, stream) for r in items]
 
 
 def _best_simulated(r: InversionResult) -> Candidate:
@@ -107,14 +123,15 @@ def polish(inv: Any, items: list[InversionResult], ps: PolishSettings, overrides
     settings: dict[str, Any] = {"budget": ps.budget, "popsize": ps.popsize, "sigma0": ps.sigma0, "below": ps.below,
                                 "seed": seed}
     key = polish_key(inv, targets, theta, chosen, settings, overrides)  # not confirm: a log without it replays
+    old = polish_key(inv, targets, theta, chosen, settings, overrides, legacy=True)
     if ps.confirm:
         settings.update(confirm=ps.confirm, confirm_candidates=ps.confirm_candidates)
     batches = BatchLog(None if log is None else Path(log), key, SimulatorEvaluator.from_validator(validator, sim, ext),
-                       log=_polish_note, chunk=batch_size, on_batch=on_batch)
+                       log=_polish_note, chunk=batch_size, on_batch=on_batch, legacy_keys=(old,))
     t0 = time.perf_counter()
     if ps.budget > 0 and chosen.any():
         pol = run_polish(targets, theta, r0, feats, inv.bundle.scales, batches, ps.budget, ps.popsize, ps.sigma0,
-                         ps.below, seed=seed, score=masked_score(inv))
+                         ps.below, seed=seed, score=masked_score(inv), seeds=polish_seeds(items, ps, seed))
     else:
         pol = Polished(theta, r0, feats, np.zeros(len(items), np.int64), chosen & (ps.budget > 0), 0.0, 0, 0, "")
     polished_theta = pol.theta.copy()

@@ -110,12 +110,25 @@ def extractor_identity(spec: Any, registry: Any) -> str:
         return "?"
 
 
+#: the entry of :func:`plugin_versions` that says how answers draw their random numbers
+SEEDING_ENTRY = "answers (seeding)"
+#: per-target-1: every answer a stage makes (optimiser runs, posterior draws, refinements, polish) is seeded
+#: from the seed and its target's values, never from the target's position (before: no entry)
+SEEDING = "per-target-1"
+#: sections whose stages make (or re-use) seeded answers
+SEEDING_SECTIONS: tuple[str, ...] = ("optimizers", "evaluation", "active")
+
+
 def plugin_versions(spec: Any, sections: tuple[str, ...], registry: Any) -> dict[str, str]:
     """``{path: "type@distribution==version"}`` for each plugin block in ``sections``, plus the feature
-    extractor's identity (:data:`EXTRACTOR_ENTRY`) when ``sections`` hold one of :data:`EXTRACTOR_SECTIONS`."""
+    extractor's identity (:data:`EXTRACTOR_ENTRY`) when ``sections`` hold one of :data:`EXTRACTOR_SECTIONS`,
+    and the answers' seeding (:data:`SEEDING_ENTRY`) when they hold one of :data:`SEEDING_SECTIONS` (a
+    stage cached under another seeding re-runs instead of serving answers this invphys would not give)."""
     out: dict[str, str] = {}
     if any(s in sections for s in EXTRACTOR_SECTIONS):
         out[EXTRACTOR_ENTRY] = extractor_identity(spec, registry)
+    if any(s in sections for s in SEEDING_SECTIONS):
+        out[SEEDING_ENTRY] = SEEDING
     for path, kind, block in spec.plugin_blocks():
         if path.split(".")[0] not in sections or not isinstance(block, dict):
             continue
@@ -170,5 +183,9 @@ def stale_reason(done: dict[str, Any] | None, components: dict[str, Any]) -> str
             {k: v for k, v in plugins.items() if k != EXTRACTOR_ENTRY}:
         names["plugins"] = ("the feature extractor (settings, units or version)" if EXTRACTOR_ENTRY in old_plugins
                             else "the key now covers the feature extractor")
+    if isinstance(old_plugins, dict) and isinstance(plugins, dict) and old_plugins.get(SEEDING_ENTRY) != \
+            plugins.get(SEEDING_ENTRY) and {k: v for k, v in old_plugins.items() if k != SEEDING_ENTRY} == \
+            {k: v for k, v in plugins.items() if k != SEEDING_ENTRY}:
+        names["plugins"] = "how answers are seeded (now per target, not by position)"
     changed = [names.get(k, k) for k in components if before.get(k) != components[k]]
     return f"{' and '.join(changed)} changed" if changed else "inputs changed"
