@@ -24,10 +24,13 @@ failed run scores 0 for the searches and in the means.
 Every method's and target's rows share ONE open stream (``Simulator.simulate_feed``): a search's next
 round joins as soon as its own runs are back, its features extracted in ``--extract-workers`` processes
 (:class:`ExtractionPool`, as dataset generation does: in the simulating process extraction costs ~0.14
-s per paper run between launches) and its next points asked in ``--ask-threads`` threads (torch-using
-asks one at a time). A round is told in ask order and each search draws from its own seed
-(target, method, ``--seed``), so answers depend neither on completion order, the batch size nor the
-other targets. The JSON (``--out``) is rewritten after every round of the slowest search and at the end:
+s per paper run between launches) and the model searches' next rounds (GP fits) computed in
+``--ask-procs`` processes, one torch thread each, while the simulator goes on. A round is told in ask
+order and each search draws from its own seed (target, method, ``--seed``; the model searches: and the
+round), so answers depend neither on completion order, the batch size, the processes nor the other
+targets. Rounds end on multiples of ``--q`` runs (the first after the starts is shorter), so 16, 32 and
+64 end rounds; ``cma`` keeps its own generations (starts, then popsize ``--q``) and its best after a
+budget counts the runs of a generation in ask order. The JSON (``--out``) is rewritten after every round of the slowest search and at the end:
 device, simulator, per set x method x budget the mean best R with a 95 % bootstrap interval, the paired
 difference to ``cma`` with its interval, and per-target values. Example (GPU)::
 
@@ -42,11 +45,10 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import threading
 import time
 import warnings
 from collections.abc import Callable
-from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, Future, wait
 from pathlib import Path
 from typing import Any
 
@@ -54,7 +56,6 @@ import numpy as np
 
 METHODS = ("cma", "optuna_tpe", "optuna_cmaes", "optuna_gp", "botorch_qlogei")
 _NEEDS = {"optuna_tpe": "optuna", "optuna_cmaes": "optuna", "optuna_gp": "optuna", "botorch_qlogei": "botorch"}
-_ASK = threading.Lock()   # one ask at a time (torch's random state, warnings' filters); the simulator goes on
 
 
 def _machine() -> Any:
@@ -230,49 +231,121 @@ class OptunaCMAES(OptunaSearch):
     kind = "cmaes"
 
 
-class OptunaGP(OptunaSearch):
-    kind = "gp"
+class ModelSearch(Search):
+    """A search whose round is a pure function of its runs so far (a model refitted every round): the ask is
+    a job (function, arguments) that a worker process can run, seeded by (search seed, round)."""
+
+    def data(self) -> tuple[np.ndarray, np.ndarray]:
+        x = np.array([p for p, _s in self.history])
+        y = np.array([s if np.isfinite(s) else 0.0 for _p, s in self.history])
+        return x, y
+
+    def job(self, n: int) -> tuple[Callable[..., np.ndarray], tuple[Any, ...]]:
+        raise NotImplementedError
+
+    def ask(self, n: int) -> np.ndarray:
+        fn, args = self.job(n)
+        pts, fallbacks = fn(*args)
+        self.fallbacks += fallbacks
+        return pts
 
 
-class BoTorchQLogEI(Search):
+class OptunaGP(ModelSearch):
+    """Optuna's GPSampler (default settings), its study rebuilt each round from every run in the box."""
+
+    def job(self, n: int) -> tuple[Callable[..., np.ndarray], tuple[Any, ...]]:
+        self.rounds += 1
+        x, y = self.data()
+        return optuna_gp_points, (x, y, self.lo, self.hi, _round_seed(self.seed, self.rounds), n)
+
+
+class BoTorchQLogEI(ModelSearch):
     """SingleTaskGP (inputs scaled to the box, outcomes standardised) + qLogEI, ``n`` points per round."""
 
     #: optimize_acqf's effort (restarts, raw samples, L-BFGS-B iterations) and the qMC samples
     restarts, raw_samples, maxiter, mc_samples = 4, 256, 100, 128
 
-    def ask(self, n: int) -> np.ndarray:
-        import torch
-        from botorch.acquisition.logei import qLogExpectedImprovement
-        from botorch.fit import fit_gpytorch_mll
-        from botorch.models import SingleTaskGP
-        from botorch.models.transforms.outcome import Standardize
-        from botorch.optim import optimize_acqf
-        from botorch.sampling.normal import SobolQMCNormalSampler
-        from gpytorch.mlls import ExactMarginalLogLikelihood
-
-        assert self.lo is not None and self.hi is not None
+    def job(self, n: int) -> tuple[Callable[..., np.ndarray], tuple[Any, ...]]:
         self.rounds += 1
-        x = np.array([p for p, _s in self.history])
-        y = np.array([s if np.isfinite(s) else 0.0 for _p, s in self.history])
-        width = np.maximum(self.hi - self.lo, 1e-12)
-        torch.manual_seed(self.seed + self.rounds)
-        try:
-            tx = torch.tensor((x - self.lo) / width, dtype=torch.float64)
-            ty = torch.tensor(y[:, None], dtype=torch.float64)
-            model = SingleTaskGP(tx, ty, outcome_transform=Standardize(m=1))
-            fit_gpytorch_mll(ExactMarginalLogLikelihood(model.likelihood, model))
-            acq = qLogExpectedImprovement(model, best_f=ty.max(), sampler=SobolQMCNormalSampler(
-                torch.Size([self.mc_samples]), seed=self.seed + self.rounds))
-            bounds = torch.stack([torch.zeros(self.d), torch.ones(self.d)]).to(torch.float64)
-            cand, _v = optimize_acqf(acq, bounds=bounds, q=n, num_restarts=self.restarts,
-                                     raw_samples=self.raw_samples,
-                                     options={"seed": self.seed + self.rounds, "maxiter": self.maxiter})
-            pts = self.lo + cand.detach().numpy() * width
-            if not np.all(np.isfinite(pts)):
-                raise ValueError("non-finite candidates")
-            return np.clip(pts, self.lo, self.hi)
-        except Exception:   # a GP that cannot be fitted: seeded random points in the box (counted)
-            return self.random(n, self.rounds)
+        x, y = self.data()
+        return botorch_points, (x, y, self.lo, self.hi, _round_seed(self.seed, self.rounds), n,
+                                (self.restarts, self.raw_samples, self.maxiter, self.mc_samples))
+
+
+def _round_seed(seed: int, round_: int) -> int:
+    return int(np.random.SeedSequence([seed, round_]).generate_state(1)[0])
+
+
+def _in_box(x: np.ndarray, y: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    inside = np.all((x >= lo) & (x <= hi), axis=1)
+    return x[inside], y[inside]
+
+
+def optuna_gp_points(x: np.ndarray, y: np.ndarray, lo: np.ndarray, hi: np.ndarray, seed: int, n: int
+                     ) -> tuple[np.ndarray, int]:
+    """``n`` points from Optuna's GPSampler told every run in the box (the earlier ones are its history)."""
+    import optuna
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    dists = {f"x{i}": optuna.distributions.FloatDistribution(float(lo[i]), float(hi[i])) for i in range(len(lo))}
+    study = optuna.create_study(direction="maximize", sampler=optuna.samplers.GPSampler(seed=seed))
+    for p, v in zip(*_in_box(x, y, lo, hi), strict=True):
+        study.add_trial(optuna.trial.create_trial(params={k: float(c) for k, c in zip(dists, p, strict=True)},
+                                                  distributions=dists, value=float(v)))
+    trials = [study.ask(dists) for _ in range(n)]
+    return np.array([[t.params[k] for k in dists] for t in trials], float), 0
+
+
+def botorch_points(x: np.ndarray, y: np.ndarray, lo: np.ndarray, hi: np.ndarray, seed: int, n: int,
+                   effort: tuple[int, int, int, int]) -> tuple[np.ndarray, int]:
+    """``n`` points maximising qLogEI of a SingleTaskGP fitted to every run (seeded random points in the box,
+    counted, when the GP cannot be fitted)."""
+    import torch
+    from botorch.acquisition.logei import qLogExpectedImprovement
+    from botorch.fit import fit_gpytorch_mll
+    from botorch.models import SingleTaskGP
+    from botorch.models.transforms.outcome import Standardize
+    from botorch.optim import optimize_acqf
+    from botorch.sampling.normal import SobolQMCNormalSampler
+    from gpytorch.mlls import ExactMarginalLogLikelihood
+
+    restarts, raw, maxiter, mc = effort
+    d = len(lo)
+    width = np.maximum(hi - lo, 1e-12)
+    torch.manual_seed(seed)
+    try:
+        tx = torch.tensor((x - lo) / width, dtype=torch.float64)
+        ty = torch.tensor(y[:, None], dtype=torch.float64)
+        model = SingleTaskGP(tx, ty, outcome_transform=Standardize(m=1))
+        fit_gpytorch_mll(ExactMarginalLogLikelihood(model.likelihood, model))
+        acq = qLogExpectedImprovement(model, best_f=ty.max(), sampler=SobolQMCNormalSampler(torch.Size([mc]),
+                                                                                              seed=seed))
+        bounds = torch.stack([torch.zeros(d), torch.ones(d)]).to(torch.float64)
+        cand, _v = optimize_acqf(acq, bounds=bounds, q=n, num_restarts=restarts, raw_samples=raw,
+                                 options={"seed": seed, "maxiter": maxiter})
+        pts = lo + cand.detach().numpy() * width
+        if not np.all(np.isfinite(pts)):
+            raise ValueError("non-finite candidates")
+        return np.clip(pts, lo, hi), 0
+    except Exception:   # a GP that cannot be fitted: seeded random points in the box (counted)
+        return lo + np.random.default_rng(seed).random((n, d)) * (hi - lo), n
+
+
+def run_job(fn: Callable[..., tuple[np.ndarray, int]], args: tuple[Any, ...]) -> tuple[np.ndarray, int, int, float]:
+    """``fn(*args)`` on one torch thread with every warning recorded (BoTorch's fit retries on the warnings it
+    records: the answer must not depend on the caller's filters); (points, fallbacks, warnings, seconds)."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            pts, fallbacks = fn(*args)
+    finally:
+        torch.set_num_threads(threads)
+    return pts, fallbacks, len(caught), time.perf_counter() - t0
 
 
 CLASSES: dict[str, type[Search]] = {"cma": CmaSearch, "optuna_tpe": OptunaTPE, "optuna_cmaes": OptunaCMAES,
@@ -286,10 +359,10 @@ class Stream:
     """Every search's rounds through one open ``simulate_feed`` stream (see the module's text)."""
 
     def __init__(self, searches: list[Search], simulate_feed: Callable[..., Any], extract: Callable[[Any], Any],
-                 score: Callable[[np.ndarray, np.ndarray], np.ndarray], ask_threads: int = 0,
+                 score: Callable[[np.ndarray, np.ndarray], np.ndarray], ask_procs: int = 0,
                  on_round: Callable[[], None] | None = None) -> None:
         self.searches, self.feed, self.extract, self.score = searches, simulate_feed, extract, score
-        self.asker = ThreadPoolExecutor(ask_threads, thread_name_prefix="ask") if ask_threads else None
+        self.procs = _ask_pool(ask_procs) if ask_procs else None
         self.on_round = on_round or (lambda: None)
         self.queue: list[tuple[int, int]] = []
         self.fed: list[tuple[int, int]] = []
@@ -312,8 +385,8 @@ class Stream:
             else:
                 self._result(i, got)
             self._collect(block=False)
-        if self.asker is not None:
-            self.asker.shutdown(wait=True)
+        if self.procs is not None:
+            self.procs.shutdown(wait=True)
         left = [s.key for s in self.searches if s.runs < s.budget]
         if left or self.queue or self.pending:
             raise RuntimeError(f"the stream ended before every search spent its budget: {left[:3]}")
@@ -345,7 +418,7 @@ class Stream:
             if what == "y":
                 self._result(arg, f.result())
             else:
-                self._queue(arg, f.result())
+                self._asked(arg, f.result())
 
     def _result(self, i: int, y: np.ndarray) -> None:
         k, j = self.fed[i]
@@ -376,26 +449,39 @@ class Stream:
         if n <= 0:
             self.phase[k] = "done"
             return
-        if self.asker is None or isinstance(s, CmaSearch):   # the cma package draws from NumPy's global state
-            self._queue(k, _timed_ask(s, n))
+        if not isinstance(s, ModelSearch):   # cheap: asked here (cma's package uses NumPy's global random state)
+            self._asked(k, _plain_ask(s, n))
+            return
+        fn, args = s.job(n)
+        if self.procs is None:
+            self._asked(k, run_job(fn, args))
         else:
-            self.pending[self.asker.submit(_timed_ask, s, n)] = ("ask", k)
+            self.pending[self.procs.submit(run_job, fn, args)] = ("ask", k)
+
+    def _asked(self, k: int, out: tuple[np.ndarray, int, int, float]) -> None:
+        s = self.searches[k]
+        pts, fallbacks, warned, seconds = out
+        s.fallbacks, s.warnings, s.ask_s = s.fallbacks + fallbacks, s.warnings + warned, s.ask_s + seconds
+        if len(pts) != min(s.q, s.budget - s.runs, s.q - s.runs % s.q) and not isinstance(s, CmaSearch):
+            raise RuntimeError(f"{s.key}: got {len(pts)} points for a round")
+        self._queue(k, pts)
 
 
-def _timed_ask(s: Search, n: int) -> np.ndarray:
-    """``s.ask(n)``, one ask at a time: torch's random state and ``warnings``' filters are process-wide (BoTorch's
-    fit retries on the warnings it records, so each ask records every warning itself, whatever the caller's
-    filters: the same answers in a script, under pytest and in any thread)."""
-    with _ASK:
-        t0 = time.perf_counter()
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            pts = s.ask(n)
-        s.ask_s += time.perf_counter() - t0
-        s.warnings += len(caught)
-    if len(pts) != n:
-        raise RuntimeError(f"{s.key}: asked for {n} points, got {len(pts)}")
-    return pts
+def _plain_ask(s: Search, n: int) -> tuple[np.ndarray, int, int, float]:
+    t0 = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        pts = s.ask(n)
+    return pts, 0, len(caught), time.perf_counter() - t0
+
+
+def _ask_pool(n: int) -> Any:
+    """``n`` worker processes for the model searches' rounds (spawned: no CUDA or Taichi state is forked)."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    _machine()   # benchmarks/ on sys.path, which the spawned processes inherit (they import this module)
+    return ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"))
 
 
 def _scores(score: Callable[[np.ndarray, np.ndarray], np.ndarray], y: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -558,13 +644,13 @@ def extractor_of(sim: Any, ext: Any, workers: int) -> tuple[Callable[[Any], Any]
 
 
 def refine_all(sim: Any, ext: Any, searches: list[Search], score: Callable[[np.ndarray, np.ndarray], np.ndarray],
-               batch: int | None, extract_workers: int = 0, ask_threads: int = 0,
+               batch: int | None, extract_workers: int = 0, ask_procs: int = 0,
                on_round: Callable[[], None] | None = None) -> Stream:
     """Run every search to its budget through one ``sim.simulate_feed`` stream; the stream (``fed``: which
     search's row each fed row was)."""
     extract, pool = extractor_of(sim, ext, extract_workers)
     stream = Stream(searches, lambda feeder: sim.simulate_feed(lambda free: _physical(sim, feeder(free)), batch),
-                    extract, score, ask_threads, on_round)
+                    extract, score, ask_procs, on_round)
     try:
         stream.run()
     finally:
@@ -592,7 +678,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sim-option", nargs="*", default=[], help="KEY=VALUE simulator overrides")
     p.add_argument("--sim-batch", type=int, default=64, help="runs in flight (slots)")
     p.add_argument("--extract-workers", type=int, default=4, help="feature-extraction processes (0: in process)")
-    p.add_argument("--ask-threads", type=int, default=4, help="threads computing the next rounds (0: inline)")
+    p.add_argument("--ask-procs", type=int, default=8, help="processes computing the model searches' rounds "
+                                                           "(botorch_qlogei, optuna_gp; 0: in this process)")
     p.add_argument("--bootstrap", type=int, default=2000)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=None)
@@ -623,7 +710,7 @@ def main(argv: list[str] | None = None) -> int:
             "answer_method": answered[0][1][0].method if answered and answered[0][1] else a.method,
             "sets": dict(_sets(a.sets)), "limit": a.limit, "methods": a.methods, "budgets": a.budgets,
             "starts": a.starts, "q": a.q, "box": a.box, "sigma0": a.sigma0, "seed": a.seed,
-            "sim_batch": a.sim_batch, "extract_workers": a.extract_workers, "ask_threads": a.ask_threads,
+            "sim_batch": a.sim_batch, "extract_workers": a.extract_workers, "ask_procs": a.ask_procs,
             "answer_s": answer_s}
     clock = {"t0": time.perf_counter()}
 
@@ -641,7 +728,7 @@ def main(argv: list[str] | None = None) -> int:
             tmp.write_text(json.dumps({**_machine().provenance(), **result}, indent=1) + "\n")
             tmp.replace(a.out)
 
-    refine_all(sim, ext, searches, masked_score(inv), a.sim_batch, a.extract_workers, a.ask_threads, save)
+    refine_all(sim, ext, searches, masked_score(inv), a.sim_batch, a.extract_workers, a.ask_procs, save)
     save(final=True)
     return 0
 
