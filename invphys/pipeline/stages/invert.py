@@ -190,6 +190,17 @@ class _Entries:
         self.prepare_metrics[label] = metrics
 
 
+def problem_seed(seed: int, label: str, problem_id: str, target: np.ndarray | None) -> int:
+    """An entry's seed for one problem: for a target, the stream ``invphys invert`` gives the method's first
+    search of that target (:func:`~invphys.inverter.seeds.target_seed`, ``search:0``), so the bundle answers
+    as this stage did; for a named objective, its name. Never the problem's position among the others."""
+    from invphys.inverter.seeds import target_seed
+
+    if target is None:
+        return target_seed(seed, label, np.zeros(0), np.zeros(0, dtype=bool), f"objective:{problem_id}")
+    return target_seed(seed, label, target, np.ones(len(target), dtype=bool), "search:0")
+
+
 def penalty_of(block: dict[str, Any]) -> float:
     """An optimiser entry's ``uncertainty_penalty`` lambda (0: none)."""
     return float(block.get("uncertainty_penalty", 0.0) or 0.0)
@@ -238,10 +249,11 @@ def run(ctx: StageContext) -> dict[str, Any]:
         if on_objectives:
             problems += [("objective", name, obj, None, None) for name, obj in named.items()]
         t_entry = time.perf_counter()
-        for n, (kind, problem_id, objective, y_star, k) in enumerate(problems):
+        for kind, problem_id, objective, y_star, k in problems:
             problem = build_problem(space, objective, budget, surrogate=surrogate, latent=latent,
                                     evaluator=evaluator, predict=predict, target=y_star,
-                                    seed=ctx.seed * 1000 + n, feature_mean=mean, feature_std=std)
+                                    seed=problem_seed(ctx.seed, label, problem_id, y_star),
+                                    feature_mean=mean, feature_std=std)
             lam = penalty_of(entries.blocks[label])
             if lam:  # score = R - lambda * normalised ensemble std (the row keeps the plain R_surr)
                 from invphys.evaluators.uncertainty import penalised_problem

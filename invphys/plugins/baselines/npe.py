@@ -123,29 +123,45 @@ class NPEBaseline(DatasetBaseline):
         return np.log(t) - np.log1p(-t)
 
     def posterior_samples(self, targets: np.ndarray, n: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(samples (B, S, d), log-probs (B, S)) of the posterior at each target (seeded).
+        """(samples (B, S, d), log-probs (B, S)) of the posterior at each target.
 
-        Samples outside [0, 1]^d are clipped to it; ``last_leakage`` is the fraction that was outside.
+        Each target is drawn alone under a torch stream seeded from ``config.seed`` and its own values
+        (:func:`~invphys.evaluators.simulator_loop.row_seed`), so its draws do not depend on its position
+        or on the other targets of the batch. Samples outside [0, 1]^d are clipped to it;
+        ``last_leakage`` is the fraction that was outside.
         """
-        import torch
+        from invphys.evaluators.simulator_loop import row_seed
 
         n = int(n or self.config.samples)
-        x = torch.as_tensor(np.atleast_2d(targets), dtype=torch.float32)
-        torch.manual_seed(self.config.seed)
-        with torch.no_grad(), warnings.catch_warnings():
+        rows = np.atleast_2d(np.asarray(targets, dtype=np.float64))
+        drawn = [self._draw_one(row, n, row_seed(self.config.seed, row, "npe")) for row in rows]
+        samples = np.stack([s for s, _ in drawn]) if drawn else np.empty((0, n, self._dim()))
+        logp = np.stack([lp for _, lp in drawn]) if drawn else np.empty((0, n))
+        self.last_leakage = float(np.mean(np.any((samples < 0) | (samples > 1), axis=2))) if drawn else 0.0
+        return np.clip(samples, 0.0, 1.0), logp
+
+    def _dim(self) -> int:
+        return int(self._posterior.posterior_estimator.input_shape[0])
+
+    def _draw_one(self, target: np.ndarray, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        """(S, d) unclipped draws and their (S,) log-probs at one target, under torch stream ``seed``."""
+        import torch
+
+        x = torch.as_tensor(target[None, :], dtype=torch.float32)
+        with torch.random.fork_rng(devices=[]), torch.no_grad(), warnings.catch_warnings():
+            torch.manual_seed(seed)
             warnings.filterwarnings("ignore", message=".*outside the prior support.*")
             # no rejection (a poorly fitted flow can leak most of its mass outside the box, and rejection
             # then never ends) and no leakage normalisation (it only shifts each target's log-probs)
             s = self._posterior.sample_batched((n,), x=x, show_progress_bars=False,
-                                               reject_outside_prior=False)  # (S, B, d)
-            lp = self._posterior.log_prob_batched(s, x=x, norm_posterior=False)  # (S, B)
-        samples = np.transpose(s.numpy().astype(np.float64), (1, 0, 2))
-        logp = np.transpose(lp.numpy().astype(np.float64), (1, 0))
+                                               reject_outside_prior=False)  # (S, 1, d)
+            lp = self._posterior.log_prob_batched(s, x=x, norm_posterior=False)  # (S, 1)
+        samples = s.numpy().astype(np.float64)[:, 0, :]
+        logp = lp.numpy().astype(np.float64)[:, 0]
         if self.config.transform == "logit":  # back to theta, with the change of variables' Jacobian
             samples = 1.0 / (1.0 + np.exp(-samples))
-            logp = logp - np.log(np.clip(samples * (1.0 - samples), 1e-300, None)).sum(axis=2)
-        self.last_leakage = float(np.mean(np.any((samples < 0) | (samples > 1), axis=2)))
-        return np.clip(samples, 0.0, 1.0), logp
+            logp = logp - np.log(np.clip(samples * (1.0 - samples), 1e-300, None)).sum(axis=1)
+        return samples, logp
 
     def _answer(self, targets: np.ndarray, predict_theta: Any) -> BaselineAnswers:
         samples, logp = self.posterior_samples(targets)
