@@ -68,3 +68,26 @@ def test_stage_answers_do_not_depend_on_the_target_order(tmp_path) -> None:
     assert labels == {"cma", "cma_pen", "npe_opt", "nearest_neighbour", "npe", "pen_nn"} and len(a) == 30
     assert a.keys() == b.keys()
     assert sorted({label for label, t in a if a[(label, t)] != b[(label, t)]}) == []
+
+
+def test_stage_keys_carry_the_seeding_so_older_cached_answers_re_run() -> None:
+    """Stages that make answers (invert, validate, active) record how answers are seeded: a stage cached by
+    an invphys that seeded by position is re-run (and says why) instead of serving answers this one would
+    not give; stages that make none keep their keys."""
+    import yaml
+
+    from invphys.core.spec import validate_spec
+    from invphys.pipeline import cache
+    from invphys.pipeline.stages import invert, train, validate
+    from invphys.registry import default_registry
+
+    spec = validate_spec(yaml.safe_load(SPEC.replace("TARGETS", "t.json").replace(
+        "targets: {file: t.json, validate: 5}", "targets: {n: 2}")))
+    reg = default_registry()
+    for module in (invert, validate):
+        assert cache.plugin_versions(spec, module.DEPENDS_ON, reg)[cache.SEEDING_ENTRY] == cache.SEEDING
+    assert cache.SEEDING_ENTRY not in cache.plugin_versions(spec, train.DEPENDS_ON, reg)
+    now = {"spec": "s", "plugins": cache.plugin_versions(spec, invert.DEPENDS_ON, reg)}
+    before = {"components": {"spec": "s", "plugins": {k: v for k, v in now["plugins"].items()
+                                                      if k != cache.SEEDING_ENTRY}}}
+    assert cache.stale_reason(before, now) == "how answers are seeded (now per target, not by position) changed"

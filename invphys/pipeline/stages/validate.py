@@ -216,14 +216,16 @@ def baselines(ctx: StageContext, targets: dict[str, Any]) -> tuple[list[dict[str
 
     from invphys.core.atomic import write_json
     from invphys.evaluation.answers import baseline_rows
+    from invphys.pipeline.cache import SEEDING
     from invphys.pipeline.runner import fingerprint
 
     blocks = ctx.spec.evaluation.baselines
     if not blocks:
         return [], {}
     done = ctx.stage_dir_of("train") / "DONE.json"
+    # the seeding: answers cached before posterior draws were seeded per target are not served again
     key = fingerprint({"baselines": blocks, "rows": targets["rows"], "features": targets["features"], "dataset": ctx.spec.section_dump(["dataset"]),
-                       "seed": ctx.seed, "train": done.read_text() if done.is_file() else None})
+                       "seed": ctx.seed, "train": done.read_text() if done.is_file() else None, "seeding": SEEDING})
     cache = ctx.stage_dir / BASELINES_FILE
     if cache.is_file():
         blob = json.loads(cache.read_text())
