@@ -96,7 +96,7 @@ def _fold_lines(report: dict[str, Any]) -> list[str]:
     if not r:
         return []
     lines = ["", f"Which parameters are recalibrated: {r['rule']}; the stored recalibration is then fitted on "
-                 f"{r['fitted_on']}. Coverage error (mean |coverage - level| over the four levels), before -> after:",
+                 f"{r['fitted_on']}. Out-of-fold coverage error, before -> after:",
              "", "| parameter | recalibrated | fitted on fit rows, checked on check rows | fitted on check rows, "
                  "checked on fit rows |", "|---|---|---|---|"]
     for n, v in r["parameters"].items():
