@@ -20,7 +20,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from invphys.core.errors import InvphysError
-from invphys.core.masked_recovery import MaskedRecovery
+from invphys.core.masked_recovery import MaskedRecovery, masked_recovery
 from invphys.inverter.seeds import target_seed
 from invphys.inverter.uncertainty import NEIGHBOUR_ROWS, Uncertainty
 
@@ -59,6 +59,16 @@ class MethodAnswers:
         if top_k > most:
             raise InvphysError(f"top_k {top_k} is more than method {self.label!r} can give: at most {most} "
                                f"distinct candidates per target ({self.kind})")
+
+    def penalty(self) -> float:
+        """The entry's ``uncertainty_penalty`` lambda (0: none; a bundle made before it was kept: none)."""
+        lam = self.entry.get("uncertainty_penalty", 0.0)
+        if isinstance(lam, bool) or not isinstance(lam, (int, float)) or not 0 <= lam < float("inf"):
+            raise InvphysError(f"method {self.label!r}: uncertainty_penalty must be a number >= 0, got {lam!r}")
+        if lam and not hasattr(self.bundle.surrogate, "predict_with_uncertainty"):
+            raise InvphysError(f"method {self.label!r}: uncertainty_penalty needs a surrogate with uncertainty "
+                               f"(the ensemble)")
+        return float(lam)
 
     def seed(self, seed: int, values: np.ndarray, mask: np.ndarray, stream: str) -> int:
         return target_seed(seed, self.label, values, mask, stream)
@@ -160,7 +170,7 @@ class PosteriorAnswers(MethodAnswers):
         from invphys.plugins.baselines._base import best_by_surrogate
 
         sur = self.bundle.surrogate
-        lam = float(getattr(self.plugin.config, "uncertainty_penalty", 0.0) or 0.0)
+        lam = self.penalty() or float(getattr(self.plugin.config, "uncertainty_penalty", 0.0) or 0.0)
         predict, penalty = sur.predict, None
         if lam > 0:
             from invphys.evaluators.uncertainty import UncertaintyPenalty
@@ -193,8 +203,15 @@ class LookupAnswers(MethodAnswers):
         if "seed" in type(cfg).model_fields:
             self.plugin.config = cfg.model_copy(update={"seed": self.seed(seed, values, mask, "lookup")})
         try:
-            sur = self.bundle.surrogate
-            ans = answer_with_penalty(self.plugin, goal, sur.predict, sur, self.bundle.scales, f"method {self.label!r}")
+            sur, lam = self.bundle.surrogate, self.penalty()
+            if lam:  # the entry's penalty (an optimiser entry's uncertainty_penalty, as the invert stage applied it)
+                from invphys.evaluators.uncertainty import UncertaintyPenalty
+
+                pen = UncertaintyPenalty(sur, self.bundle.scales, lam)
+                ans = self.plugin.answer(goal, pen.predict, pen.penalty)
+            else:
+                ans = answer_with_penalty(self.plugin, goal, sur.predict, sur, self.bundle.scales,
+                                          f"method {self.label!r}")
         finally:
             self.plugin.config = cfg
         spent = int(ans.evaluations[0]) + 1
@@ -249,7 +266,10 @@ class PolicyAnswers(MethodAnswers):
 
 
 class SearchAnswers(MethodAnswers):
-    """An optimiser on the surrogate: ``top_k`` searches per target, each from its own seed."""
+    """An optimiser on the surrogate: ``top_k`` searches per target, each from its own seed, scored with
+    R - lambda x the ensemble's normalised std where the entry has an ``uncertainty_penalty`` (as the
+    invert stage scores it). An entry with a ``start`` (a spec's ``evaluation.methods`` refinement) is one
+    ask/tell CMA-ES from that method's answer, as the validate stage refines."""
 
     kind = "search"
 
@@ -257,11 +277,17 @@ class SearchAnswers(MethodAnswers):
         super().__init__(inv, label, entry)
         self.plugin = plugin
 
+    def max_top_k(self) -> int:
+        return 1 if self.entry.get("start") else MAX_TOP_K
+
     def answer(self, values: np.ndarray, mask: np.ndarray, top_k: int, seed: int, draws: int
                ) -> tuple[Pool, Uncertainty]:
         from invphys.core.spaces import build_problem
 
-        entry = self.entry
+        note = Uncertainty("none", note=f"{self.label} is a search: it answers with a point")
+        if self.entry.get("start"):
+            return self._refine(values, mask, seed), note
+        entry, lam = self.entry, self.penalty()
         space = self.bundle.search_space(entry["space"])
         predict = self.bundle.predictor(entry["space"], entry.get("evaluator", "shared"))
         latent = None if entry["space"] == "raw" else self.bundle.latent(entry["space"])
@@ -275,10 +301,39 @@ class SearchAnswers(MethodAnswers):
             s = self.seed(seed, values, mask, f"search:{r}")
             problem = build_problem(space, objective, budget, surrogate=self.bundle.surrogate, latent=latent,
                                     predict=predict, target=goal, seed=s, feature_mean=mean, feature_std=std)
+            if lam:
+                from invphys.evaluators.uncertainty import penalised_problem
+
+                problem = penalised_problem(problem, self.bundle.surrogate, self.bundle.scales, lam)
             with quiet_cma():
                 res = self.plugin.optimize(problem)
             thetas.append(np.clip(np.asarray(res.theta, dtype=np.float64), 0.0, 1.0))
             srcs.append(self.label if top_k == 1 else f"{self.label} (search {r + 1})")
             spent += int(res.evaluations)
-        return (np.array(thetas), srcs, spent), Uncertainty("none", note=f"{self.label} is a search: "
-                                                                          f"it answers with a point")
+        return (np.array(thetas), srcs, spent), note
+
+    def _refine(self, values: np.ndarray, mask: np.ndarray, seed: int) -> Pool:
+        """CMA-ES (ask/tell, the entry's budget, popsize and sigma0) on the surrogate from the start method's
+        answer, seeded from (seed, the target) like the validate stage's refinement of that target."""
+        from invphys.evaluators.simulator_loop import refine_targets
+        from invphys.evaluators.uncertainty import UncertaintyPenalty
+
+        start = self.entry["start"]
+        methods = self.bundle.methods
+        if start not in methods or start == self.label or methods[start].get("start"):
+            raise InvphysError(f"method {self.label!r}: its start {start!r} is not a method of this bundle that "
+                               f"answers by itself (methods: {', '.join(methods)})")
+        (first, _, spent), _ = self.inv._answers(start, methods[start]).answer(values, mask, 1, seed, 0)
+        cfg = self.entry.get("config") or {}
+        b = self.bundle
+        pen = UncertaintyPenalty(b.surrogate, b.scales, self.penalty())
+        goal = self.goal(values, mask)
+
+        def score(y: np.ndarray, t: np.ndarray) -> np.ndarray:
+            return masked_recovery(y, t, b.scales, mask, b.kappa) - pen.penalty(y)
+
+        with quiet_cma():
+            got = refine_targets(goal[None, :], first[:1], b.scales, pen.predict, int(cfg.get("budget", 64)),
+                                 int(cfg.get("popsize", 8)), float(cfg.get("sigma0", 0.1)), seed=seed, kappa=b.kappa,
+                                 score=score)[0]
+        return np.clip(got.theta, 0.0, 1.0)[None, :], [self.label], int(spent) + got.evaluated

@@ -56,6 +56,9 @@ def parts_from_context(ctx: StageContext, with_policies: bool) -> BundleParts:
         entry = {"type": block["type"], "kind": "policy" if getattr(cls, "goal_conditioned", False) else "optimizer",
                  "space": block.get("space", "raw"), "evaluator": block.get("evaluator", "shared"),
                  "config": {k: v for k, v in plugin_block.items() if k != "type"}}
+        lam = float(block.get("uncertainty_penalty", 0.0) or 0.0)
+        if lam > 0:  # the invert stage scores with R - lambda x std: the bundle's method answers alike
+            entry["uncertainty_penalty"] = lam
         if label in heldout:
             entry["heldout"] = heldout[label]
         if entry["kind"] == "policy":
@@ -65,6 +68,7 @@ def parts_from_context(ctx: StageContext, with_policies: bool) -> BundleParts:
             elif not (with_policies and learns_from_rows(cls)):
                 continue  # not trained yet (train stage) or not persistable; a baseline refits from the bundle's rows
         methods[label] = entry
+    methods.update(refine_methods(spec, methods))
     return BundleParts(
         name=spec.name, description=spec.description, simulator_block=dict(spec.simulator),
         simulator_version=_data_version(ctx) or str(getattr(sim_info.cls, "version", "")),
@@ -77,6 +81,26 @@ def parts_from_context(ctx: StageContext, with_policies: bool) -> BundleParts:
                  "test_fraction": spec.dataset.test_fraction, "split_seed": spec.seed},
         surrogate=(sur_type, ctx.surrogate(), train_dir / "surrogate"), latents=latents, methods=methods,
         policies=policies, seed=spec.seed)
+
+
+def refine_methods(spec: Any, methods: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """The spec's ``evaluation.methods`` that a bundle can answer: CMA-ES on the surrogate (optionally
+    uncertainty-penalised) from the answer of a method the bundle ships (``start``), as manifest entries
+    (plain settings; the validate stage refines alike). Methods with the simulator in the loop, or whose
+    start the bundle does not ship (a dataset baseline of the evaluation section), are left out."""
+    out: dict[str, dict[str, Any]] = {}
+    ev = getattr(spec, "evaluation", None)
+    for label, method in (getattr(ev, "methods", None) or {}).items():
+        if method.evaluator != "surrogate" or method.start not in methods or label in methods:
+            continue
+        entry: dict[str, Any] = {"type": "cma_es", "kind": "optimizer", "space": "raw", "evaluator": "shared",
+                                 "config": {"budget": int(method.budget), "popsize": int(method.popsize),
+                                            "sigma0": float(method.sigma0)},
+                                 "start": method.start}
+        if method.uncertainty_penalty > 0:
+            entry["uncertainty_penalty"] = float(method.uncertainty_penalty)
+        out[label] = entry
+    return out
 
 
 def _data_version(ctx: StageContext) -> str | None:
