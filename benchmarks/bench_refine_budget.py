@@ -10,8 +10,8 @@ top ``--starts`` candidates, the amortised answer first), then refines every tar
 - ``optuna_tpe``, ``optuna_cmaes``, ``optuna_gp``: Optuna's TPE, CMA-ES (x0 the best start, the same step)
   and GP samplers with their default settings, seeded with every simulated start that lies in the box
   (``study.add_trial`` with its known R: ``enqueue_trial`` would simulate it again);
-- ``botorch_qlogei``: a SingleTaskGP on every run of the target so far (starts included) and
-  qLogExpectedImprovement, ``--q`` points per round.
+- ``botorch_qlogei``: a SingleTaskGP on the target's runs so far in the box (the best start included)
+  and qLogExpectedImprovement, ``--q`` points per round (``optimize_acqf``, 4 restarts, 256 raw samples).
 
 Budget: every method first simulates the same start candidates (each counts one run, as
 ``stream_refine`` counts them), then asks ``--q`` points per round until it has spent the budget.
@@ -26,13 +26,14 @@ round joins as soon as its own runs are back, its features extracted in ``--extr
 (:class:`ExtractionPool`, as dataset generation does: in the simulating process extraction costs ~0.14
 s per paper run between launches) and the model searches' next rounds (GP fits) computed in
 ``--ask-procs`` processes, one torch thread each, while the simulator goes on. A round is told in ask
-order and each search draws from its own seed (target, method, ``--seed``; the model searches: and the
-round), so answers depend neither on completion order, the batch size, the processes nor the other
-targets. Rounds end on multiples of ``--q`` runs (the first after the starts is shorter), so 16, 32 and
-64 end rounds; ``cma`` keeps its own generations (starts, then popsize ``--q``) and its best after a
-budget counts the runs of a generation in ask order. The JSON (``--out``) is rewritten after every round of the slowest search and at the end:
-device, simulator, per set x method x budget the mean best R with a 95 % bootstrap interval, the paired
-difference to ``cma`` with its interval, and per-target values. Example (GPU)::
+order and each search draws from its own seed (target, method, ``--seed``; a model search's round from
+that seed and the round's number: ``optuna_gp``'s study is rebuilt each round from the runs), so the
+answers depend neither on completion order, the batch size, the processes nor the other targets. Rounds
+end on multiples of ``--q`` runs (the first after the starts is shorter), so 16, 32 and 64 end rounds;
+``cma`` keeps its own generations (the starts, then popsize ``--q``): its best after a budget counts a
+generation's runs in ask order. The JSON (``--out``) is rewritten after every round of the slowest
+search and at the end: device, simulator, per set x method x budget the mean best R with a 95 %
+bootstrap interval, the paired difference to ``cma`` with its interval, and per-target values. Example (GPU)::
 
     python benchmarks/bench_refine_budget.py --bundle inverters/orange_peel_paper \\
         --sets uniform=datasets/orange_peel_paper_fresh_uniform edge=datasets/orange_peel_paper_fresh_edge \\
@@ -298,8 +299,8 @@ def optuna_gp_points(x: np.ndarray, y: np.ndarray, lo: np.ndarray, hi: np.ndarra
 
 def botorch_points(x: np.ndarray, y: np.ndarray, lo: np.ndarray, hi: np.ndarray, seed: int, n: int,
                    effort: tuple[int, int, int, int]) -> tuple[np.ndarray, int]:
-    """``n`` points maximising qLogEI of a SingleTaskGP fitted to every run (seeded random points in the box,
-    counted, when the GP cannot be fitted)."""
+    """``n`` points maximising qLogEI of a SingleTaskGP fitted to the runs in the box (seeded random points in
+    the box, counted, when the GP cannot be fitted)."""
     import torch
     from botorch.acquisition.logei import qLogExpectedImprovement
     from botorch.fit import fit_gpytorch_mll
@@ -311,6 +312,7 @@ def botorch_points(x: np.ndarray, y: np.ndarray, lo: np.ndarray, hi: np.ndarray,
 
     restarts, raw, maxiter, mc = effort
     d = len(lo)
+    x, y = _in_box(x, y, lo, hi)   # as Optuna's study: the runs in the box (the best start always is)
     width = np.maximum(hi - lo, 1e-12)
     torch.manual_seed(seed)
     try:
@@ -521,10 +523,12 @@ def table(searches: list[Search], budgets: list[int], n_boot: int = 2000) -> dic
                                    "fallback_points": sum(per[i].fallbacks for i in idx),
                                    "ask_warnings": sum(per[i].warnings for i in idx),
                                    "ask_s": sum(per[i].ask_s for i in idx), "budgets": {}}
-            starts = [per[i].start_scores for i in idx]
-            if all(s is not None for s in starts):
-                rec["r_answer"] = bootstrap(np.array([np.nan_to_num(s[0]) for s in starts]), n_boot)  # type: ignore[index]
-                rec["r_best_start"] = bootstrap(np.array([np.nanmax(np.nan_to_num(s)) for s in starts]), n_boot)  # type: ignore[arg-type]
+            ss = [np.nan_to_num(np.asarray(per[i].start_scores, float)) for i in idx
+                  if per[i].start_scores is not None]
+            if len(ss) == len(idx):   # the amortised answer (first start) and the best start, failures as 0
+                for name_, v in (("r_answer", [x[0] for x in ss]), ("r_best_start", [x.max() for x in ss])):
+                    m, lo, hi = bootstrap(np.array(v), n_boot)
+                    rec[name_] = {"mean": m, "ci95": [lo, hi], "per_target": [float(x) for x in v]}
             for b in budgets:
                 if any(per[i].runs < min(b, first.budget) for i in idx):
                     continue   # not every target has spent this budget yet
