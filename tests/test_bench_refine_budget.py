@@ -108,3 +108,21 @@ def test_the_json_holds_the_table_and_a_bad_method_is_one_error_line(toy, tmp_pa
         assert d["mean"] == pytest.approx(np.mean(np.array(tpe) - cell["per_target"]))
     with pytest.raises(SystemExit, match="unknown method 'nelder'"):
         bench.main([*argv[:-2], "--methods", "nelder"])
+
+
+def test_cma_is_the_sim_refine_search(toy, first) -> None:
+    """With the whole cube as the box, ``cma`` finds what ``refine`` (``invert --sim-refine``) finds."""
+    from invphys.inverter.refine import refine
+    from invphys.inverter.simulate import masked_score
+
+    _bundle, _store, inv = toy
+    y = first[0]
+    ours = bench.build_searches(inv, [("a", inv.invert_many(y, top_k=STARTS, seed=0))], ["cma"], BUDGET, Q, 1.0,
+                                0.012, 0)
+    sim = inv.simulator()
+    bench.refine_all(sim, inv.extractor(sim), ours, masked_score(inv), 5)
+    results = inv.invert_many(y, top_k=STARTS, seed=0)
+    recs = refine(inv, results, BUDGET, popsize=Q, sigma0=0.012, batch_size=5, seed=0, simulator=sim)
+    assert [r["runs"] for r in recs] == [s.runs for s in ours] == [BUDGET] * len(y)
+    assert [r["r_actual"] for r in recs] == [s.best_after(BUDGET) for s in ours]
+    assert [r.candidates[0].theta.tobytes() for r in results] == [s.t.theta.tobytes() for s in ours]
