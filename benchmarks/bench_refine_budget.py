@@ -569,6 +569,11 @@ def _device(sim: Any) -> str:
     return dev if dev and dev != "cpu" else f"cpu ({_machine().cpu_name()})"
 
 
+def _device_after_runs(sim: Any, runs: int) -> str:
+    """The device, once the simulator has run (its engine starts on the first run; "" before)."""
+    return _device(sim) if runs else ""
+
+
 def _options(items: list[str]) -> dict[str, Any]:
     import yaml
 
@@ -709,7 +714,7 @@ def main(argv: list[str] | None = None) -> int:
     ext = inv.extractor(sim)
     searches = build_searches(inv, answered, a.methods, budget, a.q, a.box, a.sigma0, a.seed)
     head = {"what": "equal-budget refine on the simulator: best R_actual after each budget, per method",
-            "device": _device(sim), "simulator": sim.name, "simulator_version": sim.version,
+            "device": "", "simulator": sim.name, "simulator_version": sim.version,
             "simulator_config": sim.config.model_dump(), "overrides": overrides, "bundle": a.bundle,
             "answer_method": answered[0][1][0].method if answered and answered[0][1] else a.method,
             "sets": dict(_sets(a.sets)), "limit": a.limit, "methods": a.methods, "budgets": a.budgets,
@@ -721,6 +726,7 @@ def main(argv: list[str] | None = None) -> int:
     def save(final: bool = False) -> None:
         runs = sum(s.runs for s in searches)
         wall = time.perf_counter() - clock["t0"]
+        head["device"] = head["device"] or _device_after_runs(sim, runs)
         result = {**head, "complete": final, "runs": runs, "wall_s": wall, "s_per_run": wall / max(runs, 1),
                   "ask_s": {m: sum(s.ask_s for s in searches if s.key[2] == m) for m in a.methods},
                   "table": table(searches, a.budgets, a.bootstrap)}
