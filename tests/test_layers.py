@@ -254,6 +254,37 @@ def test_known_circles_still_exist(tree) -> None:
     assert [sorted(k) for k in KNOWN_CIRCLES if not any(c <= k for c in found)] == []
 
 
+STAGES = "invphys.pipeline.stages."
+
+
+def stage_cross_imports(graph: dict[str, set[str]]) -> list[tuple[str, str]]:
+    """(stage, other stage) for every import of one ``invphys.pipeline.stages`` module by another: stages share
+    files through ``invphys.pipeline.stage_files`` and ``invphys.pipeline.artifacts``, not through each other."""
+    return sorted((src, dst) for src, dsts in graph.items() for dst in dsts
+                  if src.startswith(STAGES) and dst.startswith(STAGES) and src != dst)
+
+
+def test_no_stage_imports_another_stage(tree) -> None:
+    graph, _ = tree
+    assert len([m for m in graph if m.startswith(STAGES)]) >= 6
+    assert stage_cross_imports(graph) == []
+
+
+def test_the_check_catches_a_stage_importing_a_stage(tmp_path, monkeypatch) -> None:
+    """The checker itself: a lazy ``from`` import and an ``from invphys.pipeline.stages import x`` are caught."""
+    stages = "invphys/pipeline/stages"
+    _plant(tmp_path, {"invphys/__init__.py": "", "invphys/pipeline/__init__.py": "", f"{stages}/__init__.py": "",
+                      f"{stages}/a.py": "def f():\n    from invphys.pipeline.stages.b import g\n",
+                      f"{stages}/b.py": "def g():\n    from invphys.pipeline.stages import c\n",
+                      f"{stages}/c.py": "from invphys.pipeline import stage_files\n",
+                      "invphys/pipeline/stage_files.py": ""})
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    monkeypatch.setattr(sys.modules[__name__], "PACKAGE", tmp_path / "invphys")
+    monkeypatch.setattr(sys.modules[__name__], "EXAMPLES", tmp_path / "examples")
+    graph, _ = edges()
+    assert stage_cross_imports(graph) == [(f"{STAGES}a", f"{STAGES}b"), (f"{STAGES}b", f"{STAGES}c")]
+
+
 def test_dynamic_imports_are_the_listed_ones(tree) -> None:
     _, dynamic = tree
     assert dynamic == sorted(DYNAMIC_IMPORT_SITES)

@@ -1,6 +1,8 @@
-"""What the pipeline's stages share through the run directory, read through a :class:`StageContext`: the
-inverter bundle's parts (:func:`parts_from_context`) and the map from unit-cube to physical parameters
-(:func:`to_params`). Stages import these from here instead of from one another.
+"""What the pipeline's stages build alike from a :class:`StageContext`: the inverter bundle's parts
+(:func:`parts_from_context`) and the bundle itself (:func:`write_inverter`, by the train and invert stages),
+the map from unit-cube to physical parameters (:func:`to_params`) and the spec's named objectives
+(:func:`objectives`). Stages import these from here instead of from one another; the files one stage
+writes for another are read through :mod:`invphys.pipeline.stage_files`.
 """
 
 from __future__ import annotations
@@ -24,6 +26,25 @@ def to_params(ctx: StageContext) -> Any:
     except Exception:  # a simulator that cannot be built here: physical values unknown
         return lambda theta: [float("nan")] * len(theta)
     return lambda theta: space.denormalize(np.asarray(theta)).tolist()
+
+
+def objectives(ctx: StageContext) -> dict[str, Any]:
+    """The spec's named weighted objectives, with percentiles from the training partition."""
+    from invphys.core.objectives import WeightedObjective
+
+    data = ctx.dataset()
+    train_idx, _ = ctx.split()
+    return {label: WeightedObjective.from_names(sec.weights, data.feature_names, data.y[train_idx], name=label)
+            for label, sec in ctx.spec.objectives.items()}
+
+
+def write_inverter(ctx: StageContext, with_policies: bool) -> str:
+    """Write the run's inverter bundle to ``OUT/inverter/`` (the invert stage adds its policies)."""
+    from invphys.inverter.writer import BUNDLE_DIR, write_bundle
+
+    path = write_bundle(parts_from_context(ctx, with_policies=with_policies), ctx.out / BUNDLE_DIR)
+    ctx.log(f"inverter bundle written to {path}")
+    return str(path)
 
 
 def parts_from_context(ctx: StageContext, with_policies: bool) -> BundleParts:

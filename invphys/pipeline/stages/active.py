@@ -47,21 +47,25 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from invphys.core.errors import InvphysError
+from invphys.pipeline.stage_files import (
+    ROUNDS_FILE,
+    baselines,
+    load_evaluation_rows,
+    load_results,
+    load_validation,
+)
 
 if TYPE_CHECKING:
     from invphys.pipeline.context import StageContext
 
 DEPENDS_ON: tuple[str, ...] = ("simulator", "features", "validator", "surrogate", "targets", "evaluation", "active")
 
-ROUNDS_FILE = "rounds.json"
 LABEL = "active_learning"
 
 
 def _start_r_actual(ctx: StageContext, label: str, ks: list[int], m: int) -> tuple[np.ndarray, np.ndarray, float]:
     """The start answers' validated R_actual per target (-inf where not validated), their simulated
     features (NaN there) and their mean simulator runs per target (what the start already cost)."""
-    from invphys.pipeline.stages.validate import load_evaluation_rows, load_validation
-
     rows = [r for r in [*(load_validation(ctx) or []), *load_evaluation_rows(ctx)]
             if r.get("optimizer") == label and r.get("problem") == "target" and r.get("r_actual") is not None]
     by = {r["target_index"]: r for r in rows}
@@ -74,9 +78,6 @@ def _start_r_actual(ctx: StageContext, label: str, ks: list[int], m: int) -> tup
 
 
 def _starts(ctx: StageContext, label: str, ks: list[int], targets: dict[str, Any]) -> np.ndarray:
-    from invphys.pipeline.stages.invert import load_results
-    from invphys.pipeline.stages.validate import baselines, load_evaluation_rows
-
     rows, _ = load_results(ctx)
     pool = rows + load_evaluation_rows(ctx)
     if not any(r["optimizer"] == label for r in pool) and label in ctx.spec.evaluation.baselines:
@@ -163,7 +164,6 @@ def run(ctx: StageContext) -> dict[str, Any]:
 def _inputs(ctx: StageContext, sec: Any) -> tuple[_Inputs, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The rounds' inputs, and the start answers (theta, validated R_actual, features) they improve on."""
     from invphys.evaluators.simulator_loop import SimulatorEvaluator
-    from invphys.pipeline.stages.invert import load_results
 
     _, targets = load_results(ctx)
     n = min(sec.targets or int(ctx.spec.targets.validate_n) or len(targets["rows"]), len(targets["rows"]))
@@ -466,22 +466,24 @@ def _checkpoint_key(ctx: StageContext, n: int, feats: np.ndarray, legacy: bool =
     The simulator and features count by their resolved identity (as the dataset store and the validate
     memo key runs: not device, batching or how the spec named the plugin), the validator without its
     ``batch_size`` and ``extract_workers``. ``legacy``: the key as first written (the spec's simulator
-    and validator sections verbatim), so rounds saved by earlier versions still resume.
+    and validator sections verbatim), so rounds saved by earlier versions still resume. Both hold how
+    answers are seeded (:data:`~invphys.pipeline.cache.SEEDING`): rounds saved under another seeding (the
+    refinements seeded by position, before 2026-11-28) start over instead of resuming.
     """
     from invphys.core.dataset import RunIdentity, extractor_identity
-    from invphys.pipeline.cache import digest
+    from invphys.pipeline import cache
 
     sec = ctx.spec.active.model_dump(mode="json") if ctx.spec.active else {}
     sec.pop("rounds", None)
     sec.pop("polish", None)  # the polish comes after the rounds: its settings do not invalidate them
     common = {"active": sec, "n": n, "targets": np.round(feats, 12).tolist(), "seed": ctx.seed,
-              "surrogate": ctx.spec.surrogate}
+              "surrogate": ctx.spec.surrogate, "seeding": cache.SEEDING}
     if legacy:
-        return digest({**common, "validator": ctx.spec.validator, "simulator": ctx.spec.simulator,
+        return cache.digest({**common, "validator": ctx.spec.validator, "simulator": ctx.spec.simulator,
                        "data": ctx.dataset().fingerprint})
     speed_only = ("batch_size", "extract_workers")
     validator = {k: v for k, v in dict(ctx.spec.validator or {}).items() if k not in speed_only}
-    return digest({**common, "validator": validator, "simulator": RunIdentity.of(ctx.simulator()).to_dict(),
+    return cache.digest({**common, "validator": validator, "simulator": RunIdentity.of(ctx.simulator()).to_dict(),
                    "features": extractor_identity(ctx.extractor()), "data": ctx.dataset().fingerprint})
 
 
@@ -522,14 +524,3 @@ def _load_checkpoint(ctx: StageContext, keys: tuple[str, ...]) -> dict[str, Any]
     except (OSError, ValueError, KeyError) as exc:
         ctx.log(f"{CHECKPOINT_FILE} is unreadable ({exc}); starting from round 0")
         return None
-
-
-def load_active(ctx: StageContext) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[dict[str, Any]]]:
-    """(rows, validation rows, rounds) written by this stage, or empty lists when it has not run."""
-    import json
-
-    d = ctx.stage_dir_of("active")
-    if not (d / "DONE.json").is_file():
-        return [], [], []
-    return (json.loads((d / "rows.json").read_text()), json.loads((d / "validation.json").read_text()),
-            json.loads((d / ROUNDS_FILE).read_text()))

@@ -25,14 +25,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from invphys.core.errors import InvphysError
+from invphys.pipeline.artifacts import objectives, write_inverter
+from invphys.pipeline.stage_files import RESULTS_FILE, TARGETS_FILE, summarise
 
 if TYPE_CHECKING:
     from invphys.pipeline.context import StageContext
 
 DEPENDS_ON: tuple[str, ...] = ("dataset", "surrogate", "latent_models", "optimizers", "objectives", "targets")
-
-RESULTS_FILE = "results.json"
-TARGETS_FILE = "targets.json"
 
 
 def select(ctx: StageContext) -> dict[str, Any]:
@@ -65,16 +64,6 @@ def select(ctx: StageContext) -> dict[str, Any]:
             "params": data.params[rows].tolist(), "feature_names": list(data.feature_names),
             "param_names": list(data.param_names), "scales": ctx.scales().tolist(),
             "selection": ctx.spec.targets.selection, "validate": ctx.spec.targets.validate_n}
-
-
-def objectives(ctx: StageContext) -> dict[str, Any]:
-    """The spec's named weighted objectives, with percentiles from the training partition."""
-    from invphys.core.objectives import WeightedObjective
-
-    data = ctx.dataset()
-    train_idx, _ = ctx.split()
-    return {label: WeightedObjective.from_names(sec.weights, data.feature_names, data.y[train_idx], name=label)
-            for label, sec in ctx.spec.objectives.items()}
 
 
 class _Entries:
@@ -286,8 +275,6 @@ def run(ctx: StageContext) -> dict[str, Any]:
                     f"{np.mean([r['r_surrogate'] for r in mine]):.3f} in {time.perf_counter() - t_entry:.1f} s")
     write_json(ctx.stage_dir / RESULTS_FILE, rows)
     _write_csv(ctx.stage_dir / "results.csv", rows)
-    from invphys.pipeline.stages.train import write_inverter
-
     return {"targets": len(targets["rows"]), "objectives": sorted(named), "rows": len(rows),
             "prepare": entries.prepare_metrics, "optimizers": summarise(rows),
             "inverter": write_inverter(ctx, with_policies=True)}
@@ -300,22 +287,6 @@ def _physical(ctx: StageContext, theta: np.ndarray) -> list[float]:
         return [float("nan")] * len(theta)
 
 
-def summarise(rows: list[dict[str, Any]], score: str = "r_surrogate") -> dict[str, Any]:
-    """Per optimiser label and problem kind: count, mean score, mean evaluations and mean time."""
-    out: dict[str, Any] = {}
-    for label in dict.fromkeys(r["optimizer"] for r in rows):
-        mine = [r for r in rows if r["optimizer"] == label]
-        for kind in ("target", "objective"):
-            sel = [r for r in mine if r["problem"] == kind]
-            if sel:
-                vals = np.array([r[score] for r in sel], dtype=np.float64)
-                out.setdefault(label, {})[kind] = {
-                    "n": len(sel), f"mean_{score}": float(np.nanmean(vals)) if np.isfinite(vals).any() else None,
-                    "mean_evaluations": float(np.mean([r["evaluations"] for r in sel])),
-                    "mean_time_s": float(np.mean([r["wall_time_s"] for r in sel]))}
-    return out
-
-
 def _write_csv(path: Any, rows: list[dict[str, Any]]) -> None:
     import pandas as pd
 
@@ -325,11 +296,3 @@ def _write_csv(path: Any, rows: list[dict[str, Any]]) -> None:
     pd.DataFrame(flat).to_csv(path, index=False)
 
 
-def load_results(ctx: StageContext) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-    """(rows, targets) written by this stage (for the validate and report stages)."""
-    import json
-
-    d = ctx.stage_dir_of("invert")
-    if not (d / RESULTS_FILE).is_file():
-        raise InvphysError(f"no inversion results in {d}: run the 'invert' stage first")
-    return json.loads((d / RESULTS_FILE).read_text()), json.loads((d / TARGETS_FILE).read_text())

@@ -337,9 +337,7 @@ def run(ctx: StageContext) -> dict[str, Any]:
 
     from invphys.core.atomic import write_json
     from invphys.evaluation.plots import plot_protocol
-    from invphys.pipeline.stages.active import load_active
-    from invphys.pipeline.stages.invert import load_results
-    from invphys.pipeline.stages.validate import load_validation
+    from invphys.pipeline.stage_files import load_active, load_results, load_validation
 
     rows, targets = load_results(ctx)
     validation = load_validation(ctx)
@@ -398,9 +396,9 @@ def _in_space_order(params: dict[str, Any], names: list[str]) -> list[str]:
 
 def _drawn_note(ctx: StageContext, targets: dict[str, Any], renders: list[tuple[int, str, str]]) -> str | None:
     """Which targets the report draws, when not all of them (None when all are, or drawing is off)."""
-    from invphys.pipeline.stages import validate
+    from invphys.pipeline.stage_files import RENDER_TARGETS
 
-    kept = getattr(validate, "RENDER_TARGETS", None)
+    kept = RENDER_TARGETS
     if not ctx.spec.report.render:
         return None
     n = len(targets["rows"])
@@ -424,7 +422,7 @@ def _with_device(ctx: StageContext, rows: list[dict[str, Any]]) -> list[dict[str
 
 def _evaluation_rows(ctx: StageContext, targets: dict[str, Any]) -> list[dict[str, Any]]:
     """The validate stage's evaluation rows; without a validate stage, the baselines answered here."""
-    from invphys.pipeline.stages.validate import baselines, load_evaluation_rows
+    from invphys.pipeline.stage_files import baselines, load_evaluation_rows
 
     if (ctx.stage_dir_of("validate") / "DONE.json").is_file():
         return load_evaluation_rows(ctx)

@@ -49,18 +49,10 @@ def run(ctx: StageContext) -> dict[str, Any]:
         dataset_fingerprint=data.fingerprint, log=ctx.log, tracker=ctx.tracker.scoped("train"),
         early_stop_on_held_out=spec.dataset.early_stopping == "held_out",
     )
+    from invphys.pipeline.artifacts import write_inverter
+
     summary["inverter"] = write_inverter(ctx, with_policies=False)
     return summary
-
-
-def write_inverter(ctx: StageContext, with_policies: bool) -> str:
-    """Write the run's inverter bundle to ``OUT/inverter/`` (the invert stage adds its policies)."""
-    from invphys.inverter.writer import BUNDLE_DIR, write_bundle
-    from invphys.pipeline.artifacts import parts_from_context
-
-    path = write_bundle(parts_from_context(ctx, with_policies=with_policies), ctx.out / BUNDLE_DIR)
-    ctx.log(f"inverter bundle written to {path}")
-    return str(path)
 
 
 def train_models(theta: np.ndarray, y: np.ndarray, train_idx: np.ndarray, test_idx: np.ndarray,

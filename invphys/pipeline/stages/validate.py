@@ -32,19 +32,22 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from invphys.core.errors import InvphysError
-from invphys.pipeline.artifacts import to_params
+from invphys.pipeline.artifacts import objectives, to_params
+from invphys.pipeline.stage_files import (
+    EVALUATION_ROWS_FILE,
+    RENDER_TARGETS,
+    VALIDATION_FILE,
+    baselines,
+    load_results,
+    summarise,
+)
 
 if TYPE_CHECKING:
     from invphys.pipeline.context import StageContext
 
 DEPENDS_ON: tuple[str, ...] = ("simulator", "features", "validator", "targets", "evaluation")
 
-VALIDATION_FILE = "validation.json"
-EVALUATION_ROWS_FILE = "evaluation_rows.json"
-BASELINES_FILE = "baselines.json"
 SIMULATED_FILE = "simulated.jsonl"
-RENDER_TARGETS = 3
 
 
 @contextmanager
@@ -65,7 +68,6 @@ def run(ctx: StageContext) -> dict[str, Any]:
     """Validate the invert stage's answers and the evaluation protocol's on the simulator (see the module
     docstring); writes ``validation.json``/``.csv`` and ``evaluation_rows.json``."""
     from invphys.core.atomic import write_json
-    from invphys.pipeline.stages.invert import load_results, summarise
 
     rows, targets = load_results(ctx)
     n_val = int(ctx.spec.targets.validate_n)
@@ -161,8 +163,6 @@ def _simulate_chosen(ctx: StageContext, chosen: list[dict[str, Any]], targets: d
 def _validation_rows(ctx: StageContext, chosen: list[dict[str, Any]], done: _Validated) -> list[dict[str, Any]]:
     """One validation row per chosen row that has a result: a recovery row's record, or a named
     objective's score on the surrogate's prediction and on the simulated features."""
-    from invphys.pipeline.stages.invert import objectives
-
     by_row, feats, failures, stats = done.by_row, done.feats, done.failures, done.stats
     named = objectives(ctx) if any(r["problem"] == "objective" for r in chosen) else {}
     out: list[dict[str, Any]] = []
@@ -210,38 +210,6 @@ def _checkpoint(ctx: StageContext, validator: Any, simulator: Any, extractor: An
     return SimCheckpoint(ctx.stage_dir / SIMULATED_FILE, identity, legacy=[legacy])
 
 
-def baselines(ctx: StageContext, targets: dict[str, Any]) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-    """The spec's baselines fitted on the training partition and answered for every target (cached)."""
-    import json
-
-    from invphys.core.atomic import write_json
-    from invphys.evaluation.answers import baseline_rows
-    from invphys.pipeline.cache import SEEDING
-    from invphys.pipeline.runner import fingerprint
-
-    blocks = ctx.spec.evaluation.baselines
-    if not blocks:
-        return [], {}
-    done = ctx.stage_dir_of("train") / "DONE.json"
-    # the seeding: answers cached before posterior draws were seeded per target are not served again
-    key = fingerprint({"baselines": blocks, "rows": targets["rows"], "features": targets["features"], "dataset": ctx.spec.section_dump(["dataset"]),
-                       "seed": ctx.seed, "train": done.read_text() if done.is_file() else None, "seeding": SEEDING})
-    cache = ctx.stage_dir / BASELINES_FILE
-    if cache.is_file():
-        blob = json.loads(cache.read_text())
-        if blob.get("key") == key:
-            ctx.log(f"baselines: {', '.join(blocks)} from {cache}")
-            return blob["rows"], blob["metrics"]
-    data = ctx.dataset()
-    train_idx, _ = ctx.split()
-    plugins = {label: ctx.registry.create("optimizer", block) for label, block in blocks.items()}
-    rows, metrics = baseline_rows(plugins, data.theta[train_idx], data.y[train_idx], ctx.scales(), targets,
-                                  ctx.surrogate().predict, to_params(ctx), progress=False, log=ctx.log,
-                                  surrogate=ctx.surrogate())
-    write_json(cache, {"key": key, "rows": rows, "metrics": metrics})
-    return rows, metrics
-
-
 def evaluation_rows(ctx: StageContext, rows: list[dict[str, Any]], targets: dict[str, Any], validator: Any,
                     simulator: Any, extractor: Any, ckpt: Any = None) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Baseline rows (every target), noise-floor and method rows (validated targets), and their metrics."""
@@ -286,14 +254,6 @@ def evaluation_rows(ctx: StageContext, rows: list[dict[str, Any]], targets: dict
                                simulator_time_per_target_s=sim_eval.wall_time_s / len(got))
         ctx.log(f"{label}: mean in-loop score {info[label]['mean_in_loop_score']:.3f}")
     return extra, info
-
-
-def load_evaluation_rows(ctx: StageContext) -> list[dict[str, Any]]:
-    """The evaluation's rows written by this stage ([] when it has not run)."""
-    import json
-
-    p = ctx.stage_dir_of("validate") / EVALUATION_ROWS_FILE
-    return json.loads(p.read_text()) if p.is_file() else []
 
 
 def _targets_of(chosen: list[dict[str, Any]], idx: list[int], targets: dict[str, Any]) -> np.ndarray:
@@ -363,16 +323,3 @@ def _truth_runs(ctx: StageContext, chosen: list[dict[str, Any]], inverse: np.nda
         for n, t in zip(todo, got.trajectories, strict=True):
             truths[n] = t
     return truths
-
-
-def load_validation(ctx: StageContext) -> list[dict[str, Any]] | None:
-    """The validate stage's rows, or None when it has not run."""
-    import json
-
-    p = ctx.stage_dir_of("validate") / VALIDATION_FILE
-    if not p.is_file():
-        return None
-    try:
-        return json.loads(p.read_text())
-    except json.JSONDecodeError as exc:
-        raise InvphysError(f"{p} is not valid JSON ({exc}); re-run the validate stage") from exc
