@@ -11,7 +11,10 @@ real outputs and between the rows it keeps the surrogate's shape. Candidates: th
 themselves (scored by their real features, no evaluation), the trust-region steps of
 :class:`~invphys.plugins.baselines.local_linear.LocalLinear` from the nearest ``anchors`` rows, and
 Gaussian perturbations around those anchors (scale: the neighbours' parameter spread). Surrogate
-evaluations per target: ``neighbours`` + the candidates (``budget`` in all).
+evaluations per target: ``neighbours`` + the candidates (``budget`` in all). Each target's perturbations
+come from a stream of its own, seeded from ``seed`` and the target's values
+(:func:`~invphys.evaluators.simulator_loop.row_seed`), so an answer does not depend on the target's
+position or on the other targets of the batch.
 """
 
 from __future__ import annotations
@@ -34,6 +37,9 @@ class CorrectedSearch(LocalLinear):
     """
 
     name: ClassVar[str] = "corrected_search"
+    #: "2": perturbations seeded per target (before: one stream for the whole batch); stage keys and the
+    #: baselines' answer cache record it, so answers made under the old streams are not served again
+    version: ClassVar[str] = "2"
 
     class Config(LocalLinear.Config):
         neighbours: int = Field(8, ge=1, description="rows whose residuals correct the surrogate")
@@ -79,12 +85,14 @@ class CorrectedSearch(LocalLinear):
     def _answer(self, targets: np.ndarray, predict_theta: Any) -> BaselineAnswers:
         if predict_theta is None:
             raise InvphysError(f"{self.name} scores candidates with the surrogate: it needs predict_theta")
+        from invphys.evaluators.simulator_loop import row_seed
+
         cfg = self.config
-        rng = np.random.default_rng(cfg.seed)
         idx, dist = self.neighbours(targets)
         zt = targets / np.maximum(self._scales, 1e-12)
         nb = min(cfg.neighbours, idx.shape[1])
-        cands = np.array([self._candidates(zt[i], idx[i], dist[i], rng) for i in range(len(targets))])  # (B, n, d)
+        rngs = [np.random.default_rng(row_seed(cfg.seed, target, "corrected_search")) for target in targets]
+        cands = np.array([self._candidates(zt[i], idx[i], dist[i], rngs[i]) for i in range(len(targets))])  # (B, n, d)
         b, n, d = cands.shape
         rows = idx[:, :nb]
         # one surrogate call for every target's neighbours and candidates
