@@ -122,7 +122,7 @@ def test_a_bundle_without_a_posterior_gets_its_ood_threshold_and_error_bars(tmp_
     assert 0.03 < d.report["ood"]["check"]["fire_rate"] < 0.15
     assert abs(d.report["surrogate_error_bars"]["check_after"]["overall"] - 0.9) < 0.03
     names = {p.name for p in write_report(d, tmp_path / "r")}
-    assert names == {"report.json", "calibration.json", "summary.md"}
+    assert names == {"report.json", "calibration.json", "summary.md", "rows_used.json"}  # the rows used, by key
 
 
 def test_the_paper_bundles_held_out_rows_hold_none_of_its_training_rows_whatever_store_they_sit_in() -> None:

@@ -57,6 +57,8 @@ class Diagnosis:
     report: dict[str, Any]
     calibration: dict[str, Any]
     figures: dict[str, Any] = field(default_factory=dict)
+    #: keys of the held-out rows it used (``diagnostics/rows_used.json``)
+    keys: list[str] | None = None
 
 
 def posterior_draws(inverter: Any, y: np.ndarray, n: int, seed: int, method: str | None = None) -> Any:
@@ -272,7 +274,7 @@ def diagnose(inverter: Any, stores: Any = None, rows: int | None = None, draws: 
                                            "z": 1.6448536269514722, "nominal": 0.9}
     if failure is not None:
         calib["failure"] = failure
-    return Diagnosis(_plain(report), _plain(calib), figures)
+    return Diagnosis(_plain(report), _plain(calib), figures, [str(k) for k in held.keys])
 
 
 def _plain(obj: Any) -> Any:

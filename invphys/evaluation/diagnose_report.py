@@ -43,6 +43,10 @@ def summary_markdown(report: dict[str, Any]) -> str:
     if s.get("available"):
         lines.append(f"Surrogate error bars (±1.645 sigma): hold {_pct(s['check_before']['overall'])} of held-out "
                      f"errors with the raw ensemble spread, {_pct(s['check_after']['overall'])} scaled (nominal 90 %).")
+    if report.get("check_unused_rows"):  # added by invphys diagnose --check-stored --write
+        from invphys.evaluation.stored_check import check_markdown
+
+        lines += ["", check_markdown(report["check_unused_rows"]).rstrip("\n")]
     return "\n".join(lines) + "\n"
 
 
@@ -199,6 +203,8 @@ def write_report(diagnosis: Any, out: Path) -> list[Path]:
     md = out / "summary.md"
     atomic_write_bytes(md, summary_markdown(r).encode())
     files.append(md)
+    if getattr(diagnosis, "keys", None) is not None:  # the rows it used, by key (invphys diagnose --check-stored)
+        files.append(_json(out / "rows_used.json", {"bundle_id": r.get("bundle_id"), "keys": list(diagnosis.keys)}))
     if "ranks_before" in diagnosis.figures:
         files.append(plot_ranks(diagnosis.figures["ranks_before"], diagnosis.figures["ranks_after"],
                                 r["draws_per_row"], r["parameters"], out / "rank_histograms.png"))
@@ -247,6 +253,32 @@ def write_failure_into_bundle(model: dict[str, Any], root: Path) -> Path:
         _json(d / "report.json", report)
         atomic_write_bytes(d / "summary.md", summary_markdown(report).encode())
         return report  # type: ignore[no-any-return]
+
+    return _swap_in(root, edit)
+
+
+def write_check_into_bundle(check: dict[str, Any], root: Path, used: list[str] | None = None) -> Path:
+    """Add a check on unused rows (:func:`invphys.evaluation.stored_check.check_stored`) to the bundle's
+    diagnostics: ``check_unused_rows.json``, the ``check_unused_rows`` block of ``report.json``, the summary
+    and README; ``used`` (the keys the stored diagnosis used, when it did not record them) goes to
+    ``rows_used.json``. Refused when the stored recalibration is no longer the one checked."""
+    from invphys.core.errors import InvphysError
+    from invphys.evaluation import stored_check as sc
+
+    root = Path(root)
+
+    def edit(tmp: Path) -> dict[str, Any]:
+        calib, report = sc.stored_diagnostics(tmp)
+        if sc.recalibration_digest(calib) != check["checked"]:
+            raise InvphysError(f"bundle {root}: its stored recalibration changed since it was checked; check again")
+        d = tmp / DIAGNOSTICS_DIR
+        report["check_unused_rows"] = check
+        _json(d / "report.json", report)
+        sc.write_check(check, d)
+        if used is not None and not (d / sc.ROWS_USED_FILE).is_file():
+            _json(d / sc.ROWS_USED_FILE, {"bundle_id": report.get("bundle_id"), "keys": sorted(used)})
+        atomic_write_bytes(d / "summary.md", summary_markdown(report).encode())
+        return report
 
     return _swap_in(root, edit)
 
