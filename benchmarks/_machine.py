@@ -17,6 +17,33 @@ def cpu_name() -> str:
     return platform.processor() or platform.machine()
 
 
+def simulator_device(sim: object) -> str:
+    """A simulator's device as a result records it: the GPU's name and the engine's device on CUDA, else the
+    engine's device, else the CPU's name (a simulator with no engine yet reads as the CPU)."""
+    import subprocess
+
+    dev = ""
+    try:
+        dev = str(sim.engine.device)  # type: ignore[attr-defined]
+    except Exception:  # a simulator without a warm engine
+        pass
+    try:
+        names = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
+                               text=True, timeout=30).stdout.strip().splitlines()
+        if names and dev.startswith("cuda"):
+            return f"{names[0]} ({dev})"
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return dev if dev and dev != "cpu" else f"cpu ({cpu_name()})"
+
+
+def sim_options(items: list[str]) -> dict[str, object]:
+    """``KEY=VALUE`` simulator overrides (``--sim-option``), each value read as YAML."""
+    import yaml
+
+    return {k: yaml.safe_load(v) for k, _, v in (i.partition("=") for i in items)}
+
+
 def provenance() -> dict[str, str]:
     """The running script (relative to the repository) and its command line, as a committed result names them
     (``benchmarks/README.md``)."""

@@ -34,30 +34,6 @@ def _machine() -> Any:
     return _machine
 
 
-def _device(sim: Any) -> str:
-    dev = ""
-    try:
-        dev = str(sim.engine.device)
-    except Exception:  # a simulator without a warm engine
-        pass
-    import subprocess
-
-    try:
-        names = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
-                               text=True, timeout=30).stdout.strip().splitlines()
-        if names and dev.startswith("cuda"):
-            return f"{names[0]} ({dev})"
-    except (OSError, subprocess.SubprocessError):
-        pass
-    return dev if dev and dev != "cpu" else f"cpu ({_machine().cpu_name()})"
-
-
-def _options(items: list[str]) -> dict[str, Any]:
-    import yaml
-
-    return {k: yaml.safe_load(v) for k, _, v in (i.partition("=") for i in items)}
-
-
 def use_default_feed(sim: Any) -> None:
     """Make ``sim`` stream through :meth:`Simulator.simulate_feed`'s default (chunks of the rows that are
     ready) even when it has its own open stream, to measure what that stream buys."""
@@ -142,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     inv = invphys.load_inverter(a.bundle)
     rows = DatasetStore(a.targets).arrays(ok_only=True)
     y = rows.y[:a.limit]
-    overrides = _options(a.sim_option)
+    overrides = _machine().sim_options(a.sim_option)
     sim = inv.simulator(overrides)
     ext = inv.extractor(sim)
     from invphys.core.interfaces import Simulator
@@ -179,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
            "runs": spent, "wall_s": wall, "s_per_run": wall / max(spent, 1),
            "simulator_s": float(sum(r["simulator_s"] for r in records)), **_summary(records)}
     result = {"what": "refine on the simulator vs dataset generation, same warm simulator and slots",
-              "device": _device(sim), "simulator": sim.name, "simulator_version": sim.version,
+              "device": _machine().simulator_device(sim), "simulator": sim.name, "simulator_version": sim.version,
               "simulator_config": sim.config.model_dump(), "overrides": overrides, "feed": feed,
               "bundle": a.bundle, "method": results[0].method if results else a.method, "targets": a.targets,
               "sim_batch": a.sim_batch, "extract_workers": a.extract_workers, "answer_s": answer_s, "warmup": warm, "dataset": data, "dataset_random": rand, "refine": ref,

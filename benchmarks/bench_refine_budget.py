@@ -551,35 +551,6 @@ def table(searches: list[Search], budgets: list[int], n_boot: int = 2000) -> dic
 # ---------------------------------------------------------------------------------------------- running
 
 
-def _device(sim: Any) -> str:
-    import subprocess
-
-    dev = ""
-    try:
-        dev = str(sim.engine.device)
-    except Exception:  # a simulator without a warm engine
-        pass
-    try:
-        names = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
-                               text=True, timeout=30).stdout.strip().splitlines()
-        if names and dev.startswith("cuda"):
-            return f"{names[0]} ({dev})"
-    except (OSError, subprocess.SubprocessError):
-        pass
-    return dev if dev and dev != "cpu" else f"cpu ({_machine().cpu_name()})"
-
-
-def _device_after_runs(sim: Any, runs: int) -> str:
-    """The device, once the simulator has run (its engine starts on the first run; "" before)."""
-    return _device(sim) if runs else ""
-
-
-def _options(items: list[str]) -> dict[str, Any]:
-    import yaml
-
-    return {k: yaml.safe_load(v) for k, _, v in (i.partition("=") for i in items)}
-
-
 def _sets(items: list[str]) -> list[tuple[str, str]]:
     out = []
     for it in items:
@@ -703,7 +674,7 @@ def main(argv: list[str] | None = None) -> int:
     from invphys.inverter.simulate import masked_score
 
     inv = invphys.load_inverter(a.bundle)
-    overrides = _options(a.sim_option)
+    overrides = _machine().sim_options(a.sim_option)
     t0 = time.perf_counter()
     answered = []
     for name, path in _sets(a.sets):
@@ -726,7 +697,7 @@ def main(argv: list[str] | None = None) -> int:
     def save(final: bool = False) -> None:
         runs = sum(s.runs for s in searches)
         wall = time.perf_counter() - clock["t0"]
-        head["device"] = head["device"] or _device_after_runs(sim, runs)
+        head["device"] = head["device"] or (_machine().simulator_device(sim) if runs else "")
         result = {**head, "complete": final, "runs": runs, "wall_s": wall, "s_per_run": wall / max(runs, 1),
                   "ask_s": {m: sum(s.ask_s for s in searches if s.key[2] == m) for m in a.methods},
                   "table": table(searches, a.budgets, a.bootstrap)}
