@@ -26,3 +26,28 @@ def test_edge_design_is_seeded_and_prefix_stable() -> None:
 
 def test_spec_accepts_the_edge_sampler() -> None:
     assert DatasetSection(n=10, sampler="edge").sampler == "edge"
+
+
+def test_faces_points_put_each_coordinate_in_the_band_half_the_time_and_stay_in_the_box() -> None:
+    x = sample_unit(40_000, 9, "faces", seed=5)
+    assert x.shape == (40_000, 9) and x.min() >= 0.0 and x.max() <= 1.0
+    in_band = (x <= EDGE_BAND) | (x >= 1.0 - EDGE_BAND)
+    assert abs(in_band.mean() - (0.5 + 0.5 * 2 * EDGE_BAND)) < 0.01  # half in the band, plus uniform's share
+    assert abs((x <= EDGE_BAND).mean() - (x >= 1.0 - EDGE_BAND).mean()) < 0.01  # both ends
+    assert abs(in_band.all(axis=1).mean() - 0.6 ** 9) < 0.002  # corners: all 9 in the band, ~1 %
+    np.testing.assert_array_equal(x[:100], sample_unit(100, 9, "faces", seed=5))  # prefix-stable
+    assert DatasetSection(n=10, sampler="faces").sampler == "faces"
+
+
+def test_unit_density_matches_each_design_and_is_one_for_the_prior_samplers() -> None:
+    from invphys.core.sampling import unit_density
+
+    pts = np.array([[0.05, 0.95], [0.05, 0.5], [0.5, 0.5]])
+    np.testing.assert_allclose(unit_density(pts, "uniform"), 1.0)
+    np.testing.assert_allclose(unit_density(pts, "edge"), [25.0, 0.0, 0.0])  # (0.5 / 0.1) per coordinate
+    np.testing.assert_allclose(unit_density(pts, "faces"), [3.0 * 3.0, 3.0 * 0.5, 0.25])
+    # a histogram of the design agrees with its density on one coordinate's cells
+    x = sample_unit(200_000, 1, "faces", seed=1)[:, 0]
+    hist, edges = np.histogram(x, bins=20, range=(0, 1), density=True)
+    centres = (edges[:-1] + edges[1:]) / 2
+    np.testing.assert_allclose(hist, unit_density(centres[:, None], "faces"), rtol=0.05)
