@@ -25,8 +25,13 @@ from typing import Any
 from invphys.core.errors import InvphysError
 
 MANIFEST_FILE = "manifest.yaml"
-#: 2: no pickled parts (NPE flows and PPO policies as tensors); 1: npe.pt and policy.zip were pickles
-FORMAT_VERSION = 2
+#: 3: method entries may carry keys that change the answer (``uncertainty_penalty``, ``start``), which a format-2
+#: reader would ignore and answer differently; 2: no pickled parts (NPE flows and PPO policies as tensors);
+#: 1: npe.pt and policy.zip were pickles. A bundle is written in the lowest format that holds it
+#: (:func:`required_format`), so older readers keep reading bundles without those keys.
+FORMAT_VERSION = 3
+#: method-entry keys a format-2 reader does not know and would silently ignore
+FORMAT_3_METHOD_KEYS = ("uncertainty_penalty", "start")
 REQUIRED = ("format_version", "parameter_space", "features", "simulator", "components", "methods", "files")
 #: sub-keys every manifest needs (dotted), checked before anything else reads them
 REQUIRED_KEYS = ("parameter_space.names", "parameter_space.low", "parameter_space.high",
@@ -45,8 +50,21 @@ def _migrate_1(data: dict[str, Any]) -> dict[str, Any]:
     return {**data, "format_version": 2}
 
 
+def _migrate_2(data: dict[str, Any]) -> dict[str, Any]:
+    """2 -> 3: format 3 only adds method keys (:data:`FORMAT_3_METHOD_KEYS`)."""
+    return {**data, "format_version": 3}
+
+
 #: format_version -> function upgrading a manifest dict of that version to the next one
-MIGRATIONS: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {1: _migrate_1}
+MIGRATIONS: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {1: _migrate_1, 2: _migrate_2}
+
+
+def required_format(manifest: dict[str, Any]) -> int:
+    """The lowest format that holds ``manifest``: 3 when a method entry uses a key of
+    :data:`FORMAT_3_METHOD_KEYS` (an older invphys would answer that method differently without a word), else 2."""
+    methods = manifest.get("methods") or {}
+    uses = any(isinstance(e, dict) and any(k in e for k in FORMAT_3_METHOD_KEYS) for e in methods.values())
+    return 3 if uses else 2
 
 
 class BundleError(InvphysError):
@@ -93,12 +111,13 @@ def file_hashes(root: Path) -> dict[str, str]:
 
 
 def write_manifest(root: Path, manifest: dict[str, Any]) -> Path:
-    """Hash the bundle's files into ``manifest['files']`` and write ``manifest.yaml`` atomically."""
+    """Hash the bundle's files into ``manifest['files']`` and write ``manifest.yaml`` atomically, in the
+    lowest format that holds it (:func:`required_format`)."""
     import yaml
 
     from invphys.core.atomic import atomic_write_bytes
 
-    manifest = {**manifest, "files": file_hashes(root)}
+    manifest = {**manifest, "format_version": required_format(manifest), "files": file_hashes(root)}
     text = yaml.safe_dump(manifest, sort_keys=False, allow_unicode=True, width=110)
     atomic_write_bytes(root / MANIFEST_FILE, text.encode())
     return root / MANIFEST_FILE
