@@ -14,8 +14,12 @@ For one target the pool holds
 
 Every candidate is scored ``R_surr - lam x normalised ensemble std`` (the std on the scales s_k, as
 :func:`~invphys.evaluators.uncertainty.normalised_std`): the penalty keeps the answer away from
-where the surrogate's members disagree, i.e. where its R is least trustworthy. The answer is the best
-scored candidate. Nothing depends on other targets or their order.
+where the surrogate's members disagree, i.e. where its R is least trustworthy. With ``exact`` the
+stored rows are scored by their REAL features instead (the R they really reach, no penalty: they were
+simulated), and every surrogate-scored candidate loses ``margin`` more (the surrogate's optimism where
+it selects), so a stored row wins where the surrogate only promises to beat it. ``rows="all"`` also
+offers the bundle's held-out rows as stored candidates (never for scoring those rows themselves).
+The answer is the best scored candidate. Nothing depends on other targets or their order.
 """
 
 from __future__ import annotations
@@ -32,6 +36,8 @@ from invphys.inverter.seeds import target_rng, target_seed
 
 #: the label ``invphys invert --method`` knows the pool by (any bundle holding a posterior method)
 POOL_METHOD = "pool"
+#: the stored rows a pool may offer: the bundle's training rows, or with its held-out rows too
+STORED_ROWS = ("train", "all")
 
 
 @dataclass(frozen=True)
@@ -47,6 +53,12 @@ class PoolSettings:
     lam: float = 0.5
     #: other posterior methods of the bundle whose draws join the pool (an ensemble of NPEs)
     extra: tuple[str, ...] = ()
+    #: score the stored rows by their real features (exact R, no penalty) instead of by the surrogate
+    exact: bool = False
+    #: with ``exact``: subtracted from every surrogate score (its expected optimism over the real R)
+    margin: float = 0.0
+    #: the stored rows: ``train`` (the bundle's training rows) or ``all`` (and its held-out rows)
+    rows: str = "train"
 
     def checked(self) -> PoolSettings:
         """``self``, or :class:`InvphysError` naming the first setting out of range."""
@@ -58,10 +70,19 @@ class PoolSettings:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float, np.number)) or not ok(float(v)):
                 raise InvphysError(f"pool {name} must be a number {rule}, got {v!r}")
+        if self.exact not in (True, False, 0, 1) or isinstance(self.exact, float):
+            raise InvphysError(f"pool exact must be true or false, got {self.exact!r}")
+        m = self.margin
+        if isinstance(m, bool) or not isinstance(m, (int, float, np.number)) or not 0 <= float(m) < 1:
+            raise InvphysError(f"pool margin must be a number in [0, 1), got {m!r}")
+        if float(m) and not self.exact:
+            raise InvphysError("pool margin applies only with exact (stored rows scored by their real features)")
+        if self.rows not in STORED_ROWS:
+            raise InvphysError(f"pool rows must be one of {', '.join(STORED_ROWS)}, got {self.rows!r}")
         extra = (self.extra,) if isinstance(self.extra, str) else self.extra
         if not isinstance(extra, (list, tuple)) or not all(isinstance(e, str) and e for e in extra):
             raise InvphysError(f"pool extra must be a list of method labels, got {self.extra!r}")
-        return self if isinstance(self.extra, tuple) else replace(self, extra=tuple(extra))
+        return replace(self, extra=tuple(extra), exact=bool(self.exact), margin=float(m))
 
     def with_(self, **kw: Any) -> PoolSettings:
         return replace(self, **kw).checked()
@@ -90,10 +111,13 @@ class PoolAnswers(PosteriorAnswers):
         self.posterior_label, self.settings = posterior_label, settings.checked()
         self.answer_draws = self.settings.draws
         self.members = [self._member(m) for m in self.settings.extra]
-        theta, y = self.bundle.data("train")
+        splits = ("train", "test") if self.settings.rows == "all" else ("train",)
+        parts = [self.bundle.data(split) for split in splits]
+        theta, y = (np.concatenate([p[i] for p in parts]) for i in (0, 1))
         ok = np.all(np.isfinite(y), axis=1)
         self.train_theta = np.asarray(theta[ok], dtype=np.float64)
-        self.z_train = np.asarray(y[ok], dtype=np.float64) / np.maximum(self.bundle.scales, 1e-12)
+        self.train_y = np.asarray(y[ok], dtype=np.float64)
+        self.z_train = self.train_y / np.maximum(self.bundle.scales, 1e-12)
 
     def _member(self, label: str) -> Any:
         """The plugin of the extra posterior method ``label`` (an NPE of the same bundle)."""
@@ -131,21 +155,32 @@ class PoolAnswers(PosteriorAnswers):
         return s.draws * (1 + len(s.extra)) + s.neighbours + s.moves
 
     def score(self, thetas: np.ndarray, values: np.ndarray, mask: np.ndarray) -> np.ndarray:
-        """(P,) R_surr over the given features minus lam x the normalised ensemble std."""
+        """(P,) R_surr over the given features minus lam x the normalised ensemble std (and, with
+        ``exact``, minus the margin)."""
         from invphys.evaluators.uncertainty import normalised_std
 
         mean, std = self.bundle.surrogate.predict_with_uncertainty(np.clip(thetas, 0.0, 1.0))
         r = masked_recovery(mean, values, self.bundle.scales, mask, self.bundle.kappa)
+        if self.settings.exact and self.settings.margin:
+            r = r - self.settings.margin
         return r - self.lam * normalised_std(std, self.bundle.scales) if self.lam else r
+
+    def stored_score(self, rows: np.ndarray, values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """(k,) the exact R of stored rows (their real features; no penalty): what their answer reaches."""
+        return masked_recovery(self.train_y[rows], values, self.bundle.scales, mask, self.bundle.kappa)
 
     def from_draws(self, values: np.ndarray, mask: np.ndarray, top_k: int, seed: int, samples: np.ndarray,
                    cond: np.ndarray) -> Pool:
         s = self.settings
-        near = self.train_theta[nearest_rows(self.z_train, values, mask, self.bundle.scales, s.neighbours)]
+        rows = nearest_rows(self.z_train, values, mask, self.bundle.scales, s.neighbours)
+        near = self.train_theta[rows]
         n_post = s.draws * (1 + len(s.extra))
         thetas = np.concatenate([samples[:n_post], near])
         sources = [f"{self.label} (posterior)"] * n_post + [f"{self.label} (neighbour)"] * len(near)
-        scores = self.score(thetas, values, mask)
+        if s.exact:
+            scores = np.concatenate([self.score(thetas[:n_post], values, mask), self.stored_score(rows, values, mask)])
+        else:
+            scores = self.score(thetas, values, mask)
         if s.moves:
             moved = self._moves(thetas, scores, values, mask, seed)
             thetas, scores = np.concatenate([thetas, moved]), np.concatenate([scores, self.score(moved, values, mask)])
