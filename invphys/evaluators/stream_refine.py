@@ -1,7 +1,8 @@
 """Refine many targets on the simulator through one open stream: generations overlap across targets.
 
-Each target runs its own search: first its start points (those not simulated yet), then ask/tell CMA-ES
-(in [0, 1]^d, seeded per target) from its best start. A target's next generation is asked as soon as its
+Each target runs its own search: first its start points (those not simulated yet; starts whose features
+are known cost no run), then a strategy's ask/tell search from its best start (CMA-ES in [0, 1]^d seeded
+per target, :func:`cma_strategy`; or the corrected surrogate, :mod:`~invphys.evaluators.corrected_refine`). A target's next generation is asked as soon as its
 own runs are back, and its rows join the stream (:meth:`Simulator.simulate_feed`) while other targets'
 runs are still in flight, so no generation waits for another target's slow run. A generation is told in
 the order of its asks, never of completion: the answers do not depend on completion order, batch size
@@ -149,39 +150,28 @@ class TargetRefine:
     start_scores: np.ndarray | None = None
 
 
-class _Search:
-    """A target's state: the generation in flight (asked points and their results by ask order)."""
+class CMASearch:
+    """The ``cma`` strategy: ask/tell CMA-ES in [0, 1]^d from the target's best start (step ``sigma0``,
+    ``popsize`` points per generation, restarts), with a NumPy random state of its own."""
 
-    def __init__(self, t: TargetRefine, budget: int, popsize: int, sigma0: float, d: int) -> None:
-        self.t, self.budget, self.popsize, self.sigma0, self.d = t, budget, popsize, sigma0, d
-        self.cma: Any = None
-        self.asked = np.empty((0, d))
-        self.results: list[tuple[np.ndarray, float, str, bool] | None] = []
-        self.phase = "starts"
+    def __init__(self, t: TargetRefine, popsize: int, sigma0: float, left: int) -> None:
+        self.t, self.d = t, t.starts.shape[1]
         self._random: Any = None
-
-    def next_points(self) -> np.ndarray:
-        """The next generation (empty: the target is finished)."""
-        left = self.budget - self.t.runs
-        if self.phase == "starts":
-            todo = ~np.all(np.isfinite(self.t.known), axis=1)
-            return self.t.starts[todo][:max(left, 0)]
-        if left <= 0:
-            return np.empty((0, self.d))
         with self.own_random():
-            if self.cma is None:
-                from invphys.core.spaces import raw_space
-                from invphys.plugins.optimizers.cma_es import CMAES
+            from invphys.core.spaces import raw_space
+            from invphys.plugins.optimizers.cma_es import CMAES
 
-                cma = CMAES(popsize=self.popsize, sigma0=self.sigma0, budget=left, restarts=True)
-                self.cma = cma.ask_tell(raw_space(self.d), self.t.seed, self.t.theta, left)
+            cma = CMAES(popsize=popsize, sigma0=sigma0, budget=left, restarts=True)
+            self.cma = cma.ask_tell(raw_space(self.d), t.seed, t.theta, left)
+
+    def ask(self, left: int) -> np.ndarray:
+        with self.own_random():
             pts = self.cma.ask() if not self.cma.done else np.empty((0, self.d))
-        return np.clip(np.asarray(pts, float).reshape(-1, self.d)[:left], 0.0, 1.0)
+        return np.asarray(pts, float).reshape(-1, self.d)[:left]
 
-    def tell(self, scores: np.ndarray) -> None:
-        if self.cma is not None:
-            with self.own_random():
-                self.cma.tell(self.asked, scores)
+    def tell(self, points: np.ndarray, ys: np.ndarray, scores: np.ndarray, before: float) -> None:
+        with self.own_random():
+            self.cma.tell(points, scores)
 
     @contextmanager
     def own_random(self) -> Iterator[None]:
@@ -197,24 +187,67 @@ class _Search:
             np.random.set_state(outer)
 
 
+#: ``strategy(target, runs left) -> search`` with ``ask(left) -> (k, d)`` and ``tell(points, features,
+#: scores, best score before)``; made once a target's starts are in (its best start in ``target.theta``)
+Strategy = Callable[[TargetRefine, int], Any]
+
+
+def cma_strategy(popsize: int = 8, sigma0: float = 0.012) -> Strategy:
+    """The ``cma`` strategy's factory."""
+    return lambda t, left: CMASearch(t, popsize, sigma0, left)
+
+
+class _Search:
+    """A target's state: the generation in flight (asked points and their results by ask order)."""
+
+    def __init__(self, t: TargetRefine, budget: int, strategy: Strategy, d: int) -> None:
+        self.t, self.budget, self.strategy, self.d = t, budget, strategy, d
+        self.search: Any = None
+        self.asked = np.empty((0, d))
+        self.results: list[tuple[np.ndarray, float, str, bool] | None] = []
+        self.phase = "starts"
+        self.before = -np.inf
+
+    def next_points(self) -> np.ndarray:
+        """The next generation (empty: the target is finished)."""
+        left = self.budget - self.t.runs
+        if self.phase == "starts":
+            todo = ~np.all(np.isfinite(self.t.known), axis=1)
+            return self.t.starts[todo][:max(left, 0)]
+        if left <= 0:
+            return np.empty((0, self.d))
+        if self.search is None:
+            self.search = self.strategy(self.t, left)
+        self.before = self.t.score
+        pts = self.search.ask(left)
+        return np.clip(np.asarray(pts, float).reshape(-1, self.d)[:left], 0.0, 1.0)
+
+    def tell(self, ys: np.ndarray, scores: np.ndarray) -> None:
+        if self.search is not None:
+            self.search.tell(self.asked, ys, scores, self.before)
+
+
 def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int], np.ndarray | None]],
                                                                  Iterator[tuple[int, np.ndarray, float, str]]],
                   score: Callable[[np.ndarray, np.ndarray], np.ndarray], budget: int, popsize: int = 8,
                   sigma0: float = 0.012, log: RunLog | None = None,
-                  on_run: Callable[[int, bool], None] | None = None) -> list[TargetRefine]:
+                  on_run: Callable[[int, bool], None] | None = None,
+                  strategy: Strategy | None = None) -> list[TargetRefine]:
     """Refine every target with ``budget`` simulator runs (its unsimulated starts included), one open stream.
 
     ``simulate(feeder)`` yields ``(i, features (M,) or NaN, seconds, device)`` for the rows (normalised,
     (k, d)) that ``feeder(free)`` hands it, ``i`` counting fed rows from 0 (e.g. through
     :meth:`Simulator.simulate_feed`). ``score(features (B, M), targets (B, M)) -> (B,)``. Each target's
     answer is its best simulated point, starts included. ``on_run(runs, replayed)`` reports progress.
+    ``strategy`` searches after the starts (default: :func:`cma_strategy` with ``popsize`` and ``sigma0``).
     """
     if budget < 0 or popsize < 2 or not sigma0 > 0:
         raise InvphysError(f"refine: budget >= 0, popsize >= 2 and sigma0 > 0 needed, got {budget}, {popsize}, "
                            f"{sigma0}")
     note = on_run or (lambda _n, _r: None)
     d = targets[0].starts.shape[1] if targets else 0
-    searches = [_Search(t, budget, popsize, sigma0, d) for t in targets]
+    strategy = strategy or cma_strategy(popsize, sigma0)
+    searches = [_Search(t, budget, strategy, d) for t in targets]
     queue: list[tuple[int, int]] = []        # (search, member) rows waiting for a slot
     fed: list[tuple[int, int]] = []          # row i of the stream -> (search, member)
 
@@ -298,7 +331,7 @@ def _tell(s: _Search, score: Callable[[np.ndarray, np.ndarray], np.ndarray],
         t.start_scores[np.flatnonzero(todo)[:len(ys)]] = np.where(np.isfinite(sc), sc, np.nan)
         _finish_starts(s)
     else:
-        s.tell(sc)
+        s.tell(ys, sc)
 
 
 def _finish_starts(s: _Search) -> None:

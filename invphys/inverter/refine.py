@@ -1,9 +1,13 @@
 """Refine answers on the simulator at dataset speed (``invphys invert ... --sim-refine N``).
 
 From each result's best candidates (its top-k, the amortised answer first), a per-target search on the
-real simulator: the candidates not simulated yet are simulated, then ask/tell CMA-ES from the best of
-them (:func:`~invphys.evaluators.stream_refine.stream_refine`), ``budget`` runs per target in
-all. Every target's runs share one open stream, so a target's next generation starts while other
+real simulator: the candidates not simulated yet are simulated, then a search from the best of them
+(:func:`~invphys.evaluators.stream_refine.stream_refine`), ``budget`` runs per target in all. Strategies:
+``cma`` (ask/tell CMA-ES) and ``corrected`` (the surrogate corrected by the target's own runs, searched
+in a trust region: :mod:`~invphys.evaluators.corrected_refine`). ``known_starts`` adds the bundle's
+stored training rows whose real features fit the target best as starts that cost no run (they were
+simulated by the very simulator config the bundle was trained for; default: 8 for ``corrected``, 0 for
+``cma``). An answer whose simulated R_actual stays below 0.5 gets a warning. Every target's runs share one open stream, so a target's next generation starts while other
 targets' runs are still in flight. The answer is the best simulated point, so never worse than the
 best simulated start; the same targets, seed and settings give the same answers whatever the order,
 the batch size or how a stopped refine was resumed from its log.
@@ -26,19 +30,29 @@ from invphys.inverter.simulate import masked_score
 #: defaults: the polish's step and population (docs/inverting.md, "Polish on the simulator")
 REFINE_POPSIZE = 8
 REFINE_SIGMA0 = 0.012
+#: the refine strategies (the first is the default) and their default number of known (stored) starts
+REFINE_STRATEGIES = ("cma", "corrected")
+KNOWN_STARTS = {"cma": 0, "corrected": 8}
+#: a refined answer below this simulated R_actual is flagged
+LOW_R_ACTUAL = 0.5
 
 
 def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = REFINE_POPSIZE,
            sigma0: float = REFINE_SIGMA0, overrides: Mapping[str, Any] | None = None, batch_size: int | None = None,
            log: str | Path | None = None, seed: int = 0, on_run: Callable[[int, bool], None] | None = None,
-           simulator: Any = None, extract_workers: int = 0) -> list[dict[str, Any]]:
+           simulator: Any = None, extract_workers: int = 0, strategy: str = "cma",
+           known_starts: int | None = None, strategy_options: Mapping[str, Any] | None = None
+           ) -> list[dict[str, Any]]:
     """Refine ``items`` in place (answer first); return one record per result (runs, seconds, R before/after).
 
     ``budget``: simulator runs per target, its unsimulated candidates included; ``batch_size``: runs in
     flight at once (None: the simulator's own); ``log``: a refine log (``.npz``) that a re-run replays;
     ``simulator``: use this simulator object instead of building the bundle's (e.g. one already warm);
     ``extract_workers``: extract features in this many worker processes while the simulator goes on (0: in
-    this process, between launches); the answers are the same either way.
+    this process, between launches); the answers are the same either way. ``strategy``: ``cma`` or
+    ``corrected``; ``known_starts``: stored training rows added as free starts (None: the strategy's default);
+    ``strategy_options``: ``corrected``'s settings by name
+    (:class:`~invphys.evaluators.corrected_refine.CorrectedSettings`; its ``popsize`` is ``popsize``).
     """
     from invphys.evaluators.stream_refine import (
         RunLog,
@@ -51,6 +65,7 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
         raise InvphysError(f"refine budget must be a whole number in 1 .. 100000 runs per target, got {budget!r}")
     if batch_size is not None and (isinstance(batch_size, bool) or int(batch_size) < 1):
         raise InvphysError(f"batch size must be >= 1, got {batch_size!r}")
+    known_starts = _check_strategy(strategy, known_starts)
     sim = simulator if simulator is not None else inv.simulator(overrides)
     ext = inv.extractor(sim)
     m = inv.bundle.manifest
@@ -58,19 +73,23 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
                    "simulator": m["simulator"].get("config", {}), "overrides": dict(overrides or {}),
                    "version": getattr(sim, "version", "")})
     runlog = None if log is None else RunLog(log, key, flush=int(batch_size or 16))
-    targets = [_target(inv, r, budget, popsize, sigma0, seed) for r in items]
+    stored = _stored_rows(inv) if known_starts or strategy == "corrected" else None
+    targets = [_target(inv, r, budget, popsize, sigma0, seed, strategy, stored, known_starts) for r in items]
+    search = _strategy(inv, strategy, popsize, sigma0, stored, strategy_options)
     pool = _extraction_pool(ext, extract_workers)
     t0 = time.perf_counter()
     try:
         stream_refine(targets, feed_features(sim, ext, batch_size, pool), masked_score(inv), budget, popsize,
-                      sigma0, log=runlog, on_run=on_run)
+                      sigma0, log=runlog, on_run=on_run, strategy=search)
     finally:
         if pool is not None:
             pool.close()
     wall = time.perf_counter() - t0
     records = []
     for r, t in zip(items, targets, strict=True):
-        records.append(_apply(inv, r, t, budget, popsize, sigma0, seed))
+        records.append(_apply(inv, r, t, budget, {"popsize": popsize, "sigma0": sigma0, "seed": seed,
+                                                   "strategy": strategy, "known_starts": known_starts,
+                                                   **({"options": dict(strategy_options)} if strategy_options else {})}))
     total = sum(t.runs for t in targets)
     call = {"targets": len(items), "runs": total, "replayed_runs": sum(t.replayed for t in targets),
             "simulator_s": float(sum(t.seconds for t in targets)), "wall_time_s": wall,
@@ -90,8 +109,63 @@ def _extraction_pool(extractor: Any, workers: int) -> Any:
     return ExtractionPool(extractor, int(workers))
 
 
-def _target(inv: Any, r: InversionResult, budget: int, popsize: int, sigma0: float, seed: int) -> Any:
-    """The refine of result ``r``: its candidates as starts (simulated ones with their features)."""
+def _check_strategy(strategy: str, known_starts: int | None) -> int:
+    if strategy not in REFINE_STRATEGIES:
+        raise InvphysError(f"unknown refine strategy {strategy!r} (choose from: {', '.join(REFINE_STRATEGIES)})")
+    if known_starts is None:
+        return KNOWN_STARTS[strategy]
+    if isinstance(known_starts, bool) or not isinstance(known_starts, (int, np.integer)) \
+            or not 0 <= known_starts <= 10_000:
+        raise InvphysError(f"known starts must be a whole number in 0 .. 10000, got {known_starts!r}")
+    return int(known_starts)
+
+
+def _stored_rows(inv: Any) -> tuple[np.ndarray, np.ndarray] | None:
+    """The bundle's training rows (theta normalised, real features), None when it holds none."""
+    from invphys.inverter.bundle import BundleError
+
+    try:
+        theta, y = inv.bundle.data("train")
+    except BundleError:
+        return None
+    return theta, y
+
+
+def _strategy(inv: Any, strategy: str, popsize: int, sigma0: float,
+              stored: tuple[np.ndarray, np.ndarray] | None, options: Mapping[str, Any] | None = None) -> Any:
+    """The search after the starts (None: stream_refine's CMA-ES with ``popsize`` and ``sigma0``)."""
+    if strategy == "cma":
+        if options:
+            raise InvphysError("refine strategy 'cma' takes no options (its popsize and sigma0 are arguments)")
+        return None
+    from invphys.evaluators.corrected_refine import CorrectedSearch, corrected_settings, row_residuals
+
+    def predict(theta: np.ndarray) -> np.ndarray:
+        return np.asarray(inv.bundle.surrogate.predict(theta), float)
+
+    rows = None if stored is None else row_residuals(predict, *stored)
+    settings, score = corrected_settings({**dict(options or {}), "popsize": popsize}), masked_score(inv)
+    return lambda t, _left: CorrectedSearch(t, predict, score, rows, settings)
+
+
+def _known_rows(inv: Any, stored: tuple[np.ndarray, np.ndarray] | None, target: np.ndarray, k: int
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The ``k`` stored rows whose REAL features fit ``target`` best (NaN: a feature not given), best first."""
+    d, m = inv.bundle.space.dim, len(inv.feature_names)
+    if stored is None or k <= 0:
+        return np.empty((0, d)), np.empty((0, m))
+    theta, y = stored
+    ok = np.all(np.isfinite(y), axis=1)
+    sc = np.where(ok, masked_score(inv)(np.where(ok[:, None], y, 0.0), np.tile(target, (len(y), 1))), -np.inf)
+    best = np.argsort(-sc, kind="stable")[:k]
+    best = best[np.isfinite(sc[best])]
+    return theta[best], y[best]
+
+
+def _target(inv: Any, r: InversionResult, budget: int, popsize: int, sigma0: float, seed: int,
+            strategy: str = "cma", stored: tuple[np.ndarray, np.ndarray] | None = None, known_starts: int = 0) -> Any:
+    """The refine of result ``r``: its candidates as starts (simulated ones with their features), then the
+    ``known_starts`` best stored rows (their features known: no run)."""
     from invphys.evaluators.stream_refine import TargetRefine, log_key
 
     mf = len(inv.feature_names)
@@ -99,44 +173,58 @@ def _target(inv: Any, r: InversionResult, budget: int, popsize: int, sigma0: flo
     known = np.array([c.actual if c.actual is not None and c.r_actual is not None and np.isfinite(c.r_actual)
                       else np.full(mf, np.nan) for c in r.candidates], dtype=np.float64)
     target = np.where(r.mask, r.target, np.nan)
+    rows_theta, rows_y = _known_rows(inv, stored, target, known_starts)
+    starts, known = np.vstack([starts, rows_theta]), np.vstack([known, rows_y])
     s = target_seed(seed, "sim-refine", r.target, r.mask, f"{budget}/{popsize}/{sigma0!r}")
-    tid = log_key({"target": np.where(r.mask, r.target, 0.0).tolist(), "mask": np.asarray(r.mask).tolist(),
-                   "starts": starts.tolist(), "seed": s, "popsize": popsize, "sigma0": sigma0})
-    return TargetRefine(tid=tid, target=target, starts=starts, known=known, seed=s)
+    parts = {"target": np.where(r.mask, r.target, 0.0).tolist(), "mask": np.asarray(r.mask).tolist(),
+             "starts": starts.tolist(), "seed": s, "popsize": popsize, "sigma0": sigma0}
+    if strategy != "cma":   # the cma key stays what it was, so older logs replay
+        parts["strategy"] = strategy
+    return TargetRefine(tid=log_key(parts), target=target, starts=starts, known=known, seed=s)
 
 
-def _apply(inv: Any, r: InversionResult, t: Any, budget: int, popsize: int, sigma0: float, seed: int
-           ) -> dict[str, Any]:
+def _apply(inv: Any, r: InversionResult, t: Any, budget: int, settings: dict[str, Any]) -> dict[str, Any]:
     """Put the refined answer first: a start candidate (moved first, its simulation filled in) or a new
-    candidate ``"<best start's source> + sim-refine"``; the record of what was done."""
+    candidate ``"<best start's source> + sim-refine"`` (a stored row's source: ``training row``); a warning
+    when its simulated R_actual is below :data:`LOW_R_ACTUAL`; the record of what was done."""
     from invphys.core.masked_recovery import masked_recovery
 
     b = inv.bundle
-    for c, y in zip(r.candidates, t.known, strict=True):  # starts simulated by the refine: their R_actual
+    n = len(r.candidates)
+    for c, y in zip(r.candidates, t.known[:n], strict=True):  # starts simulated by the refine: their R_actual
         if c.r_actual is None and np.all(np.isfinite(y)):
             c.actual = y.copy()
             c.r_actual = float(masked_recovery(y, r.target, b.scales, r.mask, b.kappa))
             c.gap = c.r_surrogate - c.r_actual
-    scores = t.start_scores if t.start_scores is not None else np.full(len(r.candidates), np.nan)
+    scores = t.start_scores if t.start_scores is not None else np.full(len(t.starts), np.nan)
     first = float(scores[0]) if len(scores) and np.isfinite(scores[0]) else float("nan")
     best_start = int(np.nanargmax(scores)) if np.isfinite(scores).any() else 0
     start_r = float(scores[best_start]) if np.isfinite(scores).any() else float("nan")
-    source = r.candidates[best_start].source
+    source = r.candidates[best_start].source if best_start < n else "training row"
     improved = False
     if t.best_index >= 0 and np.isfinite(t.score):
         j = next((j for j, c in enumerate(r.candidates) if np.array_equal(c.theta, t.theta)), None)
         if j is not None:
             r.candidates.insert(0, r.candidates.pop(j))
         else:
-            cand = inv._calibrate_error_bars(inv._candidates(t.theta[None, :], [f"{source} + sim-refine"],
-                                                             r.target, r.mask))[0]
+            stored = any(np.array_equal(t.theta, x) for x in t.starts[n:])
+            label = "training row" if stored else f"{source} + sim-refine"
+            cand = inv._calibrate_error_bars(inv._candidates(t.theta[None, :], [label], r.target, r.mask))[0]
             cand.actual, cand.r_actual = t.features.copy(), float(t.score)
             cand.gap = cand.r_surrogate - cand.r_actual
             r.candidates.insert(0, cand)
             improved = True
+    warning = None
+    if not (np.isfinite(t.score) and t.score >= LOW_R_ACTUAL):
+        got = f"{t.score:.3f}" if np.isfinite(t.score) else "none (every run failed)"
+        warning = (f"the refined answer's simulated R_actual is {got}, below {LOW_R_ACTUAL}: the simulator "
+                   "reproduces this target poorly (a target outside what it can make, or more runs needed)")
+        r.warnings.append(warning)
+
     def f(v: float) -> float | None:  # JSON has no NaN: a failed simulation is None
         return float(v) if np.isfinite(v) else None
 
     return {"budget": budget, "runs": t.runs, "replayed_runs": t.replayed, "simulator_s": t.seconds,
             "r_answer": f(first), "start_source": source, "start_r_actual": f(start_r), "r_actual": f(t.score),
-            "improved": improved, "settings": {"popsize": popsize, "sigma0": sigma0, "seed": seed}}
+            "improved": improved, "known_starts": int(len(t.starts) - n), "warning": warning,
+            "settings": settings}
