@@ -45,6 +45,8 @@ class CorrectedSettings:
     prior: float = 0.05
     grow: float = 1.5
     shrink: float = 0.5
+    linear: bool = True    # the residual as a local linear model around the centre (else a local constant)
+    ridge: float = 1.0     # the linear model's ridge (pseudo-weight on slopes per bandwidth)
     correct: bool = True   # False: the plain surrogate (for comparisons; the strategy without its point)
 
 
@@ -59,7 +61,8 @@ def corrected_settings(options: dict[str, Any]) -> CorrectedSettings:
     if bad:
         raise InvphysError(f"unknown corrected-refine option(s) {', '.join(bad)} (known: {', '.join(known)})")
     try:
-        s = CorrectedSettings(**{k: tuple(float(x) for x in v) if k == "scales" else v for k, v in options.items()})
+        given: dict[str, Any] = {k: tuple(float(x) for x in v) if k == "scales" else v for k, v in options.items()}
+        s = CorrectedSettings(**given)
         ok = (int(s.popsize) >= 1 and 0 < s.radius_min <= s.radius0 <= s.radius_max <= 1 and len(s.scales) >= 1
               and all(x > 0 for x in s.scales) and int(s.evals) >= 1 and int(s.perturb) >= 0
               and int(s.neighbours) >= 0 and s.prior > 0 and s.grow >= 1 and 0 < s.shrink < 1)
@@ -120,11 +123,14 @@ class CorrectedSearch:
         dist = np.sort(np.sqrt(((th - centre) ** 2).sum(1)))[:2 * self.d]
         return float(np.clip(max(np.median(dist), self.radius), 1e-3, 0.5))
 
-    def corrected(self, x: np.ndarray, th: np.ndarray, res: np.ndarray, h: float) -> np.ndarray:
+    def corrected(self, x: np.ndarray, th: np.ndarray, res: np.ndarray, h: float, centre: np.ndarray) -> np.ndarray:
         """``f_c`` at ``x`` (B, d) from known points ``th`` and their residuals ``res``."""
         f = np.asarray(self.predict(x), float)
         if not self.s.correct or not len(th):
             return f
+        if self.s.linear:
+            beta = _local_linear(th, res, centre, h, self.s.prior, self.s.ridge)
+            return f + beta[0] + ((x - centre) / h) @ beta[1:]
         d2 = (x * x).sum(1)[:, None] + (th * th).sum(1)[None, :] - 2.0 * x @ th.T
         w = np.exp(-np.maximum(d2, 0.0) / (2.0 * h * h))
         return f + (w @ res) / (self.s.prior + w.sum(1))[:, None]
@@ -158,10 +164,10 @@ class CorrectedSearch:
         for scale in self.s.scales:
             r = min(scale * self.radius, 0.5)
             u = np.clip(centre + r * (2.0 * self.rng.random((per, self.d)) - 1.0), 0.0, 1.0)
-            fu = self._fit(self.corrected(u, th, res, h))
+            fu = self._fit(self.corrected(u, th, res, h, centre))
             top = u[np.argsort(-fu, kind="stable")[:8]]
             v = np.clip(top[np.arange(per) % len(top)] + 0.25 * r * self.rng.standard_normal((per, self.d)), 0.0, 1.0)
-            fv = self._fit(self.corrected(v, th, res, h))
+            fv = self._fit(self.corrected(v, th, res, h, centre))
             xs += [u, v]
             fits += [fu, fv]
         x, fit = np.vstack(xs), np.concatenate(fits)
@@ -177,6 +183,17 @@ class CorrectedSearch:
             self.radius *= self.s.shrink
             if self.radius < self.s.radius_min:
                 self.radius = self.s.radius0
+
+
+def _local_linear(th: np.ndarray, res: np.ndarray, centre: np.ndarray, h: float, prior: float, ridge: float
+                  ) -> np.ndarray:
+    """(1 + d, M): the residual's kernel-weighted ridge fit ``a + ((theta - centre) / h) B`` (``prior``: weight of a
+    zero residual at the centre; ``ridge``: of zero slopes)."""
+    z = (th - centre) / h
+    w = np.exp(-0.5 * (z * z).sum(1))
+    x = np.hstack([np.ones((len(z), 1)), z])
+    a = (x * w[:, None]).T @ x + np.diag([prior] + [ridge] * z.shape[1])
+    return np.linalg.solve(a, (x * w[:, None]).T @ res)
 
 
 def row_residuals(predict: Callable[[np.ndarray], np.ndarray], theta: np.ndarray, y: np.ndarray,
