@@ -14,6 +14,12 @@ bandwidth; ``prior`` the weight of "no correction", so a far-away row barely mov
 recovery of the prediction against the row's real features (``masked_recovery`` with the bundle's scales,
 the R an answer would get if the prediction were right) and the mean R^2 over features (scaled).
 ``@test`` is the bundle's own held-out partition.
+
+``--rule-sets`` measures the pool's ``exact`` rule with real features only: the stored rows (training and
+held-out) are split at random in halves A and B; A plays the surrogate-scored candidates (the pick: best
+``R_surr - lam x std``), B the stored rows scored exactly; the hybrid keeps B's best unless A's pick scores
+more than ``margin`` above it. Every choice is a stored row, so its real R is known: mean real R per rule
+(averaged over ``--splits`` random halvings), and the surrogate's optimism at A's pick.
 """
 
 from __future__ import annotations
@@ -59,6 +65,38 @@ def _metrics(pred: np.ndarray, y: np.ndarray, scales: np.ndarray, kappa: float) 
             "r2_mean": float(r2.mean()), "rmse_scaled": float(np.sqrt((((p - t) / scales) ** 2).mean()))}
 
 
+def hybrid_rule(inv: Any, y_targets: np.ndarray, margins: list[float], splits: int, lam: float
+                ) -> dict[str, float]:
+    """Mean real R of: the surrogate's pick among half A of the stored rows, the exact lookup over half B,
+    their better one (oracle) and the hybrid per margin (module docstring)."""
+    from invphys.core.masked_recovery import masked_recovery
+    from invphys.evaluators.uncertainty import normalised_std
+
+    b = inv.bundle
+    parts = [b.data("train"), b.data("test")]
+    theta, y = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+    ok = np.all(np.isfinite(y), axis=1)
+    theta, y = theta[ok], y[ok]
+    mean, std = b.surrogate.predict_with_uncertainty(theta)
+    pen = lam * normalised_std(std, b.scales)
+    rs = np.stack([masked_recovery(mean, t, b.scales, None, b.kappa) for t in y_targets])
+    re = np.stack([masked_recovery(y, t, b.scales, None, b.kappa) for t in y_targets])
+    n, rows = len(y_targets), np.arange(len(y_targets))
+    acc: dict[str, list[float]] = {}
+    for split in range(splits):
+        in_a = np.random.default_rng(split).random(len(y)) < 0.5
+        score = np.where(in_a[None], rs - pen[None], -np.inf)
+        ja = score.argmax(1)
+        jb = np.where(~in_a[None], re, -np.inf).argmax(1)
+        ra, rb, sa = re[rows, ja], re[rows, jb], score[rows, ja]
+        for key, v in (("surrogate_pick_A", ra), ("optimism_at_A_pick", rs[rows, ja] - ra),
+                       ("exact_lookup_B", rb), ("oracle_max", np.maximum(ra, rb))):
+            acc.setdefault(key, []).append(float(v.mean()))
+        for m in margins:
+            acc.setdefault(f"hybrid_margin_{m:g}", []).append(float(np.where(sa - m > rb, ra, rb).mean()))
+    return {k: float(np.mean(v)) for k, v in acc.items()} | {"targets": n, "stored_rows": len(y)}
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     p.add_argument("--bundle", required=True)
@@ -67,6 +105,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--bandwidth", nargs="+", type=float, default=[0.03, 0.05, 0.08, 0.12])
     p.add_argument("--prior", nargs="+", type=float, default=[0.0, 0.5, 1.0])
     p.add_argument("--units", nargs="+", default=["raw", "log"])
+    p.add_argument("--rule-sets", nargs="*", default=[], help="NAME=STORE: targets for the exact-rule check")
+    p.add_argument("--margins", nargs="+", type=float, default=[0.0, 0.02, 0.03, 0.05, 0.07, 0.1])
+    p.add_argument("--splits", type=int, default=6)
+    p.add_argument("--lam", type=float, default=0.5)
     p.add_argument("--out", required=True)
     a = p.parse_args(argv)
 
@@ -84,7 +126,12 @@ def main(argv: list[str] | None = None) -> int:
                                                                                       + 1e-300), ty - ft)}
     print(f"training residuals in {time.perf_counter() - t0:.1f} s; log-units features: {int(pos.sum())}",
           file=sys.stderr)
-    out: dict[str, Any] = {"benchmark": "corrected_surrogate", "bundle": a.bundle, "train_rows": len(tt),
+    if str(Path(__file__).parent) not in sys.path:
+        sys.path.insert(0, str(Path(__file__).parent))
+    import _machine
+
+    out: dict[str, Any] = {"benchmark": "corrected_surrogate", **_machine.provenance(),
+                           "device": f"cpu ({_machine.cpu_name()})", "bundle": a.bundle, "train_rows": len(tt),
                            "train_recovery_of_surrogate": _metrics(ft, ty, b.scales, b.kappa), "sets": {}}
     for spec in a.sets:
         name, _, path = spec.partition("=")
@@ -106,6 +153,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name:8s} n={len(y):5d} plain R {rows['plain']['recovery_mean']:.4f} R2 {rows['plain']['r2_mean']:.4f}"
               f" | best {best[1]}: R {best[0]:.4f} R2 {rows[best[1]]['r2_mean']:.4f}", file=sys.stderr)
         out["sets"][name] = {"store": path, "n": len(y), "variants": rows}
+    out["exact_rule"] = {}
+    for spec in a.rule_sets:
+        name, _, path = spec.partition("=")
+        row = hybrid_rule(inv, _rows(inv, path)[1], a.margins, a.splits, a.lam)
+        out["exact_rule"][name] = {"store": path, **row}
+        print(f"{name:8s} rule: " + ", ".join(f"{k} {v:.4f}" for k, v in row.items() if isinstance(v, float)),
+              file=sys.stderr)
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(out, indent=1) + "\n")
     return 0
