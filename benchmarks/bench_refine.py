@@ -3,7 +3,7 @@
 Answers the first ``--limit`` rows of a target store with the bundle (top ``--starts`` candidates each),
 then on one warm simulator: (1) ``invphys.inverter.refine.refine`` with ``--budget`` runs per target,
 all targets in one open stream (``Simulator.simulate_feed``), (2) dataset generation of the very runs
-the refine simulated (``simulate_stream``, the same slots, features extracted as runs end; with
+the (first) refine simulated (``simulate_stream``, the same slots, features extracted as runs end; with
 ``--random-dataset`` also as many uniformly random runs). Reports wall
 seconds per run of each and their ratio, and R_actual before (the amortised answer; the best of its
 starts) and after the refine. A simulator with its own ``simulate_feed`` (the AnisoMPM foods:
@@ -13,6 +13,12 @@ default instead (chunks of what is ready). Example (GPU)::
     python benchmarks/bench_refine.py --bundle inverters/orange_peel_paper \\
         --targets datasets/orange_peel_paper_fresh_uniform --limit 32 --budget 32 --sim-batch 64 \\
         --out benchmarks/results/refine_paper_h100.json
+
+Several ``--strategy`` (e.g. ``cma corrected``) refine the same targets from the same starts on the one
+warm simulator; ``--targets uniform=PATH edge=PATH`` names several target sets. Per set and strategy:
+mean R_actual (refined, best start) with 95 % bootstrap intervals over targets, the runs, time and
+per-target records, and each strategy's paired difference to the first (``sets.<name>.paired``); the JSON
+is written after every strategy, so a stopped run keeps what it measured.
 """
 
 from __future__ import annotations
@@ -89,13 +95,65 @@ def _summary(records: list[dict[str, Any]]) -> dict[str, Any]:
                                     for r in records if r["start_r_actual"] is not None))}
 
 
-def main(argv: list[str] | None = None) -> int:
+def bootstrap(v: np.ndarray, n: int = 2000, seed: int = 0) -> dict[str, float | None]:
+    """Mean of ``v`` and its 95 % percentile bootstrap interval (resampling targets; seeded)."""
+    v = np.asarray(v, float)
+    if not len(v):
+        return {"mean": None, "lo": None, "hi": None}
+    idx = np.random.default_rng(seed).integers(0, len(v), (n, len(v)))
+    means = v[idx].mean(1)
+    return {"mean": float(v.mean()), "lo": float(np.percentile(means, 2.5)), "hi": float(np.percentile(means, 97.5))}
+
+
+def _r_values(records: list[dict[str, Any]], key: str) -> np.ndarray:
+    return np.array([0.0 if r[key] is None else r[key] for r in records], float)   # a failed answer counts as 0
+
+
+def _strategy_block(records: list[dict[str, Any]], wall: float, n_boot: int) -> dict[str, Any]:
+    """One strategy on one target set: means with intervals, runs, time, per-target records."""
+    spent = sum(r["runs"] for r in records)
+    return {"runs": spent, "wall_s": wall, "s_per_run": wall / max(spent, 1),
+            "simulator_s": float(sum(r["simulator_s"] for r in records)), **_summary(records),
+            "r_refined_ci": bootstrap(_r_values(records, "r_actual"), n_boot),
+            "r_best_start_ci": bootstrap(_r_values(records, "start_r_actual"), n_boot),
+            "below_half": int(sum(r["warning"] is not None for r in records)),
+            "per_target": [{k: v for k, v in r.items() if k not in ("call",)} for r in records]}
+
+
+def _paired(blocks: dict[str, dict[str, Any]], n_boot: int) -> dict[str, Any]:
+    """Each strategy minus the first, per target (same targets and starts), with a bootstrap interval."""
+    names = list(blocks)
+    base = _r_values(blocks[names[0]]["per_target"], "r_actual")
+    return {f"{s} - {names[0]}": bootstrap(_r_values(blocks[s]["per_target"], "r_actual") - base, n_boot, seed=1)
+            for s in names[1:]}
+
+
+def _target_sets(specs: list[str]) -> dict[str, str]:
+    """``NAME=PATH`` or ``PATH`` (named after its folder) target stores, in order."""
+    out: dict[str, str] = {}
+    for spec in specs:
+        name, eq, path = spec.partition("=")
+        if not eq:
+            name, path = Path(spec).name, spec
+        if name in out:
+            raise SystemExit(f"error: target set {name!r} given twice")
+        out[name] = path
+    return out
+
+
+def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     p.add_argument("--bundle", default="inverters/orange_peel_paper")
-    p.add_argument("--targets", default="datasets/orange_peel_paper_fresh_uniform", help="a store of target rows")
+    p.add_argument("--targets", nargs="+", default=["datasets/orange_peel_paper_fresh_uniform"],
+                   help="target stores: PATH or NAME=PATH (several: e.g. uniform=PATH edge=PATH)")
     p.add_argument("--limit", type=int, default=32)
     p.add_argument("--budget", type=int, default=32, help="simulator runs per target")
     p.add_argument("--starts", type=int, default=4, help="candidates per target the refine starts from")
+    p.add_argument("--strategy", nargs="+", default=["cma"], choices=["cma", "corrected"],
+                   help="refine strategies, each on the same targets and starts (paired against the first)")
+    p.add_argument("--known-starts", type=int, default=None,
+                   help="stored training rows added as free starts (default: the strategy's own)")
+    p.add_argument("--strategy-option", nargs="*", default=[], help="KEY=VALUE options of the corrected strategy")
     p.add_argument("--popsize", type=int, default=8)
     p.add_argument("--sigma0", type=float, default=0.012)
     p.add_argument("--method", default=None)
@@ -107,30 +165,51 @@ def main(argv: list[str] | None = None) -> int:
                    help="also time dataset generation of as many uniformly random runs")
     p.add_argument("--extract-workers", type=int, default=0,
                    help="feature-extraction processes for both measurements (0: in this process)")
+    p.add_argument("--bootstrap", type=int, default=2000, help="bootstrap resamples of the intervals")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=None)
-    a = p.parse_args(argv)
+    return p
 
-    import invphys
-    from invphys.core.dataset import DatasetStore
+
+def _refine_one(inv: Any, results: list[Any], strategy: str, a: argparse.Namespace, overrides: dict[str, Any],
+                sim: Any) -> tuple[list[dict[str, Any]], float]:
+    import copy
+
     from invphys.inverter.refine import refine
 
+    opts = _machine().sim_options(a.strategy_option) if strategy == "corrected" else None
+    t0 = time.perf_counter()
+    records = refine(inv, copy.deepcopy(results), a.budget, a.popsize, a.sigma0, overrides=overrides,
+                     batch_size=a.sim_batch, seed=a.seed, simulator=sim, extract_workers=a.extract_workers,
+                     strategy=strategy, known_starts=a.known_starts, strategy_options=opts or None)
+    return records, time.perf_counter() - t0
+
+
+def _write(result: dict[str, Any], out: Path | None) -> None:
+    """The JSON so far (after every strategy), without printing it."""
+    import json
+
+    if out:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps({**_machine().provenance(), **result}, indent=1) + "\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    a = _parser().parse_args(argv)
+    import invphys
+    from invphys.core.dataset import DatasetStore
+    from invphys.core.interfaces import Simulator
+
+    sets = _target_sets(a.targets)
     inv = invphys.load_inverter(a.bundle)
-    rows = DatasetStore(a.targets).arrays(ok_only=True)
-    y = rows.y[:a.limit]
     overrides = _machine().sim_options(a.sim_option)
     sim = inv.simulator(overrides)
     ext = inv.extractor(sim)
-    from invphys.core.interfaces import Simulator
-
     own = type(sim).simulate_feed is not Simulator.simulate_feed
     if own and not a.native_feed:
         use_default_feed(sim)
     feed = ("the simulator's own (an open stream)" if own and a.native_feed
             else "default (chunks of ready rows)")
-    t0 = time.perf_counter()
-    results = inv.invert_many(y, method=a.method, top_k=a.starts, seed=a.seed)
-    answer_s = time.perf_counter() - t0
     space = sim.parameter_space()
     rng = np.random.default_rng(a.seed + 1)
     pool = None
@@ -140,29 +219,49 @@ def main(argv: list[str] | None = None) -> int:
         pool = ExtractionPool(ext, a.extract_workers)
     warm = _dataset(sim, ext, space.denormalize(rng.random((a.sim_batch, space.dim))), a.sim_batch, pool)  # compiles
     fed = _recording(sim)
-    t0 = time.perf_counter()
-    records = refine(inv, results, a.budget, a.popsize, a.sigma0, overrides=overrides, batch_size=a.sim_batch,
-                     seed=a.seed, simulator=sim, extract_workers=a.extract_workers)
-    wall = time.perf_counter() - t0
-    spent = sum(r["runs"] for r in records)
-    # dataset generation of the very runs the refine simulated (same parameters, so the same cost per run)
-    data = None if a.skip_dataset else _dataset(sim, ext, np.array(fed), a.sim_batch, pool)
-    rand = _dataset(sim, ext, space.denormalize(rng.random((len(fed), space.dim))), a.sim_batch, pool) \
-        if a.random_dataset else None
+    result: dict[str, Any] = {
+        "what": "refine on the simulator vs dataset generation, same warm simulator and slots",
+        "device": _machine().simulator_device(sim), "simulator": sim.name, "simulator_version": sim.version,
+        "simulator_config": sim.config.model_dump(), "overrides": overrides, "feed": feed, "bundle": a.bundle,
+        "method": a.method, "targets": a.targets[0] if len(a.targets) == 1 else sets, "sim_batch": a.sim_batch,
+        "extract_workers": a.extract_workers, "strategies": a.strategy, "budget": a.budget, "warmup": warm,
+        "sets": {}}
+    for n_set, (name, path) in enumerate(sets.items()):
+        y = DatasetStore(path).arrays(ok_only=True).y[:a.limit]
+        t0 = time.perf_counter()
+        results = inv.invert_many(y, method=a.method, top_k=a.starts, seed=a.seed)
+        result["answer_s"] = result.get("answer_s", 0.0) + time.perf_counter() - t0
+        result["method"] = results[0].method if results else a.method
+        blocks: dict[str, dict[str, Any]] = {}
+        entry = result["sets"][name] = {"path": path, "targets": len(y), "strategies": blocks}
+        for n_strat, strategy in enumerate(a.strategy):
+            fed.clear()
+            records, wall = _refine_one(inv, results, strategy, a, overrides, sim)
+            blocks[strategy] = _strategy_block(records, wall, a.bootstrap)
+            if n_set == 0 and n_strat == 0:   # the first refine: timed against dataset generation of its runs
+                _first(result, blocks[strategy], records, a, sim, ext, np.array(fed), pool, rng)
+            entry["paired"] = _paired(blocks, a.bootstrap)
+            _write(result, a.out)
     if pool is not None:
         pool.close()
-    ref = {"targets": len(y), "budget": a.budget, "starts": a.starts, "popsize": a.popsize, "sigma0": a.sigma0,
-           "runs": spent, "wall_s": wall, "s_per_run": wall / max(spent, 1),
-           "simulator_s": float(sum(r["simulator_s"] for r in records)), **_summary(records)}
-    result = {"what": "refine on the simulator vs dataset generation, same warm simulator and slots",
-              "device": _machine().simulator_device(sim), "simulator": sim.name, "simulator_version": sim.version,
-              "simulator_config": sim.config.model_dump(), "overrides": overrides, "feed": feed,
-              "bundle": a.bundle, "method": results[0].method if results else a.method, "targets": a.targets,
-              "sim_batch": a.sim_batch, "extract_workers": a.extract_workers, "answer_s": answer_s, "warmup": warm, "dataset": data, "dataset_random": rand, "refine": ref,
-              "refine_over_dataset": None if data is None else ref["s_per_run"] / data["s_per_run"],
-              "per_target": [{k: v for k, v in r.items() if k not in ("call", "settings")} for r in records]}
     _machine().emit(result, a.out)
     return 0
+
+
+def _first(result: dict[str, Any], block: dict[str, Any], records: list[dict[str, Any]], a: argparse.Namespace,
+           sim: Any, ext: Any, fed: np.ndarray, pool: Any, rng: np.random.Generator) -> None:
+    """The first refine's timing against dataset generation of the very runs it simulated (same parameters,
+    so the same cost per run), and its top-level record (the keys this benchmark always wrote)."""
+    space = sim.parameter_space()
+    data = None if a.skip_dataset else _dataset(sim, ext, fed, a.sim_batch, pool)
+    rand = _dataset(sim, ext, space.denormalize(rng.random((len(fed), space.dim))), a.sim_batch, pool) \
+        if a.random_dataset else None
+    ref = {"targets": len(records), "budget": a.budget, "starts": a.starts, "popsize": a.popsize,
+           "sigma0": a.sigma0, "strategy": a.strategy[0],
+           **{k: block[k] for k in ("runs", "wall_s", "s_per_run", "simulator_s")}, **_summary(records)}
+    result.update({"dataset": data, "dataset_random": rand, "refine": ref,
+                   "refine_over_dataset": None if data is None else ref["s_per_run"] / data["s_per_run"],
+                   "per_target": [{k: v for k, v in r.items() if k not in ("call", "settings")} for r in records]})
 
 
 if __name__ == "__main__":
