@@ -100,7 +100,7 @@ def hybrid_rule(inv: Any, y_targets: np.ndarray, margins: list[float], splits: i
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     p.add_argument("--bundle", required=True)
-    p.add_argument("--sets", nargs="+", required=True, help="NAME=STORE or NAME=@test")
+    p.add_argument("--sets", nargs="*", default=[], help="NAME=STORE or NAME=@test")
     p.add_argument("--k", nargs="+", type=int, default=[8, 16, 32])
     p.add_argument("--bandwidth", nargs="+", type=float, default=[0.03, 0.05, 0.08, 0.12])
     p.add_argument("--prior", nargs="+", type=float, default=[0.0, 0.5, 1.0])
