@@ -20,6 +20,14 @@ held-out) are split at random in halves A and B; A plays the surrogate-scored ca
 ``R_surr - lam x std``), B the stored rows scored exactly; the hybrid keeps B's best unless A's pick scores
 more than ``margin`` above it. Every choice is a stored row, so its real R is known: mean real R per rule
 (averaged over ``--splits`` random halvings), and the surrogate's optimism at A's pick.
+
+``--probe N`` (needs the bundle's simulator: a GPU for the paper preset) measures what the stored rows
+cannot: how the surrogate's error varies over SHORT distances. Around each of the first N held-out rows
+(``data/test.npz``) it simulates ``--probe-dirs`` points at each ``--probe-distances`` (normalised
+units, random directions; distance 0: the row re-run) and reports per distance: R of the new run
+against the row's own features (how fast a stored row's match decays), the surrogate's recovery of the
+new run plain and anchored (``f(theta') + y_j - f(theta_j)``: the row's residual carried over) and the
+correlation of the two residuals. An anchored correction helps only where that correlation is above 1/2.
 """
 
 from __future__ import annotations
@@ -97,6 +105,44 @@ def hybrid_rule(inv: Any, y_targets: np.ndarray, margins: list[float], splits: i
     return {k: float(np.mean(v)) for k, v in acc.items()} | {"targets": n, "stored_rows": len(y)}
 
 
+def probe(inv: Any, rows: int, distances: list[float], dirs: int, overrides: dict[str, str], batch: int
+          ) -> dict[str, Any]:
+    """Simulate points at short distances from held-out stored rows (module docstring)."""
+    from invphys.core.masked_recovery import masked_recovery
+
+    b = inv.bundle
+    theta, y = b.data("test")
+    ok = np.flatnonzero(np.all(np.isfinite(y), axis=1))[:rows]
+    theta, y = theta[ok], y[ok]
+    u = np.random.default_rng(0).normal(size=(len(theta), dirs, theta.shape[1]))
+    u /= np.linalg.norm(u, axis=2, keepdims=True)
+    plan = [(i, d, np.clip(theta[i] + d * u[i, k], 0.0, 1.0)) for d in distances for i in range(len(theta))
+            for k in range(dirs)]
+    results = [inv.evaluate(theta=t, target=y[i], label=f"probe {d:g}") for i, d, t in plan]
+    t0 = time.perf_counter()
+    inv.validate(results, overrides=overrides, batch_size=batch)
+    anchor = y - b.surrogate.predict(theta)
+    out: dict[str, Any] = {"rows": len(theta), "dirs": dirs, "runs": len(plan),
+                           "simulate_s": time.perf_counter() - t0, "by_distance": {}}
+    for d in distances:
+        idx = [n for n, (_, dd, _) in enumerate(plan) if dd == d and results[n].candidates[0].actual is not None]
+        if not idx:
+            continue
+        sim = np.array([results[n].candidates[0].actual for n in idx], dtype=np.float64)
+        pred = np.array([results[n].candidates[0].predicted for n in idx], dtype=np.float64)
+        rows_i = np.array([plan[n][0] for n in idx])
+        good = np.all(np.isfinite(sim), axis=1)
+        sim, pred, rows_i = sim[good], pred[good], rows_i[good]
+        e_new, e_row = (sim - pred) / b.scales, anchor[rows_i] / b.scales
+        out["by_distance"][f"{d:g}"] = {
+            "runs": len(sim),
+            "r_new_run_vs_row": float(masked_recovery(sim, y[rows_i], b.scales, None, b.kappa).mean()),
+            "r_surrogate_plain": float(masked_recovery(pred, sim, b.scales, None, b.kappa).mean()),
+            "r_surrogate_anchored": float(masked_recovery(pred + anchor[rows_i], sim, b.scales, None, b.kappa).mean()),
+            "residual_corr": float(np.corrcoef(e_new.ravel(), e_row.ravel())[0, 1]) if len(sim) > 1 else None}
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     p.add_argument("--bundle", required=True)
@@ -109,6 +155,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--margins", nargs="+", type=float, default=[0.0, 0.02, 0.03, 0.05, 0.07, 0.1])
     p.add_argument("--splits", type=int, default=6)
     p.add_argument("--lam", type=float, default=0.5)
+    p.add_argument("--probe", type=int, default=0, help="held-out rows to probe on the simulator (GPU)")
+    p.add_argument("--probe-distances", nargs="+", type=float, default=[0.0, 0.01, 0.03, 0.06, 0.1])
+    p.add_argument("--probe-dirs", type=int, default=4)
+    p.add_argument("--sim-option", nargs="*", default=[], help="KEY=VALUE simulator overrides (e.g. arch=cpu)")
+    p.add_argument("--sim-batch", type=int, default=64)
     p.add_argument("--out", required=True)
     a = p.parse_args(argv)
 
@@ -160,6 +211,12 @@ def main(argv: list[str] | None = None) -> int:
         out["exact_rule"][name] = {"store": path, **row}
         print(f"{name:8s} rule: " + ", ".join(f"{k} {v:.4f}" for k, v in row.items() if isinstance(v, float)),
               file=sys.stderr)
+    if a.probe:
+        out["probe"] = probe(inv, a.probe, a.probe_distances, a.probe_dirs,
+                             dict(kv.split("=", 1) for kv in a.sim_option), a.sim_batch)
+        for d, row in out["probe"]["by_distance"].items():
+            print(f"probe d={d}: " + ", ".join(f"{k} {v:.4f}" for k, v in row.items() if isinstance(v, float)),
+                  file=sys.stderr)
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(out, indent=1) + "\n")
     return 0
