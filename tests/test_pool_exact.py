@@ -114,9 +114,41 @@ def test_a_bundle_method_entry_carries_the_exact_settings(inv) -> None:
 
 
 @pytest.mark.parametrize("bad", [{"exact": "yes"}, {"exact": 1.0}, {"margin": 0.05}, {"exact": True, "margin": 1.0},
-                                 {"exact": True, "margin": -0.1}, {"rows": "everything"}, {"rows": 3}])
+                                 {"exact": True, "margin": -0.1}, {"rows": "everything"}, {"rows": 3},
+                                 {"anchor": True}, {"exact": True, "anchor": "no"}])
 def test_bad_exact_settings_are_refused(bad) -> None:
     from invphys.inverter.pool import PoolSettings
 
     with pytest.raises(InvphysError, match="pool"):
         PoolSettings().with_(**bad)
+
+
+def test_anchored_moves_from_a_stored_row_carry_its_residual(inv) -> None:
+    """A target that is a training row: the row scores 1 and is the only start; with ``anchor`` every move
+    is ranked by R(f(theta') + y_j - f(theta_j)), without it by R(f(theta'))."""
+    theta, y = inv.bundle.data("train")
+    j = 41
+    resid = y[j] - inv.bundle.surrogate.predict(theta[j:j + 1])[0]
+
+    def moves(anchor):
+        from invphys.inverter.pool import PoolSettings
+
+        inv.pool_settings = PoolSettings().with_(exact=True, anchor=anchor, starts=1, lam=0.0)
+        try:
+            answers = inv._answers("pool", inv._entry("pool")[1])
+            (thetas, sources, _), _ = answers.answer(y[j], np.ones(y.shape[1], bool), 112, 0, 64)
+        finally:
+            inv.pool_settings = PoolSettings()
+        np.testing.assert_array_equal(thetas[0], theta[j])  # the pool's own order: best first
+        return thetas[[i for i, src in enumerate(sources) if src.endswith("(move)")]]
+
+    def r(thetas, offset):
+        pred = inv.bundle.surrogate.predict(thetas) + offset
+        return masked_recovery(pred, y[j], inv.bundle.scales, None, inv.bundle.kappa)
+
+    anchored, plain = moves(True), moves(False)
+    np.testing.assert_array_equal(np.sort(anchored, axis=0), np.sort(plain, axis=0))  # the same moves
+    assert np.all(np.diff(r(anchored, resid)) <= 1e-6)  # ranked by the anchored prediction
+    assert np.all(np.diff(r(plain, 0.0)) <= 1e-6)
+    assert not np.array_equal(anchored, plain)  # and the two rankings differ
+    assert r(anchored, resid).mean() > r(plain, 0.0).mean()  # near the row, its residual brings R towards 1

@@ -17,7 +17,9 @@ Every candidate is scored ``R_surr - lam x normalised ensemble std`` (the std on
 where the surrogate's members disagree, i.e. where its R is least trustworthy. With ``exact`` the
 stored rows are scored by their REAL features instead (the R they really reach, no penalty: they were
 simulated), and every surrogate-scored candidate loses ``margin`` more (the surrogate's optimism where
-it selects), so a stored row wins where the surrogate only promises to beat it. ``rows="all"`` also
+it selects), so a stored row wins where the surrogate only promises to beat it; with ``anchor`` a move
+from a stored row is predicted as ``f(theta') + y_j - f(theta_j)`` (the row's residual carried over, so
+the prediction starts from the row's real features). ``rows="all"`` also
 offers the bundle's held-out rows as stored candidates (never for scoring those rows themselves).
 The answer is the best scored candidate. Nothing depends on other targets or their order.
 """
@@ -59,6 +61,8 @@ class PoolSettings:
     margin: float = 0.0
     #: the stored rows: ``train`` (the bundle's training rows) or ``all`` (and its held-out rows)
     rows: str = "train"
+    #: with ``exact``: a move from a stored row is predicted with that row's residual added
+    anchor: bool = False
 
     def checked(self) -> PoolSettings:
         """``self``, or :class:`InvphysError` naming the first setting out of range."""
@@ -70,8 +74,12 @@ class PoolSettings:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float, np.number)) or not ok(float(v)):
                 raise InvphysError(f"pool {name} must be a number {rule}, got {v!r}")
-        if self.exact not in (True, False, 0, 1) or isinstance(self.exact, float):
-            raise InvphysError(f"pool exact must be true or false, got {self.exact!r}")
+        for name in ("exact", "anchor"):
+            v = getattr(self, name)
+            if v not in (True, False, 0, 1) or isinstance(v, float):
+                raise InvphysError(f"pool {name} must be true or false, got {v!r}")
+        if self.anchor and not self.exact:
+            raise InvphysError("pool anchor applies only with exact (stored rows scored by their real features)")
         m = self.margin
         if isinstance(m, bool) or not isinstance(m, (int, float, np.number)) or not 0 <= float(m) < 1:
             raise InvphysError(f"pool margin must be a number in [0, 1), got {m!r}")
@@ -82,7 +90,7 @@ class PoolSettings:
         extra = (self.extra,) if isinstance(self.extra, str) else self.extra
         if not isinstance(extra, (list, tuple)) or not all(isinstance(e, str) and e for e in extra):
             raise InvphysError(f"pool extra must be a list of method labels, got {self.extra!r}")
-        return replace(self, extra=tuple(extra), exact=bool(self.exact), margin=float(m))
+        return replace(self, extra=tuple(extra), exact=bool(self.exact), margin=float(m), anchor=bool(self.anchor))
 
     def with_(self, **kw: Any) -> PoolSettings:
         return replace(self, **kw).checked()
@@ -154,12 +162,15 @@ class PoolAnswers(PosteriorAnswers):
         s = self.settings
         return s.draws * (1 + len(s.extra)) + s.neighbours + s.moves
 
-    def score(self, thetas: np.ndarray, values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    def score(self, thetas: np.ndarray, values: np.ndarray, mask: np.ndarray, offset: np.ndarray | None = None
+              ) -> np.ndarray:
         """(P,) R_surr over the given features minus lam x the normalised ensemble std (and, with
-        ``exact``, minus the margin)."""
+        ``exact``, minus the margin); ``offset`` (P, M): added to the prediction (an anchored move)."""
         from invphys.evaluators.uncertainty import normalised_std
 
         mean, std = self.bundle.surrogate.predict_with_uncertainty(np.clip(thetas, 0.0, 1.0))
+        if offset is not None:
+            mean = mean + offset
         r = masked_recovery(mean, values, self.bundle.scales, mask, self.bundle.kappa)
         if self.settings.exact and self.settings.margin:
             r = r - self.settings.margin
@@ -182,17 +193,25 @@ class PoolAnswers(PosteriorAnswers):
         else:
             scores = self.score(thetas, values, mask)
         if s.moves:
-            moved = self._moves(thetas, scores, values, mask, seed)
-            thetas, scores = np.concatenate([thetas, moved]), np.concatenate([scores, self.score(moved, values, mask)])
+            moved, start = self._moves(thetas, scores, values, mask, seed)
+            offset = None
+            if s.anchor:  # the residual of a stored start (its real features less the surrogate's), else 0
+                resid = np.zeros((len(thetas), len(values)))
+                resid[n_post:] = self.train_y[rows] - self.bundle.surrogate.predict(near)
+                offset = resid[start]
+            scores = np.concatenate([scores, self.score(moved, values, mask, offset)])
+            thetas = np.concatenate([thetas, moved])
             sources += [f"{self.label} (move)"] * len(moved)
         order = np.lexsort((np.arange(len(scores)), -scores))  # best first, ties by position (deterministic)
         keep = order[:1] if top_k == 1 else order
         return thetas[keep], [sources[i] for i in keep], len(thetas)
 
     def _moves(self, thetas: np.ndarray, scores: np.ndarray, values: np.ndarray, mask: np.ndarray, seed: int
-               ) -> np.ndarray:
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """(moves, the index into ``thetas`` of each move's start)."""
         s = self.settings
-        starts = thetas[np.lexsort((np.arange(len(scores)), -scores))[:s.starts]]
+        starts = np.lexsort((np.arange(len(scores)), -scores))[:s.starts]
         rng = target_rng(seed, self.label, values, mask, "moves")
         steps = rng.normal(0.0, s.step, size=(s.moves, thetas.shape[1]))
-        return np.clip(starts[np.arange(s.moves) % len(starts)] + steps, 0.0, 1.0)
+        start = starts[np.arange(s.moves) % len(starts)]
+        return np.clip(thetas[start] + steps, 0.0, 1.0), start
