@@ -46,7 +46,7 @@ class CorrectedSettings:
     grow: float = 1.5
     shrink: float = 0.5
     linear: bool = True    # the residual as a local linear model around the centre (else a local constant)
-    ridge: float = 1.0     # the linear model's ridge (pseudo-weight on slopes per bandwidth)
+    ridge: float = 0.2     # the linear model's ridge (pseudo-weight on slopes per bandwidth)
     correct: bool = True   # False: the plain surrogate (for comparisons; the strategy without its point)
 
 
