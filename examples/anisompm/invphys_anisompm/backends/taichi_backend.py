@@ -54,6 +54,11 @@ MATRIX_STATE = ("C", "F")
 BOX_LAST, BOX_NEXT = 0, 1
 #: substeps between re-sorts of each run's particles (tiled scatter; ``TaichiBackend``'s ``resort_every``)
 RESORT_EVERY = 128
+#: the fused substep's (``TaichiBackend``'s ``fused``) node boxes per run: substep ``k`` scatters into grid
+#: buffer ``k & 1`` and grows box slot ``k % FUSED_SLOTS``; the grid kernel of ``k`` zeroes the other buffer within
+#: slot ``(k - 1) % FUSED_SLOTS``, and the fused kernel of ``k + 1`` empties that slot (no kernel reads it then)
+#: before substep ``k + 2`` grows it again. Two slots would leave no kernel to empty a box nobody reads.
+FUSED_SLOTS = 3
 
 
 def _cuda_device_present() -> bool:
@@ -331,11 +336,12 @@ def _set_box(box: ti.template(), b, w, lo, hi):
 
 
 @ti.func
-def _grow_box(box: ti.template(), b, lo, hi):
-    """Widen run ``b``'s box of the scatter under way (``box[b, BOX_NEXT]``) to nodes ``lo .. hi`` (per axis)."""
+def _grow_box(box: ti.template(), b, w, lo, hi):
+    """Widen run ``b``'s box of the scatter under way (``box[b, w]``: ``BOX_NEXT``, or the fused substep's
+    slot) to nodes ``lo .. hi`` (per axis)."""
     for a in ti.static(range(3)):
-        ti.atomic_min(box[b, BOX_NEXT, a], lo[a])
-        ti.atomic_max(box[b, BOX_NEXT, 3 + a], hi[a])
+        ti.atomic_min(box[b, w, a], lo[a])
+        ti.atomic_max(box[b, w, 3 + a], hi[a])
 
 
 @ti.func
@@ -370,17 +376,18 @@ def _build_grid_kernels(serial_p2g: bool, G: int):
                         _zero_node(b, i, j, q, ngrip, gv, gm, gd, gg)
 
     @ti.func
-    def _update_node(b, i, j, q, m, k, dx, gravity, damp: ti.template(), bc, ngrip, ncol, dt: ti.template(),
+    def _update_node(b, gb, i, j, q, m, k, dx, gravity, damp: ti.template(), bc, ngrip, ncol, dt: ti.template(),
                      kin: ti.template(), ctype: ti.template(), ca: ti.template(), cb: ti.template(),
                      csurf: ti.template(), fric: ti.template(), held: ti.template(), gv: ti.template(),
                      gg: ti.template(), imp: ti.template(), work: ti.template()):
-        """Node (i, j, q) of run b, holding mass m > 0: its velocity after gravity, damping, grips,
-        colliders, held nodes and walls; the grips' and colliders' impulse and work."""
-        vel = gv[b, i, j, q] / m
+        """Node (i, j, q) of run b (grid index gb: b, or the fused substep's buffer of it), holding mass m > 0:
+        its velocity after gravity, damping, grips, colliders, held nodes and walls; the grips' and
+        colliders' impulse and work."""
+        vel = gv[gb, i, j, q] / m
         vel[1] += dt[b] * gravity
         vel /= 1.0 + damp[b] * dt[b]
         for g in range(ngrip):
-            if gg[b * ngrip + g, i, j, q] > 0.5 * m:
+            if gg[gb * ngrip + g, i, j, q] > 0.5 * m:
                 vk = vec3(kin[b, k, g, 3], kin[b, k, g, 4], kin[b, k, g, 5])
                 imp[b, g] += m * (vel - vk)
                 work[b, g] += m * (vk - vel).dot(vk)
@@ -422,7 +429,7 @@ def _build_grid_kernels(serial_p2g: bool, G: int):
             vel[2] = 0.0
         if q > G - bc and vel[2] > 0.0:
             vel[2] = 0.0
-        gv[b, i, j, q] = vel
+        gv[gb, i, j, q] = vel
 
     @ti.kernel
     def grid_update(k: ti.i32, dx: ti.f32, gravity: ti.f32, damp: ND(ti.f32, 1), bc: ti.i32, ngrip: ti.i32, ncol: ti.i32,
@@ -437,24 +444,147 @@ def _build_grid_kernels(serial_p2g: bool, G: int):
                 if k < nsub[b] and _in_box(box, b, BOX_NEXT, i, j, q):
                     m = gm[b, i, j, q]
                     if m > 0.0:
-                        _update_node(b, i, j, q, m, k, dx, gravity, damp, bc, ngrip, ncol, dt, kin, ctype, ca, cb,
-                                     csurf, fric, held, gv, gg, imp, work)
+                        _update_node(b, b, i, j, q, m, k, dx, gravity, damp, bc, ngrip, ncol, dt, kin, ctype, ca,
+                                     cb, csurf, fric, held, gv, gg, imp, work)
         else:
             for b, i, q in ti.ndrange(gm.shape[0], G, G):
                 if k < nsub[b] and _in_columns(box, b, BOX_NEXT, i, q):
                     for j in range(box[b, BOX_NEXT, 1], box[b, BOX_NEXT, 4] + 1):
                         m = gm[b, i, j, q]
                         if m > 0.0:
-                            _update_node(b, i, j, q, m, k, dx, gravity, damp, bc, ngrip, ncol, dt, kin, ctype, ca,
-                                         cb, csurf, fric, held, gv, gg, imp, work)
+                            _update_node(b, b, i, j, q, m, k, dx, gravity, damp, bc, ngrip, ncol, dt, kin, ctype,
+                                         ca, cb, csurf, fric, held, gv, gg, imp, work)
 
-    return clear_grid, grid_update
+    fused_clear, fused_grid = _build_fused_grid(serial_p2g, G, _update_node)
+    return clear_grid, grid_update, fused_clear, fused_grid
+
+
+@ti.func
+def _clear_column(b, gb, w, i, q, ngrip, box: ti.template(), gv: ti.template(), gm: ti.template(), gd: ti.template(),
+                  gg: ti.template()):
+    """Zero the touched nodes (``touched_node``) of grid run ``gb``'s column ``(i, ., q)`` within run ``b``'s
+    node box ``box[b, w]``."""
+    for j in range(box[b, w, 1], box[b, w, 4] + 1):
+        if touched_node(gd[gb, i, j, q]):
+            _zero_node(gb, i, j, q, ngrip, gv, gm, gd, gg)
+
+
+def _build_fused_grid(serial_p2g: bool, G: int, update_node):
+    """The fused substep's grid kernels (``TaichiBackend``'s ``fused``; ``FUSED_SLOTS``): ``fused_clear``, once
+    per ``advance`` before its first substep, zeroes both grid buffers of the runs with substeps within every
+    box slot and empties the slots; ``fused_grid(k)`` updates the nodes of substep ``k``'s scatter (buffer ``k & 1``, slot
+    ``k % FUSED_SLOTS``) and, in the same pass over columns, zeroes the other buffer (the grid the fused
+    kernel gathered from at ``k``) within its slot, when substep ``k + 1`` will scatter into it."""
+
+    @ti.kernel
+    def fused_clear(ngrip: ti.i32, nsub: ND(ti.i32, 1), box: ND(ti.i32, 3), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
+                    gd: ND(vec2, 4), gg: ND(ti.f32, 4)):
+        # runs with substeps in this advance (an idle run keeps its last grid, as on the plain path)
+        B = box.shape[0]
+        for b, i, q in ti.ndrange(B, G, G):
+            for s in ti.static(range(FUSED_SLOTS)):
+                if nsub[b] > 0 and _in_columns(box, b, s, i, q):
+                    for w in ti.static(range(2)):
+                        _clear_column(b, b + w * B, s, i, q, ngrip, box, gv, gm, gd, gg)
+        for b, s in ti.ndrange(B, FUSED_SLOTS):
+            if nsub[b] > 0:
+                _set_box(box, b, s, G, -1)
+
+    @ti.kernel
+    def fused_grid(k: ti.i32, dx: ti.f32, gravity: ti.f32, damp: ND(ti.f32, 1), bc: ti.i32, ngrip: ti.i32,
+                   ngrip1: ti.i32, ncol: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1), kin: ND(ti.f32, 4),
+                   ctype: ND(ti.i32, 1), ca: ND(vec3, 1), cb: ND(vec3, 1), csurf: ND(ti.i32, 1), fric: ND(ti.f32, 2),
+                   held: ND(ti.i32, 3), box: ND(ti.i32, 3), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
+                   gg: ND(ti.f32, 4), imp: ND(vec3, 2), work: ND(ti.f32, 2)):
+        B = box.shape[0]
+        if ti.static(serial_p2g):
+            ti.loop_config(serialize=True)  # the force and work sums in the plain update's order
+            for b, i, j, q in ti.ndrange(B, G, G, G):
+                if k < nsub[b] and _in_box(box, b, k % FUSED_SLOTS, i, j, q):
+                    gb = b + (k & 1) * B
+                    m = gm[gb, i, j, q]
+                    if m > 0.0:
+                        update_node(b, gb, i, j, q, m, k, dx, gravity, damp, bc, ngrip, ncol, dt, kin, ctype, ca, cb,
+                                    csurf, fric, held, gv, gg, imp, work)
+            for b, i, q in ti.ndrange(B, G, G):
+                last = (k + FUSED_SLOTS - 1) % FUSED_SLOTS
+                if 1 <= k < nsub[b] and _in_columns(box, b, last, i, q):
+                    _clear_column(b, b + (1 - (k & 1)) * B, last, i, q, ngrip1, box, gv, gm, gd, gg)
+        else:
+            for b, i, q in ti.ndrange(B, G, G):
+                slot = k % FUSED_SLOTS
+                if k < nsub[b] and _in_columns(box, b, slot, i, q):
+                    gb = b + (k & 1) * B
+                    for j in range(box[b, slot, 1], box[b, slot, 4] + 1):
+                        m = gm[gb, i, j, q]
+                        if m > 0.0:
+                            update_node(b, gb, i, j, q, m, k, dx, gravity, damp, bc, ngrip, ncol, dt, kin, ctype,
+                                        ca, cb, csurf, fric, held, gv, gg, imp, work)
+                last = (k + FUSED_SLOTS - 1) % FUSED_SLOTS
+                if 1 <= k < nsub[b] and _in_columns(box, b, last, i, q):
+                    _clear_column(b, b + (1 - (k & 1)) * B, last, i, q, ngrip1, box, gv, gm, gd, gg)
+
+    return fused_clear, fused_grid
+
+
+def _g2p_particle_func(unrolled: bool):
+    """The grid-to-particle update of one particle in one of its forms (see ``TaichiBackend.g2p``): a Taichi
+    function shared by the g2p kernel and the fused substep (``_build_scatter``)."""
+
+    @ti.func
+    def g2p_particle(b, gb, p, k, h, inv_dx, G, l0sq, don: ti.template(), mat: ti.template(), body: ti.template(),
+                     grip: ti.template(), x0: ti.template(), kin: ti.template(), sid: ti.template(), x: ti.template(),
+                     v: ti.template(), C: ti.template(), F: ti.template(), d: ti.template(), dtil: ti.template(),
+                     gv: ti.template(), gd: ti.template()):
+        """Particle ``p`` of run ``b`` at substep ``k`` (step ``h``), gathering from grid run ``gb``: velocity,
+        APIC matrix, F, damage and position."""
+        Xp = x[b, p] * inv_dx
+        base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
+        fx = Xp - ti.cast(base, ti.f32)
+        w = _weights(fx)
+        hs = [1.0, -2.0, 1.0]
+        dp = d[b, p]
+        new_v = vec3(0.0)
+        new_C = mat3(0.0)
+        lap = 0.0
+        if ti.static(unrolled):   # all 27 nodes unrolled (215 registers on CUDA: 12 % occupancy)
+            for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
+                _g2p_node(gb, base, ti.Vector([i, j, q]), fx, inv_dx, dp, w[i][0], w[j][1], w[q][2], hs[i],
+                          hs[j], hs[q], gv, gd, new_v, new_C, lap)
+        else:   # the same sums in the same order, i and j as loops (117 registers: 24 %)
+            for i in range(3):
+                wi = _w1(fx[0], i)
+                hi = ti.select(i == 1, -2.0, 1.0)
+                for j in range(3):
+                    wj = _w1(fx[1], j)
+                    hj = ti.select(j == 1, -2.0, 1.0)
+                    for q in ti.static(range(3)):
+                        _g2p_node(gb, base, ti.Vector([i, j, q]), fx, inv_dx, dp, wi, wj, w[q][2], hi, hj,
+                                  hs[q], gv, gd, new_v, new_C, lap)
+        s = sid[b, p]
+        reg = body[s]
+        if don[b] != 0 and mat[b, reg, M_DMG] > 0.5:
+            Dc = dp - l0sq * lap
+            rate = (1.0 - dp) * dtil[b, p] - Dc
+            d[b, p] = ti.min(1.0, dp + h / mat[b, reg, M_ETA] * ti.max(rate, 0.0))
+        store_mat3(F, b, p, (ti.Matrix.identity(ti.f32, 3) + h * new_C) @ load_mat3(F, b, p))
+        store_mat3(C, b, p, new_C)
+        gp = grip[s]
+        if gp >= 0:
+            x[b, p] = x0[s] + vec3(kin[b, k, gp, 0], kin[b, k, gp, 1], kin[b, k, gp, 2])
+            v[b, p] = vec3(kin[b, k, gp, 3], kin[b, k, gp, 4], kin[b, k, gp, 5])
+        else:
+            v[b, p] = new_v
+            x[b, p] += h * new_v
+
+    return g2p_particle
 
 
 def _build_g2p(unrolled: bool, component_major: bool):
     """The grid-to-particle kernel in one of its forms (see ``TaichiBackend.g2p``), for particle matrices in
     either layout (``MATRIX_STATE``)."""
     MND = matrix_nd(component_major)
+    g2p_particle = _g2p_particle_func(unrolled)
 
     @ti.kernel
     def g2p(k: ti.i32, dx: ti.f32, l0sq: ti.f32, don: ND(ti.i32, 1), nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
@@ -469,77 +599,56 @@ def _build_g2p(unrolled: bool, component_major: bool):
                     for a in ti.static(range(6)):
                         box[b, BOX_LAST, a] = box[b, BOX_NEXT, a]
                     _set_box(box, b, BOX_NEXT, G, -1)
-                h = dt[b]
-                Xp = x[b, p] * inv_dx
-                base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
-                fx = Xp - ti.cast(base, ti.f32)
-                w = _weights(fx)
-                hs = [1.0, -2.0, 1.0]
-                dp = d[b, p]
-                new_v = vec3(0.0)
-                new_C = mat3(0.0)
-                lap = 0.0
-                if ti.static(unrolled):   # all 27 nodes unrolled (215 registers on CUDA: 12 % occupancy)
-                    for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
-                        _g2p_node(b, base, ti.Vector([i, j, q]), fx, inv_dx, dp, w[i][0], w[j][1], w[q][2], hs[i],
-                                  hs[j], hs[q], gv, gd, new_v, new_C, lap)
-                else:   # the same sums in the same order, i and j as loops (117 registers: 24 %)
-                    for i in range(3):
-                        wi = _w1(fx[0], i)
-                        hi = ti.select(i == 1, -2.0, 1.0)
-                        for j in range(3):
-                            wj = _w1(fx[1], j)
-                            hj = ti.select(j == 1, -2.0, 1.0)
-                            for q in ti.static(range(3)):
-                                _g2p_node(b, base, ti.Vector([i, j, q]), fx, inv_dx, dp, wi, wj, w[q][2], hi, hj,
-                                          hs[q], gv, gd, new_v, new_C, lap)
-                s = sid[b, p]
-                reg = body[s]
-                if don[b] != 0 and mat[b, reg, M_DMG] > 0.5:
-                    Dc = dp - l0sq * lap
-                    rate = (1.0 - dp) * dtil[b, p] - Dc
-                    d[b, p] = ti.min(1.0, dp + h / mat[b, reg, M_ETA] * ti.max(rate, 0.0))
-                store_mat3(F, b, p, (ti.Matrix.identity(ti.f32, 3) + h * new_C) @ load_mat3(F, b, p))
-                store_mat3(C, b, p, new_C)
-                gp = grip[s]
-                if gp >= 0:
-                    x[b, p] = x0[s] + vec3(kin[b, k, gp, 0], kin[b, k, gp, 1], kin[b, k, gp, 2])
-                    v[b, p] = vec3(kin[b, k, gp, 3], kin[b, k, gp, 4], kin[b, k, gp, 5])
-                else:
-                    v[b, p] = new_v
-                    x[b, p] += h * new_v
+                g2p_particle(b, b, p, k, dt[b], inv_dx, G, l0sq, don, mat, body, grip, x0, kin, sid, x, v, C, F, d,
+                             dtil, gv, gd)
 
     return g2p
 
 
-def _build_kernels(serial_p2g: bool, component_major: bool):
-    """The kernels that depend only on ``serial_p2g`` (it makes the CPU's scatter order deterministic) and on
-    the particle matrices' layout (``MATRIX_STATE``)."""
+def _build_scatter(serial_p2g: bool, component_major: bool, fused: bool, unrolled: bool):
+    """The particle-to-grid kernels, ``p2g`` (atomic) and ``p2g_tiled`` (see ``TaichiBackend.p2g``), for particle
+    matrices in either layout (``MATRIX_STATE``); ``serial_p2g`` makes the CPU's scatter order deterministic.
+
+    With ``fused`` (``TaichiBackend``'s ``fused``), each is a whole substep's particle work in one launch
+    (G2P2G): for each particle, substep ``k - 1``'s g2p (in form ``unrolled``), gathering from grid buffer
+    ``(k - 1) & 1``, then substep ``k``'s scatter of the updated particle into buffer ``k & 1`` (box slot
+    ``k % FUSED_SLOTS``; the grids are ``(2 B, G, G, G)``, buffer ``w`` of run ``b`` at ``w B + b``): one read and
+    one write of the particle state per substep instead of two. Both forms take the g2p's arguments too
+    (unused without ``fused``), so that a substep's stages name one argument list."""
     MND = matrix_nd(component_major)
+    g2p_particle = _g2p_particle_func(unrolled)
+
+    @ti.func
+    def fused_g2p(b, p, k, inv_dx, G, l0sq, don: ti.template(), nsub: ti.template(), dt: ti.template(),
+                  mat: ti.template(), body: ti.template(), grip: ti.template(), x0: ti.template(), kin: ti.template(),
+                  sid: ti.template(), x: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(),
+                  d: ti.template(), dtil: ti.template(), gv: ti.template(), gd: ti.template(), box: ti.template()):
+        """Substep ``k - 1``'s g2p of particle ``p`` of run ``b`` (when the run had that substep); particle 0
+        empties box slot ``(k + 1) % FUSED_SLOTS``, whose buffer region ``fused_grid(k - 1)`` zeroed."""
+        if k >= 1 and k - 1 < nsub[b]:
+            g2p_particle(b, b + ((k - 1) & 1) * x.shape[0], p, k - 1, dt[b], inv_dx, G, l0sq, don, mat, body, grip,
+                         x0, kin, sid, x, v, C, F, d, dtil, gv, gd)
+            if p == 0 and k >= 2:
+                _set_box(box, b, (k + 1) % FUSED_SLOTS, G, -1)
 
     @ti.kernel
-    def wipe_grid(mask: ND(ti.i32, 1), ngrip: ti.i32, gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
-                  gg: ND(ti.f32, 4), box: ND(ti.i32, 3)):
-        # every node of runs mask[b] != 0 (a new run in a slot: nothing of the last run's grid survives)
-        for b, i, j, q in gm:
-            if mask[b] != 0:
-                _zero_node(b, i, j, q, ngrip, gv, gm, gd, gg)
-        for b, w in ti.ndrange(box.shape[0], 2):   # and both node boxes empty
-            if mask[b] != 0:
-                _set_box(box, b, w, gm.shape[1], -1)
-
-    @ti.kernel
-    def p2g(k: ti.i32, dx: ti.f32, apic: ti.f32, ngrip: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
-            mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
-            grip: ND(ti.i32, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), C: MND,
-            F: MND, d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
-            gd: ND(vec2, 4), gg: ND(ti.f32, 4), box: ND(ti.i32, 3)):
+    def p2g(k: ti.i32, dx: ti.f32, apic: ti.f32, l0sq: ti.f32, ngrip: ti.i32, don: ND(ti.i32, 1), nsub: ND(ti.i32, 1),
+            dt: ND(ti.f32, 1), mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
+            grip: ND(ti.i32, 1), x0: ND(vec3, 1), kin: ND(ti.f32, 4), sid: ND(ti.i32, 2), x: ND(vec3, 2),
+            v: ND(vec3, 2), C: MND, F: MND, d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4),
+            gm: ND(ti.f32, 4), gd: ND(vec2, 4), gg: ND(ti.f32, 4), box: ND(ti.i32, 3)):
         inv_dx = 1.0 / dx
         G = gm.shape[1]
         if ti.static(serial_p2g):
             ti.loop_config(serialize=True)
         for b, p in ti.ndrange(x.shape[0], x.shape[1]):
+            if ti.static(fused):
+                fused_g2p(b, p, k, inv_dx, G, l0sq, don, nsub, dt, mat, body, grip, x0, kin, sid, x, v, C, F, d, dtil,
+                          gv, gd, box)
             if k < nsub[b]:
+                gb, wb = b, BOX_NEXT   # the grid run and box slot scattered into
+                if ti.static(fused):
+                    gb, wb = b + (k & 1) * x.shape[0], k % FUSED_SLOTS
                 Xp = x[b, p] * inv_dx
                 base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
                 fx = Xp - ti.cast(base, ti.f32)
@@ -547,24 +656,25 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
                 s = sid[b, p]
                 t = _p2g_terms(b, p, s, dt[b], inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil)
                 if ti.static(serial_p2g):
-                    _grow_box(box, b, base, base + 2)
+                    _grow_box(box, b, wb, base, base + 2)
                 elif p == 0:   # a run's particles all growing one box would contend for six addresses
-                    _set_box(box, b, BOX_NEXT, 0, G - 1)
+                    _set_box(box, b, wb, 0, G - 1)
                 dp = d[b, p]
                 gp = grip[s]
                 for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
                     off = ti.Vector([i, j, q])
                     dpos = (ti.cast(off, ti.f32) - fx) * dx
                     weight = w[i][0] * w[j][1] * w[q][2]
-                    _scatter_global(b, base + off, weight, weight * (t.mv + t.affine @ dpos), t.mass, dp, gp,
+                    _scatter_global(gb, base + off, weight, weight * (t.mv + t.affine @ dpos), t.mass, dp, gp,
                                     ngrip, gv, gm, gd, gg)
 
     @ti.kernel
-    def p2g_tiled(k: ti.i32, dx: ti.f32, apic: ti.f32, ngrip: ti.i32, nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
-                  mat: ND(ti.f32, 3), body: ND(ti.i32, 1), fibre: ND(vec3, 1), vol: ND(ti.f32, 1),
-                  grip: ND(ti.i32, 1), sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), C: MND,
-                  F: MND, d: ND(ti.f32, 2), dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
-                  gd: ND(vec2, 4), gg: ND(ti.f32, 4), box: ND(ti.i32, 3)):
+    def p2g_tiled(k: ti.i32, dx: ti.f32, apic: ti.f32, l0sq: ti.f32, ngrip: ti.i32, don: ND(ti.i32, 1),
+                  nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1), mat: ND(ti.f32, 3), body: ND(ti.i32, 1),
+                  fibre: ND(vec3, 1), vol: ND(ti.f32, 1), grip: ND(ti.i32, 1), x0: ND(vec3, 1), kin: ND(ti.f32, 4),
+                  sid: ND(ti.i32, 2), x: ND(vec3, 2), v: ND(vec3, 2), C: MND, F: MND, d: ND(ti.f32, 2),
+                  dtil: ND(ti.f32, 2), gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4), gg: ND(ti.f32, 4),
+                  box: ND(ti.i32, 3)):
         # CUDA only. One thread block per TILE consecutive particles of a run (spatially coherent along a
         # space-filling curve, particle_order.py): their 27-node contributions are summed in shared memory over
         # the tile's bounding box of nodes, then added to the grid once per node, instead of 6 global
@@ -581,6 +691,13 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
             # lanes of a warp take particles TILE/32 apart, so that they rarely share a base cell: lanes
             # adding to the same shared address in one instruction would serialise
             p = (t // TILE) % ntile * TILE + (tid % 32) * (TILE // 32) + tid // 32
+            if ti.static(fused):
+                if p < N:
+                    fused_g2p(b, p, k, inv_dx, G, l0sq, don, nsub, dt, mat, body, grip, x0, kin, sid, x, v, C, F, d,
+                              dtil, gv, gd, box)
+            gb, wb = b, BOX_NEXT   # the grid run and box slot scattered into
+            if ti.static(fused):
+                gb, wb = b + (k & 1) * x.shape[0], k % FUSED_SLOTS
             lo = ti.simt.block.SharedArray((3,), ti.i32)
             hi = ti.simt.block.SharedArray((3,), ti.i32)
             big = ti.simt.block.SharedArray((3,), ti.i32)
@@ -622,7 +739,7 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
             ti.simt.block.sync()
             o0, o1, o2 = lo[0], lo[1], lo[2]
             if tid == 0 and hi[0] >= 0:   # the run's scatter box takes in the tile's
-                _grow_box(box, b, ti.Vector([o0, o1, o2]), ti.Vector([hi[0], hi[1], hi[2]]))
+                _grow_box(box, b, wb, ti.Vector([o0, o1, o2]), ti.Vector([hi[0], hi[1], hi[2]]))
             sy = hi[1] - o1 + 1
             sz = hi[2] - o2 + 1
             n_nodes = (hi[0] - o0 + 1) * sy * sz
@@ -659,7 +776,7 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
                         if gp >= 0:
                             ti.atomic_add(acc[6 * TILE_NODES + c], _round_to_int(weight * mass * s_mass))
                     else:
-                        _scatter_global(b, node, weight, mom, mass, dp, gp, ngrip, gv, gm, gd, gg)
+                        _scatter_global(gb, node, weight, mom, mass, dp, gp, ngrip, gv, gm, gd, gg)
             ti.simt.block.sync()
             if tiled:
                 c = tid
@@ -669,16 +786,36 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
                         i = c // (sy * sz) + o0
                         j = (c // sz) % sy + o1
                         q = c % sz + o2
-                        gv[b, i, j, q] += inv_mom * vec3(ti.cast(acc[c], ti.f32),
+                        gv[gb, i, j, q] += inv_mom * vec3(ti.cast(acc[c], ti.f32),
                                                          ti.cast(acc[TILE_NODES + c], ti.f32),
                                                          ti.cast(acc[2 * TILE_NODES + c], ti.f32))
-                        gm[b, i, j, q] += inv_mass * ti.cast(acc[3 * TILE_NODES + c], ti.f32)
-                        gd[b, i, j, q] += (1.0 / WEIGHT_SCALE) * vec2(ti.cast(acc[5 * TILE_NODES + c], ti.f32),
+                        gm[gb, i, j, q] += inv_mass * ti.cast(acc[3 * TILE_NODES + c], ti.f32)
+                        gd[gb, i, j, q] += (1.0 / WEIGHT_SCALE) * vec2(ti.cast(acc[5 * TILE_NODES + c], ti.f32),
                                                                       ti.cast(sw_units, ti.f32))
                         if ngrip > 0 and acc[6 * TILE_NODES + c] != 0:
-                            gg[b * ngrip, i, j, q] += inv_mass * ti.cast(acc[6 * TILE_NODES + c], ti.f32)
+                            gg[gb * ngrip, i, j, q] += inv_mass * ti.cast(acc[6 * TILE_NODES + c], ti.f32)
                     c += TILE
             ti.simt.block.sync()  # the next tile of this thread block (grid-stride loop) reuses the arrays
+
+    return p2g, p2g_tiled
+
+
+def _build_kernels(serial_p2g: bool, component_major: bool):
+    """The kernels that depend only on ``serial_p2g`` (it makes the CPU's scatter order deterministic) and on
+    the particle matrices' layout (``MATRIX_STATE``)."""
+    MND = matrix_nd(component_major)
+
+    @ti.kernel
+    def wipe_grid(mask: ND(ti.i32, 1), ngrip: ti.i32, gv: ND(vec3, 4), gm: ND(ti.f32, 4), gd: ND(vec2, 4),
+                  gg: ND(ti.f32, 4), box: ND(ti.i32, 3)):
+        # every node of runs mask[b] != 0 (a new run in a slot: nothing of the last run's grid survives; with
+        # the fused substep, grid run gb is buffer gb // B of run gb % B)
+        for gb, i, j, q in gm:
+            if mask[gb % mask.shape[0]] != 0:
+                _zero_node(gb, i, j, q, ngrip, gv, gm, gd, gg)
+        for b, w in ti.ndrange(box.shape[0], box.shape[1]):   # and every node box empty
+            if mask[b] != 0:
+                _set_box(box, b, w, gm.shape[1], -1)
 
     @ti.func
     def _particle_stats(b: ti.i32, r: ti.i32, p: ti.i32, lo: ti.f32, hi: ti.f32, mat: ti.template(),
@@ -788,7 +925,7 @@ def _build_kernels(serial_p2g: bool, component_major: bool):
             xo[i, s] = x[b, p]
             do[i, s] = d[b, p]
 
-    return p2g, frame_stats, reset_slots, gather, frame_end, p2g_tiled, wipe_grid
+    return frame_stats, reset_slots, gather, frame_end, wipe_grid
 
 
 _KERNELS: dict[tuple, object] = {}
@@ -804,17 +941,25 @@ def _kernels(build, *config):
 
 #: a substep's kernels in order and their arguments: ``k`` (the substep), a scalar of the backend's
 #: ``_scalars`` or one of its arrays
+_P2G_ARGS = ("k", "dx", "apic", "l0sq", "ngrip1", "don", "nsub", "dt", "mat", "body", "fibre", "vol", "grip", "x0", "kin",
+             "sid", "x", "v", "C", "F", "d", "dtil", "gv", "gm", "gd", "gg", "box")
 _STAGE_ARGS = {
     "clear": ("k", "ngrip1", "nsub", "box", "gv", "gm", "gd", "gg"),
-    "p2g": ("k", "dx", "apic", "ngrip1", "nsub", "dt", "mat", "body", "fibre", "vol", "grip", "sid", "x", "v", "C", "F",
-            "d", "dtil", "gv", "gm", "gd", "gg", "box"),
+    "p2g": _P2G_ARGS,
     "grid": ("k", "dx", "gravity", "damp", "bc", "ngrip", "ncol", "nsub", "dt", "kin", "ctype", "ca", "cb", "csurf",
              "fric", "held", "box", "gv", "gm", "gg", "imp", "work"),
     "g2p": ("k", "dx", "l0sq", "don", "nsub", "dt", "mat", "body", "grip", "x0", "kin", "sid", "x", "v", "C", "F", "d",
             "dtil", "gv", "gd", "box"),
 }
-#: every substep argument but ``k``, each once: what a graph launch binds
-_BOUND_ARGS = tuple(dict.fromkeys(n for names in _STAGE_ARGS.values() for n in names if n != "k"))
+#: the fused substep's stages (``TaichiBackend``'s ``fused``): ``fclear`` once per ``advance``, then per substep ``k``
+#: the G2P2G kernel (g2p of ``k - 1``, scatter of ``k``) and the grid update of ``k`` with the other buffer's clear;
+#: a last ``fused`` at ``k = n`` does the g2p of substep ``n - 1``
+_FUSED_STAGE_ARGS = {
+    "fclear": ("ngrip1", "nsub", "box", "gv", "gm", "gd", "gg"),
+    "fused": _P2G_ARGS,
+    "fgrid": ("k", "dx", "gravity", "damp", "bc", "ngrip", "ngrip1", "ncol", "nsub", "dt", "kin", "ctype", "ca", "cb",
+              "csurf", "fric", "held", "box", "gv", "gm", "gd", "gg", "imp", "work"),
+}
 #: substeps per graph launch in ``advance`` (a frame's remainder goes one substep at a time)
 GRAPH_SUBSTEPS = 8
 
@@ -829,7 +974,7 @@ class TaichiBackend:
     def __init__(self, scene, batch: int, arch: str = "cpu", allow_cpu_fallback: bool = False,
                  stats_partials: int | None = None, p2g: str = "atomic", particle_order: str | None = None,
                  g2p: str = "auto", resort_every: int | None = None, component_major: bool | None = None,
-                 **_: object):
+                 fused: bool = False, **_: object):
         if p2g not in ("auto", "atomic", "tiled"):
             raise InvphysError(f"p2g must be 'auto', 'atomic' or 'tiled', got {p2g!r}")
         if g2p not in ("auto", "unrolled", "loop"):
@@ -863,13 +1008,22 @@ class TaichiBackend:
         serial = bool(o.deterministic and self.arch == "cpu")
         #: particle matrices component-major (``MATRIX_STATE``): on CUDA unless asked otherwise
         self.component_major = bool(self.arch == "cuda" if component_major is None else component_major)
-        (self._p2g, self._stats, self._reset, self._gather, self._frame_end, p2g_tiled,
+        (self._stats, self._reset, self._gather, self._frame_end,
          self._wipe) = _kernels(_build_kernels, serial, self.component_major)
-        self._clear, self._grid = _kernels(_build_grid_kernels, serial, int(o.grid))
-        self._g2p = _kernels(_build_g2p, self.g2p == "unrolled", self.component_major)
-        if p2g == "tiled":
-            self._p2g = p2g_tiled
-        self._kernel_of = {"clear": self._clear, "p2g": self._p2g, "grid": self._grid, "g2p": self._g2p}
+        #: one G2P2G kernel and one grid kernel per substep on two grid buffers (``_build_scatter``,
+        #: ``_build_fused_grid``) instead of clear, p2g, grid update and g2p on one grid
+        self.fused = bool(fused)
+        unrolled = self.g2p == "unrolled"
+        scatter = _kernels(_build_scatter, serial, self.component_major, self.fused, unrolled and self.fused)
+        self._p2g = scatter[1] if p2g == "tiled" else scatter[0]
+        self._clear, self._grid, fused_clear, fused_grid = _kernels(_build_grid_kernels, serial, int(o.grid))
+        if self.fused:
+            self._stage_args = _FUSED_STAGE_ARGS
+            self._kernel_of = {"fclear": fused_clear, "fused": self._p2g, "fgrid": fused_grid}
+        else:
+            self._g2p = _kernels(_build_g2p, unrolled, self.component_major)
+            self._stage_args = _STAGE_ARGS
+            self._kernel_of = {"clear": self._clear, "p2g": self._p2g, "grid": self._grid, "g2p": self._g2p}
         #: the substep's scalar arguments (dtype, value): fixed by the scene's options
         self._scalars = {"dx": (ti.f32, float(o.dx)), "apic": (ti.f32, float(o.apic_blend)),
                          "ngrip1": (ti.i32, max(len(scene.grips), 1)), "gravity": (ti.f32, float(o.gravity)),
@@ -914,13 +1068,17 @@ class TaichiBackend:
         self.dtil = ti.ndarray(ti.f32, (B, N))
         #: device particle p of run b is scene particle sid[b, p] (runs are re-sorted one by one)
         self.sid = ti.ndarray(ti.i32, (B, N))
-        self.gv = ti.ndarray(vec3, (B, G, G, G))
-        self.gm = ti.ndarray(ti.f32, (B, G, G, G))
-        self.gd = ti.ndarray(vec2, (B, G, G, G))
-        self.gg = ti.ndarray(ti.f32, (B * NG1, G, G, G))
-        #: per run, the node boxes (lo xyz, hi xyz) of the last scatter and of the one under way (BOX_*)
-        self.box = ti.ndarray(ti.i32, (B, 2, 6))
-        self.box.from_numpy(np.broadcast_to(np.array([G] * 3 + [-1] * 3, np.int32), (B, 2, 6)).copy())
+        # the grid; with the fused substep two buffers of it, buffer w of run b at grid run w B + b
+        GB = 2 * B if self.fused else B
+        self.gv = ti.ndarray(vec3, (GB, G, G, G))
+        self.gm = ti.ndarray(ti.f32, (GB, G, G, G))
+        self.gd = ti.ndarray(vec2, (GB, G, G, G))
+        self.gg = ti.ndarray(ti.f32, (GB * NG1, G, G, G))
+        #: per run, the node boxes (lo xyz, hi xyz) of the last scatter and of the one under way (BOX_*); with
+        #: the fused substep, its FUSED_SLOTS box slots
+        nbox = FUSED_SLOTS if self.fused else 2
+        self.box = ti.ndarray(ti.i32, (B, nbox, 6))
+        self.box.from_numpy(np.broadcast_to(np.array([G] * 3 + [-1] * 3, np.int32), (B, nbox, 6)).copy())
         self.mat = ti.ndarray(ti.f32, (B, len(scene.bodies), N_MAT))
         self.fric = ti.ndarray(ti.f32, (B, NC1))
         self.nsub = ti.ndarray(ti.i32, (B,))
@@ -1039,20 +1197,22 @@ class TaichiBackend:
         return scalar[1] if scalar is not None else getattr(self, name)
 
     def _stages(self, k: int) -> dict[str, object]:
-        """The substep's kernel launches in order, by stage name (each a no-argument callable)."""
+        """The substep's kernel launches in order, by stage name (each a no-argument callable); with ``fused``,
+        ``fclear`` (once per advance), ``fused`` and ``fgrid``."""
         return {stage: (lambda kern=self._kernel_of[stage], names=names:
                         kern(*(self._stage_value(n, k) for n in names)))
-                for stage, names in _STAGE_ARGS.items()}
+                for stage, names in self._stage_args.items()}
 
-    def _substep_graph(self, steps: int):
-        """A Taichi graph of ``steps`` substeps (substep ``s`` runs at ``k = k<s>``), compiled once per size.
+    def _substep_graph(self, steps: int, stages: tuple[str, ...]):
+        """A Taichi graph of ``steps`` substeps of ``stages`` each (substep ``s`` runs at ``k = k<s>``), compiled
+        once per size and stages.
 
         A substep is four kernel launches of ~20 array arguments each; from Python they cost ~0.6-1.7 ms of host
         time per substep (measured on an H100 host), more than the GPU needs for a substep of <= 16 runs. A
         graph binds its arguments once per run and launches the same kernels in the same order from C++
         (~0.2 ms per substep). Whole lock-step batches did not get faster (the host queues a frame's tail while
         the GPU works on its full substeps); the host is freed for feature extraction and chunk round trips."""
-        graph = self._graphs.get(steps)
+        graph = self._graphs.get((steps, stages))
         if graph is None:
             from taichi import graph as tg
 
@@ -1071,37 +1231,55 @@ class TaichiBackend:
 
             builder = tg.GraphBuilder()
             for s in range(steps):
-                for stage, names in _STAGE_ARGS.items():
-                    builder.dispatch(self._kernel_of[stage], *(symbol(n, s) for n in names))
-            graph = self._graphs[steps] = builder.compile()
+                for stage in stages:
+                    builder.dispatch(self._kernel_of[stage], *(symbol(n, s) for n in self._stage_args[stage]))
+            graph = self._graphs[(steps, stages)] = builder.compile()
         return graph
 
-    def _run_graph(self, steps: int, k0: int) -> None:
-        values = {n: self._stage_value(n, k0) for n in _BOUND_ARGS}
-        values.update({f"k{s}": k0 + s for s in range(steps)})
-        self._substep_graph(steps).run(values)
+    def _run_graph(self, steps: int, k0: int, stages: tuple[str, ...] | None = None) -> None:
+        stages = stages or tuple(self._stage_args)
+        bound = dict.fromkeys(n for st in stages for n in self._stage_args[st] if n != "k")
+        values = {n: self._stage_value(n, k0) for n in bound}
+        if any("k" in self._stage_args[st] for st in stages):
+            values.update({f"k{s}": k0 + s for s in range(steps)})
+        self._substep_graph(steps, stages).run(values)
 
     def advance(self, n_steps: int) -> None:
         """Run substeps 0..n_steps-1 of the current frame (runs past their own nsub idle): graphs of
         ``GRAPH_SUBSTEPS`` substeps, then single ones for the rest (re-sorting the particles first when
-        ``resort_every`` substeps have passed since the last sort)."""
+        ``resort_every`` substeps have passed since the last sort). With ``fused``, the grid buffers' clear
+        first and a last g2p after them: the particles are whole substeps on when it returns."""
         if self.resorter is not None:
             self.resorter.count(n_steps)
+        if n_steps <= 0:
+            return
+        stages = ("fused", "fgrid") if self.fused else None
+        if self.fused:
+            self._run_graph(1, 0, ("fclear",))
         k = 0
         while n_steps - k >= GRAPH_SUBSTEPS:
-            self._run_graph(GRAPH_SUBSTEPS, k)
+            self._run_graph(GRAPH_SUBSTEPS, k, stages)
             k += GRAPH_SUBSTEPS
         for rest in range(k, n_steps):
-            self._run_graph(1, rest)
+            self._run_graph(1, rest, stages)
+        if self.fused:
+            self._run_graph(1, n_steps, ("fused",))
 
     def kernel_times(self, n_steps: int = 20) -> dict[str, float]:
         """Mean seconds per launch of each substep stage over ``n_steps`` synchronised substeps (profiling;
-        advances the state, so use a throw-away batch)."""
+        advances the state, so use a throw-away batch). With ``fused``, substeps ``k = 1 .. 6`` over and over (a
+        G2P2G each; the frame's ``nsub`` at least 7), after one ``fclear`` and the scatter of ``k = 0``."""
         import time
 
         total: dict[str, float] = {}
-        for _ in range(n_steps):
-            for name, launch in self._stages(0).items():
+        if self.fused:
+            for launch in self._stages(0).values():
+                launch()
+        for i in range(n_steps):
+            k = 1 + i % 6 if self.fused else 0   # 6: both buffers' and all slots' cycles
+            for name, launch in self._stages(k).items():
+                if name == "fclear":
+                    continue
                 ti.sync()
                 t0 = time.perf_counter()
                 launch()
@@ -1206,7 +1384,9 @@ class TaichiBackend:
 
     def grid_mass(self) -> np.ndarray:
         """(B,) total grid mass deposited by the last P2G (equals the particle mass: a check)."""
-        return self.host_copy(self.gm).astype(np.float64).reshape(self.batch, -1).sum(axis=1)
+        # with the fused substep, the other buffer holds no mass after ``advance`` (see ``fused_grid``)
+        gm = self.host_copy(self.gm).astype(np.float64)
+        return gm.reshape(-1, self.batch, gm[0].size).sum(axis=(0, 2))
 
     def sync(self) -> None:
         ti.sync()
