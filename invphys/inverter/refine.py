@@ -74,7 +74,8 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
                    "version": getattr(sim, "version", "")})
     runlog = None if log is None else RunLog(log, key, flush=int(batch_size or 16))
     stored = _stored_rows(inv) if known_starts or strategy == "corrected" else None
-    targets = [_target(inv, r, budget, popsize, sigma0, seed, strategy, stored, known_starts) for r in items]
+    targets = [_target(inv, r, budget, popsize, sigma0, seed, strategy, stored, known_starts, strategy_options)
+               for r in items]
     search = _strategy(inv, strategy, popsize, sigma0, stored, strategy_options)
     pool = _extraction_pool(ext, extract_workers)
     t0 = time.perf_counter()
@@ -163,7 +164,8 @@ def _known_rows(inv: Any, stored: tuple[np.ndarray, np.ndarray] | None, target: 
 
 
 def _target(inv: Any, r: InversionResult, budget: int, popsize: int, sigma0: float, seed: int,
-            strategy: str = "cma", stored: tuple[np.ndarray, np.ndarray] | None = None, known_starts: int = 0) -> Any:
+            strategy: str = "cma", stored: tuple[np.ndarray, np.ndarray] | None = None, known_starts: int = 0,
+            options: Mapping[str, Any] | None = None) -> Any:
     """The refine of result ``r``: its candidates as starts (simulated ones with their features), then the
     ``known_starts`` best stored rows (their features known: no run)."""
     from invphys.evaluators.stream_refine import TargetRefine, log_key
@@ -180,6 +182,7 @@ def _target(inv: Any, r: InversionResult, budget: int, popsize: int, sigma0: flo
              "starts": starts.tolist(), "seed": s, "popsize": popsize, "sigma0": sigma0}
     if strategy != "cma":   # the cma key stays what it was, so older logs replay
         parts["strategy"] = strategy
+        parts["options"] = dict(options or {})
     return TargetRefine(tid=log_key(parts), target=target, starts=starts, known=known, seed=s)
 
 
