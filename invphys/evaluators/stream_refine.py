@@ -200,8 +200,10 @@ def cma_strategy(popsize: int = 8, sigma0: float = 0.012) -> Strategy:
 class _Search:
     """A target's state: the generation in flight (asked points and their results by ask order)."""
 
-    def __init__(self, t: TargetRefine, budget: int, strategy: Strategy, d: int) -> None:
-        self.t, self.budget, self.strategy, self.d = t, budget, strategy, d
+    def __init__(self, t: TargetRefine, budget: int, popsize: int, sigma0: float, d: int,
+                 strategy: Strategy | None = None) -> None:
+        self.t, self.budget, self.d = t, budget, d
+        self.strategy = strategy or cma_strategy(popsize, sigma0)
         self.search: Any = None
         self.asked = np.empty((0, d))
         self.results: list[tuple[np.ndarray, float, str, bool] | None] = []
@@ -246,8 +248,7 @@ def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int
                            f"{sigma0}")
     note = on_run or (lambda _n, _r: None)
     d = targets[0].starts.shape[1] if targets else 0
-    strategy = strategy or cma_strategy(popsize, sigma0)
-    searches = [_Search(t, budget, strategy, d) for t in targets]
+    searches = [_Search(t, budget, popsize, sigma0, d, strategy) for t in targets]
     queue: list[tuple[int, int]] = []        # (search, member) rows waiting for a slot
     fed: list[tuple[int, int]] = []          # row i of the stream -> (search, member)
 
