@@ -120,7 +120,10 @@ class PoolAnswers(PosteriorAnswers):
         self.answer_draws = self.settings.draws
         self.members = [self._member(m) for m in self.settings.extra]
         splits = ("train", "test") if self.settings.rows == "all" else ("train",)
-        parts = [self.bundle.data(split) for split in splits]
+        try:
+            parts = [self.bundle.data(split) for split in splits]
+        except InvphysError as e:
+            raise InvphysError(f"method {self.label!r}: pool rows {self.settings.rows!r}: {e}") from None
         theta, y = (np.concatenate([p[i] for p in parts]) for i in (0, 1))
         ok = np.all(np.isfinite(y), axis=1)
         self.train_theta = np.asarray(theta[ok], dtype=np.float64)
