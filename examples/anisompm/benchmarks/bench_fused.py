@@ -1,20 +1,22 @@
 """The fused substep (``taichi_fused``: one G2P2G kernel and one grid kernel per substep) against the plain
 one (clear, p2g, grid update, g2p) on the Taichi backend: same state, same features, how much faster (issue 52).
 
-On ``--runs`` random parameter vectors (seed 0) of the orange peel at ``--preset``, one warm simulator each way:
+On ``--runs`` random parameter vectors (seed 0) of the orange peel at ``--preset``, one warm simulator per way
+(``--ways``: plain; fused, g2p's state kept in registers; fused_stored, that state written back and read again):
 
-1. **state parity**: both backends load the first ``--batch`` runs, set the same moving, strained, partly damaged
-   state (``bench_tiled_p2g.perturbed_state``) and advance ``--parity-steps`` substeps; the particles' largest
-   difference, fused against plain and plain against plain again (GPU float atomics differ run to run);
+1. **state parity**: each backend loads the first ``--batch`` runs, sets the same moving, strained, partly
+   damaged state (``bench_tiled_p2g.perturbed_state``) and advances ``--parity-steps`` substeps; the particles'
+   largest difference from plain, and plain's from plain again (GPU float atomics differ run to run);
 2. **kernel profile**: seconds per launch of each stage (``kernel_times``: plain clear/p2g/grid/g2p, fused
    fused/fgrid) and their sum per substep;
-3. **whole runs**: the same runs plain, fused, plain again, fused again (the simulator's scheduling: continuous
-   batching on CUDA), each pass only while ``--budget-s`` of wall time allows it (judged by the last pass of
-   that way): seconds per run and the features' agreement of fused with plain next to plain with plain again.
+3. **whole runs**: the same runs each way, then each way again (the simulator's scheduling: continuous
+   batching on CUDA), a pass only while ``--budget-s`` of wall time allows it (judged by the last pass of
+   that way, else any): seconds per run and the features' agreement with plain next to plain's with plain again.
 
-On a GPU (one H200/H100, ~5 minutes; a failure of the fused path is recorded and the plain passes go on):
+On a GPU (one H200/H100, ~5 minutes; a failure of a fused way is recorded and the other passes go on):
 
-    python examples/anisompm/benchmarks/bench_fused.py --preset paper --runs 256 --batch 64 --budget-s 270 \\
+    python examples/anisompm/benchmarks/bench_fused.py --preset paper --runs 256 --batch 64 \\
+        --ways plain fused fused_stored --budget-s 280 \\
         --out examples/anisompm/benchmarks/results/fused_substep_paper_h200.json
 
 On the CPU (a check of the script; times mean little there): ``--preset tiny --arch cpu --runs 4 --batch 2
@@ -41,8 +43,9 @@ for p in (ROOT, ROOT / "examples" / "orange_peel", ROOT / "examples" / "anisompm
 from _machine import emit, simulator_device  # noqa: E402
 from bench_tiled_p2g import PAPER_SECONDS_PER_RUN, feature_agreement, set_perturbed_state  # noqa: E402
 
-WAYS = ("plain", "fused")
-PASSES = ("plain", "fused", "plain_again", "fused_again")
+#: the ways a substep can go: plain kernels, fused with g2p's state in registers (the default), fused with it
+#: written back and read again (``fused_registers=False``: that lever alone)
+WAYS = ("plain", "fused", "fused_stored")
 
 
 def _args(argv: list[str] | None) -> argparse.Namespace:
@@ -52,7 +55,9 @@ def _args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--runs", type=int, default=256)
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--frames", type=int, default=None, help="override the preset's frames (shorter runs)")
-    p.add_argument("--p2g", default="auto", choices=["auto", "atomic", "tiled"], help="taichi_p2g, both ways")
+    p.add_argument("--p2g", default="auto", choices=["auto", "atomic", "tiled"], help="taichi_p2g, every way")
+    p.add_argument("--ways", nargs="+", default=["plain", "fused"], choices=WAYS,
+                   help="compared with plain (always run first); each way's passes: once, then again")
     p.add_argument("--parity-steps", type=int, default=16)
     p.add_argument("--budget-s", type=float, default=270.0,
                    help="wall seconds for the whole script: a pass starts only if it should end within them")
@@ -97,11 +102,12 @@ def _features(results: list, ex) -> np.ndarray:
 
 
 def _run_passes(sims: dict, params: np.ndarray, ex, a, t_start: float, out: dict) -> dict[str, np.ndarray]:
-    """The whole-run passes (PASSES) that fit the budget; rows into ``out['passes']``, features returned."""
+    """Each way's pass, then each way's again, those that fit the budget; rows into ``out['passes']``, features
+    returned."""
     feats: dict[str, np.ndarray] = {}
     last_wall: dict[str, float] = {}
-    for name in PASSES:
-        way = name.split("_")[0]
+    for name in [*sims, *(f"{w}_again" for w in sims)]:
+        way = name.removesuffix("_again")
         if way not in sims:
             continue
         left = a.budget_s - (time.perf_counter() - t_start)
@@ -128,27 +134,39 @@ def _run_passes(sims: dict, params: np.ndarray, ex, a, t_start: float, out: dict
 
 
 def _agreement(feats: dict[str, np.ndarray], names: list[str]) -> dict:
-    pairs = {"fused_vs_plain": ("plain", "fused"), "plain_vs_plain_again": ("plain", "plain_again"),
-             "fused_vs_fused_again": ("fused", "fused_again"), "fused_again_vs_plain_again": ("plain_again", "fused_again")}
+    """Each way's features against plain's (first passes, and the again passes), and each way against itself."""
+    pairs = {}
+    for way in WAYS:
+        pairs[f"{way}_vs_{way}_again"] = (way, f"{way}_again")
+        if way != "plain":
+            pairs[f"{way}_vs_plain"] = ("plain", way)
+            pairs[f"{way}_again_vs_plain_again"] = ("plain_again", f"{way}_again")
     return {k: feature_agreement(feats[x], feats[y], names) for k, (x, y) in pairs.items()
             if x in feats and y in feats}
 
 
-def _speedup(passes: dict) -> float | None:
-    spr = {w: [r["seconds_per_run"] for n, r in passes.items() if n.split("_")[0] == w and "seconds_per_run" in r]
-           for w in WAYS}
-    if not spr["plain"] or not spr["fused"]:
-        return None
-    return float(np.mean(spr["plain"]) / np.mean(spr["fused"]))
+def _speedup(passes: dict) -> dict[str, float]:
+    """Each way's speed-up over plain: mean seconds per run of plain's passes over the way's."""
+    spr = {w: [r["seconds_per_run"] for n, r in passes.items()
+               if n.removesuffix("_again") == w and "seconds_per_run" in r] for w in WAYS}
+    return {w: float(np.mean(spr["plain"]) / np.mean(spr[w])) for w in WAYS
+            if w != "plain" and spr[w] and spr["plain"]}
 
 
-def _build(cfg: dict, out: dict) -> dict:
+def _build(cfg: dict, ways: list[str], out: dict) -> dict:
     from invphys_orange_peel.simulator import OrangePeelSimulator
 
+    class StoredSimulator(OrangePeelSimulator):
+        """The fused substep with g2p's state written back and read again (``fused_registers=False``)."""
+
+        def backend_options(self) -> dict:
+            return {**super().backend_options(), "fused_registers": False}
+
     sims = {}
-    for way in WAYS:
+    for way in dict.fromkeys(["plain", *ways]):
         try:
-            sims[way] = OrangePeelSimulator(**cfg, taichi_fused=way == "fused")
+            cls = StoredSimulator if way == "fused_stored" else OrangePeelSimulator
+            sims[way] = cls(**cfg, taichi_fused=way != "plain")
         except Exception as exc:
             out["errors"][way] = f"{type(exc).__name__}: {exc}"
     return sims
@@ -170,11 +188,12 @@ def _device_checks(sims: dict, params: np.ndarray, a, out: dict) -> None:
     if "plain" in states:
         scale = {k: float(np.nanmax(np.abs(v))) for k, v in states["plain"].items()}
         out["state_parity"] = {"scale": scale, "plain_vs_plain_again": _diff(states["plain"], states["plain_again"])}
-        if "fused" in states:
-            out["state_parity"]["fused_vs_plain"] = _diff(states["plain"], states["fused"])
+        for way in states:
+            if way not in ("plain", "plain_again"):
+                out["state_parity"][f"{way}_vs_plain"] = _diff(states["plain"], states[way])
     kt = out["kernel_seconds_per_launch"]
-    if "plain" in kt and "fused" in kt:
-        out["substep_kernel_speedup"] = kt["plain"]["substep_total"] / kt["fused"]["substep_total"]
+    out["substep_kernel_speedup"] = {w: kt["plain"]["substep_total"] / kt[w]["substep_total"] for w in kt
+                                     if w != "plain" and "plain" in kt}
     print("parity", out.get("state_parity"), "kernels", kt, flush=True)
 
 
@@ -193,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
     out: dict = {"benchmark": "bench_fused", "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
                  "preset": a.preset, "runs": a.runs, "batch": a.batch, "budget_s": a.budget_s, "errors": {},
                  "kernel_seconds_per_launch": {}, "passes": {}}
-    sims = _build(cfg, out)
+    sims = _build(cfg, a.ways, out)
     plain = sims["plain"]
     ident = RunIdentity.of(plain)
     backend = plain.engine.backend(min(a.batch, a.runs))
@@ -204,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
     ex = OrangePeelFeatures()
     feats = _run_passes(sims, params, ex, a, t_start, out)
     out["feature_agreement"] = _agreement(feats, ex.feature_names)
-    out["runs_speedup_fused_vs_plain"] = _speedup(out["passes"])
+    out["runs_speedup_vs_plain"] = _speedup(out["passes"])
     out["wall_s"] = time.perf_counter() - t_start
     emit(out, a.out)
     return 0

@@ -88,7 +88,7 @@ class OrangeEngine(EngineSettings):
     taichi_fused: bool = Field(
         False, description="Taichi: one G2P2G kernel per substep (each particle's g2p, then its scatter into a "
                            "second grid buffer) and one grid kernel (update and the other buffer's clear), "
-                           "instead of clear, p2g, grid update and g2p; the same results on the CPU")
+                           "instead of clear, p2g, grid update and g2p; results agree to float rounding")
 
 
 class OrangePeelSimulator(EngineSimulator):

@@ -183,21 +183,28 @@ def _collider_normal(kind: ti.i32, a: vec3, bb: vec3, p: vec3):
     return inside, n
 
 
-P2GTerms = ti.types.struct(affine=mat3, mv=vec3, mass=ti.f32)
+P2GTerms = ti.types.struct(affine=mat3, mv=vec3, mass=ti.f32, dtil=ti.f32)
+#: one particle's state as g2p leaves it and the scatter reads it
+ParticleState = ti.types.struct(x=vec3, v=vec3, C=mat3, F=mat3, d=ti.f32)
 
 
 @ti.func
-def _p2g_terms(b, p, s, h, inv_dx, apic, mat: ti.template(), body: ti.template(), fibre: ti.template(),
-               vol: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(), d: ti.template(),
-               dtil: ti.template()) -> P2GTerms:
-    """Particle ``p`` of run ``b`` (scene particle ``s``, whose constants ``body``, ``fibre``, ``vol`` it
-    reads): its APIC affine matrix (stress included), momentum and mass, as both scatters add them to its
-    27 nodes; writes its crack driving force ``dtil``."""
-    Fp = load_mat3(F, b, p)
+def _load_state(b, p, x: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(), d: ti.template()):
+    """Particle ``p`` of run ``b``'s state from the particle arrays."""
+    return ParticleState(x=x[b, p], v=v[b, p], C=load_mat3(C, b, p), F=load_mat3(F, b, p), d=d[b, p])
+
+
+@ti.func
+def _p2g_terms(b, s, h, inv_dx, apic, st, mat: ti.template(), body: ti.template(), fibre: ti.template(),
+               vol: ti.template()) -> P2GTerms:
+    """A particle of run ``b`` in state ``st`` (scene particle ``s``, whose constants ``body``, ``fibre``, ``vol``
+    it reads): its APIC affine matrix (stress included), momentum and mass, as both scatters add them to its
+    27 nodes, and its crack driving force ``dtil``."""
+    Fp = st.F
     U, sig, V = ti.svd(Fp)
     J = sig[0, 0] * sig[1, 1] * sig[2, 2]
     reg = body[s]
-    dp = d[b, p]
+    dp = st.d
     mu = mat[b, reg, M_MU]
     lam = mat[b, reg, M_LAM]
     res = mat[b, reg, M_RES]
@@ -227,11 +234,10 @@ def _p2g_terms(b, p, s, h, inv_dx, apic, mat: ti.template(), body: ti.template()
     M = A @ sigp
     sc = mat[b, reg, M_SC]
     phi = (M * M.transpose()).sum() / (sc * sc)
-    dtil[b, p] = ti.max(phi - 1.0, 0.0)
     vp_ = vol[s]
     mass = mat[b, reg, M_RHO] * vp_
-    affine = (-h * vp_ * 4.0 * inv_dx * inv_dx) * tau + (mass * apic) * load_mat3(C, b, p)
-    return P2GTerms(affine=affine, mv=mass * v[b, p], mass=mass)
+    affine = (-h * vp_ * 4.0 * inv_dx * inv_dx) * tau + (mass * apic) * st.C
+    return P2GTerms(affine=affine, mv=mass * st.v, mass=mass, dtil=ti.max(phi - 1.0, 0.0))
 
 
 @ti.func
@@ -536,9 +542,10 @@ def _g2p_particle_func(unrolled: bool):
                      grip: ti.template(), x0: ti.template(), kin: ti.template(), sid: ti.template(), x: ti.template(),
                      v: ti.template(), C: ti.template(), F: ti.template(), d: ti.template(), dtil: ti.template(),
                      gv: ti.template(), gd: ti.template()):
-        """Particle ``p`` of run ``b`` at substep ``k`` (step ``h``), gathering from grid run ``gb``: velocity,
-        APIC matrix, F, damage and position."""
-        Xp = x[b, p] * inv_dx
+        """Particle ``p`` of run ``b`` at substep ``k`` (step ``h``), gathering from grid run ``gb``: its new state
+        (``ParticleState``; ``_store_g2p`` writes it)."""
+        xp = x[b, p]
+        Xp = xp * inv_dx
         base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
         fx = Xp - ti.cast(base, ti.f32)
         w = _weights(fx)
@@ -563,21 +570,36 @@ def _g2p_particle_func(unrolled: bool):
                                   hs[q], gv, gd, new_v, new_C, lap)
         s = sid[b, p]
         reg = body[s]
+        dn = dp
         if don[b] != 0 and mat[b, reg, M_DMG] > 0.5:
             Dc = dp - l0sq * lap
             rate = (1.0 - dp) * dtil[b, p] - Dc
-            d[b, p] = ti.min(1.0, dp + h / mat[b, reg, M_ETA] * ti.max(rate, 0.0))
-        store_mat3(F, b, p, (ti.Matrix.identity(ti.f32, 3) + h * new_C) @ load_mat3(F, b, p))
-        store_mat3(C, b, p, new_C)
+            dn = ti.min(1.0, dp + h / mat[b, reg, M_ETA] * ti.max(rate, 0.0))
+        Fn = (ti.Matrix.identity(ti.f32, 3) + h * new_C) @ load_mat3(F, b, p)
         gp = grip[s]
+        xn = xp + h * new_v
+        vn = new_v
         if gp >= 0:
-            x[b, p] = x0[s] + vec3(kin[b, k, gp, 0], kin[b, k, gp, 1], kin[b, k, gp, 2])
-            v[b, p] = vec3(kin[b, k, gp, 3], kin[b, k, gp, 4], kin[b, k, gp, 5])
-        else:
-            v[b, p] = new_v
-            x[b, p] += h * new_v
+            xn = x0[s] + vec3(kin[b, k, gp, 0], kin[b, k, gp, 1], kin[b, k, gp, 2])
+            vn = vec3(kin[b, k, gp, 3], kin[b, k, gp, 4], kin[b, k, gp, 5])
+        return ParticleState(x=xn, v=vn, C=new_C, F=Fn, d=dn)
 
     return g2p_particle
+
+
+@ti.func
+def _store_g2p(b, p, st, dp, with_vc, x: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(),
+               d: ti.template()):
+    """Write g2p's new state ``st`` of particle ``p`` of run ``b`` (its damage only if it changed from ``dp``;
+    its velocity and APIC matrix only ``with_vc``: the fused substep's scatter takes them from registers, and
+    only a run's last g2p of an ``advance`` leaves them for later reads and the next advance)."""
+    if st.d != dp:
+        d[b, p] = st.d
+    store_mat3(F, b, p, st.F)
+    x[b, p] = st.x
+    if with_vc:
+        store_mat3(C, b, p, st.C)
+        v[b, p] = st.v
 
 
 def _build_g2p(unrolled: bool, component_major: bool):
@@ -599,13 +621,15 @@ def _build_g2p(unrolled: bool, component_major: bool):
                     for a in ti.static(range(6)):
                         box[b, BOX_LAST, a] = box[b, BOX_NEXT, a]
                     _set_box(box, b, BOX_NEXT, G, -1)
-                g2p_particle(b, b, p, k, dt[b], inv_dx, G, l0sq, don, mat, body, grip, x0, kin, sid, x, v, C, F, d,
-                             dtil, gv, gd)
+                dp = d[b, p]
+                st = g2p_particle(b, b, p, k, dt[b], inv_dx, G, l0sq, don, mat, body, grip, x0, kin, sid, x, v, C,
+                                  F, d, dtil, gv, gd)
+                _store_g2p(b, p, st, dp, True, x, v, C, F, d)
 
     return g2p
 
 
-def _build_scatter(serial_p2g: bool, component_major: bool, fused: bool, unrolled: bool):
+def _build_scatter(serial_p2g: bool, component_major: bool, fused: bool, unrolled: bool, registers: bool):
     """The particle-to-grid kernels, ``p2g`` (atomic) and ``p2g_tiled`` (see ``TaichiBackend.p2g``), for particle
     matrices in either layout (``MATRIX_STATE``); ``serial_p2g`` makes the CPU's scatter order deterministic.
 
@@ -613,8 +637,13 @@ def _build_scatter(serial_p2g: bool, component_major: bool, fused: bool, unrolle
     (G2P2G): for each particle, substep ``k - 1``'s g2p (in form ``unrolled``), gathering from grid buffer
     ``(k - 1) & 1``, then substep ``k``'s scatter of the updated particle into buffer ``k & 1`` (box slot
     ``k % FUSED_SLOTS``; the grids are ``(2 B, G, G, G)``, buffer ``w`` of run ``b`` at ``w B + b``): one read and
-    one write of the particle state per substep instead of two. Both forms take the g2p's arguments too
-    (unused without ``fused``), so that a substep's stages name one argument list."""
+    one write of the particle state per substep instead of two. With ``registers`` the scatter takes the g2p's
+    new state from registers (and the velocity and APIC matrix are written only at a run's last g2p of an
+    advance); without, g2p writes it whole and the scatter reads it back, as the plain path's kernels do
+    (a GPU comparison; on the CPU the compiler forwards the stores either way). The fused path's results
+    agree with the plain path's to float rounding, not bit for bit: the same arithmetic, compiled in
+    another kernel with fast math, rounds differently (``tests/test_taichi_fused.py``). Both forms take the
+    g2p's arguments too (unused without ``fused``), so that a substep's stages name one argument list."""
     MND = matrix_nd(component_major)
     g2p_particle = _g2p_particle_func(unrolled)
 
@@ -623,13 +652,25 @@ def _build_scatter(serial_p2g: bool, component_major: bool, fused: bool, unrolle
                   mat: ti.template(), body: ti.template(), grip: ti.template(), x0: ti.template(), kin: ti.template(),
                   sid: ti.template(), x: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(),
                   d: ti.template(), dtil: ti.template(), gv: ti.template(), gd: ti.template(), box: ti.template()):
-        """Substep ``k - 1``'s g2p of particle ``p`` of run ``b`` (when the run had that substep); particle 0
-        empties box slot ``(k + 1) % FUSED_SLOTS``, whose buffer region ``fused_grid(k - 1)`` zeroed."""
+        """The state substep ``k``'s scatter takes of particle ``p`` of run ``b``: after substep ``k - 1``'s g2p
+        (when the run had that substep; written back by ``_store_g2p``, with ``registers`` the velocity and APIC
+        matrix only at the run's last g2p of the advance), else from the particle arrays (``k = 0``). Particle 0 empties box slot
+        ``(k + 1) % FUSED_SLOTS``, whose buffer region ``fused_grid(k - 1)`` zeroed."""
+        st = ParticleState(x=vec3(0.0), v=vec3(0.0), C=mat3(0.0), F=mat3(0.0), d=0.0)
         if k >= 1 and k - 1 < nsub[b]:
-            g2p_particle(b, b + ((k - 1) & 1) * x.shape[0], p, k - 1, dt[b], inv_dx, G, l0sq, don, mat, body, grip,
-                         x0, kin, sid, x, v, C, F, d, dtil, gv, gd)
+            dp = d[b, p]
+            st = g2p_particle(b, b + ((k - 1) & 1) * x.shape[0], p, k - 1, dt[b], inv_dx, G, l0sq, don, mat, body,
+                              grip, x0, kin, sid, x, v, C, F, d, dtil, gv, gd)
+            if ti.static(registers):
+                _store_g2p(b, p, st, dp, k >= nsub[b], x, v, C, F, d)
+            else:
+                _store_g2p(b, p, st, dp, True, x, v, C, F, d)
+                st = _load_state(b, p, x, v, C, F, d)
             if p == 0 and k >= 2:
                 _set_box(box, b, (k + 1) % FUSED_SLOTS, G, -1)
+        elif k < nsub[b]:
+            st = _load_state(b, p, x, v, C, F, d)
+        return st
 
     @ti.kernel
     def p2g(k: ti.i32, dx: ti.f32, apic: ti.f32, l0sq: ti.f32, ngrip: ti.i32, don: ND(ti.i32, 1), nsub: ND(ti.i32, 1),
@@ -642,24 +683,28 @@ def _build_scatter(serial_p2g: bool, component_major: bool, fused: bool, unrolle
         if ti.static(serial_p2g):
             ti.loop_config(serialize=True)
         for b, p in ti.ndrange(x.shape[0], x.shape[1]):
+            st = ParticleState(x=vec3(0.0), v=vec3(0.0), C=mat3(0.0), F=mat3(0.0), d=0.0)
             if ti.static(fused):
-                fused_g2p(b, p, k, inv_dx, G, l0sq, don, nsub, dt, mat, body, grip, x0, kin, sid, x, v, C, F, d, dtil,
-                          gv, gd, box)
+                st = fused_g2p(b, p, k, inv_dx, G, l0sq, don, nsub, dt, mat, body, grip, x0, kin, sid, x, v, C, F, d,
+                               dtil, gv, gd, box)
             if k < nsub[b]:
                 gb, wb = b, BOX_NEXT   # the grid run and box slot scattered into
                 if ti.static(fused):
                     gb, wb = b + (k & 1) * x.shape[0], k % FUSED_SLOTS
-                Xp = x[b, p] * inv_dx
+                else:
+                    st = _load_state(b, p, x, v, C, F, d)
+                Xp = st.x * inv_dx
                 base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
                 fx = Xp - ti.cast(base, ti.f32)
                 w = _weights(fx)
                 s = sid[b, p]
-                t = _p2g_terms(b, p, s, dt[b], inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil)
+                t = _p2g_terms(b, s, dt[b], inv_dx, apic, st, mat, body, fibre, vol)
+                dtil[b, p] = t.dtil
                 if ti.static(serial_p2g):
                     _grow_box(box, b, wb, base, base + 2)
                 elif p == 0:   # a run's particles all growing one box would contend for six addresses
                     _set_box(box, b, wb, 0, G - 1)
-                dp = d[b, p]
+                dp = st.d
                 gp = grip[s]
                 for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
                     off = ti.Vector([i, j, q])
@@ -691,10 +736,11 @@ def _build_scatter(serial_p2g: bool, component_major: bool, fused: bool, unrolle
             # lanes of a warp take particles TILE/32 apart, so that they rarely share a base cell: lanes
             # adding to the same shared address in one instruction would serialise
             p = (t // TILE) % ntile * TILE + (tid % 32) * (TILE // 32) + tid // 32
+            st = ParticleState(x=vec3(0.0), v=vec3(0.0), C=mat3(0.0), F=mat3(0.0), d=0.0)
             if ti.static(fused):
                 if p < N:
-                    fused_g2p(b, p, k, inv_dx, G, l0sq, don, nsub, dt, mat, body, grip, x0, kin, sid, x, v, C, F, d,
-                              dtil, gv, gd, box)
+                    st = fused_g2p(b, p, k, inv_dx, G, l0sq, don, nsub, dt, mat, body, grip, x0, kin, sid, x, v, C, F,
+                                   d, dtil, gv, gd, box)
             gb, wb = b, BOX_NEXT   # the grid run and box slot scattered into
             if ti.static(fused):
                 gb, wb = b + (k & 1) * x.shape[0], k % FUSED_SLOTS
@@ -720,20 +766,23 @@ def _build_scatter(serial_p2g: bool, component_major: bool, fused: bool, unrolle
             dp = 0.0
             s = 0
             if active:
-                Xp = x[b, p] * inv_dx
+                if ti.static(not fused):
+                    st = _load_state(b, p, x, v, C, F, d)
+                Xp = st.x * inv_dx
                 base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
                 fx = Xp - ti.cast(base, ti.f32)
                 for a in ti.static(range(3)):
                     ti.atomic_min(lo[a], base[a])
                     ti.atomic_max(hi[a], base[a] + 2)
                 s = sid[b, p]
-                tm = _p2g_terms(b, p, s, dt[b], inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil)
+                tm = _p2g_terms(b, s, dt[b], inv_dx, apic, st, mat, body, fibre, vol)
+                dtil[b, p] = tm.dtil
                 affine = tm.affine
                 mv = tm.mv
                 mass = tm.mass
                 ti.atomic_max(big[0], _momentum_bound_bits(mv, affine, dx))
                 ti.atomic_max(big[1], ti.bit_cast(ti.abs(mass), ti.i32))
-                dp = d[b, p]
+                dp = st.d
                 if not (dp >= 0.0 and dp <= 1.0):  # the damage sum's units need d in [0, 1] (NaN included)
                     big[2] = 1
             ti.simt.block.sync()
@@ -974,7 +1023,7 @@ class TaichiBackend:
     def __init__(self, scene, batch: int, arch: str = "cpu", allow_cpu_fallback: bool = False,
                  stats_partials: int | None = None, p2g: str = "atomic", particle_order: str | None = None,
                  g2p: str = "auto", resort_every: int | None = None, component_major: bool | None = None,
-                 fused: bool = False, **_: object):
+                 fused: bool = False, fused_registers: bool | None = None, **_: object):
         if p2g not in ("auto", "atomic", "tiled"):
             raise InvphysError(f"p2g must be 'auto', 'atomic' or 'tiled', got {p2g!r}")
         if g2p not in ("auto", "unrolled", "loop"):
@@ -1013,8 +1062,11 @@ class TaichiBackend:
         #: one G2P2G kernel and one grid kernel per substep on two grid buffers (``_build_scatter``,
         #: ``_build_fused_grid``) instead of clear, p2g, grid update and g2p on one grid
         self.fused = bool(fused)
+        #: the fused scatter takes g2p's new state from registers (``_build_scatter``; off: written and read back)
+        self.fused_registers = bool(self.fused and (fused_registers is None or fused_registers))
         unrolled = self.g2p == "unrolled"
-        scatter = _kernels(_build_scatter, serial, self.component_major, self.fused, unrolled and self.fused)
+        scatter = _kernels(_build_scatter, serial, self.component_major, self.fused, unrolled and self.fused,
+                           self.fused_registers)
         self._p2g = scatter[1] if p2g == "tiled" else scatter[0]
         self._clear, self._grid, fused_clear, fused_grid = _kernels(_build_grid_kernels, serial, int(o.grid))
         if self.fused:
