@@ -140,3 +140,15 @@ def test_parallel_cpu_scatter_fused_agrees_with_plain():
     _, want = _frames(False, scene)
     _, got = _frames(True, scene)
     _assert_close(got, want)
+
+
+def test_fused_advance_short_of_the_frame_is_refused():
+    """A fused advance ends with every run's last g2p; fewer substeps than a run's frame would leave it mid-way."""
+    from invphys.core.errors import InvphysError
+
+    backend = TaichiBackend(SCENE, 2, arch="cpu", fused=True)
+    backend.load(MODEL.table(), MODEL.friction)
+    backend.set_frame(np.full(2, 1e-4), np.array([4, 2]), np.zeros((2, 4, backend.nk1, 6)), damage_on=True)
+    with pytest.raises(InvphysError, match="short of the frame's 4 substeps"):
+        backend.advance(3)
+    backend.advance(4)

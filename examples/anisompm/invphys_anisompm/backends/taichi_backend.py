@@ -1081,7 +1081,8 @@ class TaichiBackend:
                          "ngrip1": (ti.i32, max(len(scene.grips), 1)), "gravity": (ti.f32, float(o.gravity)),
                          "bc": (ti.i32, int(o.boundary_cells)), "ngrip": (ti.i32, len(scene.grips)),
                          "ncol": (ti.i32, len(scene.colliders)), "l0sq": (ti.f32, float(o.l0_cells) ** 2)}
-        self._graphs: dict[int, object] = {}
+        self._graphs: dict[tuple, object] = {}
+        self._nsub_max = 0
         #: particle order on the device: the Hilbert order of the initial cells for the tiled scatter (tiles
         #: of consecutive particles stay compact; ``particle_order.py``), else the scene's; every read
         #: returns the scene's order
@@ -1212,6 +1213,7 @@ class TaichiBackend:
                                 * np.int32(self.options.damage))
         self._upload_if_changed("dt", dt.astype(np.float32))
         self.upload(self.nsub, nsub)
+        self._nsub_max = int(np.max(nsub, initial=0))
         B, K = kin.shape[:2]
         table = np.zeros((B, K, self.nk1, 6), np.float32)
         table[:, :, :kin.shape[2]] = kin
@@ -1305,6 +1307,9 @@ class TaichiBackend:
             self.resorter.count(n_steps)
         if n_steps <= 0:
             return
+        if self.fused and n_steps < self._nsub_max:   # its last g2p would leave runs mid-substep
+            raise InvphysError(f"the fused substep advances whole frames: advance({n_steps}) is short of the "
+                               f"frame's {self._nsub_max} substeps")
         stages = ("fused", "fgrid") if self.fused else None
         if self.fused:
             self._run_graph(1, 0, ("fclear",))
