@@ -478,9 +478,10 @@ def _clear_column(b, gb, w, i, q, ngrip, box: ti.template(), gv: ti.template(), 
 def _build_fused_grid(serial_p2g: bool, G: int, update_node):
     """The fused substep's grid kernels (``TaichiBackend``'s ``fused``; ``FUSED_SLOTS``): ``fused_clear``, once
     per ``advance`` before its first substep, zeroes both grid buffers of the runs with substeps within every
-    box slot and empties the slots; ``fused_grid(k)`` updates the nodes of substep ``k``'s scatter (buffer ``k & 1``, slot
-    ``k % FUSED_SLOTS``) and, in the same pass over columns, zeroes the other buffer (the grid the fused
-    kernel gathered from at ``k``) within its slot, when substep ``k + 1`` will scatter into it."""
+    box slot and empties the slots; ``fused_grid(k)`` updates the nodes of substep ``k``'s scatter (buffer
+    ``k & 1``, slot ``k % FUSED_SLOTS``) and, in the same pass over columns, zeroes the other buffer (the grid
+    the fused kernel gathered from at ``k``) within its slot, when substep ``k + 1`` will scatter into it (a
+    run's last grid stays until the next advance: ``grid_mass`` reads it)."""
 
     @ti.kernel
     def fused_clear(ngrip: ti.i32, nsub: ND(ti.i32, 1), box: ND(ti.i32, 3), gv: ND(vec3, 4), gm: ND(ti.f32, 4),
@@ -654,8 +655,9 @@ def _build_scatter(serial_p2g: bool, component_major: bool, fused: bool, unrolle
                   d: ti.template(), dtil: ti.template(), gv: ti.template(), gd: ti.template(), box: ti.template()):
         """The state substep ``k``'s scatter takes of particle ``p`` of run ``b``: after substep ``k - 1``'s g2p
         (when the run had that substep; written back by ``_store_g2p``, with ``registers`` the velocity and APIC
-        matrix only at the run's last g2p of the advance), else from the particle arrays (``k = 0``). Particle 0 empties box slot
-        ``(k + 1) % FUSED_SLOTS``, whose buffer region ``fused_grid(k - 1)`` zeroed."""
+        matrix only at the run's last g2p of the advance), else from the particle arrays (``k = 0``).
+        Particle 0 empties box slot ``(k + 1) % FUSED_SLOTS``, whose buffer region ``fused_grid(k - 1)``
+        zeroed."""
         st = ParticleState(x=vec3(0.0), v=vec3(0.0), C=mat3(0.0), F=mat3(0.0), d=0.0)
         if k >= 1 and k - 1 < nsub[b]:
             dp = d[b, p]
@@ -988,10 +990,11 @@ def _kernels(build, *config):
     return _KERNELS[key]
 
 
+#: the scatter's arguments (either form, plain or fused: ``_build_scatter``)
+_P2G_ARGS = ("k", "dx", "apic", "l0sq", "ngrip1", "don", "nsub", "dt", "mat", "body", "fibre", "vol", "grip", "x0",
+             "kin", "sid", "x", "v", "C", "F", "d", "dtil", "gv", "gm", "gd", "gg", "box")
 #: a substep's kernels in order and their arguments: ``k`` (the substep), a scalar of the backend's
 #: ``_scalars`` or one of its arrays
-_P2G_ARGS = ("k", "dx", "apic", "l0sq", "ngrip1", "don", "nsub", "dt", "mat", "body", "fibre", "vol", "grip", "x0", "kin",
-             "sid", "x", "v", "C", "F", "d", "dtil", "gv", "gm", "gd", "gg", "box")
 _STAGE_ARGS = {
     "clear": ("k", "ngrip1", "nsub", "box", "gv", "gm", "gd", "gg"),
     "p2g": _P2G_ARGS,
