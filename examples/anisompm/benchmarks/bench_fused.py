@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import json
 import sys
 import time
 import traceback
@@ -40,7 +41,7 @@ for p in (ROOT, ROOT / "examples" / "orange_peel", ROOT / "examples" / "anisompm
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 
-from _machine import emit, simulator_device  # noqa: E402
+from _machine import emit, provenance, simulator_device  # noqa: E402
 from bench_tiled_p2g import PAPER_SECONDS_PER_RUN, feature_agreement, set_perturbed_state  # noqa: E402
 
 #: the ways a substep can go: plain kernels, fused with g2p's state in registers (the default), fused with it
@@ -63,6 +64,13 @@ def _args(argv: list[str] | None) -> argparse.Namespace:
                    help="wall seconds for the whole script: a pass starts only if it should end within them")
     p.add_argument("--out", type=Path, default=None)
     return p.parse_args(argv)
+
+
+def _save(out: dict, path: Path | None) -> None:
+    """Write the result so far (``partial``): a device fault that ends the process keeps what was measured."""
+    if path:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps({**provenance(), **out, "partial": True}, indent=1) + "\n")
 
 
 def _parity_state(sim, params: np.ndarray, steps: int) -> dict[str, np.ndarray]:
@@ -130,6 +138,7 @@ def _run_passes(sims: dict, params: np.ndarray, ex, a, t_start: float, out: dict
                                "x_paper_156s": PAPER_SECONDS_PER_RUN * len(params) / wall,
                                "failed": int((~np.all(np.isfinite(feats[name]), axis=1)).sum())}
         print(name, f"{wall / len(params):.4f} s/run", flush=True)
+        _save(out, a.out)
     return feats
 
 
@@ -178,10 +187,13 @@ def _device_checks(sims: dict, params: np.ndarray, a, out: dict) -> None:
     states = {}
     for way in list(sims):
         try:
+            out["errors"][way] = "started (a fault ended the process here)"
+            _save(out, a.out)
             states[way] = _parity_state(sims[way], params[:B], a.parity_steps)
             if way == "plain":
                 states["plain_again"] = _parity_state(sims[way], params[:B], a.parity_steps)
             out["kernel_seconds_per_launch"][way] = _kernel_profile(sims[way], B)
+            del out["errors"][way]
         except Exception:
             out["errors"][way] = traceback.format_exc()[-3000:]
             sims.pop(way)

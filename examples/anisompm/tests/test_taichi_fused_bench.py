@@ -41,6 +41,7 @@ def test_bench_fused_runs_on_the_cpu_and_writes_its_result(tmp_path):
         assert all(parity[f"{way}_vs_plain"][k] <= 1e-4 * scale[k] for k in scale)
         assert rec["feature_agreement"][f"{way}_vs_plain"]["median_rel_diff_all"] <= 1e-3
     assert set(rec["runs_speedup_vs_plain"]) == {"fused", "fused_stored"}
+    assert "partial" not in rec      # the last write is the whole result
 
 
 class _SlowSim:
@@ -64,7 +65,7 @@ def test_passes_stop_when_the_next_would_overrun_the_budget():
     sims = {"plain": _SlowSim(0.3), "fused": _SlowSim(0.3)}   # plain first, as _build orders them
     out: dict = {"passes": {}}
     ex = SimpleNamespace(feature_names=["a"])
-    feats = bench._run_passes(sims, np.zeros((4, 9)), ex, SimpleNamespace(budget_s=0.5), time.perf_counter(), out)
+    feats = bench._run_passes(sims, np.zeros((4, 9)), ex, SimpleNamespace(budget_s=0.5, out=None), time.perf_counter(), out)
     assert list(feats) == ["plain"]                 # 0.3 s spent: no other 0.3 s pass fits in the 0.5 s
     assert "seconds_per_run" in out["passes"]["plain"]
     assert all("skipped" in out["passes"][n] for n in ("fused", "plain_again", "fused_again"))
