@@ -2,19 +2,21 @@
 
 After every batch, the bundle's surrogate ``f`` is corrected by the real residuals ``r_j = y_j - f(theta_j)``
 of the points whose features are known for this target (its simulated runs, its known starts and the
-stored training rows nearest the search centre), kernel-weighted in parameter space (output space
-mapping)::
+stored training rows nearest the search centre ``c``), kernel-weighted in parameter space (output space
+mapping): by default a weighted ridge fit of a local linear model around the centre::
 
-    f_c(theta) = f(theta) + sum_j w_j r_j / (prior + sum_j w_j),   w_j = exp(-|theta - theta_j|^2 / (2 h^2))
+    f_c(theta) = f(theta) + a + B (theta - c) / h,   weights w_j = exp(-|theta_j - c|^2 / (2 h^2))
 
-with the bandwidth ``h`` adaptive to the spread of the points near the centre (never below the trust
-radius), so far from every run ``f_c`` falls back to ``f``. The next batch minimises ``f_c``'s misfit to
-the target (the recovery score) around the best simulated point, at several trust radii (uniform
-draws in each box, then draws around the best of them: thousands of batched surrogate evaluations on
-the CPU), picked greedily best-first with a minimum spacing, plus a few Gaussian (CMA-ES-like)
-perturbations for diversity. The trust radius grows after a batch that improved the best simulated
-score and shrinks after one that did not (and restarts at its first value when it falls below its
-floor). The answer stays the best SIMULATED point (:func:`~invphys.evaluators.stream_refine.stream_refine`
+(``prior``: the weight of a zero offset, ``ridge``: of zero slopes: with few points near the centre the
+correction shrinks to nothing), or (``linear=False``) the local constant ``f(theta) + sum_j w_j(theta) r_j /
+(prior + sum_j w_j(theta))``. The bandwidth ``h`` adapts to the spread of the points near the centre (never
+below the trust radius). The next batch minimises ``f_c``'s misfit to the target (the recovery score)
+around the best simulated point, at several trust radii (uniform draws in each box, then draws around the
+best of them: thousands of batched surrogate evaluations on the CPU), picked greedily best-first with a
+minimum spacing, a point around the best known point in another basin (``second``), and a few Gaussian
+(CMA-ES-like) perturbations for diversity. The trust radius grows after a batch that improved the best
+simulated score and shrinks after one that did not (and restarts at its first value when it falls below
+its floor). The answer stays the best SIMULATED point (:func:`~invphys.evaluators.stream_refine.stream_refine`
 keeps it), so it is never worse than the best start.
 
 Everything a search draws comes from its own generator seeded by the target, and it only sees its own
@@ -47,6 +49,8 @@ class CorrectedSettings:
     shrink: float = 0.5
     linear: bool = True    # the residual as a local linear model around the centre (else a local constant)
     ridge: float = 0.2     # the linear model's ridge (pseudo-weight on slopes per bandwidth)
+    second: int = 1        # points per batch around the best known point at least second_gap from the centre
+    second_gap: float = 0.15
     correct: bool = True   # False: the plain surrogate (for comparisons; the strategy without its point)
 
 
@@ -65,7 +69,7 @@ def corrected_settings(options: dict[str, Any]) -> CorrectedSettings:
         s = CorrectedSettings(**given)
         ok = (int(s.popsize) >= 1 and 0 < s.radius_min <= s.radius0 <= s.radius_max <= 1 and len(s.scales) >= 1
               and all(x > 0 for x in s.scales) and int(s.evals) >= 1 and int(s.perturb) >= 0
-              and int(s.neighbours) >= 0 and s.prior > 0 and s.grow >= 1 and 0 < s.shrink < 1)
+              and int(s.neighbours) >= 0 and int(s.second) >= 0 and s.second_gap > 0 and s.prior > 0 and s.grow >= 1 and 0 < s.shrink < 1)
     except (TypeError, ValueError):
         ok = False
     if not ok:
@@ -148,21 +152,38 @@ class CorrectedSearch:
         centre = np.asarray(self.t.theta, float)
         th, res = self._data(centre)
         h = self._bandwidth(th, centre)
-        pool, fit = self._candidates(centre, th, res, h)
+        pool, fit = self._candidates(centre, th, res, h, self.radius)
         n_pert = min(self.s.perturb, q - 1) if q > 1 else 0
-        chosen = _spread(pool, fit, q - n_pert, max(1e-4, 0.1 * self.radius), th)
+        other = self._second_centre(centre)
+        n_second = 0 if other is None else max(0, min(self.s.second, q - n_pert - 1))
+        gap = max(1e-4, 0.1 * self.radius)
+        chosen = _spread(pool, fit, q - n_pert - n_second, gap, th)
+        if n_second and other is not None:   # a few points in the best other basin known
+            th2, res2 = self._data(other)
+            pool2, fit2 = self._candidates(other, th2, res2, self._bandwidth(th2, other), self.s.radius0)
+            chosen += _spread(pool2, fit2, n_second, gap, np.vstack([th2, *chosen]) if chosen else th2)
         while len(chosen) < q:   # CMA-ES-like perturbations of the centre (and fill-ups)
             chosen.append(np.clip(centre + 0.5 * self.radius * self.rng.standard_normal(self.d), 0.0, 1.0))
         return np.array(chosen[:q])
 
-    def _candidates(self, centre: np.ndarray, th: np.ndarray, res: np.ndarray, h: float
+    def _second_centre(self, centre: np.ndarray) -> np.ndarray | None:
+        """The best known point at least ``second_gap`` from ``centre`` (None: no such point, or ``second`` 0)."""
+        if not self.s.second:
+            return None
+        best, out = -np.inf, None
+        for theta, score, _y in self.t.points:
+            if np.isfinite(score) and score > best and np.sqrt(((theta - centre) ** 2).sum()) >= self.s.second_gap:
+                best, out = score, theta
+        return None if out is None else np.asarray(out, float)
+
+    def _candidates(self, centre: np.ndarray, th: np.ndarray, res: np.ndarray, h: float, radius: float
                     ) -> tuple[np.ndarray, np.ndarray]:
         """Points around ``centre`` at every trust radius (uniform in the box, then around the best
         uniform ones) and their corrected fit, best first."""
         per = max(8, self.s.evals // (2 * len(self.s.scales)))
         xs, fits = [], []
         for scale in self.s.scales:
-            r = min(scale * self.radius, 0.5)
+            r = min(scale * radius, 0.5)
             u = np.clip(centre + r * (2.0 * self.rng.random((per, self.d)) - 1.0), 0.0, 1.0)
             fu = self._fit(self.corrected(u, th, res, h, centre))
             top = u[np.argsort(-fu, kind="stable")[:8]]
