@@ -7,7 +7,7 @@ does the same sums in the same order; compiled into other kernels (fast math) it
 differently, so it must give the plain path's state to float rounding (worst ~3e-5 of an array's scale
 after four frames; a substep's kinematics or grid buffer mixed up is far more): over frames whose substep
 counts differ per run and change parity (the buffers' and box slots' cycles), with damage evolving, both
-g2p forms, re-sorted particles, the g2p state in registers or written back, and slots refilled by
+g2p forms, CUDA's matrix layout, re-sorted particles, the g2p state in registers or written back, and slots refilled by
 continuous batching. The tiled (CUDA) form is checked on a GPU by
 ``examples/anisompm/benchmarks/bench_fused.py``.
 """
@@ -67,9 +67,9 @@ def _frames(fused: bool, scene=SCENE, **options) -> tuple[TaichiBackend, dict[st
     return backend, out
 
 
-@pytest.mark.parametrize("options", [{}, {"g2p": "loop"}, {"particle_order": "hilbert", "resort_every": 8},
-                                     {"fused_registers": False}],
-                         ids=["unrolled", "loop", "resorted", "written-back"])
+@pytest.mark.parametrize("options", [{}, {"g2p": "loop", "component_major": True},
+                                     {"particle_order": "hilbert", "resort_every": 8}, {"fused_registers": False}],
+                         ids=["unrolled", "loop-cuda-layout", "resorted", "written-back"])
 def test_fused_substeps_agree_with_the_plain_path(options):
     _, want = _frames(False, **{k: v for k, v in options.items() if k != "fused_registers"})
     fused, got = _frames(True, **options)

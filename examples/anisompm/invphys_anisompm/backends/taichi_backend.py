@@ -183,7 +183,8 @@ def _collider_normal(kind: ti.i32, a: vec3, bb: vec3, p: vec3):
     return inside, n
 
 
-P2GTerms = ti.types.struct(affine=mat3, mv=vec3, mass=ti.f32, dtil=ti.f32)
+P2GTerms = ti.types.struct(affine=mat3, mv=vec3, mass=ti.f32)
+StressTerms = ti.types.struct(tau=mat3, dtil=ti.f32, reg=ti.i32)
 #: one particle's state as g2p leaves it and the scatter reads it
 ParticleState = ti.types.struct(x=vec3, v=vec3, C=mat3, F=mat3, d=ti.f32)
 
@@ -195,16 +196,13 @@ def _load_state(b, p, x: ti.template(), v: ti.template(), C: ti.template(), F: t
 
 
 @ti.func
-def _p2g_terms(b, s, h, inv_dx, apic, st, mat: ti.template(), body: ti.template(), fibre: ti.template(),
-               vol: ti.template()) -> P2GTerms:
-    """A particle of run ``b`` in state ``st`` (scene particle ``s``, whose constants ``body``, ``fibre``, ``vol``
-    it reads): its APIC affine matrix (stress included), momentum and mass, as both scatters add them to its
-    27 nodes, and its crack driving force ``dtil``."""
-    Fp = st.F
+def _stress_terms(b, s, Fp, dp, mat: ti.template(), body: ti.template(), fibre: ti.template()) -> StressTerms:
+    """A particle of run ``b`` with deformation gradient ``Fp`` and damage ``dp`` (scene particle ``s``, whose
+    constants ``body`` and ``fibre`` it reads): its Kirchhoff stress (degraded fixed-corotated + fibre) and its
+    crack driving force ``dtil``."""
     U, sig, V = ti.svd(Fp)
     J = sig[0, 0] * sig[1, 1] * sig[2, 2]
     reg = body[s]
-    dp = st.d
     mu = mat[b, reg, M_MU]
     lam = mat[b, reg, M_LAM]
     res = mat[b, reg, M_RES]
@@ -234,10 +232,34 @@ def _p2g_terms(b, s, h, inv_dx, apic, st, mat: ti.template(), body: ti.template(
     M = A @ sigp
     sc = mat[b, reg, M_SC]
     phi = (M * M.transpose()).sum() / (sc * sc)
+    return StressTerms(tau=tau, dtil=ti.max(phi - 1.0, 0.0), reg=reg)
+
+
+@ti.func
+def _p2g_terms(b, p, s, h, inv_dx, apic, mat: ti.template(), body: ti.template(), fibre: ti.template(),
+               vol: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(), d: ti.template(),
+               dtil: ti.template()) -> P2GTerms:
+    """Particle ``p`` of run ``b`` (scene particle ``s``, whose constants ``body``, ``fibre``, ``vol`` it
+    reads): its APIC affine matrix (stress included), momentum and mass, as both scatters add them to its
+    27 nodes; writes its crack driving force ``dtil``."""
+    sd = _stress_terms(b, s, load_mat3(F, b, p), d[b, p], mat, body, fibre)
+    dtil[b, p] = sd.dtil
     vp_ = vol[s]
-    mass = mat[b, reg, M_RHO] * vp_
-    affine = (-h * vp_ * 4.0 * inv_dx * inv_dx) * tau + (mass * apic) * st.C
-    return P2GTerms(affine=affine, mv=mass * st.v, mass=mass, dtil=ti.max(phi - 1.0, 0.0))
+    mass = mat[b, sd.reg, M_RHO] * vp_
+    affine = (-h * vp_ * 4.0 * inv_dx * inv_dx) * sd.tau + (mass * apic) * load_mat3(C, b, p)
+    return P2GTerms(affine=affine, mv=mass * v[b, p], mass=mass)
+
+
+@ti.func
+def _p2g_terms_of(b, p, s, h, inv_dx, apic, st, mat: ti.template(), body: ti.template(), fibre: ti.template(),
+                  vol: ti.template(), dtil: ti.template()) -> P2GTerms:
+    """``_p2g_terms`` of a particle in state ``st`` (``ParticleState``: the fused substep's g2p result)."""
+    sd = _stress_terms(b, s, st.F, st.d, mat, body, fibre)
+    dtil[b, p] = sd.dtil
+    vp_ = vol[s]
+    mass = mat[b, sd.reg, M_RHO] * vp_
+    affine = (-h * vp_ * 4.0 * inv_dx * inv_dx) * sd.tau + (mass * apic) * st.C
+    return P2GTerms(affine=affine, mv=mass * st.v, mass=mass)
 
 
 @ti.func
@@ -648,6 +670,27 @@ def _build_scatter(serial_p2g: bool, component_major: bool, fused: bool, unrolle
     MND = matrix_nd(component_major)
     g2p_particle = _g2p_particle_func(unrolled)
 
+    # what the scatter reads of a particle: the fused substep's g2p state ``st``, or (plain) the particle arrays,
+    # read where the plain kernels always read them
+    @ti.func
+    def position(b, p, st, x: ti.template()):
+        return st.x if ti.static(fused) else x[b, p]
+
+    @ti.func
+    def damage(b, p, st, d: ti.template()):
+        return st.d if ti.static(fused) else d[b, p]
+
+    @ti.func
+    def terms(b, p, s, h, inv_dx, apic, st, mat: ti.template(), body: ti.template(), fibre: ti.template(),
+              vol: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(), d: ti.template(),
+              dtil: ti.template()) -> P2GTerms:
+        t = P2GTerms(affine=mat3(0.0), mv=vec3(0.0), mass=0.0)
+        if ti.static(fused):
+            t = _p2g_terms_of(b, p, s, h, inv_dx, apic, st, mat, body, fibre, vol, dtil)
+        else:
+            t = _p2g_terms(b, p, s, h, inv_dx, apic, mat, body, fibre, vol, v, C, F, d, dtil)
+        return t
+
     @ti.func
     def fused_g2p(b, p, k, inv_dx, G, l0sq, don: ti.template(), nsub: ti.template(), dt: ti.template(),
                   mat: ti.template(), body: ti.template(), grip: ti.template(), x0: ti.template(), kin: ti.template(),
@@ -693,20 +736,17 @@ def _build_scatter(serial_p2g: bool, component_major: bool, fused: bool, unrolle
                 gb, wb = b, BOX_NEXT   # the grid run and box slot scattered into
                 if ti.static(fused):
                     gb, wb = b + (k & 1) * x.shape[0], k % FUSED_SLOTS
-                else:
-                    st = _load_state(b, p, x, v, C, F, d)
-                Xp = st.x * inv_dx
+                Xp = position(b, p, st, x) * inv_dx
                 base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
                 fx = Xp - ti.cast(base, ti.f32)
                 w = _weights(fx)
                 s = sid[b, p]
-                t = _p2g_terms(b, s, dt[b], inv_dx, apic, st, mat, body, fibre, vol)
-                dtil[b, p] = t.dtil
+                t = terms(b, p, s, dt[b], inv_dx, apic, st, mat, body, fibre, vol, v, C, F, d, dtil)
                 if ti.static(serial_p2g):
                     _grow_box(box, b, wb, base, base + 2)
                 elif p == 0:   # a run's particles all growing one box would contend for six addresses
                     _set_box(box, b, wb, 0, G - 1)
-                dp = st.d
+                dp = damage(b, p, st, d)
                 gp = grip[s]
                 for i, j, q in ti.static(ti.ndrange(3, 3, 3)):
                     off = ti.Vector([i, j, q])
@@ -768,23 +808,20 @@ def _build_scatter(serial_p2g: bool, component_major: bool, fused: bool, unrolle
             dp = 0.0
             s = 0
             if active:
-                if ti.static(not fused):
-                    st = _load_state(b, p, x, v, C, F, d)
-                Xp = st.x * inv_dx
+                Xp = position(b, p, st, x) * inv_dx
                 base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
                 fx = Xp - ti.cast(base, ti.f32)
                 for a in ti.static(range(3)):
                     ti.atomic_min(lo[a], base[a])
                     ti.atomic_max(hi[a], base[a] + 2)
                 s = sid[b, p]
-                tm = _p2g_terms(b, s, dt[b], inv_dx, apic, st, mat, body, fibre, vol)
-                dtil[b, p] = tm.dtil
+                tm = terms(b, p, s, dt[b], inv_dx, apic, st, mat, body, fibre, vol, v, C, F, d, dtil)
                 affine = tm.affine
                 mv = tm.mv
                 mass = tm.mass
                 ti.atomic_max(big[0], _momentum_bound_bits(mv, affine, dx))
                 ti.atomic_max(big[1], ti.bit_cast(ti.abs(mass), ti.i32))
-                dp = st.d
+                dp = damage(b, p, st, d)
                 if not (dp >= 0.0 and dp <= 1.0):  # the damage sum's units need d in [0, 1] (NaN included)
                     big[2] = 1
             ti.simt.block.sync()
