@@ -556,9 +556,10 @@ def _build_fused_grid(serial_p2g: bool, G: int, update_node):
     return fused_clear, fused_grid
 
 
-def _g2p_particle_func(unrolled: bool):
+def _g2p_particle_func(unrolled: bool, store: bool):
     """The grid-to-particle update of one particle in one of its forms (see ``TaichiBackend.g2p``): a Taichi
-    function shared by the g2p kernel and the fused substep (``_build_scatter``)."""
+    function shared by the g2p kernel (``store``: it writes the particle's new state as it goes, in the order
+    the g2p kernel always has) and the fused substep (``_build_scatter``: it returns the new state)."""
 
     @ti.func
     def g2p_particle(b, gb, p, k, h, inv_dx, G, l0sq, don: ti.template(), mat: ti.template(), body: ti.template(),
@@ -566,9 +567,9 @@ def _g2p_particle_func(unrolled: bool):
                      v: ti.template(), C: ti.template(), F: ti.template(), d: ti.template(), dtil: ti.template(),
                      gv: ti.template(), gd: ti.template()):
         """Particle ``p`` of run ``b`` at substep ``k`` (step ``h``), gathering from grid run ``gb``: its new state
-        (``ParticleState``; ``_store_g2p`` writes it)."""
+        (``ParticleState``; without ``store``, ``_store_g2p`` writes it)."""
         xp = x[b, p]
-        Xp = xp * inv_dx
+        Xp = xp * inv_dx   # (the g2p kernel's x[b, p] += h * v reads it again: the same value)
         base = ti.math.clamp(ti.cast(Xp - 0.5, ti.i32), 0, G - 3)
         fx = Xp - ti.cast(base, ti.f32)
         w = _weights(fx)
@@ -593,19 +594,36 @@ def _g2p_particle_func(unrolled: bool):
                                   hs[q], gv, gd, new_v, new_C, lap)
         s = sid[b, p]
         reg = body[s]
-        dn = dp
-        if don[b] != 0 and mat[b, reg, M_DMG] > 0.5:
-            Dc = dp - l0sq * lap
-            rate = (1.0 - dp) * dtil[b, p] - Dc
-            dn = ti.min(1.0, dp + h / mat[b, reg, M_ETA] * ti.max(rate, 0.0))
-        Fn = (ti.Matrix.identity(ti.f32, 3) + h * new_C) @ load_mat3(F, b, p)
-        gp = grip[s]
-        xn = xp + h * new_v
-        vn = new_v
-        if gp >= 0:
-            xn = x0[s] + vec3(kin[b, k, gp, 0], kin[b, k, gp, 1], kin[b, k, gp, 2])
-            vn = vec3(kin[b, k, gp, 3], kin[b, k, gp, 4], kin[b, k, gp, 5])
-        return ParticleState(x=xn, v=vn, C=new_C, F=Fn, d=dn)
+        out = ParticleState(x=vec3(0.0), v=vec3(0.0), C=mat3(0.0), F=mat3(0.0), d=0.0)
+        if ti.static(store):
+            if don[b] != 0 and mat[b, reg, M_DMG] > 0.5:
+                Dc = dp - l0sq * lap
+                rate = (1.0 - dp) * dtil[b, p] - Dc
+                d[b, p] = ti.min(1.0, dp + h / mat[b, reg, M_ETA] * ti.max(rate, 0.0))
+            store_mat3(F, b, p, (ti.Matrix.identity(ti.f32, 3) + h * new_C) @ load_mat3(F, b, p))
+            store_mat3(C, b, p, new_C)
+            gp = grip[s]
+            if gp >= 0:
+                x[b, p] = x0[s] + vec3(kin[b, k, gp, 0], kin[b, k, gp, 1], kin[b, k, gp, 2])
+                v[b, p] = vec3(kin[b, k, gp, 3], kin[b, k, gp, 4], kin[b, k, gp, 5])
+            else:
+                v[b, p] = new_v
+                x[b, p] += h * new_v
+        else:
+            dn = dp
+            if don[b] != 0 and mat[b, reg, M_DMG] > 0.5:
+                Dc = dp - l0sq * lap
+                rate = (1.0 - dp) * dtil[b, p] - Dc
+                dn = ti.min(1.0, dp + h / mat[b, reg, M_ETA] * ti.max(rate, 0.0))
+            Fn = (ti.Matrix.identity(ti.f32, 3) + h * new_C) @ load_mat3(F, b, p)
+            gp = grip[s]
+            xn = xp + h * new_v
+            vn = new_v
+            if gp >= 0:
+                xn = x0[s] + vec3(kin[b, k, gp, 0], kin[b, k, gp, 1], kin[b, k, gp, 2])
+                vn = vec3(kin[b, k, gp, 3], kin[b, k, gp, 4], kin[b, k, gp, 5])
+            out = ParticleState(x=xn, v=vn, C=new_C, F=Fn, d=dn)
+        return out
 
     return g2p_particle
 
@@ -629,7 +647,7 @@ def _build_g2p(unrolled: bool, component_major: bool):
     """The grid-to-particle kernel in one of its forms (see ``TaichiBackend.g2p``), for particle matrices in
     either layout (``MATRIX_STATE``)."""
     MND = matrix_nd(component_major)
-    g2p_particle = _g2p_particle_func(unrolled)
+    g2p_particle = _g2p_particle_func(unrolled, True)
 
     @ti.kernel
     def g2p(k: ti.i32, dx: ti.f32, l0sq: ti.f32, don: ND(ti.i32, 1), nsub: ND(ti.i32, 1), dt: ND(ti.f32, 1),
@@ -644,10 +662,8 @@ def _build_g2p(unrolled: bool, component_major: bool):
                     for a in ti.static(range(6)):
                         box[b, BOX_LAST, a] = box[b, BOX_NEXT, a]
                     _set_box(box, b, BOX_NEXT, G, -1)
-                dp = d[b, p]
-                st = g2p_particle(b, b, p, k, dt[b], inv_dx, G, l0sq, don, mat, body, grip, x0, kin, sid, x, v, C,
-                                  F, d, dtil, gv, gd)
-                _store_g2p(b, p, st, dp, True, x, v, C, F, d)
+                g2p_particle(b, b, p, k, dt[b], inv_dx, G, l0sq, don, mat, body, grip, x0, kin, sid, x, v, C, F, d,
+                             dtil, gv, gd)
 
     return g2p
 
@@ -668,7 +684,7 @@ def _build_scatter(serial_p2g: bool, component_major: bool, fused: bool, unrolle
     another kernel with fast math, rounds differently (``tests/test_taichi_fused.py``). Both forms take the
     g2p's arguments too (unused without ``fused``), so that a substep's stages name one argument list."""
     MND = matrix_nd(component_major)
-    g2p_particle = _g2p_particle_func(unrolled)
+    g2p_particle = _g2p_particle_func(unrolled, False)
 
     # what the scatter reads of a particle: the fused substep's g2p state ``st``, or (plain) the particle arrays,
     # read where the plain kernels always read them
