@@ -1138,6 +1138,8 @@ class TaichiBackend:
                          "bc": (ti.i32, int(o.boundary_cells)), "ngrip": (ti.i32, len(scene.grips)),
                          "ncol": (ti.i32, len(scene.colliders)), "l0sq": (ti.f32, float(o.l0_cells) ** 2)}
         self._graphs: dict[tuple, object] = {}
+        self._bound: dict[tuple[str, ...], tuple[tuple[str, ...], bool]] = {}
+        self._plain_stages = tuple(self._stage_args)
         self._nsub_max = 0
         #: particle order on the device: the Hilbert order of the initial cells for the tiled scatter (tiles
         #: of consecutive particles stay compact; ``particle_order.py``), else the scene's; every read
@@ -1346,11 +1348,20 @@ class TaichiBackend:
             graph = self._graphs[(steps, stages)] = builder.compile()
         return graph
 
+    def _bound_args(self, stages: tuple[str, ...]) -> tuple[tuple[str, ...], bool]:
+        """The arguments but ``k`` that a graph of ``stages`` binds, each once, and whether it takes ``k``
+        (computed once per stages: a graph launch binds one precomputed tuple of names)."""
+        bound = self._bound.get(stages)
+        if bound is None:
+            names = [n for st in stages for n in self._stage_args[st]]
+            bound = self._bound[stages] = (tuple(dict.fromkeys(n for n in names if n != "k")), "k" in names)
+        return bound
+
     def _run_graph(self, steps: int, k0: int, stages: tuple[str, ...] | None = None) -> None:
-        stages = stages or tuple(self._stage_args)
-        bound = dict.fromkeys(n for st in stages for n in self._stage_args[st] if n != "k")
-        values = {n: self._stage_value(n, k0) for n in bound}
-        if any("k" in self._stage_args[st] for st in stages):
+        stages = stages or self._plain_stages
+        names, takes_k = self._bound_args(stages)
+        values = {n: self._stage_value(n, k0) for n in names}
+        if takes_k:
             values.update({f"k{s}": k0 + s for s in range(steps)})
         self._substep_graph(steps, stages).run(values)
 
