@@ -122,7 +122,8 @@ def test_cma_is_the_sim_refine_search(toy, first) -> None:
     sim = inv.simulator()
     bench.refine_all(sim, inv.extractor(sim), ours, masked_score(inv), 5)
     results = inv.invert_many(y, top_k=STARTS, seed=0)
-    recs = refine(inv, results, BUDGET, popsize=Q, sigma0=0.012, batch_size=5, seed=0, simulator=sim)
+    recs = refine(inv, results, BUDGET, popsize=Q, sigma0=0.012, batch_size=5, seed=0, simulator=sim,
+                  strategy="cma")
     assert [r["runs"] for r in recs] == [s.runs for s in ours] == [BUDGET] * len(y)
     assert [r["r_actual"] for r in recs] == [s.best_after(BUDGET) for s in ours]
     assert [r.candidates[0].theta.tobytes() for r in results] == [s.t.theta.tobytes() for s in ours]

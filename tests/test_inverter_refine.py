@@ -99,7 +99,7 @@ def test_a_target_gets_its_answer_whatever_shares_its_stream(inv) -> None:
 
 
 def test_a_budget_below_the_starts_simulates_the_first_starts_only(inv) -> None:
-    res, recs = _answers(inv, n=2, budget=2)
+    res, recs = _answers(inv, n=2, budget=2, known_starts=0)
     for r, rec in zip(res, recs, strict=True):
         assert rec["runs"] == 2 and not rec["improved"] and r.candidates[2].r_actual is None
     with pytest.raises(InvphysError, match="refine budget"):

@@ -48,35 +48,28 @@ def invert(
                                   help="rows per simulator call for --validate and --polish (on a GPU: 64-200)"),
     polish: int | None = typer.Option(None, "--polish", help="CMA-ES on the simulator from each validated answer: "
                                       "N new simulator runs per target (implies --validate)"),
-    polish_below: float | None = typer.Option(None, "--polish-below",
-                                              help="polish only targets whose R_actual is below R (default 1)"),
-    polish_sigma: float | None = typer.Option(None, "--polish-sigma",
-                                              help="polish step in the normalised [0, 1] cube (default 0.012)"),
+    polish_below: float | None = typer.Option(None, "--polish-below", help="only targets with R_actual below R"),
+    polish_sigma: float | None = typer.Option(None, "--polish-sigma", help="step in the [0, 1] cube (default 0.012)"),
     polish_popsize: int | None = typer.Option(None, "--polish-popsize", help="points per generation (default 8)"),
-    polish_log: Path | None = typer.Option(None, "--polish-log",
-                                           help="log of the polish's runs: a stopped polish resumes from it"),
+    polish_log: Path | None = typer.Option(None, "--polish-log", help="log of the runs: a stopped polish resumes"),
     polish_confirm: int | None = typer.Option(
         None, "--polish-confirm", help="re-simulate each target's best candidates K times after the polish and "
         "answer with the best mean R (the polish's R is a best-of-N run; default 0: off)"),
     polish_confirm_candidates: int | None = typer.Option(
         None, "--polish-confirm-candidates", help="candidates per target that --polish-confirm re-simulates "
         "(default 4; cost: candidates x K runs per target)"),
-    sim_refine: int | None = typer.Option(
-        None, "--sim-refine", help="refine each answer on the simulator with N runs per target (its top "
-        "candidates, then CMA-ES from the best), all targets in one continuous-batching stream"),
+    sim_refine: int | None = typer.Option(None, "--sim-refine", help="refine each answer on the simulator with N "
+                                          "runs per target, all targets in one continuous-batching stream"),
     sim_refine_starts: int = typer.Option(4, "--sim-refine-starts", min=1,
                                           help="candidates per target that --sim-refine starts from (default 4)"),
-    sim_refine_popsize: int | None = typer.Option(None, "--sim-refine-popsize",
-                                                  help="--sim-refine: points per generation (default 8)"),
-    sim_refine_sigma: float | None = typer.Option(None, "--sim-refine-sigma",
-                                                  help="--sim-refine: step in the [0, 1] cube (default 0.012)"),
-    sim_refine_log: Path | None = typer.Option(None, "--sim-refine-log",
-                                               help="log of --sim-refine's runs: a stopped refine resumes from it"),
-    sim_refine_workers: int | None = typer.Option(None, "--sim-refine-workers", help="--sim-refine: extract features in N "
-                                                  "processes while the simulator goes on (default 0: here; GPU: 4)"),
+    sim_refine_popsize: int | None = typer.Option(None, "--sim-refine-popsize", help="points per batch (default 8)"),
+    sim_refine_sigma: float | None = typer.Option(None, "--sim-refine-sigma", help="cma step (default 0.012)"),
+    sim_refine_log: Path | None = typer.Option(None, "--sim-refine-log", help="log of the runs: a re-run resumes"),
+    sim_refine_workers: int | None = typer.Option(None, "--sim-refine-workers", help="feature extraction processes "
+                                                  "(default 0: in this one; GPU: 4)"),
     sim_refine_strategy: str | None = typer.Option(
-        None, "--sim-refine-strategy", help="--sim-refine search: cma (CMA-ES from the best start; default) or "
-        "corrected (the surrogate corrected by the target's own runs, in a trust region)"),
+        None, "--sim-refine-strategy", help="--sim-refine search: corrected (the surrogate corrected by the target's "
+        "own runs, in a trust region; default) or cma (CMA-ES from the best start)"),
     sim_refine_known: int | None = typer.Option(
         None, "--sim-refine-known", help="--sim-refine: the K stored training rows that fit the target best "
         "join the starts at no run (default: 8 with corrected, 0 with cma)"),

@@ -32,7 +32,7 @@ from invphys.inverter.simulate import masked_score
 REFINE_POPSIZE = 8
 REFINE_SIGMA0 = 0.012
 #: the refine strategies (the first is the default) and their default number of known (stored) starts
-REFINE_STRATEGIES = ("cma", "corrected")
+REFINE_STRATEGIES = ("corrected", "cma")
 KNOWN_STARTS = {"cma": 0, "corrected": 8}
 #: a refined answer below this simulated R_actual is flagged
 LOW_R_ACTUAL = 0.5
@@ -41,7 +41,7 @@ LOW_R_ACTUAL = 0.5
 def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = REFINE_POPSIZE,
            sigma0: float = REFINE_SIGMA0, overrides: Mapping[str, Any] | None = None, batch_size: int | None = None,
            log: str | Path | None = None, seed: int = 0, on_run: Callable[[int, bool], None] | None = None,
-           simulator: Any = None, extract_workers: int = 0, strategy: str = "cma",
+           simulator: Any = None, extract_workers: int = 0, strategy: str = REFINE_STRATEGIES[0],
            known_starts: int | None = None, strategy_options: Mapping[str, Any] | None = None
            ) -> list[dict[str, Any]]:
     """Refine ``items`` in place (answer first); return one record per result (runs, seconds, R before/after).
