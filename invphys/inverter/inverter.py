@@ -361,7 +361,8 @@ class Inverter:
         unc.level = level
         if unc.kind == "posterior" and unc.has_draws and not noisy:
             unc.draws, unc.recalibrated = recalibrated(self.bundle, unc.draws)
-        cands = self._select(thetas, sources, values, mask, top_k, float(getattr(answers, "lam", 0.0)))
+        ranked = bool(getattr(getattr(answers, "settings", None), "exact", False))  # a pool scoring rows exactly
+        cands = self._select(thetas, sources, values, mask, top_k, float(getattr(answers, "lam", 0.0)), ranked)
         if refine:
             cands, extra = self._refine(cands, values, mask, refine, target_seed(seed, answers.label, values, mask,
                                                                                   "refine"))
@@ -429,15 +430,17 @@ class Inverter:
                           source=sources[j]) for j in range(len(thetas))]
 
     def _select(self, thetas: np.ndarray, sources: list[str], target: np.ndarray, mask: np.ndarray,
-                k: int, lam: float = 0.0) -> list[Candidate]:
+                k: int, lam: float = 0.0, ranked: bool = False) -> list[Candidate]:
         """The best ``k`` candidates that are at least :data:`MIN_DISTANCE` apart (best: highest R_surr,
-        minus ``lam`` x the normalised ensemble std where a method scores so)."""
+        minus ``lam`` x the normalised ensemble std where a method scores so; ``ranked``: the method's own
+        order, e.g. a pool that scores stored rows by their real features)."""
         from invphys.evaluators.uncertainty import normalised_std
 
         cands = self._candidates(thetas, sources, target, mask)
-        pen = lam * normalised_std(np.array([c.std for c in cands]), self.bundle.scales) if lam else np.zeros(len(cands))
-        order = np.lexsort((np.arange(len(cands)), -(np.array([c.r_surrogate for c in cands]) - pen)))
-        cands = [cands[i] for i in order]
+        if not ranked:
+            pen = lam * normalised_std(np.array([c.std for c in cands]), self.bundle.scales) if lam else 0.0
+            order = np.lexsort((np.arange(len(cands)), -(np.array([c.r_surrogate for c in cands]) - pen)))
+            cands = [cands[i] for i in order]
         if k == 1:
             return cands[:1]
         chosen: list[Candidate] = []
