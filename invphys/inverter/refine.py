@@ -8,8 +8,9 @@ in a trust region: :mod:`~invphys.evaluators.corrected_refine`). ``known_starts`
 stored training rows whose real features fit the target best as starts that cost no run (they were
 simulated by the very simulator config the bundle was trained for: by construction, since they are the
 bundle's own rows, unless ``overrides`` change the physics, when ``known_starts=0`` is the right call;
-default: 8 for ``corrected``, 0 for ``cma``). An answer whose simulated R_actual stays below 0.5 gets a warning. Every target's runs share one open stream, so a target's next generation starts while other
-targets' runs are still in flight. The answer is the best simulated point, so never worse than the
+default: 8 for ``corrected``, the default strategy, 0 for ``cma``). An answer whose simulated R_actual stays
+below 0.5 gets a warning. Every target's runs share one open stream, so a target's next generation starts
+while other targets' runs are still in flight. The answer is the best simulated point, so never worse than the
 best simulated start; the same targets, seed and settings give the same answers whatever the order,
 the batch size or how a stopped refine was resumed from its log.
 """
