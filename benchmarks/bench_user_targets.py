@@ -120,12 +120,30 @@ def _invert(inv: Any, y: np.ndarray, method: str, seed: int) -> list[Any]:
         return list(inv.invert_many(y, method=method, seed=seed))
     from invphys.inverter.pool import PoolSettings
 
-    kw = {k: (float(v) if k in ("lam", "step") else int(v)) for k, v in (o.split("=", 1) for o in opts.split(","))}
+    kw = {k: _pool_value(k, v) for k, v in (o.split("=", 1) for o in opts.split(","))}
     default, inv.pool_settings = inv.pool_settings, PoolSettings().with_(**kw)
     try:
         return list(inv.invert_many(y, method="pool", seed=seed))
     finally:
         inv.pool_settings = default
+
+
+def _pool_value(key: str, text: str) -> Any:
+    """A ``pool:KEY=VALUE`` setting's value, parsed by the type of :class:`PoolSettings`' field (``extra``: names
+    joined by ``+``)."""
+    import dataclasses
+
+    from invphys.inverter.pool import PoolSettings
+
+    kinds = {f.name: str(f.type) for f in dataclasses.fields(PoolSettings)}
+    kind = kinds.get(key)
+    if kind is None:
+        raise SystemExit(f"error: unknown pool setting {key!r} (settings: {', '.join(kinds)})")
+    if kind == "bool":
+        return text.strip().lower() in ("1", "true", "yes")
+    if kind.startswith("tuple"):
+        return tuple(t for t in text.split("+") if t)
+    return {"int": int, "float": float}.get(kind, str)(text)
 
 
 def _answers(inv: Any, arrays: Any, methods: list[str], all_data: list[str], seed: int,

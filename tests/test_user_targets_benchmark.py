@@ -85,3 +85,15 @@ def test_held_out_rows_by_key_file_with_every_answer_per_target(tmp_path: Path) 
     rec = data["methods"]["warm_start_vae"]
     assert np.array(rec["theta"]).shape == (4, 9) and rec["r_actual"] == [None] * 4
     assert np.isclose(np.mean(rec["r_surrogate"]), rows["warm_start_vae"]["r_mean"])
+
+
+def test_pool_variants_parse_each_setting_by_its_type() -> None:
+    import pytest
+
+    bench = load("bench_user_targets")
+    assert bench._pool_value("lam", "0.5") == 0.5 and bench._pool_value("moves", "8") == 8
+    assert bench._pool_value("margin", "0.03") == 0.03 and bench._pool_value("rows", "all") == "all"
+    assert bench._pool_value("exact", "true") is True and bench._pool_value("anchor", "0") is False
+    assert bench._pool_value("extra", "npe_nsf+npe_nsf1") == ("npe_nsf", "npe_nsf1")
+    with pytest.raises(SystemExit, match="unknown pool setting 'lamb'"):
+        bench._pool_value("lamb", "1")
