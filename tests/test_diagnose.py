@@ -3,11 +3,11 @@ scores; surrogate error bars; the command end to end on a tiny trained bundle.""
 
 from __future__ import annotations
 
-import io
 import json
 
 import numpy as np
 import pytest
+from test_inverter_support import diagnose_app, npe_toy_bundle
 
 from invphys.evaluation import calibration as cal
 from invphys.evaluation.surrogate_errors import Z90, error_bar_coverage, fit_error_scales
@@ -165,35 +165,11 @@ def test_held_out_rows_are_picked_by_key_not_by_the_store_they_sit_in(bundle, tm
 def bundle(tmp_path_factory):
     """A dataset + train + invert run of the toy oscillator with a small NPE (its bundle's root)."""
     pytest.importorskip("sbi")
-    from rich.console import Console
-
-    from invphys.core.spec import validate_spec
-    from invphys.pipeline.runner import run_spec
-
-    spec = {"name": "diagnose-toy", "seed": 5, "simulator": {"type": "test_dataset_toy:ToyOscillator"},
-            "dataset": {"n": 200, "batch_size": 50},
-            "surrogate": {"type": "ensemble", "members": 2, "hidden": [16, 16, 8], "max_epochs": 30, "dropout": 0.0},
-            "optimizers": {"npe_best": {"type": "npe", "estimator": "mdn", "hidden_features": 16, "max_num_epochs": 30,
-                                   "samples": 16, "answer": "best_surrogate"}},
-            "targets": {"n": 2}, "evaluation": {"baselines": {}}, "stages": ["dataset", "train", "invert"]}
-    out = tmp_path_factory.mktemp("diagnose") / "run"
-    run_spec(validate_spec(spec), out, progress=False, console=Console(file=io.StringIO()))
-    return out / "inverter"
+    return npe_toy_bundle(tmp_path_factory.mktemp("diagnose") / "run", "diagnose-toy", seed=5, max_epochs=30)
 
 
 def _cli():
-    import typer
-
-    from invphys.cli import diagnose
-
-    app = typer.Typer()
-
-    @app.callback()
-    def _root() -> None:
-        pass
-
-    diagnose.register(app)
-    return app
+    return diagnose_app()
 
 
 def test_held_out_rows_are_picked_by_key_and_exclude_every_training_row(bundle) -> None:

@@ -7,22 +7,10 @@ import json
 
 import numpy as np
 import pytest
-from test_inverter_support import toy_run
+from test_inverter_support import toy_bundle_fixture, toy_inverter_fixture  # noqa: F401 (fixtures bundle, inv)
 from typer.testing import CliRunner
 
 from invphys.core.errors import InvphysError
-
-
-@pytest.fixture(scope="module")
-def bundle(tmp_path_factory):
-    return toy_run(tmp_path_factory.getbasetemp()) / "inverter"
-
-
-@pytest.fixture(scope="module")
-def inv(bundle):
-    import invphys
-
-    return invphys.load_inverter(bundle)
 
 
 @pytest.fixture

@@ -17,24 +17,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from test_dataset_toy import ToyOscillator
-from test_inverter_support import toy_run
+from test_inverter_support import toy_bundle_fixture, toy_inverter_fixture  # noqa: F401 (fixtures bundle, inv)
 
 from invphys.core.errors import InvphysError
 from invphys.inverter.refine import refine
 
 TESTS = Path(__file__).resolve().parent
-
-
-@pytest.fixture(scope="module")
-def bundle(tmp_path_factory):
-    return toy_run(tmp_path_factory.getbasetemp()) / "inverter"
-
-
-@pytest.fixture(scope="module")
-def inv(bundle):
-    import invphys
-
-    return invphys.load_inverter(bundle)
 
 
 class ShuffledToy(ToyOscillator):

@@ -10,6 +10,7 @@ import io
 from pathlib import Path
 from typing import Any
 
+import pytest
 import yaml
 
 SPEC = """
@@ -55,6 +56,55 @@ def toy_run(base: Path) -> Path:
     out = base / "inverter_toy_run"
     run_spec(validate_spec(spec_dict()), out, progress=False, console=Console(file=io.StringIO()))
     return out
+
+
+@pytest.fixture(scope="module", name="bundle")
+def toy_bundle_fixture(tmp_path_factory) -> Path:
+    """The toy run's inverter bundle (import this fixture into a test module: it is named ``bundle``)."""
+    return toy_run(tmp_path_factory.getbasetemp()) / "inverter"
+
+
+@pytest.fixture(scope="module", name="inv")
+def toy_inverter_fixture(bundle: Path) -> Any:
+    """The toy bundle loaded (named ``inv``)."""
+    import invphys
+
+    return invphys.load_inverter(bundle)
+
+
+def npe_toy_bundle(out: Path, name: str, seed: int, max_epochs: int, **dataset: Any) -> Path:
+    """A dataset + train + invert run of the toy oscillator with a small MDN NPE into ``out``; its bundle's root
+    (``dataset``: more keys of the dataset section, e.g. ``test_fraction``)."""
+    from rich.console import Console
+
+    from invphys.core.spec import validate_spec
+    from invphys.pipeline.runner import run_spec
+
+    spec = {"name": name, "seed": seed, "simulator": {"type": "test_dataset_toy:ToyOscillator"},
+            "dataset": {"n": 200, "batch_size": 50, **dataset},
+            "surrogate": {"type": "ensemble", "members": 2, "hidden": [16, 16, 8], "max_epochs": max_epochs,
+                          "dropout": 0.0},
+            "optimizers": {"npe_best": {"type": "npe", "estimator": "mdn", "hidden_features": 16,
+                                        "max_num_epochs": max_epochs, "samples": 16, "answer": "best_surrogate"}},
+            "targets": {"n": 2}, "evaluation": {"baselines": {}}, "stages": ["dataset", "train", "invert"]}
+    run_spec(validate_spec(spec), out, progress=False, console=Console(file=io.StringIO()))
+    return out / "inverter"
+
+
+def diagnose_app() -> Any:
+    """A Typer app holding only ``invphys diagnose`` (for CliRunner)."""
+    import typer
+
+    from invphys.cli import diagnose
+
+    app = typer.Typer()
+
+    @app.callback()
+    def _root() -> None:
+        pass
+
+    diagnose.register(app)
+    return app
 
 
 def paper_bundle(base: Path) -> Path:

@@ -13,24 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from test_inverter_refine import ShuffledToy, _answers, _key
-from test_inverter_support import toy_run
+from test_inverter_support import toy_bundle_fixture, toy_inverter_fixture  # noqa: F401 (fixtures bundle, inv)
 
 from invphys.core.errors import InvphysError
 from invphys.evaluators.stream_refine import feed_features
 
 TESTS = Path(__file__).resolve().parent
-
-
-@pytest.fixture(scope="module")
-def bundle(tmp_path_factory):
-    return toy_run(tmp_path_factory.getbasetemp()) / "inverter"
-
-
-@pytest.fixture(scope="module")
-def inv(bundle):
-    import invphys
-
-    return invphys.load_inverter(bundle)
 
 
 def test_answers_with_extraction_workers_equal_those_without(inv) -> None:

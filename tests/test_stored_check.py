@@ -3,12 +3,12 @@ diagnosis did not use (tiny trained toy bundle)."""
 
 from __future__ import annotations
 
-import io
 import json
 import shutil
 
 import numpy as np
 import pytest
+from test_inverter_support import diagnose_app, npe_toy_bundle
 
 from invphys.core.errors import InvphysError
 
@@ -17,35 +17,12 @@ from invphys.core.errors import InvphysError
 def bundle(tmp_path_factory):
     """A dataset + train + invert run of the toy oscillator with a small NPE (~80 held-out rows)."""
     pytest.importorskip("sbi")
-    from rich.console import Console
-
-    from invphys.core.spec import validate_spec
-    from invphys.pipeline.runner import run_spec
-
-    spec = {"name": "check-toy", "seed": 7, "simulator": {"type": "test_dataset_toy:ToyOscillator"},
-            "dataset": {"n": 200, "batch_size": 50, "test_fraction": 0.4},
-            "surrogate": {"type": "ensemble", "members": 2, "hidden": [16, 16, 8], "max_epochs": 20, "dropout": 0.0},
-            "optimizers": {"npe_best": {"type": "npe", "estimator": "mdn", "hidden_features": 16, "max_num_epochs": 20,
-                                   "samples": 16, "answer": "best_surrogate"}},
-            "targets": {"n": 2}, "evaluation": {"baselines": {}}, "stages": ["dataset", "train", "invert"]}
-    out = tmp_path_factory.mktemp("check") / "run"
-    run_spec(validate_spec(spec), out, progress=False, console=Console(file=io.StringIO()))
-    return out / "inverter"
+    return npe_toy_bundle(tmp_path_factory.mktemp("check") / "run", "check-toy", seed=7, max_epochs=20,
+                          test_fraction=0.4)
 
 
 def _cli():
-    import typer
-
-    from invphys.cli import diagnose
-
-    app = typer.Typer()
-
-    @app.callback()
-    def _root() -> None:
-        pass
-
-    diagnose.register(app)
-    return app
+    return diagnose_app()
 
 
 def test_a_bundle_without_stored_diagnostics_gets_one_error_line(bundle, tmp_path) -> None:
