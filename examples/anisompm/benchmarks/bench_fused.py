@@ -42,7 +42,7 @@ for p in (ROOT, ROOT / "examples" / "orange_peel", ROOT / "examples" / "anisompm
         sys.path.insert(0, str(p))
 
 from _machine import emit, provenance, simulator_device  # noqa: E402
-from bench_tiled_p2g import PAPER_SECONDS_PER_RUN, feature_agreement, set_perturbed_state  # noqa: E402
+from bench_tiled_p2g import PAPER_SECONDS_PER_RUN, feature_agreement, perturbed_frame  # noqa: E402
 
 #: the ways a substep can go: plain kernels, fused with g2p's state in registers (the default), fused with it
 #: written back and read again (``fused_registers=False``: that lever alone)
@@ -75,15 +75,7 @@ def _save(out: dict, path: Path | None) -> None:
 
 def _parity_state(sim, params: np.ndarray, steps: int) -> dict[str, np.ndarray]:
     """``steps`` substeps (dt 1e-4, grips still) of ``params``' runs from ``perturbed_state``: the particles."""
-    from invphys_orange_peel.engine_scene import model_for
-
-    B = len(params)
-    backend = sim.engine.backend(B)
-    model = model_for(sim.engine_scene, params)
-    backend.load(model.table(), model.friction)
-    set_perturbed_state(backend)
-    nk = max(len(sim.engine_scene.engine.kinematic_names), 1)
-    backend.set_frame(np.full(B, 1e-4), np.full(B, steps), np.zeros((B, steps, nk, 6)), damage_on=True)
+    backend = perturbed_frame(sim, params, steps)
     backend.advance(steps)
     backend.sync()
     x, d = backend.read()

@@ -26,6 +26,7 @@ import shlex
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -92,9 +93,9 @@ def set_perturbed_state(backend, seed: int = 1) -> None:
         backend.set_particle_array(name, values if perm is None else values[:, perm])
 
 
-def _grids(sim, params: np.ndarray) -> dict[str, np.ndarray]:
-    """One clear + P2G of the loaded runs in ``perturbed_state`` (the same state whatever the device's
-    particle order); the grid arrays in float64."""
+def perturbed_frame(sim, params: np.ndarray, steps: int) -> Any:
+    """The backend of ``sim`` with ``params``' runs loaded in ``perturbed_state`` (the same state whatever the
+    device's particle order) and a frame of ``steps`` substeps set (dt 1e-4, grips still)."""
     from invphys_orange_peel.engine_scene import model_for
 
     B = len(params)
@@ -103,7 +104,13 @@ def _grids(sim, params: np.ndarray) -> dict[str, np.ndarray]:
     backend.load(model.table(), model.friction)
     set_perturbed_state(backend)
     nk = max(len(sim.engine_scene.engine.kinematic_names), 1)
-    backend.set_frame(np.full(B, 1e-4), np.full(B, 2), np.zeros((B, 2, nk, 6)), damage_on=True)
+    backend.set_frame(np.full(B, 1e-4), np.full(B, steps), np.zeros((B, steps, nk, 6)), damage_on=True)
+    return backend
+
+
+def _grids(sim, params: np.ndarray) -> dict[str, np.ndarray]:
+    """One clear + P2G of the loaded runs in ``perturbed_state``; the grid arrays in float64."""
+    backend = perturbed_frame(sim, params, 2)
     stages = backend._stages(0)
     stages["clear"]()
     stages["p2g"]()
