@@ -18,7 +18,11 @@ Several ``--strategy`` (e.g. ``cma corrected``) refine the same targets from the
 warm simulator; ``--targets uniform=PATH edge=PATH`` names several target sets. Per set and strategy:
 mean R_actual (refined, best start) with 95 % bootstrap intervals over targets, the runs, time and
 per-target records, and each strategy's paired difference to the first (``sets.<name>.paired``); the JSON
-is written after every strategy, so a stopped run keeps what it measured.
+is written after every strategy, so a stopped run keeps what it measured. Each strategy's block also gives
+the mean runs a target used (``--stop``: a target stops at that R_actual; default the refine's own),
+simulator-seconds per target, the targets that stopped, the mean best R_actual after 16, 32, 48, ... runs
+of each target's ask-ordered runs (``r_at_runs``; a target that stopped earlier keeps its final best) and the
+seconds its searches spent proposing points between runs (``ask_s``).
 """
 
 from __future__ import annotations
@@ -109,11 +113,31 @@ def _r_values(records: list[dict[str, Any]], key: str) -> np.ndarray:
     return np.array([0.0 if r[key] is None else r[key] for r in records], float)   # a failed answer counts as 0
 
 
+def r_at_runs(records: list[dict[str, Any]], budget: int, step: int = 16) -> dict[str, float]:
+    """Mean over targets of the best R_actual after n runs (n = step, 2 step, ..., and the budget), from each
+    target's ``best_r_by_run`` (fewer runs, e.g. stopped: its last value; none or failed: 0)."""
+    out = {}
+    for n in sorted({*range(step, budget + 1, step), budget}):
+        vals = []
+        for r in records:
+            by = r.get("best_r_by_run") or []
+            v = by[min(n, len(by)) - 1] if by else r["r_actual"]
+            vals.append(0.0 if v is None else float(v))
+        out[str(n)] = float(np.mean(vals)) if vals else float("nan")
+    return out
+
+
 def _strategy_block(records: list[dict[str, Any]], wall: float, n_boot: int) -> dict[str, Any]:
     """One strategy on one target set: means with intervals, runs, time, per-target records."""
     spent = sum(r["runs"] for r in records)
+    n = max(len(records), 1)
+    ask = float(sum(r.get("ask_s", 0.0) for r in records))
     return {"runs": spent, "wall_s": wall, "s_per_run": wall / max(spent, 1),
             "simulator_s": float(sum(r["simulator_s"] for r in records)), **_summary(records),
+            "runs_per_target": spent / n, "simulator_s_per_target": float(sum(r["simulator_s"] for r in records)) / n,
+            "stopped": int(sum(bool(r.get("stopped")) for r in records)),
+            "r_at_runs": r_at_runs(records, records[0]["budget"] if records else 0),
+            "ask_s": ask, "ask_s_per_run": ask / max(spent, 1),
             "r_refined_ci": bootstrap(_r_values(records, "r_actual"), n_boot),
             "r_best_start_ci": bootstrap(_r_values(records, "start_r_actual"), n_boot),
             "below_half": int(sum(r["warning"] is not None for r in records)),
@@ -154,6 +178,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--known-starts", type=int, default=None,
                    help="stored training rows added as free starts (default: the strategy's own)")
     p.add_argument("--strategy-option", nargs="*", default=[], help="KEY=VALUE options of the corrected strategy")
+    p.add_argument("--stop", type=float, default=None,
+                   help="a target stops once its R_actual reaches this (0: never; default: the refine's own)")
     p.add_argument("--popsize", type=int, default=8)
     p.add_argument("--sigma0", type=float, default=0.012)
     p.add_argument("--method", default=None)
@@ -181,7 +207,8 @@ def _refine_one(inv: Any, results: list[Any], strategy: str, a: argparse.Namespa
     t0 = time.perf_counter()
     records = refine(inv, copy.deepcopy(results), a.budget, a.popsize, a.sigma0, overrides=overrides,
                      batch_size=a.sim_batch, seed=a.seed, simulator=sim, extract_workers=a.extract_workers,
-                     strategy=strategy, known_starts=a.known_starts, strategy_options=opts or None)
+                     strategy=strategy, known_starts=a.known_starts, strategy_options=opts or None,
+                     **({} if a.stop is None else {"stop": a.stop}))
     return records, time.perf_counter() - t0
 
 

@@ -73,6 +73,7 @@ def invert(
     sim_refine_known: int | None = typer.Option(
         None, "--sim-refine-known", help="--sim-refine: the K stored training rows that fit the target best "
         "join the starts at no run (default: 8 with corrected, 0 with cma)"),
+    sim_refine_stop: float | None = typer.Option(None, "--sim-refine-stop", help="a target stops at this R_actual (0.98)"),
     seed: int = typer.Option(0, "--seed", help="seed of every random draw (with the target and the method it "
                              "decides the answer; a target's position in the file does not)"),
     level: float = typer.Option(0.9, "--level", help="level of the central intervals (posterior methods)"),
@@ -98,7 +99,7 @@ def invert(
     polish_settings = _polish_settings(polish, polish_below, polish_sigma, polish_popsize, polish_log,
                                        polish_confirm, polish_confirm_candidates)
     refine_settings = _refine_settings(sim_refine, sim_refine_popsize, sim_refine_sigma, sim_refine_log,
-                                       sim_refine_workers, sim_refine_strategy, sim_refine_known)
+                                       sim_refine_workers, sim_refine_strategy, sim_refine_known, sim_refine_stop)
     files = _output_files(samples, samples_out, plot, csv_out)
     inv = load_inverter(bundle, strict=not allow_mismatch)
     targets = cli_targets(inv, target, feature or [], observed or [], partial)  # a bad target: its one line only
@@ -271,15 +272,16 @@ def _polish(inv: Any, results: list[Any], overrides: dict[str, Any], seed: int, 
 
 
 def _refine_settings(budget: int | None, popsize: int | None, sigma: float | None, log: Path | None,
-                     workers: int | None = None, strategy: str | None = None, known: int | None = None
-                     ) -> dict[str, Any]:
+                     workers: int | None = None, strategy: str | None = None, known: int | None = None,
+                     stop: float | None = None) -> dict[str, Any]:
     """The ``--sim-refine*`` options ({} without ``--sim-refine``), checked before anything runs."""
-    from invphys.inverter.refine import REFINE_POPSIZE, REFINE_SIGMA0, REFINE_STRATEGIES
+    from invphys.inverter.refine import REFINE_POPSIZE, REFINE_SIGMA0, REFINE_STOP, REFINE_STRATEGIES
 
     if budget is None:
         given = [n for n, v in (("--sim-refine-popsize", popsize), ("--sim-refine-sigma", sigma),
                                 ("--sim-refine-log", log), ("--sim-refine-workers", workers),
-                                ("--sim-refine-strategy", strategy), ("--sim-refine-known", known)) if v is not None]
+                                ("--sim-refine-strategy", strategy), ("--sim-refine-known", known),
+                                ("--sim-refine-stop", stop)) if v is not None]
         if given:
             raise InvphysError(f"{', '.join(given)} needs --sim-refine N (simulator runs per target)")
         return {}
@@ -295,12 +297,15 @@ def _refine_settings(budget: int | None, popsize: int | None, sigma: float | Non
         raise InvphysError(f"--sim-refine-strategy must be one of {', '.join(REFINE_STRATEGIES)}, got {strategy!r}")
     if known is not None and not 0 <= known <= 10_000:
         raise InvphysError(f"--sim-refine-known must be in 0 .. 10000, got {known}")
+    if stop is not None and not 0 <= stop <= 1:
+        raise InvphysError(f"--sim-refine-stop must be an R_actual in [0, 1] (0 or 1: never stop), got {stop}")
     if log is not None:
         from invphys.evaluators.stream_refine import RunLog
 
         RunLog(log, key=None)  # the file and its place, before anything runs (what it was made for: on use)
     return {"budget": budget, "popsize": popsize or REFINE_POPSIZE, "sigma0": sigma or REFINE_SIGMA0, "log": log,
-            "extract_workers": workers or 0, "strategy": strategy or REFINE_STRATEGIES[0], "known_starts": known}
+            "extract_workers": workers or 0, "strategy": strategy or REFINE_STRATEGIES[0], "known_starts": known,
+            "stop": REFINE_STOP if stop is None else stop}
 
 
 def _sim_refine(inv: Any, results: list[Any], overrides: dict[str, Any], seed: int, batch_size: int,
@@ -319,7 +324,8 @@ def _sim_refine(inv: Any, results: list[Any], overrides: dict[str, Any], seed: i
     for r, rec in zip(results, records, strict=True):
         console.print(f"refine {escape(r.label)}: R_actual {_r(_none_nan(rec['start_r_actual']))} "
                       f"({escape(rec['start_source'])}) -> {_r(_none_nan(rec['r_actual']))} ({rec['runs']} simulator runs, {rec['simulator_s']:.1f} "
-                      f"simulator-s{'' if rec['improved'] else ', start kept'})", soft_wrap=True)
+                      f"simulator-s{', stopped at the stop R' if rec['stopped'] else ''}"
+                      f"{'' if rec['improved'] else ', start kept'})", soft_wrap=True)
     for r, rec in zip(results, records, strict=True):  # the refine's warnings (the others were printed before it)
         if rec.get("warning"):
             console.print(f"[yellow]warning:[/] target {escape(r.label)}: {escape(rec['warning'])}", soft_wrap=True)

@@ -7,7 +7,9 @@ own runs are back, and its rows join the stream (:meth:`Simulator.simulate_feed`
 runs are still in flight, so no generation waits for another target's slow run. A generation is told in
 the order of its asks, never of completion: the answers do not depend on completion order, batch size
 or the other targets. :class:`RunLog` records every finished run (target id, run number, point,
-features, seconds, device); a re-run replays the logged runs and simulates only the rest.
+features, seconds, device); a re-run replays the logged runs and simulates only the rest. With ``stop``, a
+target asks for no more runs once its best score reaches it (decided before each of its generations, from
+its own told runs only: a stopped target's runs are the first runs of the same target without a stop).
 """
 
 from __future__ import annotations
@@ -148,6 +150,8 @@ class TargetRefine:
     replayed: int = 0
     seconds: float = 0.0
     start_scores: np.ndarray | None = None
+    stopped: bool = False          # it reached the stop score with runs left
+    ask_s: float = 0.0             # seconds its search spent proposing and being told (CPU, between runs)
 
 
 class CMASearch:
@@ -201,8 +205,8 @@ class _Search:
     """A target's state: the generation in flight (asked points and their results by ask order)."""
 
     def __init__(self, t: TargetRefine, budget: int, popsize: int, sigma0: float, d: int,
-                 strategy: Strategy | None = None) -> None:
-        self.t, self.budget, self.d = t, budget, d
+                 strategy: Strategy | None = None, stop: float | None = None) -> None:
+        self.t, self.budget, self.d, self.stop = t, budget, d, stop
         self.strategy = strategy or cma_strategy(popsize, sigma0)
         self.search: Any = None
         self.asked = np.empty((0, d))
@@ -218,15 +222,22 @@ class _Search:
             return self.t.starts[todo][:max(left, 0)]
         if left <= 0:
             return np.empty((0, self.d))
+        if self.stop is not None and self.t.score >= self.stop:   # reached: no more runs
+            self.t.stopped = True
+            return np.empty((0, self.d))
+        t0 = time.perf_counter()
         if self.search is None:
             self.search = self.strategy(self.t, left)
         self.before = self.t.score
         pts = self.search.ask(left)
+        self.t.ask_s += time.perf_counter() - t0
         return np.clip(np.asarray(pts, float).reshape(-1, self.d)[:left], 0.0, 1.0)
 
     def tell(self, ys: np.ndarray, scores: np.ndarray) -> None:
         if self.search is not None:
+            t0 = time.perf_counter()
             self.search.tell(self.asked, ys, scores, self.before)
+            self.t.ask_s += time.perf_counter() - t0
 
 
 def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int], np.ndarray | None]],
@@ -234,7 +245,7 @@ def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int
                   score: Callable[[np.ndarray, np.ndarray], np.ndarray], budget: int, popsize: int = 8,
                   sigma0: float = 0.012, log: RunLog | None = None,
                   on_run: Callable[[int, bool], None] | None = None,
-                  strategy: Strategy | None = None) -> list[TargetRefine]:
+                  strategy: Strategy | None = None, stop: float | None = None) -> list[TargetRefine]:
     """Refine every target with ``budget`` simulator runs (its unsimulated starts included), one open stream.
 
     ``simulate(feeder)`` yields ``(i, features (M,) or NaN, seconds, device)`` for the rows (normalised,
@@ -242,13 +253,16 @@ def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int
     :meth:`Simulator.simulate_feed`). ``score(features (B, M), targets (B, M)) -> (B,)``. Each target's
     answer is its best simulated point, starts included. ``on_run(runs, replayed)`` reports progress.
     ``strategy`` searches after the starts (default: :func:`cma_strategy` with ``popsize`` and ``sigma0``).
+    ``stop``: a target whose best score (its starts included) reaches it asks for no further generation
+    (None, or outside (0, 1): never; the starts are always simulated).
     """
     if budget < 0 or popsize < 2 or not sigma0 > 0:
         raise InvphysError(f"refine: budget >= 0, popsize >= 2 and sigma0 > 0 needed, got {budget}, {popsize}, "
                            f"{sigma0}")
     note = on_run or (lambda _n, _r: None)
     d = targets[0].starts.shape[1] if targets else 0
-    searches = [_Search(t, budget, popsize, sigma0, d, strategy) for t in targets]
+    stop = stop if stop is not None and 0.0 < stop < 1.0 else None
+    searches = [_Search(t, budget, popsize, sigma0, d, strategy, stop) for t in targets]
     queue: list[tuple[int, int]] = []        # (search, member) rows waiting for a slot
     fed: list[tuple[int, int]] = []          # row i of the stream -> (search, member)
 

@@ -8,7 +8,10 @@ in a trust region: :mod:`~invphys.evaluators.corrected_refine`). ``known_starts`
 stored training rows whose real features fit the target best as starts that cost no run (they were
 simulated by the very simulator config the bundle was trained for: by construction, since they are the
 bundle's own rows, unless ``overrides`` change the physics, when ``known_starts=0`` is the right call;
-default: 8 for ``corrected``, the default strategy, 0 for ``cma``). An answer whose simulated R_actual stays
+default: 8 for ``corrected``, the default strategy, 0 for ``cma``). A target stops asking for runs once its
+best simulated R_actual reaches ``stop`` (default :data:`REFINE_STOP`, near the noise floor: re-simulating
+the true parameters of fresh paper targets gives 0.993-0.996), decided from its own runs alone, so its runs are
+the first runs of the same refine without a stop. An answer whose simulated R_actual stays
 below 0.5 gets a warning. Every target's runs share one open stream, so a target's next generation starts
 while other targets' runs are still in flight. The answer is the best simulated point, so never worse than the
 best simulated start; the same targets, seed and settings give the same answers whatever the order,
@@ -37,14 +40,16 @@ REFINE_STRATEGIES = ("corrected", "cma")
 KNOWN_STARTS = {"cma": 0, "corrected": 8}
 #: a refined answer below this simulated R_actual is flagged
 LOW_R_ACTUAL = 0.5
+#: a target's refine stops once its best simulated R_actual reaches this (0 or 1: never)
+REFINE_STOP = 0.98
 
 
 def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = REFINE_POPSIZE,
            sigma0: float = REFINE_SIGMA0, overrides: Mapping[str, Any] | None = None, batch_size: int | None = None,
            log: str | Path | None = None, seed: int = 0, on_run: Callable[[int, bool], None] | None = None,
            simulator: Any = None, extract_workers: int = 0, strategy: str = REFINE_STRATEGIES[0],
-           known_starts: int | None = None, strategy_options: Mapping[str, Any] | None = None
-           ) -> list[dict[str, Any]]:
+           known_starts: int | None = None, strategy_options: Mapping[str, Any] | None = None,
+           stop: float = REFINE_STOP) -> list[dict[str, Any]]:
     """Refine ``items`` in place (answer first); return one record per result (runs, seconds, R before/after).
 
     ``budget``: simulator runs per target, its unsimulated candidates included; ``batch_size``: runs in
@@ -55,6 +60,8 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
     ``corrected``; ``known_starts``: stored training rows added as free starts (None: the strategy's default);
     ``strategy_options``: ``corrected``'s settings by name
     (:class:`~invphys.evaluators.corrected_refine.CorrectedSettings`; its ``popsize`` is ``popsize``).
+    ``stop``: a target asks for no more runs once its best simulated R_actual reaches it (0 or 1: never); the
+    record's ``runs`` says how many it used and ``stopped`` whether it stopped early.
     """
     from invphys.evaluators.stream_refine import (
         RunLog,
@@ -68,6 +75,7 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
     if batch_size is not None and (isinstance(batch_size, bool) or int(batch_size) < 1):
         raise InvphysError(f"batch size must be >= 1, got {batch_size!r}")
     known_starts = _check_strategy(strategy, known_starts)
+    stop = check_stop(stop)
     sim = simulator if simulator is not None else inv.simulator(overrides)
     ext = inv.extractor(sim)
     m = inv.bundle.manifest
@@ -83,7 +91,7 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
     t0 = time.perf_counter()
     try:
         stream_refine(targets, feed_features(sim, ext, batch_size, pool), masked_score(inv), budget, popsize,
-                      sigma0, log=runlog, on_run=on_run, strategy=search)
+                      sigma0, log=runlog, on_run=on_run, strategy=search, stop=stop)
     finally:
         if pool is not None:
             pool.close()
@@ -91,11 +99,12 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
     records = []
     for r, t in zip(items, targets, strict=True):
         records.append(_apply(inv, r, t, budget, {"popsize": popsize, "sigma0": sigma0, "seed": seed,
-                                                   "strategy": strategy, "known_starts": known_starts,
+                                                   "strategy": strategy, "known_starts": known_starts, "stop": stop,
                                                    **({"options": dict(strategy_options)} if strategy_options else {})}))
     total = sum(t.runs for t in targets)
     call = {"targets": len(items), "runs": total, "replayed_runs": sum(t.replayed for t in targets),
             "simulator_s": float(sum(t.seconds for t in targets)), "wall_time_s": wall,
+            "ask_s": float(sum(t.ask_s for t in targets)), "stopped": int(sum(t.stopped for t in targets)),
             "log": None if log is None else str(log)}
     for rec in records:
         rec["call"] = call
@@ -110,6 +119,17 @@ def _extraction_pool(extractor: Any, workers: int) -> Any:
     from invphys.plugins.executors._extract_pool import ExtractionPool
 
     return ExtractionPool(extractor, int(workers))
+
+
+def check_stop(stop: Any) -> float:
+    """``stop`` as a float in [0, 1] (0 or 1: never stop), else one error line."""
+    try:
+        ok = not isinstance(stop, (bool, str)) and 0.0 <= float(stop) <= 1.0
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise InvphysError(f"refine stop must be an R_actual in [0, 1] (0 or 1: never stop), got {stop!r}")
+    return float(stop)
 
 
 def _check_strategy(strategy: str, known_starts: int | None) -> int:
@@ -229,7 +249,18 @@ def _apply(inv: Any, r: InversionResult, t: Any, budget: int, settings: dict[str
     def f(v: float) -> float | None:  # JSON has no NaN: a failed simulation is None
         return float(v) if np.isfinite(v) else None
 
-    return {"budget": budget, "runs": t.runs, "replayed_runs": t.replayed, "simulator_s": t.seconds,
-            "r_answer": f(first), "start_source": source, "start_r_actual": f(start_r), "r_actual": f(t.score),
-            "improved": improved, "known_starts": int(len(t.starts) - n), "warning": warning,
-            "settings": settings}
+    return {"budget": budget, "runs": t.runs, "stopped": t.stopped, "replayed_runs": t.replayed,
+            "simulator_s": t.seconds, "ask_s": t.ask_s, "r_answer": f(first), "start_source": source, "start_r_actual": f(start_r),
+            "r_actual": f(t.score), "improved": improved, "known_starts": int(len(t.starts) - n), "warning": warning,
+            "best_r_by_run": [f(v) for v in best_by_run(t)], "settings": settings}
+
+
+def best_by_run(t: Any) -> np.ndarray:
+    """The best simulated R_actual of target ``t`` after each of its runs in ask order (its starts known at no
+    run count from the first; -inf: none yet)."""
+    scores = np.array([p[1] for p in t.points], float)
+    free = len(scores) - t.runs
+    if not t.runs:
+        return np.empty(0)
+    head = np.max(scores[:free]) if free else -np.inf
+    return np.maximum.accumulate(np.concatenate([[head], scores[free:]]))[1:]
