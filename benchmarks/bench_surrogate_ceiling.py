@@ -3,7 +3,9 @@
     nice -n 10 python benchmarks/bench_surrogate_ceiling.py --bundle inverters/orange_peel_paper_all \\
         --sets test=@test uniform=datasets/orange_peel_paper_fresh_uniform \\
                edge=datasets/orange_peel_paper_fresh_edge \\
-        --sizes 1500 3000 6000 12500 --extra-train datasets/orange_peel_paper_faces \\
+        --sizes 750 1500 3000 6000 9000 12500 --extra-train datasets/orange_peel_paper_faces \\
+        --variant "wide={hidden: [256, 256, 128]}" "long={max_epochs: 400, patience: 400}" \\
+        --goal test=0.92 uniform=0.92 edge=0.88 --plot docs/orange-peel/surrogate-ceiling.png \\
         --out benchmarks/results/surrogate_ceiling_paper_cpu.json
 
 An amortised answer is chosen by the surrogate, so it can only be as good as the surrogate is at the answer.
@@ -19,9 +21,10 @@ the bundle's training input). Each size trains the bundle's surrogate (its ``sur
 ``--small-below`` rows) and is scored on every ``--sets`` entry (``NAME=STORE``, ``NAME=@test`` for the
 bundle's held-out rows): held-out R^2 per feature and mean, and the ceiling, with bootstrap 95 % intervals
 over the set's rows. ``--extra-train STORE`` adds one more point: all training rows plus that store's rows.
-The shipped surrogate is scored too (``shipped``). A power law ``1 - ceiling = a n^-b`` is fitted per set
+``--variant NAME='{setting: value}'`` adds a point on all training rows with changed surrogate settings (the
+architecture lever against the rows lever). The shipped surrogate is scored too (``shipped``). A power law ``1 - ceiling = a n^-b`` is fitted per set
 over the sizes and solved for the rows that would reach ``--goal NAME=R``. The JSON is rewritten after every
-point, so an interrupted run keeps what it measured.
+point, so an interrupted run keeps what it measured; ``--plot PNG`` draws the curves.
 """
 
 from __future__ import annotations
@@ -158,26 +161,42 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--small-members", type=int, default=None)
     p.add_argument("--small-max-epochs", type=int, default=None)
     p.add_argument("--goal", nargs="*", default=[], help="NAME=R: rows the power law says reach R on set NAME")
+    p.add_argument("--variant", nargs="*", default=[],
+                   help="NAME='{setting: value}': one more point on all training rows with these surrogate settings")
+    p.add_argument("--plot", default=None, help="PNG: ceiling against training rows, one line per set")
     p.add_argument("--bootstrap", type=int, default=1000)
     p.add_argument("--seed", type=int, default=0, help="the subsets' permutation and the bootstrap")
     p.add_argument("--out", required=True)
     return p.parse_args(argv)
 
 
-def plan(a: argparse.Namespace, n_train: int) -> list[tuple[str, int, dict[str, Any]]]:
-    """(label, rows, settings overrides) of every training point, smallest first."""
+def plan(a: argparse.Namespace, n_train: int) -> list[dict[str, Any]]:
+    """Every training point, smallest first: label, base rows, members, epochs, extra rows or not, settings."""
+    import yaml
+
     from invphys.core.errors import InvphysError
 
     bad = [n for n in a.sizes if not 2 <= n <= n_train]
     if bad:
         raise InvphysError(f"--sizes must lie in [2, {n_train}] (the bundle's training rows), got {bad}")
+    full = {"members": a.members, "max_epochs": a.max_epochs, "extra": False, "update": {}}
     pts = []
     for n in sorted(set(a.sizes)):
         small = n < a.small_below
-        pts.append((f"n={n}", n, {"members": a.small_members if small and a.small_members else a.members,
-                                  "max_epochs": a.small_max_epochs if small and a.small_max_epochs else a.max_epochs}))
+        pts.append({**full, "label": f"n={n}", "base_rows": n,
+                    "members": a.small_members if small and a.small_members else a.members,
+                    "max_epochs": a.small_max_epochs if small and a.small_max_epochs else a.max_epochs})
     if a.extra_train:
-        pts.append((f"n={n_train}+extra", n_train, {"members": a.members, "max_epochs": a.max_epochs}))
+        pts.append({**full, "label": f"n={n_train}+extra", "base_rows": n_train, "extra": True})
+    for v in a.variant:
+        name, _, text = v.partition("=")
+        try:
+            update = yaml.safe_load(text)
+        except yaml.YAMLError:
+            update = None
+        if not name or not isinstance(update, dict):
+            raise InvphysError(f"--variant wants NAME='{{setting: value, ...}}', got {v!r}")
+        pts.append({**full, "label": f"n={n_train}:{name}", "base_rows": n_train, "update": update})
     return pts
 
 
@@ -221,31 +240,74 @@ def run(a: argparse.Namespace) -> dict[str, Any]:
                     for name, th, y in sets},
         "points": []}
     _write(out, a.out)
-    for label, n, over in points:
-        block = surrogate_settings(Path(a.bundle), over["members"], over["max_epochs"])
-        idx = np.sort(perm[:n])
+    for pt in points:
+        block = {**surrogate_settings(Path(a.bundle), pt["members"], pt["max_epochs"]), **pt["update"]}
+        idx = np.sort(perm[: pt["base_rows"]])
         th, y = tt[idx], ty[idx]
-        if label.endswith("+extra") and extra is not None:
+        if pt["extra"] and extra is not None:
             th, y = np.concatenate([th, extra[0]]), np.concatenate([y, extra[1]])
         sur, secs = train(block, th, y)
         res = {name: score_set(sur.predict(st), st, sy, b.scales, b.kappa, names, a.bootstrap, a.seed)
                for name, st, sy in sets}
-        out["points"].append({"label": label, "rows": len(th), "base_rows": n, "members": block["members"],
-                              "max_epochs": block["max_epochs"], "train_s": secs, "sets": res})
-        print(f"{label:>16s} ({len(th)} rows, {block['members']} members, {block['max_epochs']} epochs, {secs:.0f} s): "
-              + ", ".join(f"{k} R {v['ceiling']:.3f} R2 {v['r2_mean']:.3f}" for k, v in res.items()), file=sys.stderr)
+        out["points"].append({"label": pt["label"], "rows": len(th), "base_rows": pt["base_rows"],
+                              "members": block["members"], "max_epochs": block["max_epochs"],
+                              "settings_changed": pt["update"], "train_s": secs, "sets": res})
+        print(f"{pt['label']:>16s} ({len(th)} rows, {block['members']} members, {block['max_epochs']} epochs, "
+              f"{secs:.0f} s): " + ", ".join(f"{k} R {v['ceiling']:.3f} R2 {v['r2_mean']:.3f}" for k, v in res.items()),
+              file=sys.stderr)
         out["power_law"] = fits(out["points"], goals)
         _write(out, a.out)
+    if a.plot:
+        plot(out, a.plot)
     return out
 
 
 def fits(points: list[dict[str, Any]], goals: dict[str, float]) -> dict[str, Any]:
     """The power law per set over the plain (no extra rows) points."""
-    plain = [p for p in points if not p["label"].endswith("+extra")]
+    plain = [p for p in points if p["label"] == f"n={p['rows']}"]
     if not plain:
         return {}
     return {name: power_law([p["rows"] for p in plain], [p["sets"][name]["ceiling"] for p in plain],
                             goals.get(name)) for name in plain[0]["sets"]}
+
+
+def plot(rec: dict[str, Any], path: str) -> None:
+    """Ceiling (bootstrap 95 % band) against training rows per set, the shipped surrogate, the extra and
+    variant points, and the fitted power laws."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 4.8))
+    plain = [p for p in rec["points"] if p["label"] == f"n={p['rows']}"]
+    others = [p for p in rec["points"] if p not in plain]
+    for k, name in enumerate(rec["sets"]):
+        color = f"C{k}"
+        ns = np.array([p["rows"] for p in plain])
+        c = np.array([p["sets"][name]["ceiling"] for p in plain])
+        lo, hi = (np.array([p["sets"][name]["ceiling_ci95"][j] for p in plain]) for j in (0, 1))
+        ax.plot(ns, c, "o-", color=color, label=f"{name} ({rec['sets'][name]['n']} targets)")
+        ax.fill_between(ns, lo, hi, color=color, alpha=0.15)
+        fit = (rec.get("power_law") or {}).get(name)
+        if fit:
+            grid = np.geomspace(ns.min(), max(ns.max() * 8, (fit.get("rows_to_goal") or 0) * 1.2), 100)
+            ax.plot(grid, 1 - fit["a"] * grid ** -fit["b"], ":", color=color, lw=1)
+        if fit and fit.get("goal") is not None:
+            ax.axhline(fit["goal"], color=color, lw=0.8, ls="--")
+        for m, p in zip("s^Dv", others, strict=False):
+            ax.plot(p["rows"], p["sets"][name]["ceiling"], m, color=color, mfc="none", ms=8,
+                    label=p["label"].split("n=", 1)[1] if k == 0 else None)
+    ax.set_xscale("log")
+    ax.set_xlabel("training rows")
+    ax.set_ylabel("ceiling: mean R of the surrogate at the true parameters")
+    ax.set_title("Surrogate ceiling against training rows (dotted: power law, dashed: goal)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
 
 
 def _write(out: dict[str, Any], path: str) -> None:

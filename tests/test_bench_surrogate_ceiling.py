@@ -1,7 +1,7 @@
 """bench_surrogate_ceiling: the ceiling is the recovery of the features predicted at the TRUE parameters (a
 perfect surrogate scores 1, one queried elsewhere does not), the power law finds the rows to a goal, and the
 script runs end to end on a tiny real bundle (nested sizes, an extra store, one JSON of the documented shape;
-bad input is one error line and exit 2)."""
+variant settings, a plot; bad input is one error line and exit 2)."""
 
 from __future__ import annotations
 
@@ -82,7 +82,8 @@ def test_end_to_end_on_a_tiny_bundle(run: Path, tmp_path: Path) -> None:
     out = tmp_path / "r" / "ceiling.json"
     rc = bench.main(["--bundle", str(bundle), "--sets", "test=@test", f"toy={store}", "--sizes", "80", "40",
                      "--extra-train", str(store), "--members", "2", "--max-epochs", "4", "--small-below", "50",
-                     "--small-max-epochs", "2", "--goal", "toy=0.99", "--bootstrap", "30", "--out", str(out)])
+                     "--small-max-epochs", "2", "--goal", "toy=0.99", "--bootstrap", "30", "--out", str(out),
+                     "--variant", "narrow={hidden: [8, 8, 4], max_epochs: 3}", "--plot", str(tmp_path / "c.png")])
     assert rc == 0
     rec = json.loads(out.read_text())
     b = Bundle(bundle)
@@ -91,9 +92,11 @@ def test_end_to_end_on_a_tiny_bundle(run: Path, tmp_path: Path) -> None:
     assert rec["benchmark"] == "surrogate_ceiling" and rec["device"].startswith("cpu")
     assert rec["command"].startswith("python ") and rec["git_commit"]
     assert rec["kappa"] == b.kappa and rec["train_rows"] == n_train and rec["extra_rows"] == n_store
-    assert [p["label"] for p in rec["points"]] == ["n=40", "n=80", f"n={n_train}+extra"]
-    assert [p["rows"] for p in rec["points"]] == [40, 80, n_train + n_store]
-    assert [p["max_epochs"] for p in rec["points"]] == [2, 4, 4] and {p["members"] for p in rec["points"]} == {2}
+    assert [p["label"] for p in rec["points"]] == ["n=40", "n=80", f"n={n_train}+extra", f"n={n_train}:narrow"]
+    assert [p["rows"] for p in rec["points"]] == [40, 80, n_train + n_store, n_train]
+    assert [p["max_epochs"] for p in rec["points"]] == [2, 4, 4, 3] and {p["members"] for p in rec["points"]} == {2}
+    assert rec["points"][-1]["settings_changed"] == {"hidden": [8, 8, 4], "max_epochs": 3}
+    assert (tmp_path / "c.png").stat().st_size > 1000
     for p in rec["points"]:
         assert set(p["sets"]) == {"test", "toy"}
         for s in p["sets"].values():
@@ -108,7 +111,8 @@ def test_end_to_end_on_a_tiny_bundle(run: Path, tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("args", [["--sizes", "100000"], ["--sizes", "40", "--sets", "nameonly"],
-                                  ["--sizes", "40", "--sets", "x=/no/such/store"]])
+                                  ["--sizes", "40", "--sets", "x=/no/such/store"],
+                                  ["--sizes", "40", "--variant", "v=[1, 2]"]])
 def test_bad_input_is_one_error_line(run: Path, tmp_path: Path, capsys, args: list[str]) -> None:
     bench = _bench()
     argv = ["--bundle", str(run / "inverter"), "--sets", "test=@test", "--out", str(tmp_path / "o.json"), *args]
