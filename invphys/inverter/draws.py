@@ -8,11 +8,15 @@ the box, and ``clipped`` says how many. Because the rounds have a fixed size, th
 the same for every S >= K, and no draw depends on other targets or on the batch.
 
 Speed: for an nflows flow (sbi's maf/nsf), many targets are drawn together: each target's base noise
-comes from its own generator, each round fills one block of exactly :data:`ROUND` rows (padded), and the
-flow runs on whole blocks, :data:`CHUNK_ROUNDS` at a time. A row's arithmetic in the flow's matrix
-products does not depend on the other rows of a call of >= ROUND rows (checked by
-tests/test_inverter_determinism.py), so the draws are bit-for-bit those of a target drawn alone, and the
-same as sbi's own ``sample`` under the target's seed.
+comes from its own generator, one round at a time (sbi's order: completion-major), and the flow runs
+on the next rows of every unfinished target at once, in calls of :data:`CHUNK_ROUNDS` x :data:`ROUND`
+rows padded to a multiple of ROUND (and never ending on a real row: the flow computes a call's last
+row otherwise, rarely, in the last bits). A row's arithmetic then does not depend on the other rows
+of the call (checked by tests/test_inverter_pool.py and tests/test_pool_speed.py), so the draws are
+bit-for-bit those of a target drawn alone, and the same as sbi's own ``sample`` under the target's
+seed. Where nobody reads the outside fraction (``whole_rounds=False``: a pool's extra members) a
+round's rows go through the flow only until the target has its draws: the same draws, fewer rows.
+One torch thread: on a 2-core machine whose other core is busy, two threads ran many times slower.
 
 A partial target (missing features) is answered by the mixture over completions: the missing features
 take the values of the :data:`COMPLETIONS` training rows nearest in the given features (scaled), each
@@ -39,6 +43,8 @@ CAP_FACTOR = 50
 CHUNK_ROUNDS = 16
 #: completions of a partial target's missing features (training rows nearest in the given features)
 COMPLETIONS = 16
+#: the share of a target's raw draws expected inside the box before any was made (rounds in part only)
+FIRST_RATE = 0.7
 _LOG = logging.getLogger("invphys.inverter")
 
 
@@ -96,9 +102,13 @@ def completions(values: np.ndarray, mask: np.ndarray, train_y: np.ndarray | None
     return np.where(mask[None, :], values[None, :], y[idx])
 
 
-def sample_posterior(plugin: Any, conditions: Sequence[np.ndarray], seeds: Sequence[int], n: int
-                     ) -> PosteriorDraws:
-    """``n`` truncated draws per target; ``conditions[i]`` (K_i, M) from :func:`completions`."""
+def sample_posterior(plugin: Any, conditions: Sequence[np.ndarray], seeds: Sequence[int], n: int,
+                     whole_rounds: bool = True) -> PosteriorDraws:
+    """``n`` truncated draws per target; ``conditions[i]`` (K_i, M) from :func:`completions`.
+
+    ``whole_rounds=False`` (an nflows flow only): a round's rows go through the flow only until the
+    target has ``n`` draws inside, so the draws are the same, made faster, but ``outside_fraction``
+    and ``raw_draws`` then count only the rows transformed (for draws whose fraction nobody reads)."""
     if not has_posterior(plugin):
         raise InvphysError(f"{getattr(plugin, 'name', plugin)!r} holds no posterior to draw from")
     if n < 1:
@@ -107,7 +117,8 @@ def sample_posterior(plugin: Any, conditions: Sequence[np.ndarray], seeds: Seque
     logit = getattr(getattr(plugin, "config", None), "transform", "none") == "logit"
     net = _flow(est)
     if net is not None and all(len(np.atleast_2d(c)) <= ROUND for c in conditions):
-        rows = _together(net, [np.atleast_2d(c) for c in conditions], [int(s) for s in seeds], n, logit)
+        rows = _together(net, [np.atleast_2d(c) for c in conditions], [int(s) for s in seeds], n, logit,
+                         whole_rounds)
     else:
         rows = [_one(est, c, int(s), n, logit) for c, s in zip(conditions, seeds, strict=True)]
     return PosteriorDraws(samples=np.stack([r[0] for r in rows]),
@@ -153,47 +164,91 @@ def _flow(est: Any) -> Any:
 
 @dataclass
 class _Stream:
-    """One target's draw state: its generator, repeated context (one block), draws so far."""
+    """One target's draw state: its generator, its conditions' embedding (K, C), the current round's
+    noise and how many of its ``per_round`` rows (per completion) went through the flow, draws so far."""
 
     gen: Any
-    context: Any
+    emb: Any
     k: int
     per_round: int
     inside: list[np.ndarray]
     outside: list[np.ndarray]
     got: int = 0
     raw: int = 0
+    rounds: int = 0
+    noise: Any = None
+    done: int = 0
+
+    def rows(self, n: int, whole: bool) -> int:
+        """Rows (per completion) of the current round to run next: the rest of the round, or (not
+        ``whole``) about as many as the draws still missing need at the rate seen so far."""
+        left = self.per_round - self.done
+        if whole:
+            return left
+        rate = self.got / self.raw if self.raw else FIRST_RATE
+        want = int(np.ceil((n - self.got) / max(rate, 1.0 / ROUND) * 1.1)) + 4
+        return max(1, min(left, -(-want // self.k)))
 
 
-def _together(net: Any, conditions: Sequence[np.ndarray], seeds: Sequence[int], n: int, logit: bool
-              ) -> list[tuple[np.ndarray, float, int, int]]:
-    """:func:`_one` for many targets at once: rounds of every unfinished target in one flow pass."""
+def _together(net: Any, conditions: Sequence[np.ndarray], seeds: Sequence[int], n: int, logit: bool,
+              whole: bool = True) -> list[tuple[np.ndarray, float, int, int]]:
+    """:func:`_one` for many targets at once: the next rows of every unfinished target in one flow pass
+    (``whole``: whole rounds; else a round's rows only until the target has ``n`` draws inside)."""
     import torch
 
     d = int(net._distribution._shape[0])
     streams = []
     with _torch_stream(0), torch.no_grad():
         for c, seed in zip(conditions, seeds, strict=True):
-            k = len(c)
-            per_round = max(1, ROUND // k)
-            ctx = net._embedding_net(torch.as_tensor(c, dtype=torch.float32)).repeat_interleave(per_round, dim=0)
-            ctx = torch.cat([ctx, ctx[:1].expand(ROUND - len(ctx), -1)])  # pad the block to ROUND rows
-            streams.append(_Stream(torch.Generator().manual_seed(seed), ctx, k, per_round, [], []))
+            emb = net._embedding_net(torch.as_tensor(c, dtype=torch.float32))  # as sbi embeds them
+            streams.append(_Stream(torch.Generator().manual_seed(seed), emb, len(c), max(1, ROUND // len(c)), [], []))
         while True:
-            active = [st for st in streams if st.got < n and st.raw < CAP_FACTOR * n]
-            if not active:
+            plan = []
+            for st in streams:
+                if st.got >= n:
+                    continue
+                if st.noise is None or st.done == st.per_round:  # a new round, in sbi's order (completion-major)
+                    if st.rounds * st.k * st.per_round >= CAP_FACTOR * n:
+                        continue
+                    st.noise = torch.randn(st.k * st.per_round, d, generator=st.gen)
+                    st.rounds, st.done = st.rounds + 1, 0
+                plan.append((st, st.rows(n, whole)))
+            if not plan:
                 break
-            noise = torch.zeros(len(active) * ROUND, d)
-            for j, st in enumerate(active):  # the target's own stream, in sbi's order (completion-major)
-                noise[j * ROUND:j * ROUND + st.k * st.per_round] = torch.randn(st.k * st.per_round, d, generator=st.gen)
-            ctx = torch.cat([st.context for st in active])
-            step = CHUNK_ROUNDS * ROUND
-            out = torch.cat([net._transform.inverse(noise[a:a + step], context=ctx[a:a + step])[0]
-                             for a in range(0, len(noise), step)]).numpy().astype(np.float64)
-            for j, st in enumerate(active):
-                s = out[j * ROUND:j * ROUND + st.k * st.per_round].reshape(st.k, st.per_round, d)
+            out = _run(net, plan)
+            a = 0
+            for st, take in plan:
+                s = out[a:a + st.k * take].reshape(st.k, take, d)
+                a += st.k * take
                 _keep(st, s.transpose(1, 0, 2).reshape(-1, d), logit)
+                st.done += take
     return [_finish(st.inside, st.outside, st.got, st.raw, n) for st in streams]
+
+
+def _padded(x: Any) -> Any:
+    """``x`` with its first row repeated after it, up to the next multiple of :data:`ROUND` rows (at
+    least one row more): the flow computes a call's LAST row otherwise than the others (rarely, in the
+    last bits), so no real row may be last, and no call is smaller than a round."""
+    import torch
+
+    return torch.cat([x, x[:1].expand(ROUND - len(x) % ROUND, -1)])
+
+
+def _run(net: Any, plan: list[tuple[_Stream, int]]) -> np.ndarray:
+    """The flow on the planned rows of every target (rows ``done .. done + take`` of each completion
+    block of its round), in calls of :data:`CHUNK_ROUNDS` x :data:`ROUND` rows, each padded to a
+    multiple of :data:`ROUND` rows; (rows, d) float64, completion-major per target."""
+    import torch
+
+    noise = torch.cat([st.noise.view(st.k, st.per_round, -1)[:, st.done:st.done + take].reshape(st.k * take, -1)
+                       for st, take in plan])
+    ctx = torch.cat([st.emb.repeat_interleave(take, dim=0) for st, take in plan])
+    step = CHUNK_ROUNDS * ROUND
+    outs = []
+    for a in range(0, len(noise), step):
+        z, c = noise[a:a + step], ctx[a:a + step]
+        outs.append(net._transform.inverse(_padded(z), context=_padded(c))[0][:len(z)])
+    return torch.cat(outs).numpy().astype(np.float64)
 
 
 def _keep(st: _Stream, s: np.ndarray, logit: bool) -> None:

@@ -153,7 +153,7 @@ class PoolAnswers(PosteriorAnswers):
         blocks = [d.samples[:, :k]]
         for label, plugin in zip(self.settings.extra, self.members, strict=True):
             seeds = [target_seed(seed, label, v, m, "posterior") for v, m in zip(values, masks, strict=True)]
-            blocks.append(sample_posterior(plugin, conds, seeds, k).samples)
+            blocks.append(sample_posterior(plugin, conds, seeds, k, whole_rounds=False).samples)  # no fraction read
         d.samples = np.concatenate([*blocks, d.samples[:, k:]], axis=1)
         return conds, d
 
