@@ -22,6 +22,10 @@ from a stored row is predicted as ``f(theta') + y_j - f(theta_j)`` (the row's re
 the prediction starts from the row's real features). ``rows="all"`` also
 offers the bundle's held-out rows as stored candidates (never for scoring those rows themselves).
 The answer is the best scored candidate. Nothing depends on other targets or their order.
+
+A stored row in the answer (any setting) reports its real features and their R against the target
+(:attr:`~invphys.inverter.result.Candidate.known`, ``r_known``) next to the surrogate's R: what the
+simulator gave at those parameters, up to its re-run noise.
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ import numpy as np
 from invphys.core.errors import InvphysError
 from invphys.core.masked_recovery import masked_recovery
 from invphys.inverter.answers import Pool, PosteriorAnswers
+from invphys.inverter.result import KnownSource
 from invphys.inverter.seeds import target_rng, target_seed
 
 #: the label ``invphys invert --method`` knows the pool by (any bundle holding a posterior method)
@@ -190,9 +195,12 @@ class PoolAnswers(PosteriorAnswers):
         near = self.train_theta[rows]
         n_post = s.draws * (1 + len(s.extra))
         thetas = np.concatenate([samples[:n_post], near])
-        sources = [f"{self.label} (posterior)"] * n_post + [f"{self.label} (neighbour)"] * len(near)
+        exact = self.stored_score(rows, values, mask)
+        sources: list[str] = [f"{self.label} (posterior)"] * n_post
+        sources += [KnownSource(f"{self.label} (neighbour)", self.train_y[j], float(r)) for j, r in zip(rows, exact,
+                                                                                                   strict=True)]
         if s.exact:
-            scores = np.concatenate([self.score(thetas[:n_post], values, mask), self.stored_score(rows, values, mask)])
+            scores = np.concatenate([self.score(thetas[:n_post], values, mask), exact])
         else:
             scores = self.score(thetas, values, mask)
         if s.moves:

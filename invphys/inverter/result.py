@@ -13,10 +13,26 @@ from invphys.core.errors import InvphysError
 from invphys.inverter.uncertainty import Uncertainty, at_bound
 
 
+class KnownSource(str):
+    """A candidate's source that is a stored row of the bundle (simulated when its data was made): its
+    real features ``known`` (M,) and their R against the target ``r_known`` ride along, and the
+    :class:`Candidate` made from it keeps them (the source itself becomes a plain string)."""
+
+    known: np.ndarray | None
+    r_known: float | None
+
+    def __new__(cls, text: str, known: np.ndarray | None = None, r_known: float | None = None) -> KnownSource:
+        obj = super().__new__(cls, text)
+        obj.known, obj.r_known = known, r_known
+        return obj
+
+
 @dataclass
 class Candidate:
     """One answer: normalised ``theta``, physical ``params`` (space order), surrogate prediction and
-    ensemble std, R_surr; after validation the simulated features, R_actual and the gap."""
+    ensemble std, R_surr; after validation the simulated features, R_actual and the gap. A stored row of
+    the bundle (a pool's neighbour) also carries its real features ``known`` and their R against the
+    target ``r_known``: what the simulator gave there, no surrogate involved (zero spread)."""
 
     theta: np.ndarray
     params: np.ndarray
@@ -28,6 +44,25 @@ class Candidate:
     r_actual: float | None = None
     gap: float | None = None
     failure: str | None = None
+    known: np.ndarray | None = None
+    r_known: float | None = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.source, KnownSource):
+            if self.known is None and self.source.known is not None:
+                self.known = np.asarray(self.source.known, dtype=np.float64)
+                self.r_known = None if self.source.r_known is None else float(self.source.r_known)
+            self.source = str(self.source)
+
+    @property
+    def features(self) -> np.ndarray:
+        """The features this candidate is best known by: its stored real features, else the prediction."""
+        return self.predicted if self.known is None else self.known
+
+    @property
+    def spread(self) -> np.ndarray:
+        """Their spread: 0 for stored real features, else the ensemble's std."""
+        return np.asarray(self.std) if self.known is None else np.zeros_like(self.known)
 
 
 @dataclass
@@ -136,6 +171,11 @@ class InversionResult:
     def r_actual(self) -> float | None:
         return self.best.r_actual
 
+    @property
+    def r_known(self) -> float | None:
+        """The best candidate's R from its stored real features (None unless it is a stored row)."""
+        return self.best.r_known
+
     def spread(self) -> dict[str, float]:
         """Per parameter: range of the candidates' normalised values (wide = the target does not pin it)."""
         t = np.array([c.theta for c in self.candidates])
@@ -143,14 +183,15 @@ class InversionResult:
 
     def chi2(self, c: Candidate | None = None) -> float | None:
         """The noise-normalised misfit of a candidate (default: the best) over the given features:
-        mean of (predicted - target)² / (std² + ensemble std²); about 1 when the answer fits the target
-        as well as its noise allows, >> 1 when it does not. None for an exact target."""
+        mean of (predicted - target)² / (std² + ensemble std²) (a stored row: its real features, no
+        ensemble spread); about 1 when the answer fits the target as well as its noise allows, >> 1 when
+        it does not. None for an exact target."""
         if self.target_std is None:
             return None
         c = c or self.best
         m = self.mask
-        var = np.nan_to_num(self.target_std[m], nan=0.0) ** 2 + np.asarray(c.std, dtype=np.float64)[m] ** 2
-        r = np.asarray(c.predicted, dtype=np.float64)[m] - self.target[m]
+        var = np.nan_to_num(self.target_std[m], nan=0.0) ** 2 + np.asarray(c.spread, dtype=np.float64)[m] ** 2
+        r = np.asarray(c.features, dtype=np.float64)[m] - self.target[m]
         return float(np.mean(r * r / np.maximum(var, 1e-300)))
 
     def noise(self) -> dict[str, Any] | None:
@@ -172,6 +213,8 @@ class InversionResult:
                                        "unit": self.feature_units[j]}
                 if self.target_std is not None and self.mask[j]:
                     row["target_std"] = _f(self.target_std[j])
+                if c.known is not None:
+                    row["known"] = _f(c.known[j])
                 if c.actual is not None:
                     row["actual"] = _f(c.actual[j])
                 if not self.mask[j]:
@@ -182,6 +225,8 @@ class InversionResult:
                 "parameters": {n: {"value": _f(v), "unit": u} for n, v, u in
                                zip(self.parameter_names, c.params, self.parameter_units, strict=True)},
                 "theta": [_f(v) for v in c.theta], "r_surrogate": _f(c.r_surrogate), "features": feats}
+            if c.known is not None:  # a stored row: its real features, simulated when the bundle was made
+                out["r_known"] = _f(c.r_known)
             if self.target_std is not None:
                 out["chi2"] = _f(self.chi2(c))
             if c.r_actual is not None or c.failure:
