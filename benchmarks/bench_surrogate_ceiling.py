@@ -4,7 +4,7 @@
         --sets test=@test uniform=datasets/orange_peel_paper_fresh_uniform \\
                edge=datasets/orange_peel_paper_fresh_edge \\
         --sizes 750 1500 3000 6000 9000 12500 --extra-train datasets/orange_peel_paper_faces \\
-        --variant "wide={hidden: [256, 256, 128]}" "long={max_epochs: 400, patience: 400}" \\
+        --variant "wide={hidden: [256, 256, 128]}" "long={max_epochs: 400, patience: 400}" "ten={members: 10}" \\
         --goal test=0.92 uniform=0.92 edge=0.88 --plot docs/orange-peel/surrogate-ceiling.png \\
         --out benchmarks/results/surrogate_ceiling_paper_cpu.json
 
@@ -23,7 +23,8 @@ bundle's held-out rows): held-out R^2 per feature and mean, and the ceiling, wit
 over the set's rows. ``--extra-train STORE`` adds one more point: all training rows plus that store's rows.
 ``--variant NAME='{setting: value}'`` adds a point on all training rows with changed surrogate settings (the
 architecture lever against the rows lever). The shipped surrogate is scored too (``shipped``). A power law ``1 - ceiling = a n^-b`` is fitted per set
-over the sizes and solved for the rows that would reach ``--goal NAME=R``. The JSON is rewritten after every
+over the sizes (and over the three largest) and solved for the rows that would reach ``--goal NAME=R``, with a
+bootstrap interval. The JSON is rewritten after every
 point, so an interrupted run keeps what it measured; ``--plot PNG`` draws the curves.
 """
 
@@ -240,6 +241,7 @@ def run(a: argparse.Namespace) -> dict[str, Any]:
                     for name, th, y in sets},
         "points": []}
     _write(out, a.out)
+    curve: list[tuple[int, dict[str, np.ndarray]]] = []
     for pt in points:
         block = {**surrogate_settings(Path(a.bundle), pt["members"], pt["max_epochs"]), **pt["update"]}
         idx = np.sort(perm[: pt["base_rows"]])
@@ -255,20 +257,39 @@ def run(a: argparse.Namespace) -> dict[str, Any]:
         print(f"{pt['label']:>16s} ({len(th)} rows, {block['members']} members, {block['max_epochs']} epochs, "
               f"{secs:.0f} s): " + ", ".join(f"{k} R {v['ceiling']:.3f} R2 {v['r2_mean']:.3f}" for k, v in res.items()),
               file=sys.stderr)
-        out["power_law"] = fits(out["points"], goals)
+        if pt["label"] == f"n={len(th)}":
+            curve.append((len(th), {name: ceiling_rows(sur.predict, st, sy, b.scales, b.kappa) for name, st, sy in sets}))
+            out["power_law"] = fits(curve, goals, a.bootstrap, a.seed)
         _write(out, a.out)
     if a.plot:
         plot(out, a.plot)
     return out
 
 
-def fits(points: list[dict[str, Any]], goals: dict[str, float]) -> dict[str, Any]:
-    """The power law per set over the plain (no extra rows) points."""
-    plain = [p for p in points if p["label"] == f"n={p['rows']}"]
-    if not plain:
+def fits(curve: list[tuple[int, dict[str, np.ndarray]]], goals: dict[str, float], boot: int,
+         seed: int) -> dict[str, Any]:
+    """Per set, the power law over every plain size (``all``) and over the three largest (``last3``: the local
+    slope), each with a bootstrap 95 % interval of its rows to the goal (targets resampled jointly over sizes;
+    None: never reached)."""
+    if len(curve) < 2:
         return {}
-    return {name: power_law([p["rows"] for p in plain], [p["sets"][name]["ceiling"] for p in plain],
-                            goals.get(name)) for name in plain[0]["sets"]}
+    out: dict[str, Any] = {}
+    for name in curve[0][1]:
+        entry = {}
+        for key, part in (("all", curve), ("last3", curve[-3:])):
+            ns = [n for n, _ in part]
+            fit = power_law(ns, [float(r[name].mean()) for _, r in part], goals.get(name))
+            if fit is not None and fit.get("goal") is not None and boot:
+                m = len(part[0][1][name])
+                idx = np.random.default_rng(seed).integers(0, m, size=(boot, m))
+                cs = np.stack([r[name][idx].mean(1) for _, r in part], axis=1)
+                got = [power_law(ns, list(c), fit["goal"]) for c in cs]
+                v = np.array([np.inf if g is None or g["rows_to_goal"] is None else g["rows_to_goal"] for g in got])
+                fit["rows_to_goal_ci95"] = [float(q) if np.isfinite(q) else None
+                                            for q in np.percentile(v, [2.5, 97.5])]
+            entry[key] = fit
+        out[name] = entry
+    return out
 
 
 def plot(rec: dict[str, Any], path: str) -> None:
@@ -289,10 +310,11 @@ def plot(rec: dict[str, Any], path: str) -> None:
         lo, hi = (np.array([p["sets"][name]["ceiling_ci95"][j] for p in plain]) for j in (0, 1))
         ax.plot(ns, c, "o-", color=color, label=f"{name} ({rec['sets'][name]['n']} targets)")
         ax.fill_between(ns, lo, hi, color=color, alpha=0.15)
-        fit = (rec.get("power_law") or {}).get(name)
-        if fit:
-            grid = np.geomspace(ns.min(), max(ns.max() * 8, (fit.get("rows_to_goal") or 0) * 1.2), 100)
-            ax.plot(grid, 1 - fit["a"] * grid ** -fit["b"], ":", color=color, lw=1)
+        fit = ((rec.get("power_law") or {}).get(name) or {}).get("all")
+        for style, f in ((":", fit), ("-.", ((rec.get("power_law") or {}).get(name) or {}).get("last3"))):
+            if f:
+                grid = np.geomspace(ns.min(), max(ns.max() * 8, min(f.get("rows_to_goal") or 0, 3e5) * 1.2), 100)
+                ax.plot(grid, 1 - f["a"] * grid ** -f["b"], style, color=color, lw=1)
         if fit and fit.get("goal") is not None:
             ax.axhline(fit["goal"], color=color, lw=0.8, ls="--")
         for m, p in zip("s^Dv", others, strict=False):
@@ -301,7 +323,8 @@ def plot(rec: dict[str, Any], path: str) -> None:
     ax.set_xscale("log")
     ax.set_xlabel("training rows")
     ax.set_ylabel("ceiling: mean R of the surrogate at the true parameters")
-    ax.set_title("Surrogate ceiling against training rows (dotted: power law, dashed: goal)")
+    ax.set_title("Surrogate ceiling against training rows\n(dotted: power law on all sizes, dash-dot: on the "
+                 "three largest; dashed: goal)", fontsize=10)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()

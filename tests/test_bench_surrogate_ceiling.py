@@ -71,6 +71,12 @@ def test_power_law_finds_the_rows_to_a_goal() -> None:
     assert fit["rows_to_goal"] == pytest.approx((2.0 / 0.08) ** 4, rel=1e-6)
     assert bench.power_law(ns, [0.8, 0.8, 0.79, 0.79], 0.92)["rows_to_goal"] is None  # flat or falling: never
     assert bench.power_law([1000], [0.8], 0.92) is None
+    # the fitted rows and their bootstrap interval from per-target R (the last three sizes fitted apart)
+    rng = np.random.default_rng(1)
+    curve = [(n, {"s": np.clip(c + rng.normal(0, 0.01, 400), 0, 1)}) for n, c in zip(ns, cs, strict=True)]
+    f = bench.fits(curve, {"s": 0.92}, 200, 0)["s"]
+    assert f["all"]["rows_to_goal_ci95"][0] < (2.0 / 0.08) ** 4 < f["all"]["rows_to_goal_ci95"][1]
+    assert f["last3"]["points"] == 3 and f["all"]["points"] == 4
 
 
 def test_end_to_end_on_a_tiny_bundle(run: Path, tmp_path: Path) -> None:
@@ -102,7 +108,8 @@ def test_end_to_end_on_a_tiny_bundle(run: Path, tmp_path: Path) -> None:
         for s in p["sets"].values():
             assert 0 <= s["ceiling_ci95"][0] <= s["ceiling"] <= s["ceiling_ci95"][1] <= 1
             assert len(s["r2_per_feature"]) == len(b.feature_names)
-    assert set(rec["power_law"]) == {"test", "toy"} and rec["power_law"]["toy"]["goal"] == 0.99
+    assert set(rec["power_law"]) == {"test", "toy"} and rec["power_law"]["toy"]["all"]["goal"] == 0.99
+    assert len(rec["power_law"]["toy"]["last3"]["rows_to_goal_ci95"]) == 2
     # the shipped surrogate's ceiling on the held-out rows: its features at their true parameters
     theta, y = b.data("test")
     want = recovery_reward(b.surrogate.predict(theta), y, b.scales, b.kappa).mean()
