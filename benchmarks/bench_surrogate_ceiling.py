@@ -19,7 +19,8 @@ permutation, the first n rows, kept in the bundle's order, so the largest size e
 the bundle's training input). Each size trains the bundle's surrogate (its ``surrogate/model.json`` settings;
 ``--members``/``--max-epochs`` override them, ``--small-members``/``--small-max-epochs`` only below
 ``--small-below`` rows) and is scored on every ``--sets`` entry (``NAME=STORE``, ``NAME=@test`` for the
-bundle's held-out rows): held-out R^2 per feature and mean, and the ceiling, with bootstrap 95 % intervals
+bundle's held-out rows): held-out R^2 per feature and mean, each feature's share of the mean squared scaled
+error (what pulls R down), and the ceiling, with bootstrap 95 % intervals
 over the set's rows. ``--extra-train STORE`` adds one more point: all training rows plus that store's rows.
 ``--variant NAME='{setting: value}'`` adds a point on all training rows with changed surrogate settings (the
 architecture lever against the rows lever). The shipped surrogate is scored too (``shipped``). A power law ``1 - ceiling = a n^-b`` is fitted per set
@@ -69,12 +70,15 @@ def score_set(pred: np.ndarray, theta: np.ndarray, y: np.ndarray, scales: np.nda
     bc = r[idx].mean(1)
     br2 = np.array([r2_per_feature(pred[i], y[i]).mean() for i in idx])
 
+    z2 = (((pred - y) / scales) ** 2).mean(0)
+
     def ci(v: np.ndarray) -> list[float]:
         return [float(np.percentile(v, 2.5)), float(np.percentile(v, 97.5))]
 
     return {"n": len(y), "ceiling": float(r.mean()), "ceiling_ci95": ci(bc), "ceiling_median": float(np.median(r)),
             "ceiling_p10": float(np.percentile(r, 10)), "r2_mean": float(r2.mean()), "r2_mean_ci95": ci(br2),
-            "r2_per_feature": dict(zip(names, (float(v) for v in r2), strict=True))}
+            "r2_per_feature": dict(zip(names, (float(v) for v in r2), strict=True)),
+            "error_share": dict(zip(names, (float(v) for v in z2 / max(z2.sum(), 1e-300)), strict=True))}
 
 
 def load_set(bundle: Any, spec: str) -> tuple[str, np.ndarray, np.ndarray]:

@@ -108,6 +108,7 @@ def test_end_to_end_on_a_tiny_bundle(run: Path, tmp_path: Path) -> None:
         for s in p["sets"].values():
             assert 0 <= s["ceiling_ci95"][0] <= s["ceiling"] <= s["ceiling_ci95"][1] <= 1
             assert len(s["r2_per_feature"]) == len(b.feature_names)
+            assert sum(s["error_share"].values()) == pytest.approx(1.0)
     assert set(rec["power_law"]) == {"test", "toy"} and rec["power_law"]["toy"]["all"]["goal"] == 0.99
     assert len(rec["power_law"]["toy"]["last3"]["rows_to_goal_ci95"]) == 2
     # the shipped surrogate's ceiling on the held-out rows: its features at their true parameters
