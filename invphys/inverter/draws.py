@@ -9,9 +9,9 @@ the same for every S >= K, and no draw depends on other targets or on the batch.
 
 Speed: for an nflows flow (sbi's maf/nsf), many targets are drawn together: each target's base noise
 comes from its own generator, one round at a time (sbi's order: completion-major), and the flow runs
-on the next rows of every unfinished target at once, in calls of :data:`CHUNK_ROUNDS` x :data:`ROUND`
-rows padded to a multiple of ROUND (and never ending on a real row: the flow computes a call's last
-row otherwise, rarely, in the last bits). A row's arithmetic then does not depend on the other rows
+on the next rows of every unfinished target at once, in calls of up to :data:`CHUNK_ROUNDS` x
+:data:`ROUND` rows that never end on a real row (:data:`PAD` rows of padding: the flow computes a
+call's last rows otherwise, rarely, in the last bits). A row's arithmetic then does not depend on the other rows
 of the call (checked by tests/test_inverter_pool.py and tests/test_pool_speed.py), so the draws are
 bit-for-bit those of a target drawn alone, and the same as sbi's own ``sample`` under the target's
 seed. Where nobody reads the outside fraction (``whole_rounds=False``: a pool's extra members) a
@@ -43,6 +43,8 @@ CAP_FACTOR = 50
 CHUNK_ROUNDS = 16
 #: completions of a partial target's missing features (training rows nearest in the given features)
 COMPLETIONS = 16
+#: padding rows after the last real row of a flow call (its vector loops' scalar tail falls on them)
+PAD = 16
 #: the share of a target's raw draws expected inside the box before any was made (rounds in part only)
 FIRST_RATE = 0.7
 _LOG = logging.getLogger("invphys.inverter")
@@ -226,18 +228,19 @@ def _together(net: Any, conditions: Sequence[np.ndarray], seeds: Sequence[int], 
 
 
 def _padded(x: Any) -> Any:
-    """``x`` with its first row repeated after it, up to the next multiple of :data:`ROUND` rows (at
-    least one row more): the flow computes a call's LAST row otherwise than the others (rarely, in the
-    last bits), so no real row may be last, and no call is smaller than a round."""
+    """``x`` with its first row repeated after it: at least :data:`PAD` rows more, a multiple of PAD
+    rows and at least :data:`ROUND` in all. The flow's vector loops end in a scalar tail over a call's
+    last elements, which computes them otherwise (rarely, in the last bits): no real row may be there."""
     import torch
 
-    return torch.cat([x, x[:1].expand(ROUND - len(x) % ROUND, -1)])
+    size = max(ROUND, -(-(len(x) + PAD) // PAD) * PAD)
+    return torch.cat([x, x[:1].expand(size - len(x), -1)])
 
 
 def _run(net: Any, plan: list[tuple[_Stream, int]]) -> np.ndarray:
     """The flow on the planned rows of every target (rows ``done .. done + take`` of each completion
-    block of its round), in calls of :data:`CHUNK_ROUNDS` x :data:`ROUND` rows, each padded to a
-    multiple of :data:`ROUND` rows; (rows, d) float64, completion-major per target."""
+    block of its round), in calls of :data:`CHUNK_ROUNDS` x :data:`ROUND` rows, each padded
+    (:func:`_padded`); (rows, d) float64, completion-major per target."""
     import torch
 
     noise = torch.cat([st.noise.view(st.k, st.per_round, -1)[:, st.done:st.done + take].reshape(st.k * take, -1)
