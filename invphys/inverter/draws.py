@@ -16,7 +16,8 @@ of the call (checked by tests/test_inverter_pool.py and tests/test_pool_speed.py
 bit-for-bit those of a target drawn alone, and the same as sbi's own ``sample`` under the target's
 seed. Where nobody reads the outside fraction (``whole_rounds=False``: a pool's extra members) a
 round's rows go through the flow only until the target has its draws: the same draws, fewer rows.
-One torch thread: on a 2-core machine whose other core is busy, two threads ran many times slower.
+One torch thread (:data:`THREADS`): on a 2-core machine whose other core is busy, two threads ran
+many times slower.
 
 A partial target (missing features) is answered by the mixture over completions: the missing features
 take the values of the :data:`COMPLETIONS` training rows nearest in the given features (scaled), each
@@ -43,6 +44,9 @@ CAP_FACTOR = 50
 CHUNK_ROUNDS = 16
 #: completions of a partial target's missing features (training rows nearest in the given features)
 COMPLETIONS = 16
+#: torch threads while drawing (the same draws with more: a row's arithmetic is split by rows); 1 because
+#: on a 2-core machine whose other core is busy two threads ran many times slower
+THREADS = 1
 #: padding rows after the last real row of a flow call (its vector loops' scalar tail falls on them)
 PAD = 16
 #: the share of a target's raw draws expected inside the box before any was made (rounds in part only)
@@ -74,13 +78,13 @@ def has_posterior(plugin: Any) -> bool:
 
 @contextlib.contextmanager
 def _torch_stream(seed: int) -> Iterator[None]:
-    """torch's global RNG seeded with ``seed`` inside, restored after; one CPU thread."""
+    """torch's global RNG seeded with ``seed`` inside, restored after; :data:`THREADS` CPU threads."""
     import torch
 
     threads = torch.get_num_threads()
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
-        torch.set_num_threads(1)
+        torch.set_num_threads(THREADS)
         try:
             yield
         finally:
