@@ -80,7 +80,7 @@ def test_every_stored_candidate_knows_its_r_and_others_do_not(inv) -> None:
 
 def test_a_noisy_target_measures_a_stored_row_by_its_real_features(inv) -> None:
     """chi2 of a stored-row answer uses its real features and no ensemble spread."""
-    theta, y = inv.bundle.data("train")
+    _, y = inv.bundle.data("train")
     target = dict(zip(inv.feature_names, map(float, y[41]), strict=True))
     res = _pool(inv, [target], exact=True)[0]
     std = np.full(len(inv.feature_names), 0.05) * inv.bundle.scales
