@@ -89,3 +89,20 @@ def test_a_noisy_target_measures_a_stored_row_by_its_real_features(inv) -> None:
     assert res.chi2() == pytest.approx(0.0, abs=1e-20)
     res.candidates[0].known = None  # the prediction instead: misfit > 0
     assert res.chi2() > 0
+
+
+def test_a_lookup_answer_is_a_stored_row_and_says_so(inv) -> None:
+    """The nearest-neighbour lookup answers with training rows: each carries its real features and R
+    (a target that is a training row: that row, R_known 1, above its R_surr)."""
+    theta, y = inv.bundle.data("train")
+    for i, r in zip([3, 41], inv.invert_many(y[[3, 41]], method="lookup"), strict=True):
+        np.testing.assert_array_equal(r.theta, theta[i])
+        np.testing.assert_array_equal(r.candidates[0].known, y[i])
+        assert r.r_known == pytest.approx(1.0) and r.r_surrogate < 0.99
+    _, targets = inv.bundle.data("test")
+    for r in inv.invert_many(targets[:5], method="lookup"):
+        for c in r.candidates:
+            j = _row_of(theta, c.theta)
+            assert j is not None
+            want = masked_recovery(y[j][None], r.target, inv.bundle.scales, None, inv.bundle.kappa)[0]
+            assert c.r_known == pytest.approx(float(want), abs=1e-12)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import warnings
+import weakref
 from collections.abc import Iterator
 from typing import Any, ClassVar
 
@@ -21,6 +22,7 @@ import numpy as np
 
 from invphys.core.errors import InvphysError
 from invphys.core.masked_recovery import MaskedRecovery, masked_recovery
+from invphys.inverter.result import KnownSource
 from invphys.inverter.seeds import target_seed
 from invphys.inverter.uncertainty import NEIGHBOUR_ROWS, Uncertainty
 
@@ -181,15 +183,49 @@ class PosteriorAnswers(MethodAnswers):
         return first[int(best[0])], len(first) + 1
 
 
+#: :class:`StoredRows` per loaded bundle
+_STORED: weakref.WeakKeyDictionary[Any, StoredRows] = weakref.WeakKeyDictionary()
+
+
+class StoredRows:
+    """The bundle's stored rows found by their exact parameters: a candidate that is one of them (a
+    lookup's answer) carries the row's real features and their R (:class:`KnownSource`)."""
+
+    def __init__(self, bundle: Any) -> None:
+        theta, y = bundle.data("train")
+        self.bundle, self.y = bundle, np.asarray(y, dtype=np.float64)
+        self._index = {np.asarray(t, dtype=np.float64).tobytes(): i for i, t in enumerate(theta)}
+
+    @classmethod
+    def of(cls, bundle: Any) -> StoredRows:
+        """One per loaded bundle (its index takes a few milliseconds to build)."""
+        if bundle not in _STORED:
+            _STORED[bundle] = cls(bundle)
+        return _STORED[bundle]
+
+    def sources(self, texts: list[str], thetas: np.ndarray, values: np.ndarray, mask: np.ndarray) -> list[str]:
+        out: list[str] = []
+        for text, t in zip(texts, thetas, strict=True):
+            i = self._index.get(np.asarray(t, dtype=np.float64).tobytes())
+            if i is None or not np.all(np.isfinite(self.y[i])):
+                out.append(text)
+                continue
+            r = masked_recovery(self.y[i][None], values, self.bundle.scales, mask, self.bundle.kappa)[0]
+            out.append(KnownSource(text, self.y[i], float(r)))
+        return out
+
+
 class LookupAnswers(MethodAnswers):
     """A dataset baseline without a posterior, asked one target at a time; a seeded baseline gets the
-    target's own seed. Its spread: the parameters of the nearest training rows (when it has them)."""
+    target's own seed. Its spread: the parameters of the nearest training rows (when it has them). An
+    answer that is a stored training row carries its real features (:class:`StoredRows`)."""
 
     kind = "lookup"
 
     def __init__(self, inv: Any, label: str, entry: dict[str, Any], plugin: Any) -> None:
         super().__init__(inv, label, entry)
         self.plugin = plugin
+        self._stored: StoredRows | None = None
 
     def max_top_k(self) -> int:
         return max(1, int(self.plugin.evaluation_budget))
@@ -219,7 +255,15 @@ class LookupAnswers(MethodAnswers):
             pool = ans.theta[:1]
         else:
             pool = np.concatenate([ans.theta[:1], ans.candidates[0]])
-        return (pool, [self.label] * len(pool), spent), self._spread(goal)
+        return (pool, self._sources(pool, values, mask), spent), self._spread(goal)
+
+    def _sources(self, pool: np.ndarray, values: np.ndarray, mask: np.ndarray) -> list[str]:
+        if self._stored is None:
+            try:
+                self._stored = StoredRows.of(self.bundle)
+            except InvphysError:  # a bundle without its training rows: nothing known
+                return [self.label] * len(pool)
+        return self._stored.sources([self.label] * len(pool), pool, values, mask)
 
     def _spread(self, goal: np.ndarray) -> Uncertainty:
         if not hasattr(self.plugin, "neighbours") or getattr(self.plugin, "_theta", None) is None:
