@@ -135,3 +135,25 @@ def test_bad_strategy_settings_are_one_clear_error(inv, bundle) -> None:
     out = CliRunner().invoke(app, ["invert", str(bundle), *feats, "--sim-refine", "6", "--sim-refine-strategy",
                                    "corrected", "--json"])
     assert out.exit_code == 0, out.output
+
+
+def test_a_batch_costs_evals_plus_second_evals_surrogate_rows_and_the_neighbours_are_the_nearest(inv, monkeypatch
+                                                                                                  ) -> None:
+    from invphys.evaluators.corrected_refine import CorrectedSettings, _nearest
+
+    _, y = inv.bundle.data("test")
+    start = inv.invert_many(y[:3], top_k=3)
+    sur = inv.bundle.surrogate
+    plain, rows = type(sur).predict, []
+    monkeypatch.setattr(sur, "predict", lambda theta: (rows.append(len(np.atleast_2d(theta))), plain(sur, theta))[1])
+    recs = refine(inv, start, 3 + 4 * 4, popsize=4, strategy="corrected", known_starts=8, stop=0)
+    batches = sum((rec["runs"] - 3) // 4 for rec in recs)
+    s = CorrectedSettings()
+    stored = len(inv.bundle.data("train")[0])   # their residuals, once
+    big = sum(n for n in rows if n >= 64) - stored   # the candidate searches (the runs' own: fewer rows a call)
+    assert batches == 12 and big <= batches * (s.evals + s.second_evals), (big, batches)   # it was 2 x evals
+    pts = np.random.default_rng(0).random((500, 3))
+    pts[7] = pts[3]   # a tie: the lower index first, as a stable sort gives
+    for k in (0, 1, 5, 16, 500, 600):
+        c = pts[3] + 0.01
+        assert _nearest(pts, c, k).tolist() == np.argsort(((pts - c) ** 2).sum(1), kind="stable")[:k].tolist()

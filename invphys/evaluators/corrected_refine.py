@@ -51,6 +51,7 @@ class CorrectedSettings:
     ridge: float = 0.2     # the linear model's ridge (pseudo-weight on slopes per bandwidth)
     second: int = 1        # points per batch around the best known point at least second_gap from the centre
     second_gap: float = 0.15
+    second_evals: int = 512   # surrogate evaluations for the point in the other basin (a third of ``evals``)
     correct: bool = True   # False: the plain surrogate (for comparisons; the strategy without its point)
 
 
@@ -68,7 +69,7 @@ def corrected_settings(options: dict[str, Any]) -> CorrectedSettings:
         given: dict[str, Any] = {k: tuple(float(x) for x in v) if k == "scales" else v for k, v in options.items()}
         s = CorrectedSettings(**given)
         ok = (int(s.popsize) >= 1 and 0 < s.radius_min <= s.radius0 <= s.radius_max <= 1 and len(s.scales) >= 1
-              and all(x > 0 for x in s.scales) and int(s.evals) >= 1 and int(s.perturb) >= 0
+              and all(x > 0 for x in s.scales) and int(s.evals) >= 1 and int(s.perturb) >= 0 and int(s.second_evals) >= 1
               and int(s.neighbours) >= 0 and int(s.second) >= 0 and s.second_gap > 0 and s.prior > 0 and s.grow >= 1 and 0 < s.shrink < 1)
     except (TypeError, ValueError):
         ok = False
@@ -114,8 +115,7 @@ class CorrectedSearch:
         th, res = th[ok], res[ok]
         if self.rows is not None and self.s.neighbours > 0 and len(self.rows[0]):
             rt, rr = self.rows
-            d2 = ((rt - centre) ** 2).sum(1)
-            near = np.argsort(d2, kind="stable")[:min(self.s.neighbours, len(rt))]
+            near = _nearest(rt, centre, self.s.neighbours)
             near = near[np.all(np.isfinite(rr[near]), axis=1)]
             th, res = np.vstack([th, rt[near]]), np.vstack([res, rr[near]])
         return th, res
@@ -127,13 +127,16 @@ class CorrectedSearch:
         dist = np.sort(np.sqrt(((th - centre) ** 2).sum(1)))[:2 * self.d]
         return float(np.clip(max(np.median(dist), self.radius), 1e-3, 0.5))
 
-    def corrected(self, x: np.ndarray, th: np.ndarray, res: np.ndarray, h: float, centre: np.ndarray) -> np.ndarray:
-        """``f_c`` at ``x`` (B, d) from known points ``th`` and their residuals ``res``."""
+    def corrected(self, x: np.ndarray, th: np.ndarray, res: np.ndarray, h: float, centre: np.ndarray,
+                  beta: np.ndarray | None = None) -> np.ndarray:
+        """``f_c`` at ``x`` (B, d) from known points ``th`` and their residuals ``res`` (``beta``: the local
+        linear fit :func:`_local_linear` of these, when already made)."""
         f = np.asarray(self.predict(x), float)
         if not self.s.correct or not len(th):
             return f
         if self.s.linear:
-            beta = _local_linear(th, res, centre, h, self.s.prior, self.s.ridge)
+            if beta is None:
+                beta = _local_linear(th, res, centre, h, self.s.prior, self.s.ridge)
             return f + beta[0] + ((x - centre) / h) @ beta[1:]
         d2 = (x * x).sum(1)[:, None] + (th * th).sum(1)[None, :] - 2.0 * x @ th.T
         w = np.exp(-np.maximum(d2, 0.0) / (2.0 * h * h))
@@ -160,7 +163,8 @@ class CorrectedSearch:
         chosen = _spread(pool, fit, q - n_pert - n_second, gap, th)
         if n_second and other is not None:   # a few points in the best other basin known
             th2, res2 = self._data(other)
-            pool2, fit2 = self._candidates(other, th2, res2, self._bandwidth(th2, other), self.s.radius0)
+            pool2, fit2 = self._candidates(other, th2, res2, self._bandwidth(th2, other), self.s.radius0,
+                                           self.s.second_evals)
             chosen += _spread(pool2, fit2, n_second, gap, np.vstack([th2, *chosen]) if chosen else th2)
         while len(chosen) < q:   # CMA-ES-like perturbations of the centre (and fill-ups)
             chosen.append(np.clip(centre + 0.5 * self.radius * self.rng.standard_normal(self.d), 0.0, 1.0))
@@ -176,19 +180,21 @@ class CorrectedSearch:
                 best, out = score, theta
         return None if out is None else np.asarray(out, float)
 
-    def _candidates(self, centre: np.ndarray, th: np.ndarray, res: np.ndarray, h: float, radius: float
-                    ) -> tuple[np.ndarray, np.ndarray]:
+    def _candidates(self, centre: np.ndarray, th: np.ndarray, res: np.ndarray, h: float, radius: float,
+                    evals: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Points around ``centre`` at every trust radius (uniform in the box, then around the best
-        uniform ones) and their corrected fit, best first."""
-        per = max(8, self.s.evals // (2 * len(self.s.scales)))
+        uniform ones) and their corrected fit, best first (``evals``: surrogate evaluations, default ``evals``)."""
+        per = max(8, int(evals or self.s.evals) // (2 * len(self.s.scales)))
+        beta = (_local_linear(th, res, centre, h, self.s.prior, self.s.ridge)
+                if self.s.correct and self.s.linear and len(th) else None)
         xs, fits = [], []
         for scale in self.s.scales:
             r = min(scale * radius, 0.5)
             u = np.clip(centre + r * (2.0 * self.rng.random((per, self.d)) - 1.0), 0.0, 1.0)
-            fu = self._fit(self.corrected(u, th, res, h, centre))
+            fu = self._fit(self.corrected(u, th, res, h, centre, beta))
             top = u[np.argsort(-fu, kind="stable")[:8]]
             v = np.clip(top[np.arange(per) % len(top)] + 0.25 * r * self.rng.standard_normal((per, self.d)), 0.0, 1.0)
-            fv = self._fit(self.corrected(v, th, res, h, centre))
+            fv = self._fit(self.corrected(v, th, res, h, centre, beta))
             xs += [u, v]
             fits += [fu, fv]
         x, fit = np.vstack(xs), np.concatenate(fits)
@@ -225,20 +231,34 @@ def row_residuals(predict: Callable[[np.ndarray], np.ndarray], theta: np.ndarray
     return theta, np.asarray(y, float) - (np.vstack(pred) if pred else np.zeros_like(y))
 
 
+def _nearest(rows: np.ndarray, centre: np.ndarray, k: int) -> np.ndarray:
+    """The indices of the ``k`` rows nearest ``centre``, nearest first (ties: the lower index), as a stable
+    argsort of the distances would give them, without sorting all rows."""
+    d2 = ((rows - centre) ** 2).sum(1)
+    k = min(k, len(rows))
+    if k <= 0:
+        return np.empty(0, dtype=np.intp)
+    if k < len(rows):
+        kth = np.partition(d2, k - 1)[k - 1]
+        cand = np.flatnonzero(d2 <= kth)   # every row as near as the k-th, ties included
+    else:
+        cand = np.arange(len(rows))
+    return cand[np.argsort(d2[cand], kind="stable")][:k]
+
+
 def _spread(pool: np.ndarray, fit: np.ndarray, k: int, gap: float, known: np.ndarray) -> list[np.ndarray]:
     """Up to ``k`` rows of ``pool`` (best first) at least ``gap`` from each other and from ``known``."""
     chosen: list[np.ndarray] = []
     if k <= 0:
         return chosen
-    far = np.ones(len(pool), dtype=bool)
-    if len(known):
-        for j in range(0, len(known), 256):
-            d = np.sqrt(((pool[:, None, :] - known[None, j:j + 256, :]) ** 2).sum(-1)).min(1)
-            far &= d >= gap
-    for i in np.flatnonzero(far & np.isfinite(fit)):
-        x = pool[i]
-        if all(np.sqrt(((x - c) ** 2).sum()) >= gap for c in chosen):
-            chosen.append(x)
-            if len(chosen) == k:
-                break
+    for lo in range(0, len(pool), 64):   # best first, a chunk at a time: most batches need the first chunk only
+        part = pool[lo:lo + 64]
+        ok = np.isfinite(fit[lo:lo + 64])
+        if len(known):
+            ok &= np.sqrt(((part[:, None, :] - known[None, :, :]) ** 2).sum(-1)).min(1) >= gap
+        for x in part[ok]:
+            if all(np.sqrt(((x - c) ** 2).sum()) >= gap for c in chosen):
+                chosen.append(x)
+                if len(chosen) == k:
+                    return chosen
     return chosen
