@@ -157,3 +157,21 @@ def test_a_batch_costs_evals_plus_second_evals_surrogate_rows_and_the_neighbours
     for k in (0, 1, 5, 16, 500, 600):
         c = pts[3] + 0.01
         assert _nearest(pts, c, k).tolist() == np.argsort(((pts - c) ** 2).sum(1), kind="stable")[:k].tolist()
+
+
+def test_the_corrected_proposals_run_on_the_inverters_blas_threads(inv, monkeypatch) -> None:
+    from threadpoolctl import threadpool_info
+
+    _, y = inv.bundle.data("test")
+    start = inv.invert_many(y[:1], top_k=3)
+    sur = inv.bundle.surrogate
+    plain, seen = type(sur).predict, []
+
+    def predict(theta):
+        seen.append({p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"})
+        return plain(sur, theta)
+
+    monkeypatch.setattr(sur, "predict", predict)
+    inv.threads = 1
+    refine(inv, start, 3 + 4, popsize=4, strategy="corrected", stop=0)
+    assert seen[-1] == {1}   # the last calls: a batch's candidate search
