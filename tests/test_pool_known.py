@@ -106,3 +106,22 @@ def test_a_lookup_answer_is_a_stored_row_and_says_so(inv) -> None:
             assert j is not None
             want = masked_recovery(y[j][None], r.target, inv.bundle.scales, None, inv.bundle.kappa)[0]
             assert c.r_known == pytest.approx(float(want), abs=1e-12)
+
+
+def test_the_terminal_shows_a_stored_rows_real_r(inv, tmp_path) -> None:
+    """`invphys invert` prints R_known for a stored-row answer (a training row's own features: R_known 1.000)
+    and nothing of the kind for an answer the surrogate alone scored."""
+    from typer.testing import CliRunner
+
+    from invphys.cli import app
+
+    _, y = inv.bundle.data("train")
+    names = inv.bundle.feature_names
+    target = tmp_path / "t.json"
+    target.write_text(json.dumps({n: float(v) for n, v in zip(names, y[3], strict=True)}))
+    res = CliRunner().invoke(app, ["invert", str(inv.bundle.root), "-t", str(target), "--method", "lookup"])
+    assert res.exit_code == 0, res.output
+    assert "R_known 1.000 (a stored row" in res.output
+    res = CliRunner().invoke(app, ["invert", str(inv.bundle.root), "-t", str(target), "--method", "cma_es_540"])
+    assert res.exit_code == 0, res.output
+    assert "R_known" not in res.output

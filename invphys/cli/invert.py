@@ -352,6 +352,8 @@ def _render(result: Any) -> None:
                       f"{d['evaluations']} surrogate evaluations, {d['wall_time_s'] * 1e3:.1f} ms")
     for c in d["candidates"]:
         head = f"candidate {c['rank']} ({escape(c['source'])}): R_surr {c['r_surrogate']:.3f}"
+        if c.get("r_known") is not None:
+            head += f", R_known {c['r_known']:.3f} (a stored row: its real features)"
         if "r_actual" in c:
             head += (f", R_actual {c['r_actual']:.3f}, gap {c['gap']:+.3f}" if c["r_actual"] is not None
                      else f", validation failed: {escape(str(c.get('failure')))}")
