@@ -210,3 +210,19 @@ def test_an_extra_posterior_that_is_not_one_is_refused(inv, rows) -> None:
             inv.invert(rows[0], method="pool")
     finally:
         inv.pool_settings = PoolSettings()
+
+
+def test_nearest_rows_break_ties_by_the_lower_row_index() -> None:
+    """Rows as near as the k-th are ranked by index, as a stable sort would (duplicate stored rows: the
+    neighbours, and so the pool's answers, must not depend on how a partial sort happens to split ties)."""
+    from invphys.inverter.pool import nearest_rows
+
+    rng = np.random.default_rng(0)
+    z = rng.integers(0, 3, size=(400, 2)).astype(float)   # many exact ties
+    z[5] = np.nan                                          # a row with a missing feature: never near
+    scales, mask = np.ones(2), np.ones(2, bool)
+    for target in (np.array([1.0, 1.0]), np.array([0.0, 2.0])):
+        d2 = ((z - target) ** 2).sum(1)
+        want = np.argsort(np.where(np.isfinite(d2), d2, np.inf), kind="stable")
+        for k in (1, 7, 16, 45, 400):
+            assert nearest_rows(z, target, mask, scales, k).tolist() == want[:k].tolist()

@@ -232,18 +232,10 @@ def row_residuals(predict: Callable[[np.ndarray], np.ndarray], theta: np.ndarray
 
 
 def _nearest(rows: np.ndarray, centre: np.ndarray, k: int) -> np.ndarray:
-    """The indices of the ``k`` rows nearest ``centre``, nearest first (ties: the lower index), as a stable
-    argsort of the distances would give them, without sorting all rows."""
-    d2 = ((rows - centre) ** 2).sum(1)
-    k = min(k, len(rows))
-    if k <= 0:
-        return np.empty(0, dtype=np.intp)
-    if k < len(rows):
-        kth = np.partition(d2, k - 1)[k - 1]
-        cand = np.flatnonzero(d2 <= kth)   # every row as near as the k-th, ties included
-    else:
-        cand = np.arange(len(rows))
-    return cand[np.argsort(d2[cand], kind="stable")][:k]
+    """The indices of the ``k`` rows nearest ``centre``, nearest first (ties: the lower index)."""
+    from invphys.core.nearest import nearest_first
+
+    return nearest_first(((rows - centre) ** 2).sum(1), k)
 
 
 def _spread(pool: np.ndarray, fit: np.ndarray, k: int, gap: float, known: np.ndarray) -> list[np.ndarray]:

@@ -37,6 +37,7 @@ import numpy as np
 
 from invphys.core.errors import InvphysError
 from invphys.core.masked_recovery import masked_recovery
+from invphys.core.nearest import nearest_first
 from invphys.inverter.answers import Pool, PosteriorAnswers
 from invphys.inverter.result import KnownSource
 from invphys.inverter.seeds import target_rng, target_seed
@@ -109,10 +110,7 @@ def nearest_rows(z_train: np.ndarray, values: np.ndarray, mask: np.ndarray, scal
     zt = np.where(mask, values, 0.0) / np.maximum(scales, 1e-12)
     diff = np.where(mask[None, :], z_train - zt[None, :], 0.0)
     d2 = np.einsum("ij,ij->i", diff, diff)
-    d2 = np.where(np.isfinite(d2), d2, np.inf)
-    k = min(k, len(d2))
-    part = np.argpartition(d2, k - 1)[:k] if k < len(d2) else np.arange(len(d2))
-    return part[np.lexsort((part, d2[part]))]
+    return nearest_first(np.where(np.isfinite(d2), d2, np.inf), k).astype(np.int64)
 
 
 class PoolAnswers(PosteriorAnswers):
