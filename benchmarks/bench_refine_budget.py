@@ -7,6 +7,9 @@ top ``--starts`` candidates, the amortised answer first), then refines every tar
 - ``cma``: the streaming CMA-ES refine as ``invphys invert --sim-refine N`` runs it
   (:mod:`invphys.evaluators.stream_refine`: its starts, then ask/tell CMA-ES from the best of them,
   popsize ``--q``, step ``--sigma0``);
+- ``corrected``: the default refine's search (``--sim-refine``: the surrogate corrected by the target's runs
+  and the bundle's nearest training rows, :mod:`invphys.evaluators.corrected_refine`), from the same starts
+  (no stored rows added as starts here), popsize ``--q``;
 - ``optuna_tpe``, ``optuna_cmaes``, ``optuna_gp``: Optuna's TPE, CMA-ES (x0 the best start, the same step)
   and GP samplers with their default settings, seeded with every simulated start that lies in the box
   (``study.add_trial`` with its known R: ``enqueue_trial`` would simulate it again);
@@ -39,6 +42,10 @@ bootstrap interval, the paired difference to ``cma`` with its interval, and per-
         --sets uniform=datasets/orange_peel_paper_fresh_uniform edge=datasets/orange_peel_paper_fresh_edge \\
         --limit 8 --budgets 16 32 64 --methods cma optuna_tpe optuna_gp botorch_qlogei \\
         --out benchmarks/results/refine_budget_paper_h100.json
+
+``--first N --limit K`` runs one shard of the targets (rows N .. N+K-1 of each set), e.g. one per GPU; ``--merge
+A.json B.json ... --out X.json`` joins shards run with the same settings into one table (per-target values in
+row order, intervals and paired differences computed again).
 """
 
 from __future__ import annotations
@@ -55,7 +62,7 @@ from typing import Any
 
 import numpy as np
 
-METHODS = ("cma", "optuna_tpe", "optuna_cmaes", "optuna_gp", "botorch_qlogei")
+METHODS = ("cma", "corrected", "optuna_tpe", "optuna_cmaes", "optuna_gp", "botorch_qlogei")
 _NEEDS = {"optuna_tpe": "optuna", "optuna_cmaes": "optuna", "optuna_gp": "optuna", "botorch_qlogei": "botorch"}
 
 
@@ -148,11 +155,12 @@ class CmaSearch(Search):
     """``stream_refine``'s own search (its ``_Search``: CMA-ES from the best start), popsize ``q``, told
     through ``stream_refine``'s own bookkeeping (runs, points, start scores, the CMA-ES state)."""
 
-    def bind(self, target_refine: Any, score: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> None:
+    def bind(self, target_refine: Any, score: Callable[[np.ndarray, np.ndarray], np.ndarray],
+             strategy: Any = None) -> None:
         from invphys.evaluators.stream_refine import _Search, _start_known
 
         self.t, self.score = target_refine, score
-        self.s = _Search(target_refine, self.budget, self.q, self.sigma0, self.d)
+        self.s = _Search(target_refine, self.budget, self.q, self.sigma0, self.d, strategy)
         _start_known(self.s, score)   # as stream_refine does first (no start is simulated yet here)
 
     def first(self) -> np.ndarray:
@@ -548,6 +556,68 @@ def table(searches: list[Search], budgets: list[int], n_boot: int = 2000) -> dic
     return out
 
 
+#: settings every shard of one table must share
+SHARD_KEYS = ("bundle", "answer_method", "sets", "methods", "budgets", "starts", "q", "box", "sigma0", "seed",
+              "simulator_version", "simulator_config")
+
+
+def merge_shards(shards: list[dict[str, Any]], n_boot: int = 2000) -> dict[str, Any]:
+    """One result from shards that ran other targets (``--first``) with the same settings: per-target values
+    joined in target order, means, intervals and paired differences to ``cma`` computed again."""
+    shards = sorted(shards, key=lambda r: int(r.get("first", 0)))
+    for r in shards[1:]:
+        bad = [k for k in SHARD_KEYS if r.get(k) != shards[0].get(k)]
+        if bad:
+            raise SystemExit(f"error: --merge: the shards differ in {', '.join(bad)}")
+    out = {k: v for k, v in shards[0].items() if k not in ("table", "first", "limit")}
+    out.update(shards=[{k: r.get(k) for k in ("first", "limit", "device", "runs", "wall_s", "complete")}
+                       for r in shards],
+               complete=all(r.get("complete") for r in shards), runs=sum(r["runs"] for r in shards),
+               wall_s=max(r["wall_s"] for r in shards), command=[r.get("command") for r in shards],
+               ask_s={m: sum(r["ask_s"].get(m, 0.0) for r in shards) for m in shards[0]["methods"]})
+    out["table"] = {name: {m: _merge_cell([r["table"].get(name, {}).get(m) for r in shards], n_boot)
+                           for m in shards[0]["methods"]} for name in shards[0]["sets"]}
+    for rows in out["table"].values():
+        _paired(rows, n_boot)
+    return out
+
+
+def _merge_cell(cells: list[dict[str, Any] | None], n_boot: int) -> dict[str, Any]:
+    cells = [c for c in cells if c]
+    rec: dict[str, Any] = {"targets": sum(c["targets"] for c in cells), "runs": _joined(c["runs"] for c in cells),
+                           "budgets": {}}
+    for k in ("clipped", "fallback_points", "ask_warnings", "ask_s"):
+        rec[k] = sum(c[k] for c in cells)
+    for k in ("r_answer", "r_best_start"):
+        if all(k in c for c in cells):
+            v = np.array(_joined(c[k]["per_target"] for c in cells))
+            m, lo, hi = bootstrap(v, n_boot)
+            rec[k] = {"mean": m, "ci95": [lo, hi], "per_target": v.tolist()}
+    for b in cells[0]["budgets"] if cells else []:
+        if all(b in c["budgets"] for c in cells):   # a budget counts once every shard's targets spent it
+            v = np.array(_joined(c["budgets"][b]["per_target"] for c in cells))
+            m, lo, hi = bootstrap(v, n_boot)
+            rec["budgets"][b] = {"mean": m, "ci95": [lo, hi], "per_target": v.tolist()}
+    return rec
+
+
+def _joined(lists: Any) -> list[Any]:
+    return [x for part in lists for x in part]
+
+
+def _paired(rows: dict[str, Any], n_boot: int) -> None:
+    """Each method's paired difference to ``cma`` at every budget both have."""
+    ref = rows.get("cma")
+    for method, rec in rows.items():
+        for b, cell in rec["budgets"].items():
+            if method == "cma" or ref is None or b not in ref["budgets"]:
+                continue
+            dv = np.array(cell["per_target"]) - np.array(ref["budgets"][b]["per_target"])
+            dm, dlo, dhi = bootstrap(dv, n_boot, seed=1)
+            cell["vs_cma"] = {"mean": dm, "ci95": [dlo, dhi], "wins": int((dv > 0).sum()),
+                              "losses": int((dv < 0).sum())}
+
+
 # ---------------------------------------------------------------------------------------------- running
 
 
@@ -564,24 +634,35 @@ def _sets(items: list[str]) -> list[tuple[str, str]]:
 
 
 def build_searches(inv: Any, sets: list[tuple[str, Any]], methods: list[str], budget: int, q: int, box: float,
-                   sigma0: float, seed: int) -> list[Search]:
-    """One search per (set, target, method), all from the same start candidates of each result."""
+                   sigma0: float, seed: int, first: int = 0) -> list[Search]:
+    """One search per (set, target, method), all from the same start candidates of each result (targets
+    numbered from ``first``: their row in the store)."""
     from invphys.inverter.refine import _target
     from invphys.inverter.seeds import target_seed
     from invphys.inverter.simulate import masked_score
 
     score = masked_score(inv)
+    made: dict[str, Any] = {}
+
+    def corrected(popsize: int, step: float) -> Any:
+        """``--sim-refine``'s default search (the corrected surrogate, the bundle's training rows), made once;
+        no stored rows join the starts here: every method starts from the same candidates."""
+        if "corrected" not in made:
+            from invphys.inverter.refine import _stored_rows, _strategy
+
+            made["corrected"] = _strategy(inv, "corrected", popsize, step, _stored_rows(inv))
+        return made["corrected"]
 
     searches: list[Search] = []
     for name, results in sets:
-        for i, r in enumerate(results):
+        for i, r in enumerate(results, start=first):
             starts = np.array([c.theta for c in r.candidates], dtype=np.float64)
             target = np.where(r.mask, r.target, np.nan)
             for m in methods:
-                if m == "cma":
+                if m in ("cma", "corrected"):
                     t = _target(inv, r, budget, q, sigma0, seed)   # the seed --sim-refine gives this target
                     s: Search = CmaSearch((name, i, m), target, starts, t.seed, budget, q, box, sigma0)
-                    s.bind(t, score)  # type: ignore[attr-defined]
+                    s.bind(t, score, corrected(q, sigma0) if m == "corrected" else None)  # type: ignore[attr-defined]
                 else:
                     sd = target_seed(seed, m, r.target, r.mask, f"refine-budget/{budget}/{q}/{box!r}")
                     s = CLASSES[m]((name, i, m), target, starts, sd, budget, q, box, sigma0)
@@ -646,6 +727,11 @@ def main(argv: list[str] | None = None) -> int:
                                                   "edge=datasets/orange_peel_paper_fresh_edge"],
                    help="NAME=STORE target stores")
     p.add_argument("--limit", type=int, default=8, help="targets per set (the first rows)")
+    p.add_argument("--first", type=int, default=0, help="skip this many rows of each set first (with --limit: "
+                                                        "one shard of the targets, e.g. one per GPU; --merge "
+                                                        "joins the shards' JSONs)")
+    p.add_argument("--merge", type=Path, nargs="+", default=None, help="join these shards' JSONs (same settings, "
+                                                                      "other --first) into --out; no simulation")
     p.add_argument("--methods", nargs="+", default=["cma", "optuna_tpe", "optuna_gp", "botorch_qlogei"])
     p.add_argument("--budgets", type=int, nargs="+", default=[16, 32, 64], help="runs per target; the largest "
                                                                                  "is spent")
@@ -664,6 +750,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=None)
     a = p.parse_args(argv)
+    if a.merge:
+        _machine().emit(merge_shards([json.loads(f.read_text()) for f in a.merge], a.bootstrap), a.out)
+        return 0
     check_packages(a.methods)
     if a.q < 2 or a.starts < 1 or not 0 < a.box <= 1 or min(a.budgets) < 1 or a.limit < 1:
         raise SystemExit("error: --q >= 2, --starts >= 1, 0 < --box <= 1, --budgets >= 1 and --limit >= 1 needed")
@@ -678,17 +767,17 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     answered = []
     for name, path in _sets(a.sets):
-        y = DatasetStore(path).arrays(ok_only=True).y[:a.limit]
+        y = DatasetStore(path).arrays(ok_only=True).y[a.first:a.first + a.limit]
         answered.append((name, inv.invert_many(y, method=a.method, top_k=a.starts, seed=a.seed)))
     answer_s = time.perf_counter() - t0
     sim = inv.simulator(overrides)
     ext = inv.extractor(sim)
-    searches = build_searches(inv, answered, a.methods, budget, a.q, a.box, a.sigma0, a.seed)
+    searches = build_searches(inv, answered, a.methods, budget, a.q, a.box, a.sigma0, a.seed, a.first)
     head = {"what": "equal-budget refine on the simulator: best R_actual after each budget, per method",
             "device": "", "simulator": sim.name, "simulator_version": sim.version,
             "simulator_config": sim.config.model_dump(), "overrides": overrides, "bundle": a.bundle,
             "answer_method": answered[0][1][0].method if answered and answered[0][1] else a.method,
-            "sets": dict(_sets(a.sets)), "limit": a.limit, "methods": a.methods, "budgets": a.budgets,
+            "sets": dict(_sets(a.sets)), "first": a.first, "limit": a.limit, "methods": a.methods, "budgets": a.budgets,
             "starts": a.starts, "q": a.q, "box": a.box, "sigma0": a.sigma0, "seed": a.seed,
             "sim_batch": a.sim_batch, "extract_workers": a.extract_workers, "ask_procs": a.ask_procs,
             "answer_s": answer_s}

@@ -17,7 +17,7 @@ from test_inverter_support import toy_run
 bench = load("bench_refine_budget")
 sys.modules.setdefault("bench_refine_budget", bench)   # the ask processes find its functions by this name
 METHODS = [m for m in bench.METHODS
-           if m == "cma" or importlib.util.find_spec(bench._NEEDS[m]) is not None]
+           if m not in bench._NEEDS or importlib.util.find_spec(bench._NEEDS[m]) is not None]
 BUDGET, Q, STARTS = 12, 4, 2
 
 
@@ -127,3 +127,51 @@ def test_cma_is_the_sim_refine_search(toy, first) -> None:
     assert [r["runs"] for r in recs] == [s.runs for s in ours] == [BUDGET] * len(y)
     assert [r["r_actual"] for r in recs] == [s.best_after(BUDGET) for s in ours]
     assert [r.candidates[0].theta.tobytes() for r in results] == [s.t.theta.tobytes() for s in ours]
+
+
+def test_corrected_is_the_default_sim_refine_search(toy, first) -> None:
+    """With the whole cube as the box and no stored-row starts, ``corrected`` finds what the default
+    ``refine`` (``invert --sim-refine``, strategy corrected) finds."""
+    from invphys.inverter.refine import refine
+    from invphys.inverter.simulate import masked_score
+
+    _bundle, _store, inv = toy
+    y = first[0]
+    ours = bench.build_searches(inv, [("a", inv.invert_many(y, top_k=STARTS, seed=0))], ["corrected"], BUDGET, Q,
+                                1.0, 0.012, 0)
+    sim = inv.simulator()
+    bench.refine_all(sim, inv.extractor(sim), ours, masked_score(inv), 5)
+    results = inv.invert_many(y, top_k=STARTS, seed=0)
+    recs = refine(inv, results, BUDGET, popsize=Q, sigma0=0.012, batch_size=5, seed=0, simulator=sim,
+                  strategy="corrected", known_starts=0, stop=0.0)
+    assert [r["runs"] for r in recs] == [s.runs for s in ours] == [BUDGET] * len(y)
+    assert [r["r_actual"] for r in recs] == [s.best_after(BUDGET) for s in ours]
+
+
+def test_shards_merge_into_the_unsharded_table(toy, tmp_path, monkeypatch) -> None:
+    """``--first``/``--limit`` shards joined by ``--merge`` give the table of one run over all targets."""
+    bundle, store, _inv = toy
+    base = ["--bundle", str(bundle), "--sets", f"toy={store}", "--budgets", "4", "8", "--starts", str(STARTS),
+            "--q", str(Q), "--methods", "cma", "corrected", "--extract-workers", "0", "--sim-batch", "4",
+            "--bootstrap", "200"]
+    monkeypatch.setattr(sys, "argv", ["benchmarks/bench_refine_budget.py"])
+    outs = {}
+    for name, first_, limit in (("all", 0, 3), ("a", 0, 2), ("b", 2, 1)):
+        outs[name] = tmp_path / f"{name}.json"
+        assert bench.main([*base, "--first", str(first_), "--limit", str(limit), "--out", str(outs[name])]) == 0
+    merged = tmp_path / "m.json"
+    assert bench.main(["--merge", str(outs["b"]), str(outs["a"]), "--bootstrap", "200", "--out", str(merged)]) == 0
+    whole, joined = (json.loads(p.read_text()) for p in (outs["all"], merged))
+    for method in ("cma", "corrected"):
+        w, j = whole["table"]["toy"][method], joined["table"]["toy"][method]
+        assert j["targets"] == 3 and j["runs"] == w["runs"]
+        for b in ("4", "8"):
+            assert j["budgets"][b]["per_target"] == w["budgets"][b]["per_target"]
+            assert j["budgets"][b]["mean"] == pytest.approx(w["budgets"][b]["mean"])
+    assert joined["table"]["toy"]["corrected"]["budgets"]["8"]["vs_cma"]["mean"] == pytest.approx(
+        whole["table"]["toy"]["corrected"]["budgets"]["8"]["vs_cma"]["mean"])
+    other = json.loads(outs["a"].read_text())
+    other["q"] = 99
+    outs["a"].write_text(json.dumps(other))
+    with pytest.raises(SystemExit, match="differ in q"):
+        bench.main(["--merge", str(outs["a"]), str(outs["b"]), "--out", str(merged)])
