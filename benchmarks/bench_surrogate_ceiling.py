@@ -21,7 +21,7 @@ the bundle's training input). Each size trains the bundle's surrogate (its ``sur
 ``--small-below`` rows) and is scored on every ``--sets`` entry (``NAME=STORE``, ``NAME=@test`` for the
 bundle's held-out rows): held-out R^2 per feature and mean, each feature's share of the mean squared scaled
 error (what pulls R down), and the ceiling, with bootstrap 95 % intervals
-over the set's rows. ``--extra-train STORE`` adds one more point: all training rows plus that store's rows.
+over the set's rows. ``--extra-train STORE ...`` adds one more point: all training rows plus those stores' rows.
 ``--variant NAME='{setting: value}'`` adds a point on all training rows with changed surrogate settings (the
 architecture lever against the rows lever). The shipped surrogate is scored too (``shipped``). A power law ``1 - ceiling = a n^-b`` is fitted per set
 over the sizes (and over the three largest) and solved for the rows that would reach ``--goal NAME=R``, with a
@@ -159,7 +159,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--bundle", required=True, help="inverter bundle: training rows, scales, kappa, surrogate settings")
     p.add_argument("--sets", nargs="+", required=True, help="NAME=STORE or NAME=@test (the bundle's held-out rows)")
     p.add_argument("--sizes", nargs="+", type=int, required=True, help="nested training-subset sizes")
-    p.add_argument("--extra-train", default=None, help="STORE whose rows are added to ALL training rows (one point)")
+    p.add_argument("--extra-train", nargs="+", default=None,
+                   help="STORE(s) whose rows are added to ALL training rows (one point)")
     p.add_argument("--members", type=int, default=None, help="ensemble members (default: the bundle's)")
     p.add_argument("--max-epochs", type=int, default=None, help="epochs (default: the bundle's)")
     p.add_argument("--small-below", type=int, default=0, help="sizes below this use --small-members/--small-max-epochs")
@@ -225,7 +226,10 @@ def run(a: argparse.Namespace) -> dict[str, Any]:
         except ValueError:
             raise InvphysError(f"--goal wants NAME=R, got {g!r}") from None
     sets = [load_set(b, s) for s in a.sets]
-    extra = store_rows(a.extra_train) if a.extra_train else None
+    extra = None
+    if a.extra_train:
+        parts = [store_rows(path) for path in a.extra_train]
+        extra = (np.concatenate([q[0] for q in parts]), np.concatenate([q[1] for q in parts]))
     if extra is not None:
         keep = np.all(np.isfinite(extra[1]), axis=1)
         extra = (extra[0][keep], extra[1][keep])
@@ -233,7 +237,8 @@ def run(a: argparse.Namespace) -> dict[str, Any]:
     perm = np.random.default_rng(a.seed).permutation(len(tt))
     out: dict[str, Any] = {
         "benchmark": "surrogate_ceiling", **_machine.provenance(), "device": f"cpu ({_machine.cpu_name()})",
-        "git_commit": git_commit(), "bundle": a.bundle, "train_rows": len(tt), "extra_train": a.extra_train,
+        "git_commit": git_commit(), "bundle": a.bundle, "train_rows": len(tt), "extra_train": (a.extra_train[0] if a.extra_train and len(a.extra_train) == 1
+                                                      else a.extra_train),
         "extra_rows": 0 if extra is None else len(extra[0]), "kappa": b.kappa, "scales": b.scales.tolist(),
         "settings": {"surrogate": surrogate_settings(Path(a.bundle), a.members, a.max_epochs), "seed": a.seed,
                      "bootstrap": a.bootstrap, "subsets": "nested: first n rows of one seeded permutation, "

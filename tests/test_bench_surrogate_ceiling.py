@@ -87,7 +87,7 @@ def test_end_to_end_on_a_tiny_bundle(run: Path, tmp_path: Path) -> None:
     bundle, store = run / "inverter", run / "dataset" / "store"
     out = tmp_path / "r" / "ceiling.json"
     rc = bench.main(["--bundle", str(bundle), "--sets", "test=@test", f"toy={store}", "--sizes", "80", "40",
-                     "--extra-train", str(store), "--members", "2", "--max-epochs", "4", "--small-below", "50",
+                     "--extra-train", str(store), str(store), "--members", "2", "--max-epochs", "4", "--small-below", "50",
                      "--small-max-epochs", "2", "--goal", "toy=0.99", "--bootstrap", "30", "--out", str(out),
                      "--variant", "narrow={hidden: [8, 8, 4], max_epochs: 3}", "--plot", str(tmp_path / "c.png")])
     assert rc == 0
@@ -97,9 +97,9 @@ def test_end_to_end_on_a_tiny_bundle(run: Path, tmp_path: Path) -> None:
     n_store = len(DatasetStore(store).arrays(ok_only=True).theta)
     assert rec["benchmark"] == "surrogate_ceiling" and rec["device"].startswith("cpu")
     assert rec["command"].startswith("python ") and rec["git_commit"]
-    assert rec["kappa"] == b.kappa and rec["train_rows"] == n_train and rec["extra_rows"] == n_store
+    assert rec["kappa"] == b.kappa and rec["train_rows"] == n_train and rec["extra_rows"] == 2 * n_store  # both stores joined
     assert [p["label"] for p in rec["points"]] == ["n=40", "n=80", f"n={n_train}+extra", f"n={n_train}:narrow"]
-    assert [p["rows"] for p in rec["points"]] == [40, 80, n_train + n_store, n_train]
+    assert [p["rows"] for p in rec["points"]] == [40, 80, n_train + 2 * n_store, n_train]
     assert [p["max_epochs"] for p in rec["points"]] == [2, 4, 4, 3] and {p["members"] for p in rec["points"]} == {2}
     assert rec["points"][-1]["settings_changed"] == {"hidden": [8, 8, 4], "max_epochs": 3}
     assert (tmp_path / "c.png").stat().st_size > 1000
