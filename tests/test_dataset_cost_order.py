@@ -1,5 +1,7 @@
 """Dataset generation starts the costliest runs first when the simulator estimates costs, so that each
-lock-step batch holds runs of similar cost; the stored rows are the same as in design order."""
+lock-step batch holds runs of similar cost, within windows of a few batches in design order (a session
+stopped early stored about the design's first rows, not its costliest); the stored rows are the same as in
+design order."""
 
 from __future__ import annotations
 
@@ -51,3 +53,23 @@ def test_a_cost_estimate_of_the_wrong_length_is_one_clear_error(tmp_path) -> Non
     with pytest.raises(InvphysError, match="estimate_cost gave 1 values for 4 rows"):
         generate_dataset(tmp_path / "bad", {"type": f"{__name__}:MiscountingToy", "substeps": 5},
                          {"type": FEATURES}, n=4, batch_size=2, progress=False)
+
+
+def test_costliest_first_only_within_windows_so_a_stopped_session_is_not_a_biased_sample(tmp_path) -> None:
+    """Rows go costliest first within windows of COST_WINDOW_BATCHES batches taken in design order: the rows
+    simulated first are the design's first window, not the costliest rows of the whole design."""
+    from invphys.data.generate import COST_WINDOW_BATCHES
+
+    CostedToy.batches.clear()
+    feats = {"type": FEATURES}
+    n = 3 * COST_WINDOW_BATCHES
+    generate_dataset(tmp_path / "costed", {"type": f"{__name__}:CostedToy", "substeps": 5}, feats, n=n,
+                     batch_size=1, progress=False)
+    generate_dataset(tmp_path / "plain", {"type": SIM, "substeps": 5}, feats, n=n, batch_size=n, progress=False)
+    frame = DatasetStore(tmp_path / "plain").frame().sort_values("sample_index")
+    design = frame[next(c for c in frame.columns if c.startswith("p_"))].to_numpy()   # k of each design row
+    ran = np.concatenate(CostedToy.batches)
+    w = COST_WINDOW_BATCHES
+    expected = np.concatenate([-np.sort(-design[i:i + w]) for i in range(0, n, w)])
+    np.testing.assert_allclose(ran, expected)
+    assert not np.all(np.diff(ran) <= 0)   # not one global costliest-first order

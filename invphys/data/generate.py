@@ -131,10 +131,17 @@ def host_info() -> dict[str, Any]:
             "cpu_count": os.cpu_count()}
 
 
-def _costliest_first(sim: Any, params: np.ndarray, todo: np.ndarray) -> np.ndarray:
-    """``todo`` (row indices) ordered costliest first by the simulator's :meth:`estimate_cost`, so that a
-    batch holds runs of similar cost and the longest start early (several workers end together); the
-    design order where the simulator has no estimate. Stored rows do not depend on the order."""
+#: generation orders rows costliest first within consecutive windows of this many batches (design order)
+COST_WINDOW_BATCHES = 4
+
+
+def _costliest_first(sim: Any, params: np.ndarray, todo: np.ndarray, window: int | None = None) -> np.ndarray:
+    """``todo`` (row indices) ordered costliest first by the simulator's :meth:`estimate_cost` within
+    consecutive windows of ``window`` rows in design order (None: one window), so that a batch holds runs of
+    similar cost and the longest of a window start early (several workers end together), while a session
+    stopped early (``--limit-minutes``) has stored about the design's first rows, not its costliest ones
+    (those would be a biased sample of the design); the design order where the simulator has no estimate.
+    Stored rows do not depend on the order."""
     if len(todo) < 2:
         return todo
     try:
@@ -149,7 +156,9 @@ def _costliest_first(sim: Any, params: np.ndarray, todo: np.ndarray) -> np.ndarr
         raise InvphysError(f"{name}.estimate_cost gave {len(cost)} values for {len(todo)} rows")
     if not np.isfinite(cost).all():
         raise InvphysError(f"{name}.estimate_cost gave a non-finite cost")
-    return todo[np.argsort(-cost, kind="stable")]
+    step = len(todo) if window is None else max(1, int(window))
+    return np.concatenate([todo[start:start + step][np.argsort(-cost[start:start + step], kind="stable")]
+                           for start in range(0, len(todo), step)])
 
 
 def generate_dataset(
@@ -329,7 +338,8 @@ class _Session:
 def _open_session(store: DatasetStore, plan: _Plan, sampler: str, seed: int, batch_size: int,
                   limit_minutes: float | None, spec: dict[str, Any] | None, design: dict[str, Any] | None,
                   progress: bool, console: Any) -> tuple[_Session, np.ndarray]:
-    """Create (or check) the store, find the design rows it does not hold yet (costliest first) and start a
+    """Create (or check) the store, find the design rows it does not hold yet (costliest first within
+    windows of :data:`COST_WINDOW_BATCHES` batches) and start a
     session in its metadata. Needs the store's write lock."""
     sim, space, keys, n = plan.sim, plan.space, plan.keys, plan.n
     meta = store.create_or_check({
@@ -346,7 +356,7 @@ def _open_session(store: DatasetStore, plan: _Plan, sampler: str, seed: int, bat
     prior_ok = int((frame["status"] == "ok").sum()) if frame is not None else 0
     prior_failed = (len(frame) - prior_ok) if frame is not None else 0
     todo = _costliest_first(sim, plan.params, np.array([i for i, k in enumerate(keys) if k not in present],
-                                                       dtype=np.int64))
+                                                       dtype=np.int64), COST_WINDOW_BATCHES * batch_size)
     summary = GenerationSummary(path=str(store.path), requested=n, already_present=n - len(todo),
                                 other_rows=len(present - set(keys)))
     if summary.other_rows and progress and design is None:

@@ -65,13 +65,18 @@ class SlotCounters:
 #: orders in which the queue hands runs to free slots
 QUEUE_ORDERS = ("longest_first", "given")
 
+#: ``longest_first`` orders runs within consecutive windows of this many runs per slot, in row order
+QUEUE_WINDOW_PER_SLOT = 8
 
-def queue_order(cost: np.ndarray, order: str = "longest_first") -> np.ndarray:
+
+def queue_order(cost: np.ndarray, order: str = "longest_first", window: int | None = None) -> np.ndarray:
     """The run indices in the order free slots take them.
 
-    ``longest_first`` (LPT): costliest first by ``cost`` (ties in row order), so the long runs start at
-    once instead of finishing alone at the end; ``given``: row order. A run's result never depends on
-    its slot or start time, only the finishing order changes.
+    ``longest_first`` (LPT): costliest first by ``cost`` (ties in row order) within consecutive windows of
+    ``window`` runs taken in row order (None: all runs one window), so the long runs of each window start at
+    once instead of finishing alone at the end, and a stream stopped early (a time-limited dataset session)
+    has run about the first rows, not the costliest rows of the whole design; ``given``: row order. A run's
+    result never depends on its slot or start time, only the finishing order changes.
     """
     from invphys_anisompm.scene import SceneError
 
@@ -80,7 +85,9 @@ def queue_order(cost: np.ndarray, order: str = "longest_first") -> np.ndarray:
     cost = np.asarray(cost, float)
     if order == "given":
         return np.arange(len(cost))
-    return np.argsort(-cost, kind="stable")
+    step = len(cost) if window is None else max(1, int(window))
+    return np.concatenate([start + np.argsort(-cost[start:start + step], kind="stable")
+                           for start in range(0, len(cost), max(step, 1))] or [np.zeros(0, np.int64)])
 
 
 class _Runs:
@@ -149,8 +156,8 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
 
     ``engine`` is an :class:`~invphys_anisompm.engine.Engine` (its backend for ``min(batch_size, runs)``
     slots is reused across calls); ``min_chunk`` trades idle slot-substeps for fewer host round trips.
-    ``order`` is the queue order (:func:`queue_order`) over ``cost`` (per-run estimated slot-substeps;
-    default :meth:`Engine.estimate_cost`). The slots are the stream's until it is exhausted or closed:
+    ``order`` is the queue order (:func:`queue_order`, windows of :data:`QUEUE_WINDOW_PER_SLOT` runs per
+    slot) over ``cost`` (per-run estimated slot-substeps; default :meth:`Engine.estimate_cost`). The slots are the stream's until it is exhausted or closed:
     another stream or lock-step run on the same backend meanwhile raises :class:`EngineBusyError`.
     """
     n_slots = min(int(batch_size), model.n_envs)
@@ -164,8 +171,8 @@ def stream_runs(engine, model: Model, frames: int, record_every: int, batch_size
     runs.add(model)
     engine.claim_slots(n_slots)
     try:
-        yield from _stream_runs(engine, runs, _Queue(queue_order(cost, order)), frames, record_every, n_slots,
-                                min_chunk, counters)
+        queue = _Queue(queue_order(cost, order, QUEUE_WINDOW_PER_SLOT * n_slots))
+        yield from _stream_runs(engine, runs, queue, frames, record_every, n_slots, min_chunk, counters)
     finally:
         engine.release_slots(n_slots)
 

@@ -12,7 +12,7 @@ import pytest
 
 pytest.importorskip("taichi")
 
-from invphys_anisompm import Engine, SceneError
+from invphys_anisompm import Engine, SceneError, streaming
 from invphys_anisompm.streaming import queue_order
 from invphys_anisompm.testing import build_scene
 
@@ -35,6 +35,10 @@ def test_queue_order_function() -> None:
     cost = np.array([5.0, 9.0, 5.0, 1.0])
     assert queue_order(cost, "longest_first").tolist() == [1, 0, 2, 3]   # ties keep row order
     assert queue_order(cost, "given").tolist() == [0, 1, 2, 3]
+    rising = np.arange(1.0, 7.0)
+    assert queue_order(rising, "longest_first", window=4).tolist() == [3, 2, 1, 0, 5, 4]   # LPT per window
+    assert queue_order(rising, "longest_first", window=1).tolist() == list(range(6))
+    assert queue_order(np.zeros(0), "longest_first", window=4).tolist() == []
     with pytest.raises(SceneError, match="unknown queue order 'shortest'"):
         queue_order(cost, "shortest")
     with pytest.raises(SceneError, match="known: longest_first, given"):
@@ -66,3 +70,13 @@ def test_results_do_not_depend_on_the_queue_order_or_slot() -> None:
     for i in range(len(E)):
         _assert_same_record(runs["longest_first"][0][i], runs["given"][0][i])
         _assert_same_record(runs["given"][0][i], plain[i])
+
+
+def test_longest_first_orders_within_windows_so_an_early_stop_ran_the_first_rows(monkeypatch) -> None:
+    """A stream stopped early (a time-limited dataset session) must have run about the first rows of the
+    design, not its costliest rows: ``longest_first`` sorts within windows of runs in row order."""
+    monkeypatch.setattr(streaming, "QUEUE_WINDOW_PER_SLOT", 2)
+    engine = Engine(SCENE, backend="taichi", arch="cpu")
+    cost = engine.estimate_cost(MODEL, FRAMES)
+    assert cost[1] > cost[0] and cost[3] > cost[2]
+    assert [i for i, _ in engine.stream(MODEL, FRAMES, 2, batch_size=1)] == [1, 0, 3, 2]   # window of 2 runs

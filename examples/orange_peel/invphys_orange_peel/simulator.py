@@ -64,8 +64,10 @@ class OrangeEngine(EngineSettings):
                             "Taichi on CUDA (768-run datasets 1.08x faster on an H100), else lockstep")
     queue_order: Literal["longest_first", "given"] = Field(
         "longest_first", description="continuous: order in which free slots take runs; longest_first "
-                                     "starts the costliest (estimated substeps) at once, given keeps row "
-                                     "order (results and their row indices are the same either way)")
+                                     "starts the costliest (estimated substeps) of each window of 8 runs per "
+                                     "slot at once, windows in row order (a time-limited session has run "
+                                     "about the first rows), given keeps row order (results and their row "
+                                     "indices are the same either way)")
     min_chunk: int | None = Field(None, ge=1, le=4096,
                                   description="continuous: fewest substeps per host round trip (larger: fewer "
                                               "round trips, slots idle past their frame end); None = 64 for "
