@@ -151,7 +151,11 @@ class TargetRefine:
     seconds: float = 0.0
     start_scores: np.ndarray | None = None
     stopped: bool = False          # it reached the stop score with runs left
-    ask_s: float = 0.0             # seconds its search spent proposing and being told (CPU, between runs)
+    ask_s: float = 0.0             # seconds its search spent proposing and being told (wall, between runs)
+    ask_cpu_s: float = 0.0         # the same blocks' CPU seconds of the thread running them (ask_s >> it: waited)
+
+
+_GLOBAL_RANDOM = __import__("threading").RLock()   # NumPy's global random state, swapped by CMASearch
 
 
 class CMASearch:
@@ -180,7 +184,12 @@ class CMASearch:
     @contextmanager
     def own_random(self) -> Iterator[None]:
         """The ``cma`` package draws from NumPy's global random state: each search gets a state of its own, so
-        the searches' draws do not depend on the order in which targets ask."""
+        the searches' draws do not depend on the order in which targets ask (one search at a time: they may
+        ask in background threads)."""
+        with _GLOBAL_RANDOM:
+            yield from self._swapped()
+
+    def _swapped(self) -> Iterator[None]:
         outer = np.random.get_state()
         np.random.set_state(self._random if self._random is not None else
                             np.random.RandomState(self.t.seed % (2**32)).get_state())
@@ -225,19 +234,21 @@ class _Search:
         if self.stop is not None and self.t.score >= self.stop:   # reached: no more runs
             self.t.stopped = True
             return np.empty((0, self.d))
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         if self.search is None:
             self.search = self.strategy(self.t, left)
         self.before = self.t.score
         pts = self.search.ask(left)
         self.t.ask_s += time.perf_counter() - t0
+        self.t.ask_cpu_s += time.thread_time() - c0
         return np.clip(np.asarray(pts, float).reshape(-1, self.d)[:left], 0.0, 1.0)
 
     def tell(self, ys: np.ndarray, scores: np.ndarray) -> None:
         if self.search is not None:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.thread_time()
             self.search.tell(self.asked, ys, scores, self.before)
             self.t.ask_s += time.perf_counter() - t0
+            self.t.ask_cpu_s += time.thread_time() - c0
 
 
 def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int], np.ndarray | None]],
@@ -245,7 +256,8 @@ def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int
                   score: Callable[[np.ndarray, np.ndarray], np.ndarray], budget: int, popsize: int = 8,
                   sigma0: float = 0.012, log: RunLog | None = None,
                   on_run: Callable[[int, bool], None] | None = None,
-                  strategy: Strategy | None = None, stop: float | None = None) -> list[TargetRefine]:
+                  strategy: Strategy | None = None, stop: float | None = None, ask_workers: int = 1,
+                  stats: dict[str, float] | None = None) -> list[TargetRefine]:
     """Refine every target with ``budget`` simulator runs (its unsimulated starts included), one open stream.
 
     ``simulate(feeder)`` yields ``(i, features (M,) or NaN, seconds, device)`` for the rows (normalised,
@@ -255,64 +267,143 @@ def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int
     ``strategy`` searches after the starts (default: :func:`cma_strategy` with ``popsize`` and ``sigma0``).
     ``stop``: a target whose best score (its starts included) reaches it asks for no further generation
     (None, or outside (0, 1): never; the starts are always simulated).
+    ``ask_workers``: threads that tell a target its generation and ask its next one while the simulator
+    goes on (0: in the stream's own loop, between launches); the feeder hands out whatever rows are ready
+    and waits for an ask only when no row is in flight. The answers are the same for any number.
+    ``stats["ask_wait_s"]`` gets the seconds the stream waited for an ask with no row in flight (with 0
+    workers: every ask's seconds, as each holds the stream).
     """
     if budget < 0 or popsize < 2 or not sigma0 > 0:
         raise InvphysError(f"refine: budget >= 0, popsize >= 2 and sigma0 > 0 needed, got {budget}, {popsize}, "
                            f"{sigma0}")
-    note = on_run or (lambda _n, _r: None)
+    if isinstance(ask_workers, bool) or not isinstance(ask_workers, (int, np.integer)) or not 0 <= ask_workers <= 64:
+        raise InvphysError(f"refine: ask workers must be a whole number in 0 .. 64, got {ask_workers!r}")
     d = targets[0].starts.shape[1] if targets else 0
     stop = stop if stop is not None and 0.0 < stop < 1.0 else None
     searches = [_Search(t, budget, popsize, sigma0, d, strategy, stop) for t in targets]
-    queue: list[tuple[int, int]] = []        # (search, member) rows waiting for a slot
-    fed: list[tuple[int, int]] = []          # row i of the stream -> (search, member)
-
-    def advance(k: int) -> None:
-        """Ask target ``k``'s next generation; replay what the log holds, queue the rest (repeat while the
-        log answers whole generations)."""
-        s = searches[k]
-        while True:
-            pts = s.next_points()
-            if len(pts) == 0 and s.phase == "starts":
-                _finish_starts(s)
-                continue
-            if len(pts) == 0:
-                s.phase = "done"
-                return
-            s.asked, s.results = pts, [None] * len(pts)
-            for j, p in enumerate(pts):
-                hit = log.get(s.t.tid, s.t.runs + j, p) if log is not None else None
-                if hit is not None:
-                    s.results[j] = (hit[0], hit[1], hit[2], True)
-                else:
-                    queue.append((k, j))
-            if any(r is None for r in s.results):
-                return
-            _tell(searches[k], score, note)
-
-    def feeder(free: int) -> np.ndarray | None:
-        if not queue:
-            return None
-        rows, queue[:] = queue[:], []
-        fed.extend(rows)
-        return np.array([searches[k].asked[j] for k, j in rows])
-
-    for k, s in enumerate(searches):
-        _start_known(s, score)
-        advance(k)
-    for i, y, seconds, device in simulate(feeder):
-        k, j = fed[i]
-        s = searches[k]
-        if log is not None:
-            log.add(s.t.tid, s.t.runs + j, s.asked[j], y, seconds, device)
-        s.results[j] = (np.asarray(y, float), float(seconds), device, False)
-        if all(r is not None for r in s.results):
-            _tell(searches[k], score, note)
-            advance(k)
+    asks = _Asks(searches, log, score, on_run or (lambda _n, _r: None), int(ask_workers))
+    try:
+        for k, s in enumerate(searches):
+            _start_known(s, score)
+            asks.submit(k)
+        for i, y, seconds, device in simulate(asks.feeder):
+            k, j = asks.fed[i]
+            s = searches[k]
+            if log is not None:
+                log.add(s.t.tid, s.t.runs + j, s.asked[j], y, seconds, device)
+            s.results[j] = (np.asarray(y, float), float(seconds), device, False)
+            asks.back += 1
+            if all(r is not None for r in s.results):
+                asks.submit(k)
+        asks.drain()
+    finally:
+        asks.close()
+    if stats is not None:
+        stats["ask_wait_s"] = asks.wait_s if ask_workers else float(sum(t.ask_s for t in targets))
     if log is not None:
         log.save()
-    if queue or any(s.phase != "done" for s in searches):
+    if asks.queue or any(s.phase != "done" for s in searches):
         raise InvphysError("refine: the simulator stream ended before every asked run came back")
     return targets
+
+
+class _Asks:
+    """The targets' tells and asks (in ``workers`` background threads, or inline with 0) and the rows they
+    queue for the stream. A target has at most one job at a time (its generation's results are all in)."""
+
+    def __init__(self, searches: list[_Search], log: RunLog | None,
+                 score: Callable[[np.ndarray, np.ndarray], np.ndarray], note: Callable[[int, bool], None],
+                 workers: int) -> None:
+        import threading
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.searches, self.log, self.score, self.note = searches, log, score, note
+        self.queue: list[tuple[int, int]] = []   # (search, member) rows waiting for a slot
+        self.fed: list[tuple[int, int]] = []     # row i of the stream -> (search, member)
+        self.back = 0                            # rows whose results came back
+        self.jobs: list[Any] = []                # background jobs not yet collected
+        self.wait_s = 0.0
+        self._ready = threading.Condition()
+        self._pool = ThreadPoolExecutor(workers, thread_name_prefix="refine-ask") if workers else None
+
+    def submit(self, k: int) -> None:
+        """Tell target ``k`` its generation (when one was asked) and ask its next one."""
+        if self._pool is None:
+            self._job(k)
+            return
+        self._collect()
+        job = self._pool.submit(self._job, k)
+        job.add_done_callback(lambda _f: self._wake())
+        self.jobs.append(job)
+
+    def _wake(self) -> None:
+        with self._ready:
+            self._ready.notify_all()
+
+    def _job(self, k: int) -> None:
+        s = self.searches[k]
+        if s.results and all(r is not None for r in s.results) and s.phase != "done":
+            _tell(s, self.score, self.note)
+        rows = _advance(s, self.log, self.score, self.note)
+        with self._ready:
+            self.queue.extend((k, j) for j in rows)
+            self._ready.notify_all()
+
+    def _collect(self) -> None:
+        """Drop finished jobs; raise what one raised."""
+        done = [f for f in self.jobs if f.done()]
+        self.jobs = [f for f in self.jobs if not f.done()]
+        for f in done:
+            f.result()
+
+    def feeder(self, free: int) -> np.ndarray | None:
+        """The queued rows; with none queued and none in flight, wait for the pending asks."""
+        with self._ready:
+            if not self.queue and self.back == len(self.fed) and self._pool is not None:
+                t0 = time.perf_counter()
+                while not self.queue and any(not f.done() for f in self.jobs):
+                    self._ready.wait(0.05)
+                self.wait_s += time.perf_counter() - t0
+            self._collect()
+            if not self.queue:
+                return None
+            rows, self.queue = self.queue, []
+        self.fed.extend(rows)
+        return np.array([self.searches[k].asked[j] for k, j in rows])
+
+    def drain(self) -> None:
+        for f in self.jobs:
+            f.result()
+        self.jobs = []
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _advance(s: _Search, log: RunLog | None, score: Callable[[np.ndarray, np.ndarray], np.ndarray],
+             note: Callable[[int, bool], None]) -> list[int]:
+    """Ask ``s``'s next generation; replay what the log holds and return the members to simulate (repeat
+    while the log answers whole generations; none: the target is done)."""
+    while True:
+        pts = s.next_points()
+        if len(pts) == 0 and s.phase == "starts":
+            _finish_starts(s)
+            continue
+        if len(pts) == 0:
+            s.phase = "done"
+            return []
+        s.asked, s.results = pts, [None] * len(pts)
+        todo = []
+        for j, p in enumerate(pts):
+            hit = log.get(s.t.tid, s.t.runs + j, p) if log is not None else None
+            if hit is not None:
+                s.results[j] = (hit[0], hit[1], hit[2], True)
+            else:
+                todo.append(j)
+        if todo:
+            return todo
+        _tell(s, score, note)
 
 
 def _start_known(s: _Search, score: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> None:

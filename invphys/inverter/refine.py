@@ -49,7 +49,7 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
            log: str | Path | None = None, seed: int = 0, on_run: Callable[[int, bool], None] | None = None,
            simulator: Any = None, extract_workers: int = 0, strategy: str = REFINE_STRATEGIES[0],
            known_starts: int | None = None, strategy_options: Mapping[str, Any] | None = None,
-           stop: float = REFINE_STOP) -> list[dict[str, Any]]:
+           stop: float = REFINE_STOP, ask_workers: int = 1, extract_threads: int | None = 1) -> list[dict[str, Any]]:
     """Refine ``items`` in place (answer first); return one record per result (runs, seconds, R before/after).
 
     ``budget``: simulator runs per target, its unsimulated candidates included; ``batch_size``: runs in
@@ -61,7 +61,9 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
     ``strategy_options``: ``corrected``'s settings by name
     (:class:`~invphys.evaluators.corrected_refine.CorrectedSettings`; its ``popsize`` is ``popsize``).
     ``stop``: a target asks for no more runs once its best simulated R_actual reaches it (0 or 1: never); the
-    record's ``runs`` says how many it used and ``stopped`` whether it stopped early.
+    record's ``runs`` says how many it used and ``stopped`` whether it stopped early. ``ask_workers``: threads
+    that tell and ask the searches while the simulator runs (0: between launches; the answers are the same);
+    ``extract_threads``: native threads per extraction worker (None: one per core).
     """
     from invphys.evaluators.stream_refine import (
         RunLog,
@@ -87,11 +89,13 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
     targets = [_target(inv, r, budget, popsize, sigma0, seed, strategy, stored, known_starts, strategy_options)
                for r in items]
     search = _strategy(inv, strategy, popsize, sigma0, stored, strategy_options)
-    pool = _extraction_pool(ext, extract_workers)
+    pool = _extraction_pool(ext, extract_workers, extract_threads)
+    stats: dict[str, float] = {}
     t0 = time.perf_counter()
     try:
         stream_refine(targets, feed_features(sim, ext, batch_size, pool), masked_score(inv), budget, popsize,
-                      sigma0, log=runlog, on_run=on_run, strategy=search, stop=stop)
+                      sigma0, log=runlog, on_run=on_run, strategy=search, stop=stop, ask_workers=ask_workers,
+                      stats=stats)
     finally:
         if pool is not None:
             pool.close()
@@ -104,21 +108,23 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
     total = sum(t.runs for t in targets)
     call = {"targets": len(items), "runs": total, "replayed_runs": sum(t.replayed for t in targets),
             "simulator_s": float(sum(t.seconds for t in targets)), "wall_time_s": wall,
-            "ask_s": float(sum(t.ask_s for t in targets)), "stopped": int(sum(t.stopped for t in targets)),
+            "ask_s": float(sum(t.ask_s for t in targets)), "ask_cpu_s": float(sum(t.ask_cpu_s for t in targets)),
+            "ask_wait_s": float(stats.get("ask_wait_s", 0.0)), "ask_workers": int(ask_workers),
+            "extract_threads": extract_threads if extract_workers else None, "stopped": int(sum(t.stopped for t in targets)),
             "log": None if log is None else str(log)}
     for rec in records:
         rec["call"] = call
     return records
 
 
-def _extraction_pool(extractor: Any, workers: int) -> Any:
+def _extraction_pool(extractor: Any, workers: int, threads: int | None = 1) -> Any:
     if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or not 0 <= workers <= 256:
         raise InvphysError(f"extract workers must be a whole number in 0 .. 256, got {workers!r}")
     if not workers:
         return None
     from invphys.plugins.executors._extract_pool import ExtractionPool
 
-    return ExtractionPool(extractor, int(workers))
+    return ExtractionPool(extractor, int(workers), threads=threads)
 
 
 def check_stop(stop: Any) -> float:
@@ -269,7 +275,8 @@ def _apply(inv: Any, r: InversionResult, t: Any, budget: int, settings: dict[str
         return float(v) if np.isfinite(v) else None
 
     return {"budget": budget, "runs": t.runs, "stopped": t.stopped, "replayed_runs": t.replayed,
-            "simulator_s": t.seconds, "ask_s": t.ask_s, "r_answer": f(first), "start_source": source, "start_r_actual": f(start_r),
+            "simulator_s": t.seconds, "ask_s": t.ask_s, "ask_cpu_s": t.ask_cpu_s, "r_answer": f(first),
+            "start_source": source, "start_r_actual": f(start_r),
             "r_actual": f(t.score), "improved": improved, "known_starts": int(len(t.starts) - n), "warning": warning,
             "best_r_by_run": [f(v) for v in best_by_run(t)], "settings": settings}
 

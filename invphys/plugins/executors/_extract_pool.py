@@ -27,12 +27,17 @@ disarms it when the run is done, so the clock counts that run's extraction only,
 or a queue. The process ends, which is handled as a worker that died: the pool is replaced and the runs
 it held are retried alone; the stuck run, stopped again alone, is a recorded failure
 (:class:`ExtractionTimedOut`). Platforms without ``setitimer`` (Windows) have no timeout.
+
+Each worker runs its native thread pools (BLAS, OpenMP, torch) on ``threads`` threads (default
+:data:`DEFAULT_THREADS`, one): left alone, each of ``workers`` processes would start one thread per core of
+the host, and on a 16-core GPU host six workers' 96 threads starve the process that drives the simulator.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import signal
 import threading
 import time
@@ -52,6 +57,10 @@ _LOG = logging.getLogger(__name__)
 
 #: seconds one run's feature extraction may take in a worker process before it is stopped (a failure)
 DEFAULT_TIMEOUT_S = 600.0
+#: native (BLAS / OpenMP / torch) threads per extraction worker process
+DEFAULT_THREADS = 1
+_THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS",
+                "VECLIB_MAXIMUM_THREADS")
 
 _WORKER_EXTRACTOR: Any = None
 _WORKER_INIT_ERROR: InvphysError | None = None   # why this worker could not build the extractor
@@ -62,10 +71,36 @@ _CANNOT_BUILD = ("the feature-extraction processes cannot build the extractor ({
                  "extract_workers: 0 to extract in this process")
 
 
-def _init_worker(extractor: Any, timeout_s: float | None = None) -> None:
+def _limit_threads(threads: int | None) -> None:
+    """In a worker: native thread pools on ``threads`` threads (None: leave them), for the libraries loaded
+    already (threadpoolctl, torch) and those loaded later (the environment)."""
+    if threads is None:
+        return
+    for var in _THREAD_VARS:
+        os.environ[var] = str(threads)
+    with contextlib.suppress(ImportError):
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(limits=threads)
+    torch = __import__("sys").modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(threads)
+
+
+def worker_threads() -> dict[str, Any]:
+    """In a worker (for tests and benchmarks): the thread counts of its native pools (threadpoolctl's view)."""
+    from threadpoolctl import threadpool_info
+
+    return {"env": {v: os.environ.get(v) for v in _THREAD_VARS},
+            "pools": sorted({int(p["num_threads"]) for p in threadpool_info()})}
+
+
+def _init_worker(extractor: Any, timeout_s: float | None = None, threads: int | None = DEFAULT_THREADS) -> None:
     """Build the worker's extractor; a failure is kept and raised for each run (a raising initializer would
-    break the pool, which then reads as a worker that died). ``SIGALRM`` ends the process (the timeout)."""
+    break the pool, which then reads as a worker that died). ``SIGALRM`` ends the process (the timeout).
+    Native thread pools get ``threads`` threads before the extractor is built."""
     global _WORKER_EXTRACTOR, _WORKER_INIT_ERROR, _WORKER_TIMEOUT_S
+    _limit_threads(threads)
     if timeout_s is not None and hasattr(signal, "setitimer"):
         signal.signal(signal.SIGALRM, signal.SIG_DFL)
         _WORKER_TIMEOUT_S = timeout_s
@@ -138,24 +173,29 @@ def _chain(inner: Future, outer: Future) -> None:
 
 
 class ExtractionPool:
-    """``workers`` processes extracting features with ``extractor`` (a plugin block or an instance)."""
+    """``workers`` processes extracting features with ``extractor`` (a plugin block or an instance), each on
+    ``threads`` native threads (None: the libraries' defaults, one per core)."""
 
     def __init__(self, extractor: Any, workers: int, min_shared_bytes: int | None = 1 << 20,
-                 timeout_s: float | None = DEFAULT_TIMEOUT_S) -> None:
+                 timeout_s: float | None = DEFAULT_TIMEOUT_S, threads: int | None = DEFAULT_THREADS) -> None:
         import multiprocessing
 
         if workers < 1:
             raise InvphysError(f"extract_workers must be >= 1 for a pool, got {workers}")
         if timeout_s is not None and not timeout_s > 0:
             raise InvphysError(f"the extraction timeout must be > 0 seconds (or none), got {timeout_s}")
+        if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
+            raise InvphysError(f"extraction threads must be a whole number >= 1 (or none), got {threads!r}")
         self.workers = int(workers)
+        #: native threads per worker process (None: the libraries' defaults)
+        self.threads = threads
         #: seconds one run's extraction may take in a worker (None: no limit); see the module's text
         self.timeout_s = None if timeout_s is None else float(timeout_s)
         #: runs stopped for taking longer than ``timeout_s``
         self.timed_out = 0
         self._pool_kwargs: dict[str, Any] = dict(
             mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker,
-            initargs=(dict(extractor) if isinstance(extractor, dict) else extractor, self.timeout_s))
+            initargs=(dict(extractor) if isinstance(extractor, dict) else extractor, self.timeout_s, threads))
         self._pool = ProcessPoolExecutor(self.workers, **self._pool_kwargs)
         self._pool_lock = threading.Lock()
         # runs a broken pool held, retried one at a time, each alone in a fresh process (no thread until used)
