@@ -22,7 +22,11 @@ is written after every strategy, so a stopped run keeps what it measured. Each s
 the mean runs a target used (``--stop``: a target stops at that R_actual; default the refine's own),
 simulator-seconds per target, the targets that stopped, the mean best R_actual after 16, 32, 48, ... runs
 of each target's ask-ordered runs (``r_at_runs``; a target that stopped earlier keeps its final best) and the
-seconds its searches spent proposing points between runs (``ask_s``).
+seconds its searches spent proposing points between runs (``ask_s``; ``ask_cpu_s``: their CPU seconds, much
+less than ``ask_s`` when the asks waited for the GIL or a core), and the seconds the stream had free slots and
+nothing to feed because an ask was pending (``ask_wait_s``; ``--ask-workers 0`` asks between launches, as
+before, and every ask holds the stream). ``--first N --limit M`` takes targets N .. N+M-1 of each set: shards
+of one set on several processes or GPUs. ``--extract-threads`` is each extraction worker's BLAS/OpenMP threads.
 """
 
 from __future__ import annotations
@@ -132,12 +136,15 @@ def _strategy_block(records: list[dict[str, Any]], wall: float, n_boot: int) -> 
     spent = sum(r["runs"] for r in records)
     n = max(len(records), 1)
     ask = float(sum(r.get("ask_s", 0.0) for r in records))
+    call = records[0].get("call", {}) if records else {}
     return {"runs": spent, "wall_s": wall, "s_per_run": wall / max(spent, 1),
             "simulator_s": float(sum(r["simulator_s"] for r in records)), **_summary(records),
             "runs_per_target": spent / n, "simulator_s_per_target": float(sum(r["simulator_s"] for r in records)) / n,
             "stopped": int(sum(bool(r.get("stopped")) for r in records)),
             "r_at_runs": r_at_runs(records, records[0]["budget"] if records else 0),
             "ask_s": ask, "ask_s_per_run": ask / max(spent, 1),
+            "ask_cpu_s": float(sum(r.get("ask_cpu_s", 0.0) for r in records)),
+            "ask_wait_s": call.get("ask_wait_s"), "ask_workers": call.get("ask_workers"),
             "r_refined_ci": bootstrap(_r_values(records, "r_actual"), n_boot),
             "r_best_start_ci": bootstrap(_r_values(records, "start_r_actual"), n_boot),
             "below_half": int(sum(r["warning"] is not None for r in records)),
@@ -170,6 +177,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--bundle", default="inverters/orange_peel_paper")
     p.add_argument("--targets", nargs="+", default=["datasets/orange_peel_paper_fresh_uniform"],
                    help="target stores: PATH or NAME=PATH (several: e.g. uniform=PATH edge=PATH)")
+    p.add_argument("--first", type=int, default=0, help="skip the first N targets of each set (with --limit: a shard)")
     p.add_argument("--limit", type=int, default=32)
     p.add_argument("--budget", type=int, default=32, help="simulator runs per target")
     p.add_argument("--starts", type=int, default=4, help="candidates per target the refine starts from")
@@ -191,6 +199,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="also time dataset generation of as many uniformly random runs")
     p.add_argument("--extract-workers", type=int, default=0,
                    help="feature-extraction processes for both measurements (0: in this process)")
+    p.add_argument("--extract-threads", type=int, default=1,
+                   help="BLAS/OpenMP threads per extraction process (0: the libraries' default, one per core)")
+    p.add_argument("--ask-workers", type=int, default=1,
+                   help="threads asking the searches while the simulator runs (0: between launches)")
     p.add_argument("--bootstrap", type=int, default=2000, help="bootstrap resamples of the intervals")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=None)
@@ -207,6 +219,7 @@ def _refine_one(inv: Any, results: list[Any], strategy: str, a: argparse.Namespa
     t0 = time.perf_counter()
     records = refine(inv, copy.deepcopy(results), a.budget, a.popsize, a.sigma0, overrides=overrides,
                      batch_size=a.sim_batch, seed=a.seed, simulator=sim, extract_workers=a.extract_workers,
+                     extract_threads=a.extract_threads or None, ask_workers=a.ask_workers,
                      strategy=strategy, known_starts=a.known_starts, strategy_options=opts or None,
                      **({} if a.stop is None else {"stop": a.stop}))
     return records, time.perf_counter() - t0
@@ -223,6 +236,8 @@ def _write(result: dict[str, Any], out: Path | None) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     a = _parser().parse_args(argv)
+    if a.first < 0 or a.limit < 0 or a.extract_threads < 0 or a.ask_workers < 0:
+        raise SystemExit("error: --first, --limit, --extract-threads and --ask-workers must be >= 0")
     import invphys
     from invphys.core.dataset import DatasetStore
     from invphys.core.interfaces import Simulator
@@ -243,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.extract_workers:
         from invphys.plugins.executors._extract_pool import ExtractionPool
 
-        pool = ExtractionPool(ext, a.extract_workers)
+        pool = ExtractionPool(ext, a.extract_workers, threads=a.extract_threads or None)
     warm = _dataset(sim, ext, space.denormalize(rng.random((a.sim_batch, space.dim))), a.sim_batch, pool)  # compiles
     fed = _recording(sim)
     result: dict[str, Any] = {
@@ -251,16 +266,17 @@ def main(argv: list[str] | None = None) -> int:
         "device": _machine().simulator_device(sim), "simulator": sim.name, "simulator_version": sim.version,
         "simulator_config": sim.config.model_dump(), "overrides": overrides, "feed": feed, "bundle": a.bundle,
         "method": a.method, "targets": a.targets[0] if len(a.targets) == 1 else sets, "sim_batch": a.sim_batch,
-        "extract_workers": a.extract_workers, "strategies": a.strategy, "budget": a.budget, "warmup": warm,
+        "extract_workers": a.extract_workers, "extract_threads": a.extract_threads or None,
+        "ask_workers": a.ask_workers, "first": a.first, "strategies": a.strategy, "budget": a.budget, "warmup": warm,
         "sets": {}}
     for n_set, (name, path) in enumerate(sets.items()):
-        y = DatasetStore(path).arrays(ok_only=True).y[:a.limit]
+        y = DatasetStore(path).arrays(ok_only=True).y[a.first:a.first + a.limit]
         t0 = time.perf_counter()
         results = inv.invert_many(y, method=a.method, top_k=a.starts, seed=a.seed)
         result["answer_s"] = result.get("answer_s", 0.0) + time.perf_counter() - t0
         result["method"] = results[0].method if results else a.method
         blocks: dict[str, dict[str, Any]] = {}
-        entry = result["sets"][name] = {"path": path, "targets": len(y), "strategies": blocks}
+        entry = result["sets"][name] = {"path": path, "targets": len(y), "first": a.first, "strategies": blocks}
         for n_strat, strategy in enumerate(a.strategy):
             fed.clear()
             records, wall = _refine_one(inv, results, strategy, a, overrides, sim)

@@ -24,3 +24,30 @@ def test_bench_refine_writes_one_json(tmp_path_factory, tmp_path, monkeypatch, c
     assert rec["refine_over_dataset"] > 0 and rec["refine"]["never_worse"]
     assert rec["refine"]["r_refined"] >= rec["refine"]["r_best_start"] >= 0
     assert len(rec["per_target"]) == 3
+
+
+def test_bench_refine_shards_a_set_with_first_and_records_the_asks(tmp_path_factory, tmp_path, monkeypatch) -> None:
+    """``--first 1 --limit 2`` refines targets 1 and 2 of the set: the same answers as in a run of all three;
+    the blocks give the asks' wall, CPU and wait seconds and the extraction thread setting."""
+    run = toy_run(tmp_path_factory.getbasetemp())
+    store = str(next((run / "dataset").rglob("_manifest.json")).parent)
+    bench = load("bench_refine")
+    recs = {}
+    for name, extra in (("all", ["--limit", "3", "--ask-workers", "0"]),
+                        ("shard", ["--first", "1", "--limit", "2", "--extract-workers", "1"])):
+        out = tmp_path / f"{name}.json"
+        argv = ["--bundle", str(run / "inverter"), "--targets", f"a={store}", "--budget", "8", "--starts", "2",
+                "--popsize", "4", "--sim-batch", "4", "--strategy", "corrected", "--skip-dataset", "--bootstrap",
+                "50", "--stop", "0", "--out", str(out), *extra]
+        monkeypatch.setattr(sys, "argv", ["benchmarks/bench_refine.py", *argv])
+        assert bench.main(argv) == 0
+        recs[name] = json.loads(out.read_text())
+    whole, shard = (recs[n]["sets"]["a"] for n in ("all", "shard"))
+    assert shard["first"] == 1 and shard["targets"] == 2 and whole["targets"] == 3
+    key = [[(t["r_answer"], t["r_actual"], t["runs"]) for t in s["strategies"]["corrected"]["per_target"]]
+           for s in (whole, shard)]
+    assert key[1] == key[0][1:]
+    b = shard["strategies"]["corrected"]
+    assert b["ask_workers"] == 1 and b["ask_wait_s"] >= 0 and 0 < b["ask_cpu_s"] <= b["ask_s"] + 0.05
+    assert recs["all"]["sets"]["a"]["strategies"]["corrected"]["ask_workers"] == 0
+    assert recs["shard"]["extract_threads"] == 1 and recs["shard"]["first"] == 1
