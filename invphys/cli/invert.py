@@ -65,15 +65,14 @@ def invert(
     sim_refine_popsize: int | None = typer.Option(None, "--sim-refine-popsize", help="points per batch (default 8)"),
     sim_refine_sigma: float | None = typer.Option(None, "--sim-refine-sigma", help="cma step (default 0.012)"),
     sim_refine_log: Path | None = typer.Option(None, "--sim-refine-log", help="log of the runs: a re-run resumes"),
-    sim_refine_workers: int | None = typer.Option(None, "--sim-refine-workers", help="feature extraction processes "
-                                                  "(default 0: in this one; GPU: 4)"),
-    sim_refine_strategy: str | None = typer.Option(
-        None, "--sim-refine-strategy", help="--sim-refine search: corrected (the surrogate corrected by the target's "
-        "own runs, in a trust region; default) or cma (CMA-ES from the best start)"),
-    sim_refine_known: int | None = typer.Option(
-        None, "--sim-refine-known", help="--sim-refine: the K stored training rows that fit the target best "
-        "join the starts at no run (default: 8 with corrected, 0 with cma)"),
+    sim_refine_workers: int | None = typer.Option(None, "--sim-refine-workers", help="extraction processes (0)"),
+    sim_refine_strategy: str | None = typer.Option(None, "--sim-refine-strategy", help="corrected (the surrogate "
+                                                   "corrected by the target's runs; default) or cma (CMA-ES)"),
+    sim_refine_known: int | None = typer.Option(None, "--sim-refine-known", help="stored training rows that fit "
+                                                "the target best, as starts at no run (default: 8 corrected, 0 cma)"),
     sim_refine_stop: float | None = typer.Option(None, "--sim-refine-stop", help="a target stops at this R_actual (0.98)"),
+    sim_refine_patience: int | None = typer.Option(None, "--sim-refine-patience", help="stop on a stall (N runs)"),
+    sim_refine_min_gain: float | None = typer.Option(None, "--sim-refine-min-gain", help="its gain (0.01)"),
     seed: int = typer.Option(0, "--seed", help="seed of every random draw (with the target and the method it "
                              "decides the answer; a target's position in the file does not)"),
     level: float = typer.Option(0.9, "--level", help="level of the central intervals (posterior methods)"),
@@ -100,6 +99,7 @@ def invert(
                                        polish_confirm, polish_confirm_candidates)
     refine_settings = _refine_settings(sim_refine, sim_refine_popsize, sim_refine_sigma, sim_refine_log,
                                        sim_refine_workers, sim_refine_strategy, sim_refine_known, sim_refine_stop)
+    refine_settings.update(_stall_settings(sim_refine, sim_refine_patience, sim_refine_min_gain))
     files = _output_files(samples, samples_out, plot, csv_out)
     inv = load_inverter(bundle, strict=not allow_mismatch)
     targets = cli_targets(inv, target, feature or [], observed or [], partial)  # a bad target: its one line only
@@ -306,6 +306,23 @@ def _refine_settings(budget: int | None, popsize: int | None, sigma: float | Non
     return {"budget": budget, "popsize": popsize or REFINE_POPSIZE, "sigma0": sigma or REFINE_SIGMA0, "log": log,
             "extract_workers": workers or 0, "strategy": strategy or REFINE_STRATEGIES[0], "known_starts": known,
             "stop": REFINE_STOP if stop is None else stop}
+
+
+def _stall_settings(budget: int | None, patience: int | None, min_gain: float | None) -> dict[str, Any]:
+    """``--sim-refine-patience`` and ``--sim-refine-min-gain`` as refine's ``patience`` and ``min_gain``."""
+    from invphys.inverter.refine import REFINE_MIN_GAIN
+
+    given = [n for n, v in (("--sim-refine-patience", patience), ("--sim-refine-min-gain", min_gain)) if v is not None]
+    if budget is None and given:
+        raise InvphysError(f"{', '.join(given)} needs --sim-refine N (simulator runs per target)")
+    if min_gain is not None and patience is None:
+        raise InvphysError("--sim-refine-min-gain needs --sim-refine-patience N (runs)")
+    if patience is not None and not 1 <= patience <= 100_000:
+        raise InvphysError(f"--sim-refine-patience must be in 1 .. 100000 runs, got {patience}")
+    if min_gain is not None and not 0 <= min_gain <= 1:
+        raise InvphysError(f"--sim-refine-min-gain must be an R_actual gain in [0, 1], got {min_gain}")
+    return {} if patience is None else {"patience": patience,
+                                        "min_gain": REFINE_MIN_GAIN if min_gain is None else min_gain}
 
 
 def _sim_refine(inv: Any, results: list[Any], overrides: dict[str, Any], seed: int, batch_size: int,

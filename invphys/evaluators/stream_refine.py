@@ -10,6 +10,11 @@ or the other targets. :class:`RunLog` records every finished run (target id, run
 features, seconds, device); a re-run replays the logged runs and simulates only the rest. With ``stop``, a
 target asks for no more runs once its best score reaches it (decided before each of its generations, from
 its own told runs only: a stopped target's runs are the first runs of the same target without a stop).
+With ``patience`` P > 0 and ``min_gain`` G, a target also stops once it stalls (:func:`stalled`): before a
+generation, with n told runs (its simulated starts included), n >= P and best(n) - best(n - P) < G, where
+best(k) is its best score after its first k told runs (best(0): its starts known at no run; no score yet:
+-inf, and -inf to -inf is no gain). The same prefix property holds, and ``TargetRefine.batches`` records
+the sizes of its told generations, so a replay of the per-run bests knows the decision points exactly.
 """
 
 from __future__ import annotations
@@ -151,6 +156,9 @@ class TargetRefine:
     seconds: float = 0.0
     start_scores: np.ndarray | None = None
     stopped: bool = False          # it reached the stop score with runs left
+    stalled: bool = False          # it stopped with runs left because its best gained < min_gain in patience runs
+    batches: list[int] = field(default_factory=list)   # the sizes of its told generations (starts first), in order
+    bests: list[float] = field(default_factory=list)   # best score after 0, 1, 2, ... told runs
     ask_s: float = 0.0             # seconds its search spent proposing and being told (wall, between runs)
     ask_cpu_s: float = 0.0         # the same blocks' CPU seconds of the thread running them (ask_s >> it: waited)
 
@@ -214,8 +222,10 @@ class _Search:
     """A target's state: the generation in flight (asked points and their results by ask order)."""
 
     def __init__(self, t: TargetRefine, budget: int, popsize: int, sigma0: float, d: int,
-                 strategy: Strategy | None = None, stop: float | None = None) -> None:
+                 strategy: Strategy | None = None, stop: float | None = None, patience: int = 0,
+                 min_gain: float = 0.0) -> None:
         self.t, self.budget, self.d, self.stop = t, budget, d, stop
+        self.patience, self.min_gain = patience, min_gain
         self.strategy = strategy or cma_strategy(popsize, sigma0)
         self.search: Any = None
         self.asked = np.empty((0, d))
@@ -233,6 +243,9 @@ class _Search:
             return np.empty((0, self.d))
         if self.stop is not None and self.t.score >= self.stop:   # reached: no more runs
             self.t.stopped = True
+            return np.empty((0, self.d))
+        if stalled(self.t.bests, self.patience, self.min_gain):
+            self.t.stalled = True
             return np.empty((0, self.d))
         t0, c0 = time.perf_counter(), time.thread_time()
         if self.search is None:
@@ -257,7 +270,8 @@ def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int
                   sigma0: float = 0.012, log: RunLog | None = None,
                   on_run: Callable[[int, bool], None] | None = None,
                   strategy: Strategy | None = None, stop: float | None = None, ask_workers: int = 1,
-                  stats: dict[str, float] | None = None) -> list[TargetRefine]:
+                  stats: dict[str, float] | None = None, patience: int | None = 0,
+                  min_gain: float = 0.0) -> list[TargetRefine]:
     """Refine every target with ``budget`` simulator runs (its unsimulated starts included), one open stream.
 
     ``simulate(feeder)`` yields ``(i, features (M,) or NaN, seconds, device)`` for the rows (normalised,
@@ -266,7 +280,9 @@ def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int
     answer is its best simulated point, starts included. ``on_run(runs, replayed)`` reports progress.
     ``strategy`` searches after the starts (default: :func:`cma_strategy` with ``popsize`` and ``sigma0``).
     ``stop``: a target whose best score (its starts included) reaches it asks for no further generation
-    (None, or outside (0, 1): never; the starts are always simulated).
+    (None, or outside (0, 1): never; the starts are always simulated). ``patience`` (runs; 0 or None: off) and
+    ``min_gain``: a target asks no further generation once it stalls (:func:`stalled`), again from its own
+    told runs only, so its runs are a prefix of the same target's without the rule.
     ``ask_workers``: threads that tell a target its generation and ask its next one while the simulator
     goes on (0: in the stream's own loop, between launches); the feeder hands out whatever rows are ready
     and waits for an ask only when no row is in flight. The answers are the same for any number.
@@ -278,9 +294,10 @@ def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int
                            f"{sigma0}")
     if isinstance(ask_workers, bool) or not isinstance(ask_workers, (int, np.integer)) or not 0 <= ask_workers <= 64:
         raise InvphysError(f"refine: ask workers must be a whole number in 0 .. 64, got {ask_workers!r}")
+    patience, min_gain = check_stall(patience, min_gain)
     d = targets[0].starts.shape[1] if targets else 0
     stop = stop if stop is not None and 0.0 < stop < 1.0 else None
-    searches = [_Search(t, budget, popsize, sigma0, d, strategy, stop) for t in targets]
+    searches = [_Search(t, budget, popsize, sigma0, d, strategy, stop, patience, min_gain) for t in targets]
     asks = _Asks(searches, log, score, on_run or (lambda _n, _r: None), int(ask_workers))
     try:
         for k, s in enumerate(searches):
@@ -305,6 +322,32 @@ def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int
     if asks.queue or any(s.phase != "done" for s in searches):
         raise InvphysError("refine: the simulator stream ended before every asked run came back")
     return targets
+
+
+def check_stall(patience: Any, min_gain: Any) -> tuple[int, float]:
+    """``patience`` (a whole number of runs in 0 .. 100000; None: 0, off) and ``min_gain`` (an R_actual gain in
+    [0, 1]) checked, else one error line."""
+    patience = 0 if patience is None else patience
+    if isinstance(patience, bool) or not isinstance(patience, (int, np.integer)) or not 0 <= patience <= 100_000:
+        raise InvphysError(f"refine patience must be a whole number of runs in 0 .. 100000 (0: off), got {patience!r}")
+    try:
+        ok = not isinstance(min_gain, (bool, str)) and 0.0 <= float(min_gain) <= 1.0
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise InvphysError(f"refine min gain must be an R_actual gain in [0, 1], got {min_gain!r}")
+    return int(patience), float(min_gain)
+
+
+def stalled(bests: list[float], patience: int, min_gain: float) -> bool:
+    """Whether a target whose best score after 0, 1, ..., n told runs is ``bests`` (n + 1 values) has stalled:
+    ``patience`` P > 0, n >= P and best(n) - best(n - P) < ``min_gain`` (no change, -inf to -inf included, is
+    a gain of 0)."""
+    n = len(bests) - 1
+    if patience <= 0 or n < patience:
+        return False
+    now, before = bests[n], bests[n - patience]
+    return (0.0 if now == before else now - before) < min_gain
 
 
 class _Asks:
@@ -414,6 +457,7 @@ def _start_known(s: _Search, score: Callable[[np.ndarray, np.ndarray], np.ndarra
     t.start_scores = np.where(ok, sc, np.nan)
     for j in np.flatnonzero(ok):
         _record(t, t.starts[j], float(sc[j]), t.known[j])
+    t.bests = [float(t.score)]
 
 
 def _tell(s: _Search, score: Callable[[np.ndarray, np.ndarray], np.ndarray],
@@ -428,6 +472,8 @@ def _tell(s: _Search, score: Callable[[np.ndarray, np.ndarray], np.ndarray],
         t.seconds += r[1]
         t.replayed += int(r[3])
         _record(t, p, float(sc[j]), ys[j])
+        t.bests.append(float(t.score))
+    t.batches.append(len(s.asked))
     note(len(s.asked), all(r[3] for r in s.results))  # type: ignore[index]
     if s.phase == "starts":
         todo = ~np.all(np.isfinite(t.known), axis=1)

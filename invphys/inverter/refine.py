@@ -11,7 +11,10 @@ bundle's own rows, unless ``overrides`` change the physics, when ``known_starts=
 default: 8 for ``corrected``, the default strategy, 0 for ``cma``). A target stops asking for runs once its
 best simulated R_actual reaches ``stop`` (default :data:`REFINE_STOP`, near the noise floor: re-simulating
 the true parameters of fresh paper targets gives 0.993-0.996), decided from its own runs alone, so its runs are
-the first runs of the same refine without a stop. An answer whose simulated R_actual stays
+the first runs of the same refine without a stop. With ``patience`` P (runs; default 0: off) a target also
+stops once it stalls: its best simulated R_actual gained less than ``min_gain`` over its last P told runs
+(checked before each generation once it has told P runs; starts known at no run count as before its first
+run), again from its own runs alone. An answer whose simulated R_actual stays
 below 0.5 gets a warning. Every target's runs share one open stream, so a target's next generation starts
 while other targets' runs are still in flight. The answer is the best simulated point, so never worse than the
 best simulated start; the same targets, seed and settings give the same answers whatever the order,
@@ -42,6 +45,8 @@ KNOWN_STARTS = {"cma": 0, "corrected": 8}
 LOW_R_ACTUAL = 0.5
 #: a target's refine stops once its best simulated R_actual reaches this (0 or 1: never)
 REFINE_STOP = 0.98
+#: the stall rule's gain when ``patience`` is given alone (off by default: patience 0; see docs/inverting.md)
+REFINE_MIN_GAIN = 0.01
 
 
 def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = REFINE_POPSIZE,
@@ -49,7 +54,8 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
            log: str | Path | None = None, seed: int = 0, on_run: Callable[[int, bool], None] | None = None,
            simulator: Any = None, extract_workers: int = 0, strategy: str = REFINE_STRATEGIES[0],
            known_starts: int | None = None, strategy_options: Mapping[str, Any] | None = None,
-           stop: float = REFINE_STOP, ask_workers: int = 1, extract_threads: int | None = 1) -> list[dict[str, Any]]:
+           stop: float = REFINE_STOP, ask_workers: int = 1, extract_threads: int | None = 1,
+           patience: int | None = 0, min_gain: float = REFINE_MIN_GAIN) -> list[dict[str, Any]]:
     """Refine ``items`` in place (answer first); return one record per result (runs, seconds, R before/after).
 
     ``budget``: simulator runs per target, its unsimulated candidates included; ``batch_size``: runs in
@@ -63,10 +69,14 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
     ``stop``: a target asks for no more runs once its best simulated R_actual reaches it (0 or 1: never); the
     record's ``runs`` says how many it used and ``stopped`` whether it stopped early. ``ask_workers``: threads
     that tell and ask the searches while the simulator runs (0: between launches; the answers are the same);
-    ``extract_threads``: native threads per extraction worker (None: one per core).
+    ``extract_threads``: native threads per extraction worker (None: one per core). ``patience`` (runs; 0 or
+    None: off) and ``min_gain``: a target stalls, and asks no more runs, once its best R_actual gained less than
+    ``min_gain`` over its last ``patience`` told runs (record: ``stalled``; ``batches``: the sizes of its told
+    generations in order, so a replay of ``best_r_by_run`` knows where it could have stopped).
     """
     from invphys.evaluators.stream_refine import (
         RunLog,
+        check_stall,
         feed_features,
         log_key,
         stream_refine,
@@ -78,6 +88,7 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
         raise InvphysError(f"batch size must be >= 1, got {batch_size!r}")
     known_starts = _check_strategy(strategy, known_starts)
     stop = check_stop(stop)
+    patience, min_gain = check_stall(patience, min_gain)
     sim = simulator if simulator is not None else inv.simulator(overrides)
     ext = inv.extractor(sim)
     m = inv.bundle.manifest
@@ -95,7 +106,7 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
     try:
         stream_refine(targets, feed_features(sim, ext, batch_size, pool), masked_score(inv), budget, popsize,
                       sigma0, log=runlog, on_run=on_run, strategy=search, stop=stop, ask_workers=ask_workers,
-                      stats=stats)
+                      stats=stats, patience=patience, min_gain=min_gain)
     finally:
         if pool is not None:
             pool.close()
@@ -104,6 +115,7 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
     for r, t in zip(items, targets, strict=True):
         records.append(_apply(inv, r, t, budget, {"popsize": popsize, "sigma0": sigma0, "seed": seed,
                                                    "strategy": strategy, "known_starts": known_starts, "stop": stop,
+                                                   "patience": patience, "min_gain": min_gain,
                                                    **({"options": dict(strategy_options)} if strategy_options else {})}))
     total = sum(t.runs for t in targets)
     call = {"targets": len(items), "runs": total, "replayed_runs": sum(t.replayed for t in targets),
@@ -111,6 +123,7 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
             "ask_s": float(sum(t.ask_s for t in targets)), "ask_cpu_s": float(sum(t.ask_cpu_s for t in targets)),
             "ask_wait_s": float(stats.get("ask_wait_s", 0.0)), "ask_workers": int(ask_workers),
             "extract_threads": extract_threads if extract_workers else None, "stopped": int(sum(t.stopped for t in targets)),
+            "stalled": int(sum(t.stalled for t in targets)),
             "log": None if log is None else str(log)}
     for rec in records:
         rec["call"] = call
@@ -274,7 +287,8 @@ def _apply(inv: Any, r: InversionResult, t: Any, budget: int, settings: dict[str
     def f(v: float) -> float | None:  # JSON has no NaN: a failed simulation is None
         return float(v) if np.isfinite(v) else None
 
-    return {"budget": budget, "runs": t.runs, "stopped": t.stopped, "replayed_runs": t.replayed,
+    return {"budget": budget, "runs": t.runs, "stopped": t.stopped, "stalled": t.stalled, "batches": list(t.batches),
+            "replayed_runs": t.replayed,
             "simulator_s": t.seconds, "ask_s": t.ask_s, "ask_cpu_s": t.ask_cpu_s, "r_answer": f(first),
             "start_source": source, "start_r_actual": f(start_r),
             "r_actual": f(t.score), "improved": improved, "known_starts": int(len(t.starts) - n), "warning": warning,
