@@ -136,7 +136,7 @@ def test_anchored_moves_from_a_stored_row_carry_its_residual(inv) -> None:
         inv.pool_settings = PoolSettings().with_(exact=True, anchor=anchor, starts=1, lam=0.0)
         try:
             answers = inv._answers("pool", inv._entry("pool")[1])
-            (thetas, sources, _), _ = answers.answer(y[j], np.ones(y.shape[1], bool), 112, 0, 64)
+            (thetas, sources, _, _), _ = answers.answer(y[j], np.ones(y.shape[1], bool), 112, 0, 64)
         finally:
             inv.pool_settings = PoolSettings()
         np.testing.assert_array_equal(thetas[0], theta[j])  # the pool's own order: best first

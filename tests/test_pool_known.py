@@ -125,3 +125,38 @@ def test_the_terminal_shows_a_stored_rows_real_r(inv, tmp_path) -> None:
     res = CliRunner().invoke(app, ["invert", str(inv.bundle.root), "-t", str(target), "--method", "cma_es_540"])
     assert res.exit_code == 0, res.output
     assert "R_known" not in res.output
+
+
+def test_stored_rows_travel_as_data_beside_plain_string_sources(inv) -> None:
+    """The answer protocol carries a stored row's real features as data (``Pool.known``, row for row), not
+    inside its source string: every source is a plain ``str``, and candidates made from sources rebuilt
+    from text (here read back from JSON, which kept nothing but the text) still know their rows."""
+    from invphys.inverter.answers import Known, Pool
+    from invphys.inverter.pool import PoolSettings
+
+    theta, y = inv.bundle.data("train")
+    mask = np.ones(y.shape[1], bool)
+    inv.pool_settings = PoolSettings().with_(exact=True)
+    try:
+        pool, _ = inv._answers("pool", inv._entry("pool")[1]).answer(y[41], mask, 8, 0, 64)
+    finally:
+        inv.pool_settings = PoolSettings()
+    assert isinstance(pool, Pool) and pool.known is not None
+    assert len(pool.known) == len(pool.sources) == len(pool.thetas)
+    for src, k, t in zip(pool.sources, pool.known, pool.thetas, strict=True):
+        assert type(src) is str and (k is not None) == src.endswith("(neighbour)")
+        if k is not None:
+            j = _row_of(theta, t)
+            assert isinstance(k, Known) and j is not None
+            np.testing.assert_array_equal(k.features, y[j])
+            want = masked_recovery(y[j][None], y[41], inv.bundle.scales, mask, inv.bundle.kappa)[0]
+            assert k.r == pytest.approx(float(want), abs=1e-12)
+    texts = json.loads(json.dumps(pool.sources))
+    cands = inv._candidates(pool.thetas, texts, y[41], mask, pool.known)
+    np.testing.assert_array_equal(cands[0].theta, theta[41])  # the row itself, best by its real R
+    np.testing.assert_array_equal(cands[0].known, y[41])
+    assert cands[0].r_known == pytest.approx(1.0) and cands[0].source == "pool (neighbour)"
+    assert [c.known is None for c in cands] == [k is None for k in pool.known]
+    lookup, _ = inv._answers("lookup", inv._entry("lookup")[1]).answer(y[3], mask, 1, 0, 1)
+    assert lookup.sources == ["lookup"] and lookup.known is not None and lookup.known[0] is not None
+    np.testing.assert_array_equal(lookup.known[0].features, y[3])

@@ -7,7 +7,8 @@
 
 Each answers ONE target at a time from random streams of its own
 (:func:`~invphys.inverter.seeds.target_seed`): an answer never depends on the other targets of a batch.
-``answer`` returns the candidate pool (thetas, sources, evaluations spent) and the :class:`Uncertainty`.
+``answer`` returns the candidate :class:`Pool` (thetas, sources, evaluations spent, the stored rows among
+them) and the :class:`Uncertainty`.
 """
 
 from __future__ import annotations
@@ -16,18 +17,36 @@ import contextlib
 import warnings
 import weakref
 from collections.abc import Iterator
-from typing import Any, ClassVar
+from dataclasses import dataclass
+from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
 from invphys.core.errors import InvphysError
 from invphys.core.masked_recovery import MaskedRecovery, masked_recovery
-from invphys.inverter.result import KnownSource
 from invphys.inverter.seeds import target_seed
 from invphys.inverter.uncertainty import NEIGHBOUR_ROWS, Uncertainty
 
-#: candidate thetas (P, d), their sources, evaluations spent
-Pool = tuple[np.ndarray, list[str], int]
+
+@dataclass(frozen=True, eq=False)  # its features are an array: no elementwise ==
+class Known:
+    """A candidate that is a stored row of the bundle (simulated when its data was made): the row's real
+    features ``features`` (M,) and their R against the target ``r``."""
+
+    features: np.ndarray
+    r: float
+
+
+class Pool(NamedTuple):
+    """One target's candidates: thetas (P, d), their sources, the evaluations spent and, row for row, the
+    stored rows among them (:class:`Known`; None: not a stored row; ``known`` None: none is)."""
+
+    thetas: np.ndarray
+    sources: list[str]
+    spent: int
+    known: list[Known | None] | None = None
+
+
 #: most candidates a policy or a search gives per target (each a rollout set or a whole search)
 MAX_TOP_K = 64
 #: targets whose posterior draws are made together (bounds the memory of one batch)
@@ -150,7 +169,7 @@ class PosteriorAnswers(MethodAnswers):
         first = samples[:self.k]
         theta, spent = self._choose(first, cond[0], self.goal(values, mask))
         pool = theta[None, :] if top_k == 1 and mask.all() else np.concatenate([theta[None, :], first])
-        return pool, [self.label] * len(pool), spent
+        return Pool(pool, [self.label] * len(pool), spent)
 
     def _choose(self, first: np.ndarray, cond: np.ndarray, goal: np.ndarray) -> tuple[np.ndarray, int]:
         """The method's answer among its draws (mean, best log-prob, best by the surrogate; for a noisy
@@ -189,7 +208,7 @@ _STORED: weakref.WeakKeyDictionary[Any, StoredRows] = weakref.WeakKeyDictionary(
 
 class StoredRows:
     """The bundle's stored rows found by their exact parameters: a candidate that is one of them (a
-    lookup's answer) carries the row's real features and their R (:class:`KnownSource`)."""
+    lookup's answer) carries the row's real features and their R (:class:`Known`)."""
 
     def __init__(self, bundle: Any) -> None:
         theta, y = bundle.data("train")
@@ -203,15 +222,16 @@ class StoredRows:
             _STORED[bundle] = cls(bundle)
         return _STORED[bundle]
 
-    def sources(self, texts: list[str], thetas: np.ndarray, values: np.ndarray, mask: np.ndarray) -> list[str]:
-        out: list[str] = []
-        for text, t in zip(texts, thetas, strict=True):
+    def known(self, thetas: np.ndarray, values: np.ndarray, mask: np.ndarray) -> list[Known | None]:
+        """Per theta: the stored row it is (its real features and their R), or None."""
+        out: list[Known | None] = []
+        for t in thetas:
             i = self._index.get(np.asarray(t, dtype=np.float64).tobytes())
             if i is None or not np.all(np.isfinite(self.y[i])):
-                out.append(text)
+                out.append(None)
                 continue
             r = masked_recovery(self.y[i][None], values, self.bundle.scales, mask, self.bundle.kappa)[0]
-            out.append(KnownSource(text, self.y[i], float(r)))
+            out.append(Known(self.y[i], float(r)))
         return out
 
 
@@ -255,15 +275,15 @@ class LookupAnswers(MethodAnswers):
             pool = ans.theta[:1]
         else:
             pool = np.concatenate([ans.theta[:1], ans.candidates[0]])
-        return (pool, self._sources(pool, values, mask), spent), self._spread(goal)
+        return Pool(pool, [self.label] * len(pool), spent, self._known(pool, values, mask)), self._spread(goal)
 
-    def _sources(self, pool: np.ndarray, values: np.ndarray, mask: np.ndarray) -> list[str]:
+    def _known(self, pool: np.ndarray, values: np.ndarray, mask: np.ndarray) -> list[Known | None] | None:
         if self._stored is None:
             try:
                 self._stored = StoredRows.of(self.bundle)
             except InvphysError:  # a bundle without its training rows: nothing known
-                return [self.label] * len(pool)
-        return self._stored.sources([self.label] * len(pool), pool, values, mask)
+                return None
+        return self._stored.known(pool, values, mask)
 
     def _spread(self, goal: np.ndarray) -> Uncertainty:
         if not hasattr(self.plugin, "neighbours") or getattr(self.plugin, "_theta", None) is None:
@@ -291,7 +311,7 @@ class PolicyAnswers(MethodAnswers):
         goal = np.where(mask, values, runner.mean)[None, :]
         if top_k == 1:
             points, _, _ = runner.rollout(goal, mask[None, :]).best()
-            return (runner.space.to_theta(points), [self.label], runner.horizon), none
+            return Pool(runner.space.to_theta(points), [self.label], runner.horizon), none
         rollouts = max(8, 4 * top_k)
         ro = runner.rollout(goal, mask[None, :], rollouts=rollouts, seed=self.seed(seed, values, mask, "rollout"))
         theta = runner.space.to_theta(ro.points.reshape(-1, runner.dim))
@@ -306,7 +326,7 @@ class PolicyAnswers(MethodAnswers):
             thetas.append(r2.space.to_theta(pts.reshape(-1, r2.dim)))
             srcs += [other] * len(thetas[-1])
             spent += r2.horizon
-        return (np.concatenate(thetas), srcs, spent), none
+        return Pool(np.concatenate(thetas), srcs, spent), none
 
 
 class SearchAnswers(MethodAnswers):
@@ -354,7 +374,7 @@ class SearchAnswers(MethodAnswers):
             thetas.append(np.clip(np.asarray(res.theta, dtype=np.float64), 0.0, 1.0))
             srcs.append(self.label if top_k == 1 else f"{self.label} (search {r + 1})")
             spent += int(res.evaluations)
-        return (np.array(thetas), srcs, spent), note
+        return Pool(np.array(thetas), srcs, spent), note
 
     def _refine(self, values: np.ndarray, mask: np.ndarray, seed: int) -> Pool:
         """CMA-ES (ask/tell, the entry's budget, popsize and sigma0) on the surrogate from the start method's
@@ -367,7 +387,7 @@ class SearchAnswers(MethodAnswers):
         if start not in methods or start == self.label or methods[start].get("start"):
             raise InvphysError(f"method {self.label!r}: its start {start!r} is not a method of this bundle that "
                                f"answers by itself (methods: {', '.join(methods)})")
-        (first, _, spent), _ = self.inv._answers(start, methods[start]).answer(values, mask, 1, seed, 0)
+        first, _ = self.inv._answers(start, methods[start]).answer(values, mask, 1, seed, 0)
         cfg = self.entry.get("config") or {}
         b = self.bundle
         pen = UncertaintyPenalty(b.surrogate, b.scales, self.penalty())
@@ -377,7 +397,7 @@ class SearchAnswers(MethodAnswers):
             return masked_recovery(y, t, b.scales, mask, b.kappa) - pen.penalty(y)
 
         with quiet_cma():
-            got = refine_targets(goal[None, :], first[:1], b.scales, pen.predict, int(cfg.get("budget", 64)),
+            got = refine_targets(goal[None, :], first.thetas[:1], b.scales, pen.predict, int(cfg.get("budget", 64)),
                                  int(cfg.get("popsize", 8)), float(cfg.get("sigma0", 0.1)), seed=seed, kappa=b.kappa,
                                  score=score)[0]
-        return np.clip(got.theta, 0.0, 1.0)[None, :], [self.label], int(spent) + got.evaluated
+        return Pool(np.clip(got.theta, 0.0, 1.0)[None, :], [self.label], int(first.spent) + got.evaluated)

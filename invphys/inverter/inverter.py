@@ -25,7 +25,7 @@ import numpy as np
 from invphys.core.errors import InvphysError, did_you_mean
 from invphys.core.masked_recovery import MaskedRecovery, masked_recovery
 from invphys.core.user_targets import UserTargets, from_array, from_mappings
-from invphys.inverter.answers import MethodAnswers, PosteriorAnswers, quiet_cma
+from invphys.inverter.answers import Known, MethodAnswers, Pool, PosteriorAnswers, quiet_cma
 from invphys.inverter.bundle import Bundle
 from invphys.inverter.diagnosed import failure_score, feature_std, ood_warning, recalibrated
 from invphys.inverter.draws import PosteriorDraws
@@ -350,19 +350,20 @@ class Inverter:
                 t0 = time.perf_counter()
             return out
 
-    def _answer_one(self, answers: MethodAnswers, ans: tuple[Any, Any], t: UserTargets, i: int, refine: int,
+    def _answer_one(self, answers: MethodAnswers, ans: tuple[Pool, Any], t: UserTargets, i: int, refine: int,
                     seed: int, level: float, top_k: int, t0: float) -> InversionResult:
         """The result of target ``i`` from its method's pool ``ans``; ``t0``: when its answer began (work
         shared across targets counts towards the target that waited for it)."""
         values, mask = t.values[i], t.mask[i]
         std = None if t.std is None else t.std[i]
         noisy = bool(noisy_rows(None if std is None else std[None, :], 1)[0])
-        (thetas, sources, spent), unc = ans
+        pool, unc = ans
+        spent = pool.spent
         unc.level = level
         if unc.kind == "posterior" and unc.has_draws and not noisy:
             unc.draws, unc.recalibrated = recalibrated(self.bundle, unc.draws)
         ranked = bool(getattr(getattr(answers, "settings", None), "exact", False))  # a pool scoring rows exactly
-        cands = self._select(thetas, sources, values, mask, top_k, float(getattr(answers, "lam", 0.0)), ranked)
+        cands = self._select(pool, values, mask, top_k, float(getattr(answers, "lam", 0.0)), ranked)
         if refine:
             cands, extra = self._refine(cands, values, mask, refine, target_seed(seed, answers.label, values, mask,
                                                                                   "refine"))
@@ -420,23 +421,27 @@ class Inverter:
                 c.std = std
         return cands
 
-    def _candidates(self, thetas: np.ndarray, sources: list[str], target: np.ndarray, mask: np.ndarray
-                    ) -> list[Candidate]:
+    def _candidates(self, thetas: np.ndarray, sources: list[str], target: np.ndarray, mask: np.ndarray,
+                    known: Sequence[Known | None] | None = None) -> list[Candidate]:
+        """Candidates at ``thetas`` scored by the surrogate; ``known``: row for row, the stored row a theta
+        is (its real features and their R become the candidate's ``known`` and ``r_known``)."""
         thetas = np.clip(np.atleast_2d(thetas), 0.0, 1.0)
         mean, std = self.bundle.surrogate.predict_with_uncertainty(thetas)
         r = masked_recovery(mean, target, self.bundle.scales, mask, self.bundle.kappa)
         params = self.bundle.space.denormalize(thetas)
+        rows: list[Known | None] = [None] * len(thetas) if known is None else list(known)
         return [Candidate(theta=thetas[j], params=params[j], predicted=mean[j], std=std[j], r_surrogate=float(r[j]),
-                          source=sources[j]) for j in range(len(thetas))]
+                          source=sources[j], known=None if k is None else np.asarray(k.features, dtype=np.float64),
+                          r_known=None if k is None else float(k.r)) for j, k in enumerate(rows)]
 
-    def _select(self, thetas: np.ndarray, sources: list[str], target: np.ndarray, mask: np.ndarray,
-                k: int, lam: float = 0.0, ranked: bool = False) -> list[Candidate]:
+    def _select(self, pool: Pool, target: np.ndarray, mask: np.ndarray, k: int, lam: float = 0.0,
+                ranked: bool = False) -> list[Candidate]:
         """The best ``k`` candidates that are at least :data:`MIN_DISTANCE` apart (best: highest R_surr,
         minus ``lam`` x the normalised ensemble std where a method scores so; ``ranked``: the method's own
         order, e.g. a pool that scores stored rows by their real features)."""
         from invphys.evaluators.uncertainty import normalised_std
 
-        cands = self._candidates(thetas, sources, target, mask)
+        cands = self._candidates(pool.thetas, pool.sources, target, mask, pool.known)
         if not ranked:
             pen = lam * normalised_std(np.array([c.std for c in cands]), self.bundle.scales) if lam else 0.0
             order = np.lexsort((np.arange(len(cands)), -(np.array([c.r_surrogate for c in cands]) - pen)))

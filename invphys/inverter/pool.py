@@ -38,8 +38,7 @@ import numpy as np
 from invphys.core.errors import InvphysError
 from invphys.core.masked_recovery import masked_recovery
 from invphys.core.nearest import nearest_first
-from invphys.inverter.answers import Pool, PosteriorAnswers
-from invphys.inverter.result import KnownSource
+from invphys.inverter.answers import Known, Pool, PosteriorAnswers
 from invphys.inverter.seeds import target_rng, target_seed
 
 #: the label ``invphys invert --method`` knows the pool by (any bundle holding a posterior method)
@@ -194,9 +193,9 @@ class PoolAnswers(PosteriorAnswers):
         n_post = s.draws * (1 + len(s.extra))
         thetas = np.concatenate([samples[:n_post], near])
         exact = self.stored_score(rows, values, mask)
-        sources: list[str] = [f"{self.label} (posterior)"] * n_post
-        sources += [KnownSource(f"{self.label} (neighbour)", self.train_y[j], float(r)) for j, r in zip(rows, exact,
-                                                                                                   strict=True)]
+        sources = [f"{self.label} (posterior)"] * n_post + [f"{self.label} (neighbour)"] * len(rows)
+        known: list[Known | None] = [None] * n_post
+        known += [Known(self.train_y[j], float(r)) for j, r in zip(rows, exact, strict=True)]
         if s.exact:
             scores = np.concatenate([self.score(thetas[:n_post], values, mask), exact])
         else:
@@ -211,9 +210,10 @@ class PoolAnswers(PosteriorAnswers):
             scores = np.concatenate([scores, self.score(moved, values, mask, offset)])
             thetas = np.concatenate([thetas, moved])
             sources += [f"{self.label} (move)"] * len(moved)
+            known += [None] * len(moved)
         order = np.lexsort((np.arange(len(scores)), -scores))  # best first, ties by position (deterministic)
         keep = order[:1] if top_k == 1 else order
-        return thetas[keep], [sources[i] for i in keep], len(thetas)
+        return Pool(thetas[keep], [sources[i] for i in keep], len(thetas), [known[i] for i in keep])
 
     def _moves(self, thetas: np.ndarray, scores: np.ndarray, values: np.ndarray, mask: np.ndarray, seed: int
                ) -> tuple[np.ndarray, np.ndarray]:

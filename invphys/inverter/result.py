@@ -13,20 +13,6 @@ from invphys.core.errors import InvphysError
 from invphys.inverter.uncertainty import Uncertainty, at_bound
 
 
-class KnownSource(str):
-    """A candidate's source that is a stored row of the bundle (simulated when its data was made): its
-    real features ``known`` (M,) and their R against the target ``r_known`` ride along, and the
-    :class:`Candidate` made from it keeps them (the source itself becomes a plain string)."""
-
-    known: np.ndarray | None
-    r_known: float | None
-
-    def __new__(cls, text: str, known: np.ndarray | None = None, r_known: float | None = None) -> KnownSource:
-        obj = super().__new__(cls, text)
-        obj.known, obj.r_known = known, r_known
-        return obj
-
-
 @dataclass
 class Candidate:
     """One answer: normalised ``theta``, physical ``params`` (space order), surrogate prediction and
@@ -46,13 +32,6 @@ class Candidate:
     failure: str | None = None
     known: np.ndarray | None = None
     r_known: float | None = None
-
-    def __post_init__(self) -> None:
-        if isinstance(self.source, KnownSource):
-            if self.known is None and self.source.known is not None:
-                self.known = np.asarray(self.source.known, dtype=np.float64)
-                self.r_known = None if self.source.r_known is None else float(self.source.r_known)
-            self.source = str(self.source)
 
     @property
     def features(self) -> np.ndarray:
