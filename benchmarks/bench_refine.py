@@ -27,6 +27,10 @@ less than ``ask_s`` when the asks waited for the GIL or a core), and the seconds
 nothing to feed because an ask was pending (``ask_wait_s``; ``--ask-workers 0`` asks between launches, as
 before, and every ask holds the stream). ``--first N --limit M`` takes targets N .. N+M-1 of each set: shards
 of one set on several processes or GPUs. ``--extract-threads`` is each extraction worker's BLAS/OpenMP threads.
+``--patience N --min-gain D``: a target also stops once its best R_actual gained < D over its last N told runs
+(the refine's stall rule; off by default); the result records both, each strategy's ``stalled`` count, and
+per target ``stalled`` and ``batches`` (its told generations' sizes), which
+``benchmarks/bench_refine_replay.py`` uses to replay stop rules exactly.
 """
 
 from __future__ import annotations
@@ -141,6 +145,7 @@ def _strategy_block(records: list[dict[str, Any]], wall: float, n_boot: int) -> 
             "simulator_s": float(sum(r["simulator_s"] for r in records)), **_summary(records),
             "runs_per_target": spent / n, "simulator_s_per_target": float(sum(r["simulator_s"] for r in records)) / n,
             "stopped": int(sum(bool(r.get("stopped")) for r in records)),
+            "stalled": int(sum(bool(r.get("stalled")) for r in records)),
             "r_at_runs": r_at_runs(records, records[0]["budget"] if records else 0),
             "ask_s": ask, "ask_s_per_run": ask / max(spent, 1),
             "ask_cpu_s": float(sum(r.get("ask_cpu_s", 0.0) for r in records)),
@@ -188,6 +193,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--strategy-option", nargs="*", default=[], help="KEY=VALUE options of the corrected strategy")
     p.add_argument("--stop", type=float, default=None,
                    help="a target stops once its R_actual reaches this (0: never; default: the refine's own)")
+    p.add_argument("--patience", type=int, default=None,
+                   help="a target stops once its best R gained < --min-gain over its last N runs (default: off)")
+    p.add_argument("--min-gain", type=float, default=None, help="the stall rule's gain (default: the refine's own)")
     p.add_argument("--popsize", type=int, default=8)
     p.add_argument("--sigma0", type=float, default=0.012)
     p.add_argument("--method", default=None)
@@ -221,7 +229,9 @@ def _refine_one(inv: Any, results: list[Any], strategy: str, a: argparse.Namespa
                      batch_size=a.sim_batch, seed=a.seed, simulator=sim, extract_workers=a.extract_workers,
                      extract_threads=a.extract_threads or None, ask_workers=a.ask_workers,
                      strategy=strategy, known_starts=a.known_starts, strategy_options=opts or None,
-                     **({} if a.stop is None else {"stop": a.stop}))
+                     **({} if a.stop is None else {"stop": a.stop}),
+                     **({} if a.patience is None else {"patience": a.patience}),
+                     **({} if a.min_gain is None else {"min_gain": a.min_gain}))
     return records, time.perf_counter() - t0
 
 
@@ -238,6 +248,8 @@ def main(argv: list[str] | None = None) -> int:
     a = _parser().parse_args(argv)
     if a.first < 0 or a.limit < 0 or a.extract_threads < 0 or a.ask_workers < 0:
         raise SystemExit("error: --first, --limit, --extract-threads and --ask-workers must be >= 0")
+    if a.min_gain is not None and a.patience is None:
+        raise SystemExit("error: --min-gain needs --patience N")
     import invphys
     from invphys.core.dataset import DatasetStore
     from invphys.core.interfaces import Simulator
@@ -268,7 +280,7 @@ def main(argv: list[str] | None = None) -> int:
         "method": a.method, "targets": a.targets[0] if len(a.targets) == 1 else sets, "sim_batch": a.sim_batch,
         "extract_workers": a.extract_workers, "extract_threads": a.extract_threads or None,
         "ask_workers": a.ask_workers, "first": a.first, "strategies": a.strategy, "budget": a.budget, "warmup": warm,
-        "sets": {}}
+        "stop": a.stop, "patience": a.patience, "min_gain": a.min_gain, "sets": {}}
     for n_set, (name, path) in enumerate(sets.items()):
         y = DatasetStore(path).arrays(ok_only=True).y[a.first:a.first + a.limit]
         t0 = time.perf_counter()

@@ -12,6 +12,7 @@ import json
 
 import numpy as np
 import pytest
+from benchmark_modules import load
 from test_inverter_support import toy_bundle_fixture, toy_inverter_fixture  # noqa: F401 (fixtures bundle, inv)
 
 from invphys.core.errors import InvphysError
@@ -55,12 +56,16 @@ def test_a_stalled_target_stops_where_the_rule_says_and_its_runs_are_a_prefix(in
     assert len(set(expected)) > 1 and min(expected) == 7 and max(expected) > 7   # at several decision points
     res, recs = _run(inv, y, patience=PATIENCE, min_gain=gain, batch_size=1, ask_workers=0)
     assert [rec["runs"] for rec in recs] == expected
-    for rec, ref, r, rf in zip(recs, full, res, full_res, strict=True):
+    for rec, ref, r in zip(recs, full, res, strict=True):
         assert rec["best_r_by_run"] == ref["best_r_by_run"][:rec["runs"]]   # the same runs, cut short
         assert rec["batches"] == ref["batches"][:len(rec["batches"])] and sum(rec["batches"]) == rec["runs"]
         assert rec["stalled"] == (rec["runs"] < BUDGET) and not rec["stopped"]
         assert r.best.r_actual == rec["r_actual"] == max(ref["best_r_by_run"][:rec["runs"]])
         assert rec["settings"]["patience"] == PATIENCE and rec["settings"]["min_gain"] == gain
+    # the replay benchmark, on the unstopped refine's records, gives the stalled refine's runs and answers
+    rp = load("bench_refine_replay")
+    assert [rp.replay(ref, ref["batches"], None, PATIENCE, gain)[:2] for ref in full] == \
+        [(rec["runs"], rec["r_actual"]) for rec in recs]
     ref_key = _key(res, recs)
     assert recs[0]["call"]["stalled"] == sum(rec["stalled"] for rec in recs)
     for batch, workers in ((3, 2), (7, 0), (7, 2)):

@@ -292,7 +292,8 @@ def _apply(inv: Any, r: InversionResult, t: Any, budget: int, settings: dict[str
             "simulator_s": t.seconds, "ask_s": t.ask_s, "ask_cpu_s": t.ask_cpu_s, "r_answer": f(first),
             "start_source": source, "start_r_actual": f(start_r),
             "r_actual": f(t.score), "improved": improved, "known_starts": int(len(t.starts) - n), "warning": warning,
-            "best_r_by_run": [f(v) for v in best_by_run(t)], "settings": settings}
+            "best_r_by_run": [f(v) for v in best_by_run(t)],
+            "best_r_free": f(t.bests[0]) if t.bests else None, "settings": settings}
 
 
 def best_by_run(t: Any) -> np.ndarray:
