@@ -108,6 +108,9 @@ def test_the_cli_options_and_bad_values_are_one_error(inv, bundle) -> None:
     # gain 1 is never reached: with 8 stored rows as free starts (best(0) known), the 4 starts' runs are enough
     assert rec["stalled"] and rec["runs"] == 4 and rec["batches"] == [4] and rec["known_starts"] == 8
     assert rec["settings"]["patience"] == 4 and rec["settings"]["min_gain"] == 1.0
+    out = runner.invoke(app, ["invert", str(bundle), *feats, "--sim-refine", "16", "--sim-refine-popsize", "4",
+                              "--sim-refine-patience", "4", "--sim-refine-min-gain", "1"])
+    assert out.exit_code == 0 and "(4 simulator runs" in out.output and "stopped: stalled" in out.output, out.output
     out = runner.invoke(app, ["invert", str(bundle), *feats, "--sim-refine", "8", "--sim-refine-popsize", "4",
                               "--sim-refine-patience", "4", "--json"])
     assert out.exit_code == 0, out.output

@@ -342,6 +342,7 @@ def _sim_refine(inv: Any, results: list[Any], overrides: dict[str, Any], seed: i
         console.print(f"refine {escape(r.label)}: R_actual {_r(_none_nan(rec['start_r_actual']))} "
                       f"({escape(rec['start_source'])}) -> {_r(_none_nan(rec['r_actual']))} ({rec['runs']} simulator runs, {rec['simulator_s']:.1f} "
                       f"simulator-s{', stopped at the stop R' if rec['stopped'] else ''}"
+                      f"{', stopped: stalled' if rec.get('stalled') else ''}"
                       f"{'' if rec['improved'] else ', start kept'})", soft_wrap=True)
     for r, rec in zip(results, records, strict=True):  # the refine's warnings (the others were printed before it)
         if rec.get("warning"):
