@@ -65,14 +65,14 @@ def invert(
     sim_refine_popsize: int | None = typer.Option(None, "--sim-refine-popsize", help="points per batch (default 8)"),
     sim_refine_sigma: float | None = typer.Option(None, "--sim-refine-sigma", help="cma step (default 0.012)"),
     sim_refine_log: Path | None = typer.Option(None, "--sim-refine-log", help="log of the runs: a re-run resumes"),
-    sim_refine_workers: int | None = typer.Option(None, "--sim-refine-workers", help="extraction processes (0)"),
+    sim_refine_workers: int | None = typer.Option(None, "--sim-refine-workers", help="feature-extraction processes (0)"),
     sim_refine_strategy: str | None = typer.Option(None, "--sim-refine-strategy", help="corrected (the surrogate "
                                                    "corrected by the target's runs; default) or cma (CMA-ES)"),
     sim_refine_known: int | None = typer.Option(None, "--sim-refine-known", help="stored training rows that fit "
                                                 "the target best, as starts at no run (default: 8 corrected, 0 cma)"),
     sim_refine_stop: float | None = typer.Option(None, "--sim-refine-stop", help="a target stops at this R_actual (0.98)"),
-    sim_refine_patience: int | None = typer.Option(None, "--sim-refine-patience", help="stop on a stall (N runs)"),
-    sim_refine_min_gain: float | None = typer.Option(None, "--sim-refine-min-gain", help="its gain (0.01)"),
+    sim_refine_patience: int | None = typer.Option(None, "--sim-refine-patience", help="stop once N runs gain < min gain"),
+    sim_refine_min_gain: float | None = typer.Option(None, "--sim-refine-min-gain", help="the patience's gain (0.01)"),
     seed: int = typer.Option(0, "--seed", help="seed of every random draw (with the target and the method it "
                              "decides the answer; a target's position in the file does not)"),
     level: float = typer.Option(0.9, "--level", help="level of the central intervals (posterior methods)"),

@@ -22,6 +22,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -163,7 +164,7 @@ class TargetRefine:
     ask_cpu_s: float = 0.0         # the same blocks' CPU seconds of the thread running them (ask_s >> it: waited)
 
 
-_GLOBAL_RANDOM = __import__("threading").RLock()   # NumPy's global random state, swapped by CMASearch
+_GLOBAL_RANDOM = threading.RLock()   # NumPy's global random state, swapped by CMASearch
 
 
 class CMASearch:
@@ -357,7 +358,6 @@ class _Asks:
     def __init__(self, searches: list[_Search], log: RunLog | None,
                  score: Callable[[np.ndarray, np.ndarray], np.ndarray], note: Callable[[int, bool], None],
                  workers: int) -> None:
-        import threading
         from concurrent.futures import ThreadPoolExecutor
 
         self.searches, self.log, self.score, self.note = searches, log, score, note
