@@ -27,7 +27,8 @@ less than ``ask_s`` when the asks waited for the GIL or a core), and the seconds
 nothing to feed because an ask was pending (``ask_wait_s``; ``--ask-workers 0`` asks between launches, as
 before, and every ask holds the stream). ``--first N --limit M`` takes targets N .. N+M-1 of each set: shards
 of one set on several processes or GPUs. ``--extract-threads`` is each extraction worker's BLAS/OpenMP threads.
-``--patience N --min-gain D``: a target also stops once its best R_actual gained < D over its last N told runs
+``--log-dir DIR`` keeps every refine's runs (a run cut short by a time limit resumes from them: the same command
+replays the logged runs and simulates the rest). ``--patience N --min-gain D``: a target also stops once its best R_actual gained < D over its last N told runs
 (the refine's stall rule; off by default); the result records both, each strategy's ``stalled`` count, and
 per target ``stalled`` and ``batches`` (its told generations' sizes), which
 ``benchmarks/bench_refine_replay.py`` uses to replay stop rules exactly.
@@ -213,12 +214,16 @@ def _parser() -> argparse.ArgumentParser:
                    help="threads asking the searches while the simulator runs (0: between launches)")
     p.add_argument("--bootstrap", type=int, default=2000, help="bootstrap resamples of the intervals")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--log-dir", type=Path, default=None,
+                   help="keep each (set, strategy) refine's runs in DIR/refine_<set>_<strategy>_<first>.npz: a run "
+                        "stopped early (a time limit) is resumed by the same command, its logged runs replayed "
+                        "(counted in replayed_runs; the timings then cover the new runs only)")
     p.add_argument("--out", type=Path, default=None)
     return p
 
 
 def _refine_one(inv: Any, results: list[Any], strategy: str, a: argparse.Namespace, overrides: dict[str, Any],
-                sim: Any) -> tuple[list[dict[str, Any]], float]:
+                sim: Any, name: str = "") -> tuple[list[dict[str, Any]], float]:
     import copy
 
     from invphys.inverter.refine import refine
@@ -227,6 +232,7 @@ def _refine_one(inv: Any, results: list[Any], strategy: str, a: argparse.Namespa
     t0 = time.perf_counter()
     records = refine(inv, copy.deepcopy(results), a.budget, a.popsize, a.sigma0, overrides=overrides,
                      batch_size=a.sim_batch, seed=a.seed, simulator=sim, extract_workers=a.extract_workers,
+                     log=None if a.log_dir is None else a.log_dir / f"refine_{name}_{strategy}_{a.first}.npz",
                      extract_threads=a.extract_threads or None, ask_workers=a.ask_workers,
                      strategy=strategy, known_starts=a.known_starts, strategy_options=opts or None,
                      **({} if a.stop is None else {"stop": a.stop}),
@@ -250,6 +256,8 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("error: --first, --limit, --extract-threads and --ask-workers must be >= 0")
     if a.min_gain is not None and a.patience is None:
         raise SystemExit("error: --min-gain needs --patience N")
+    if a.log_dir is not None:
+        a.log_dir.mkdir(parents=True, exist_ok=True)
     import invphys
     from invphys.core.dataset import DatasetStore
     from invphys.core.interfaces import Simulator
@@ -291,7 +299,7 @@ def main(argv: list[str] | None = None) -> int:
         entry = result["sets"][name] = {"path": path, "targets": len(y), "first": a.first, "strategies": blocks}
         for n_strat, strategy in enumerate(a.strategy):
             fed.clear()
-            records, wall = _refine_one(inv, results, strategy, a, overrides, sim)
+            records, wall = _refine_one(inv, results, strategy, a, overrides, sim, name)
             blocks[strategy] = _strategy_block(records, wall, a.bootstrap)
             if n_set == 0 and n_strat == 0:   # the first refine: timed against dataset generation of its runs
                 _first(result, blocks[strategy], records, a, sim, ext, np.array(fed), pool, rng)

@@ -51,3 +51,24 @@ def test_bench_refine_shards_a_set_with_first_and_records_the_asks(tmp_path_fact
     assert b["ask_workers"] == 1 and b["ask_wait_s"] >= 0 and 0 < b["ask_cpu_s"] <= b["ask_s"] + 0.05
     assert recs["all"]["sets"]["a"]["strategies"]["corrected"]["ask_workers"] == 0
     assert recs["shard"]["extract_threads"] == 1 and recs["shard"]["first"] == 1
+
+
+def test_bench_refine_resumes_from_its_log_dir(tmp_path_factory, tmp_path, monkeypatch) -> None:
+    """``--log-dir``: a second run of the same command replays every logged run (no simulation) and gives the
+    same answers, so a measurement stopped by a time limit is not lost."""
+    run = toy_run(tmp_path_factory.getbasetemp())
+    store = str(next((run / "dataset").rglob("_manifest.json")).parent)
+    bench = load("bench_refine")
+    argv = ["--bundle", str(run / "inverter"), "--targets", f"a={store}", "--limit", "2", "--budget", "8",
+            "--starts", "2", "--popsize", "4", "--sim-batch", "4", "--strategy", "corrected", "--skip-dataset",
+            "--bootstrap", "50", "--log-dir", str(tmp_path / "logs")]
+    monkeypatch.setattr(sys, "argv", ["benchmarks/bench_refine.py", *argv])
+    recs = []
+    for i in range(2):
+        out = tmp_path / f"r{i}.json"
+        assert bench.main([*argv, "--out", str(out)]) == 0
+        recs.append(json.loads(out.read_text())["sets"]["a"]["strategies"]["corrected"]["per_target"])
+    assert (tmp_path / "logs" / "refine_a_corrected_0.npz").is_file()
+    assert [t["replayed_runs"] for t in recs[0]] == [0, 0]
+    assert [t["replayed_runs"] for t in recs[1]] == [t["runs"] for t in recs[1]] and recs[1][0]["runs"] > 0
+    assert [t["r_actual"] for t in recs[1]] == [t["r_actual"] for t in recs[0]]
