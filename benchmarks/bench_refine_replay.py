@@ -104,14 +104,11 @@ def decide(bests: list[float], stop: float | None, patience: int, min_gain: floa
     """The refine's rules before a generation, from the best R after 0, 1, ..., n told runs: ``stopped``
     (the best reached ``stop``), ``stalled`` (n >= patience > 0 and best(n) - best(n - patience) < min_gain;
     no change, -inf to -inf included, is a gain of 0) or "" (go on)."""
-    n = len(bests) - 1
-    if stop is not None and 0.0 < stop < 1.0 and bests[n] >= stop:
+    from invphys.evaluators.stream_refine import stalled
+
+    if stop is not None and 0.0 < stop < 1.0 and bests[-1] >= stop:
         return "stopped"
-    if patience > 0 and n >= patience:
-        now, before = bests[n], bests[n - patience]
-        if (0.0 if now == before else now - before) < min_gain:
-            return "stalled"
-    return ""
+    return "stalled" if stalled(bests, patience, min_gain) else ""
 
 
 def rule_row(recs: list[dict[str, Any]], batches: list[list[int]], s_per_run: float | None, stop: float | None,

@@ -331,13 +331,17 @@ def check_stall(patience: Any, min_gain: Any) -> tuple[int, float]:
     patience = 0 if patience is None else patience
     if isinstance(patience, bool) or not isinstance(patience, (int, np.integer)) or not 0 <= patience <= 100_000:
         raise InvphysError(f"refine patience must be a whole number of runs in 0 .. 100000 (0: off), got {patience!r}")
-    try:
-        ok = not isinstance(min_gain, (bool, str)) and 0.0 <= float(min_gain) <= 1.0
-    except (TypeError, ValueError):
-        ok = False
-    if not ok:
+    if not in_unit_interval(min_gain):
         raise InvphysError(f"refine min gain must be an R_actual gain in [0, 1], got {min_gain!r}")
     return int(patience), float(min_gain)
+
+
+def in_unit_interval(value: Any) -> bool:
+    """Whether ``value`` is a number (not a bool or a string) in [0, 1]."""
+    try:
+        return not isinstance(value, (bool, str)) and 0.0 <= float(value) <= 1.0
+    except (TypeError, ValueError):
+        return False
 
 
 def stalled(bests: list[float], patience: int, min_gain: float) -> bool:

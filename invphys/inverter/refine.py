@@ -142,11 +142,9 @@ def _extraction_pool(extractor: Any, workers: int, threads: int | None = 1) -> A
 
 def check_stop(stop: Any) -> float:
     """``stop`` as a float in [0, 1] (0 or 1: never stop), else one error line."""
-    try:
-        ok = not isinstance(stop, (bool, str)) and 0.0 <= float(stop) <= 1.0
-    except (TypeError, ValueError):
-        ok = False
-    if not ok:
+    from invphys.evaluators.stream_refine import in_unit_interval
+
+    if not in_unit_interval(stop):
         raise InvphysError(f"refine stop must be an R_actual in [0, 1] (0 or 1: never stop), got {stop!r}")
     return float(stop)
 
