@@ -274,6 +274,19 @@ def _given(files: list[str] | None) -> dict[str, dict[str, Any]]:
     return out
 
 
+def _write(a: argparse.Namespace, result: dict[str, Any], saved: dict[str, Any], per_target: dict[str, Any]) -> None:
+    """Write the result (and the answers / per-target files asked for) with the sets finished so far."""
+    outs = [(a.out, json.dumps(result, indent=1))]
+    if a.answers_out:
+        outs.append((a.answers_out, json.dumps(saved)))
+    if a.per_target_out:
+        outs.append((a.per_target_out, json.dumps({"benchmark": "user_targets_per_target", "bundle": a.bundle,
+                                                   "validated": a.validate, "sets": per_target})))
+    for path, text in outs:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        Path(path).write_text(text + "\n")
+
+
 def main(argv: list[str] | None = None) -> int:
     a = _parser().parse_args(argv)
 
@@ -320,15 +333,7 @@ def main(argv: list[str] | None = None) -> int:
             rows[m]["answer_ms_per_target"] = ms
         result["sets"][name] = {"store": path, "n_targets": len(arrays.y), "validate_s": time.perf_counter() - t0,
                                 "methods": rows}
-    if a.answers_out:
-        Path(a.answers_out).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.answers_out).write_text(json.dumps(saved) + "\n")
-    if a.per_target_out:
-        Path(a.per_target_out).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.per_target_out).write_text(json.dumps({"benchmark": "user_targets_per_target", "bundle": a.bundle,
-                                                      "validated": a.validate, "sets": per_target}) + "\n")
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps(result, indent=1) + "\n")
+        _write(a, result, saved, per_target)  # after every set: a run cut short keeps the sets it finished
     for name, s in result["sets"].items():
         for m, row in s["methods"].items():
             print(f"{name:8s} {m:24s} R {row['r_mean']:.3f} [{row['r_ci95'][0]:.3f}, {row['r_ci95'][1]:.3f}] "

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import pytest
 from benchmark_modules import load
 
 QUICK_BUNDLE = "inverters/orange_peel_quick"
@@ -97,3 +99,27 @@ def test_pool_variants_parse_each_setting_by_its_type() -> None:
     assert bench._pool_value("extra", "npe_nsf+npe_nsf1") == ("npe_nsf", "npe_nsf1")
     with pytest.raises(SystemExit, match="unknown pool setting 'lamb'"):
         bench._pool_value("lamb", "1")
+
+
+def test_a_run_cut_short_keeps_the_sets_it_finished(tmp_path: Path, monkeypatch: Any) -> None:
+    """The result, answers and per-target files are written after every set: a validation stopped by a time
+    limit during the second set still leaves the first set's scores (the old code wrote only at the end)."""
+    bench = load("bench_user_targets")
+    real, calls = bench._answers, []
+
+    def answers_then_stop(*args: Any, **kwargs: Any) -> Any:
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt  # what a time limit does to the second set
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(bench, "_answers", answers_then_stop)
+    out, answers, per = tmp_path / "r.json", tmp_path / "a.json", tmp_path / "p.json"
+    with pytest.raises(KeyboardInterrupt):
+        bench.main(["--bundle", QUICK_BUNDLE, "--targets", f"one={QUICK_STORE}", f"two={QUICK_STORE}",
+                    "--methods", "gc_ppo_vae", "--limit", "3", "--answers-out", str(answers),
+                    "--per-target-out", str(per), "--out", str(out)])
+    assert list(json.loads(out.read_text())["sets"]) == ["one"]
+    assert json.loads(out.read_text())["sets"]["one"]["methods"]["gc_ppo_vae"]["n"] == 3
+    assert list(json.loads(answers.read_text())["sets"]) == ["one"]
+    assert list(json.loads(per.read_text())["sets"]) == ["one"]
