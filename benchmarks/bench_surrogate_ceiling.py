@@ -22,7 +22,8 @@ the bundle's training input). Each size trains the bundle's surrogate (its ``sur
 bundle's held-out rows): held-out R^2 per feature and mean, each feature's share of the mean squared scaled
 error (what pulls R down), and the ceiling, with bootstrap 95 % intervals
 over the set's rows. ``--extra-train STORE ...`` adds one more point: all training rows plus those stores' rows.
-``--variant NAME='{setting: value}'`` adds a point on all training rows with changed surrogate settings (the
+``--variant NAME='{setting: value}'`` adds a point on all training rows (with ``--variants-on-extra``: plus the
+extra rows) with changed surrogate settings (the
 architecture lever against the rows lever). The shipped surrogate is scored too (``shipped``). A power law ``1 - ceiling = a n^-b`` is fitted per set
 over the sizes (and over the three largest) and solved for the rows that would reach ``--goal NAME=R``, with a
 bootstrap interval. The JSON is rewritten after every
@@ -167,6 +168,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--small-members", type=int, default=None)
     p.add_argument("--small-max-epochs", type=int, default=None)
     p.add_argument("--goal", nargs="*", default=[], help="NAME=R: rows the power law says reach R on set NAME")
+    p.add_argument("--variants-on-extra", action="store_true",
+                   help="variant points train on all training rows plus the --extra-train rows")
     p.add_argument("--variant", nargs="*", default=[],
                    help="NAME='{setting: value}': one more point on all training rows with these surrogate settings")
     p.add_argument("--plot", default=None, help="PNG: ceiling against training rows, one line per set")
@@ -202,7 +205,9 @@ def plan(a: argparse.Namespace, n_train: int) -> list[dict[str, Any]]:
             update = None
         if not name or not isinstance(update, dict):
             raise InvphysError(f"--variant wants NAME='{{setting: value, ...}}', got {v!r}")
-        pts.append({**full, "label": f"n={n_train}:{name}", "base_rows": n_train, "update": update})
+        on_extra = bool(a.extra_train) and a.variants_on_extra
+        pts.append({**full, "label": f"n={n_train}{'+extra' if on_extra else ''}:{name}", "base_rows": n_train,
+                    "update": update, "extra": on_extra})
     return pts
 
 

@@ -127,3 +127,19 @@ def test_bad_input_is_one_error_line(run: Path, tmp_path: Path, capsys, args: li
     assert bench.main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: ")
+
+
+def test_variants_train_on_the_extra_rows_when_asked() -> None:
+    """--variants-on-extra: a variant point joins the --extra-train rows (capacity measured at the larger size);
+    without it (or without extra stores) a variant trains on the bundle's rows alone."""
+    import argparse
+
+    bench = _bench()
+    base = dict(sizes=[40], small_below=0, small_members=None, small_max_epochs=None, members=None, max_epochs=None,
+                variant=["wide={hidden: [8, 8]}"])
+    on = bench.plan(argparse.Namespace(**base, extra_train=["s"], variants_on_extra=True), 100)
+    off = bench.plan(argparse.Namespace(**base, extra_train=["s"], variants_on_extra=False), 100)
+    none = bench.plan(argparse.Namespace(**base, extra_train=None, variants_on_extra=True), 100)
+    assert (on[-1]["label"], on[-1]["extra"]) == ("n=100+extra:wide", True)
+    assert (off[-1]["label"], off[-1]["extra"]) == ("n=100:wide", False)
+    assert (none[-1]["label"], none[-1]["extra"]) == ("n=100:wide", False)
