@@ -305,6 +305,12 @@ class ExperimentSpec(_Section):
     surrogate: PluginBlock | None = None
     latent_models: dict[Label, PluginBlock] = Field(default_factory=dict)
     optimizers: dict[Label, PluginBlock] = Field(default_factory=dict)
+    pools: dict[Label, dict[str, Any]] = Field(
+        default_factory=dict, description="candidate pools the bundle ships (invphys.inverter.pool): `posterior` and "
+                                          "`extra` name posterior methods (NPEs) of `optimizers`; other keys are "
+                                          "the pool's settings (draws, neighbours, moves, ...)")
+    default_method: Label | None = Field(
+        None, description="the bundle's default method: an optimizers or pools label (default: the best held-out one)")
     objectives: dict[Label, ObjectiveSection] = Field(default_factory=dict)
     targets: TargetsSection = Field(default_factory=lambda: TargetsSection())
     validator: PluginBlock | None = None
@@ -382,6 +388,31 @@ class ExperimentSpec(_Section):
             if method.start not in answers:
                 raise ValueError(f"evaluation.methods.{label}.start: {method.start!r} is no optimiser or baseline"
                                  f"{did_you_mean(method.start, answers)} (labels: {', '.join(answers) or 'none'})")
+        return self
+
+    @model_validator(mode="after")
+    def _pools_and_default(self) -> ExperimentSpec:
+        """Each pool draws from posterior methods of ``optimizers``; the default names a shipped method."""
+        taken = set(self.optimizers) | set(self.evaluation.baselines) | set(self.evaluation.methods)
+        for label, pool in self.pools.items():
+            if label in taken:
+                raise ValueError(f"pools.{label}: label already used (optimizers, baselines or methods)")
+            posterior, extra = pool.get("posterior"), pool.get("extra", [])
+            if isinstance(extra, str):
+                extra = [extra]
+            if not isinstance(extra, list):
+                raise ValueError(f"pools.{label}.extra: must be a list of optimizers labels, got {extra!r}")
+            if posterior is None:
+                raise ValueError(f"pools.{label}.posterior: name the posterior method (an NPE of optimizers) it draws from")
+            for key, name in [("posterior", posterior), *(("extra", e) for e in extra)]:
+                if name not in self.optimizers:
+                    raise ValueError(f"pools.{label}.{key}: {name!r} is no optimizers label"
+                                     f"{did_you_mean(str(name), self.optimizers)} (optimizers: "
+                                     f"{', '.join(self.optimizers) or 'none'})")
+        if self.default_method is not None and self.default_method not in {*self.optimizers, *self.pools}:
+            names = [*self.optimizers, *self.pools]
+            raise ValueError(f"default_method: {self.default_method!r} is no optimizers or pools label"
+                             f"{did_you_mean(self.default_method, names)} (labels: {', '.join(names) or 'none'})")
         return self
 
     # -- helpers used by the runner ------------------------------------------------------------

@@ -61,6 +61,8 @@ class BundleParts:
     policies: dict[str, tuple[Any, Path]] = field(default_factory=dict)  # label -> (plugin, saved dir)
     seed: int = 0
     notes: str = ""
+    #: the spec's ``default_method`` (used when the bundle ships it; else :func:`default_method` picks)
+    default_method: str | None = None
 
 
 def feature_units(extractor: Any, names: list[str]) -> list[str]:
@@ -157,7 +159,7 @@ def write_bundle(parts: BundleParts, dest: str | Path) -> Path:
                          "train_max": _floats(y_train.max(axis=0)), "kappa": 3.0},
             "components": components,
             "methods": methods,
-            "default_method": default_method(methods),
+            "default_method": parts.default_method if parts.default_method in methods else default_method(methods),
         }
         (tmp / README_FILE).write_text(readme(manifest))
         write_manifest(tmp, manifest)

@@ -90,6 +90,7 @@ def parts_from_context(ctx: StageContext, with_policies: bool) -> BundleParts:
                 continue  # not trained yet (train stage) or not persistable; a baseline refits from the bundle's rows
         methods[label] = entry
     methods.update(refine_methods(spec, methods))
+    methods.update(pool_methods(spec, methods))
     return BundleParts(
         name=spec.name, description=spec.description, simulator_block=dict(spec.simulator),
         simulator_version=_data_version(ctx) or str(getattr(sim_info.cls, "version", "")),
@@ -101,7 +102,42 @@ def parts_from_context(ctx: StageContext, with_policies: bool) -> BundleParts:
                  "n_test": len(test_idx), "path": str(ctx.dataset_path()),
                  "test_fraction": spec.dataset.test_fraction, "split_seed": spec.seed},
         surrogate=(sur_type, ctx.surrogate(), train_dir / "surrogate"), latents=latents, methods=methods,
-        policies=policies, seed=spec.seed)
+        policies=policies, seed=spec.seed, default_method=spec.default_method)
+
+
+def pool_config(label: str, block: dict[str, Any]) -> dict[str, Any]:
+    """A spec pool's manifest config, its settings checked as :class:`~invphys.inverter.pool.PoolSettings`
+    (one clear error naming the pool otherwise)."""
+    from invphys.inverter.pool import PoolSettings
+
+    config = dict(block)
+    if isinstance(config.get("extra"), str):
+        config["extra"] = [config["extra"]]
+    try:
+        PoolSettings(**{k: v for k, v in config.items() if k != "posterior"}).checked()
+    except TypeError:
+        unknown = sorted(set(config) - {"posterior", *PoolSettings.__dataclass_fields__})
+        raise InvphysError(f"pools.{label}: unknown setting(s) {', '.join(unknown)}; settings: posterior, "
+                           f"{', '.join(PoolSettings.__dataclass_fields__)}") from None
+    except InvphysError as exc:
+        raise InvphysError(f"pools.{label}: {exc}") from None
+    return config
+
+
+def check_pools(spec: Any) -> None:
+    """Raise :class:`InvphysError` for the first of the spec's pools with a bad setting (before any stage runs)."""
+    for label, block in (getattr(spec, "pools", None) or {}).items():
+        pool_config(label, block)
+
+
+def pool_methods(spec: Any, methods: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """The spec's ``pools`` as manifest entries, each once every method it draws from is in ``methods``."""
+    out: dict[str, dict[str, Any]] = {}
+    for label, block in (getattr(spec, "pools", None) or {}).items():
+        config = pool_config(label, block)
+        if all(m in methods for m in [config["posterior"], *config.get("extra", [])]):
+            out[label] = {"type": "pool", "kind": "pool", "space": "raw", "evaluator": "shared", "config": config}
+    return out
 
 
 def refine_methods(spec: Any, methods: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:

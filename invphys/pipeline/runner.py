@@ -71,6 +71,7 @@ def run_spec(spec: str | Path | ExperimentSpec, out: str | Path, stages: Sequenc
     from rich.console import Console
 
     from invphys import registry as registry_module
+    from invphys.pipeline.artifacts import check_pools
     from invphys.tracking import create_tracker
 
     if not isinstance(spec, ExperimentSpec):
@@ -84,6 +85,7 @@ def run_spec(spec: str | Path | ExperimentSpec, out: str | Path, stages: Sequenc
         if s not in STAGES:
             raise InvphysError(f"unknown stage {s!r}.{did_you_mean(s, STAGES)} Stages: {', '.join(STAGES)}")
     check_output_directory(out)
+    check_pools(spec)
     output_directory(out)
     (out / "spec.yaml").write_text(yaml.safe_dump(spec.model_dump(mode="json", by_alias=True), sort_keys=False))
     summaries: dict[str, Any] = {}
