@@ -136,9 +136,11 @@ def test_looped_g2p_does_the_same_sums_on_cpu_and_auto_keeps_the_cpu_unrolled():
     looped_engine = Engine(SCENE, backend="taichi", arch="cpu", g2p="loop")
     assert looped_engine.backend(2).g2p == "loop"
     looped = _substeps(looped_engine)
-    for k, ref in plain.items():   # measured: <= 8e-7 of each array's largest value
+    # measured: <= 8e-7 of each array's largest value on an Intel Xeon, 2.5e-6 (v) on an AMD EPYC (the
+    # compiler contracts products per CPU); a wrong weight or node is off by 1e-2 or more
+    for k, ref in plain.items():
         scale = float(np.abs(ref).max())
-        assert np.abs(looped[k] - ref).max() <= 2e-6 * scale, (k, np.abs(looped[k] - ref).max() / scale)
+        assert np.abs(looped[k] - ref).max() <= 1e-5 * scale, (k, np.abs(looped[k] - ref).max() / scale)
     # the damage moved in these substeps (g2p's Laplacian term acts), and both forms moved it alike
     start = np.random.default_rng(0).uniform(0.0, 0.6, plain["d"].shape).astype(np.float32)
     assert np.abs(plain["d"] - start).max() > 0.05
