@@ -11,7 +11,8 @@ The evaluation protocol's user-like sets (docs/evaluation.md): each target store
 ``Inverter.validate``: the bundle's recorded simulator re-runs it), next to
 
 * ``nearest_neighbour_all``: a 1-NN lookup (R_gt metric) over ALL the rows the ``--all-data`` stores hold
-  except the targets' own rows (the baseline every answer must beat), and
+  except the targets' own rows (the baseline every answer must beat); its answers are stored rows, so their
+  real R is known without re-simulating them (``stored_rows``: also without ``--validate``, on a CPU), and
 * ``truth``: the targets' own parameters re-simulated (the noise floor).
 
 Per set and method: mean R_actual with a bootstrap 95 % interval, the worst answer, the paired difference
@@ -94,9 +95,10 @@ def _store_rows(path: str) -> Any:
 
 
 def _lookup_all(inv: Any, stores: list[str], targets: np.ndarray,
-                exclude_keys: Any = ()) -> tuple[np.ndarray, int]:
+                exclude_keys: Any = ()) -> tuple[np.ndarray, np.ndarray, int]:
     """1-NN over every row the stores hold (same parameter and feature names as the bundle), except the
-    rows whose keys are in ``exclude_keys`` (the targets themselves, when they are rows of those stores)."""
+    rows whose keys are in ``exclude_keys`` (the targets themselves, when they are rows of those stores):
+    the chosen rows' parameters, their stored (really simulated) features, and how many rows were searched."""
     from invphys.plugins.baselines.nearest_neighbour import NearestNeighbour
 
     blocks = [_store_rows(s) for s in stores]
@@ -109,7 +111,22 @@ def _lookup_all(inv: Any, stores: list[str], targets: np.ndarray,
     y = np.concatenate([a.y for a in blocks])[keep]
     nn = NearestNeighbour({"k": 1, "metric": "r_gt"})
     nn.fit(theta, y, inv.bundle.scales)
-    return nn.answer(targets).theta, len(theta)
+    chosen = nn.answer(targets).theta
+    row_of = {t.tobytes(): i for i, t in enumerate(np.asarray(theta, dtype=np.float64))}
+    rows = [row_of[np.asarray(t, dtype=np.float64).tobytes()] for t in chosen]
+    return chosen, y[rows], len(theta)
+
+
+def _with_stored(inv: Any, result: Any, features: np.ndarray) -> Any:
+    """``result`` (an answer that is a stored row) with the row's real features and their R against the
+    target (``r_known``): the lookup's R without re-simulating it."""
+    from invphys.core.masked_recovery import masked_recovery
+
+    best = result.best
+    best.known = np.asarray(features, dtype=np.float64)
+    best.r_known = float(masked_recovery(best.known[None], result.target, inv.bundle.scales, result.mask,
+                                         inv.bundle.kappa)[0])
+    return result
 
 
 def _invert(inv: Any, y: np.ndarray, method: str, seed: int) -> list[Any]:
@@ -168,9 +185,10 @@ def _answers(inv: Any, arrays: Any, methods: list[str], all_data: list[str], see
         for r, w in zip(out[m], rec.get("warnings") or [[]] * len(y), strict=True):
             r.warnings = list(w)
     if all_data:
-        theta_nn, _ = _lookup_all(inv, all_data, y, exclude_keys=arrays.keys)
-        out["nearest_neighbour_all"] = [inv.evaluate(theta=t, target=v, label="nearest_neighbour_all")
-                                        for t, v in zip(theta_nn, y, strict=True)]
+        theta_nn, y_nn, _ = _lookup_all(inv, all_data, y, exclude_keys=arrays.keys)
+        out["nearest_neighbour_all"] = [
+            _with_stored(inv, inv.evaluate(theta=t, target=v, label="nearest_neighbour_all"), f)
+            for t, v, f in zip(theta_nn, y, y_nn, strict=True)]
     if with_truth:
         out["truth"] = [inv.evaluate(theta=t, target=v, label="truth") for t, v in zip(arrays.theta, y, strict=True)]
     return out
@@ -202,6 +220,26 @@ def _warning_rank(results: list[Any], r: np.ndarray) -> dict[str, Any]:
                                                      for res in results]), failing)}
 
 
+def _stored_summary(known: np.ndarray) -> dict[str, Any]:
+    """How many answers are stored rows, and their real R (with a bootstrap interval when every answer is)."""
+    from invphys.evaluation.stats import bootstrap_mean_ci
+
+    ok = np.isfinite(known)
+    out: dict[str, Any] = {"n": int(ok.sum()), "r_mean": float(known[ok].mean())}
+    if ok.all():
+        _, lo, hi = bootstrap_mean_ci(known)
+        out["r_ci95"], out["r_worst"] = [float(lo), float(hi)], float(known.min())
+    return out
+
+
+def _stored_text(stored: dict[str, Any] | None) -> str:
+    if not stored:
+        return ""
+    ci = stored.get("r_ci95")
+    interval = f" [{ci[0]:.3f}, {ci[1]:.3f}]" if ci else ""
+    return f"; {stored['n']} stored rows, real R {stored['r_mean']:.3f}{interval}"
+
+
 def summarise(answers: dict[str, list[Any]], validated: bool, reference: str = "nearest_neighbour_all",
               truth_theta: np.ndarray | None = None) -> dict[str, Any]:
     from invphys.evaluation.stats import bootstrap_mean_ci, paired_difference
@@ -213,6 +251,9 @@ def summarise(answers: dict[str, list[Any]], validated: bool, reference: str = "
         row: dict[str, Any] = {"n": len(r), "r_mean": float(np.mean(r)), "r_ci95": [float(lo), float(hi)],
                                "r_worst": float(np.min(r)), "below_0_8": int(np.sum(r < FAIL_BELOW)),
                                "r_surrogate_mean": float(np.mean([x.r_surrogate for x in answers[m]]))}
+        known = np.array([np.nan if x.r_known is None else x.r_known for x in answers[m]], dtype=np.float64)
+        if np.isfinite(known).any():  # answers that are stored rows: their real R, no re-simulation needed
+            row["stored_rows"] = _stored_summary(known)
         if truth_theta is not None:
             err = np.abs(np.array([x.theta for x in answers[m]]) - truth_theta)
             row["theta_error"] = float(err.mean())
@@ -337,7 +378,8 @@ def main(argv: list[str] | None = None) -> int:
     for name, s in result["sets"].items():
         for m, row in s["methods"].items():
             print(f"{name:8s} {m:24s} R {row['r_mean']:.3f} [{row['r_ci95'][0]:.3f}, {row['r_ci95'][1]:.3f}] "
-                  f"worst {row['r_worst']:.3f} theta error {row.get('theta_error', float('nan')):.4f}")
+                  f"worst {row['r_worst']:.3f} theta error {row.get('theta_error', float('nan')):.4f}"
+                  + _stored_text(row.get("stored_rows")))
     return 0
 
 

@@ -123,3 +123,29 @@ def test_a_run_cut_short_keeps_the_sets_it_finished(tmp_path: Path, monkeypatch:
     assert json.loads(out.read_text())["sets"]["one"]["methods"]["gc_ppo_vae"]["n"] == 3
     assert list(json.loads(answers.read_text())["sets"]) == ["one"]
     assert list(json.loads(per.read_text())["sets"]) == ["one"]
+
+
+def test_the_lookup_over_all_data_is_scored_by_its_stored_features_without_a_simulator(tmp_path: Path) -> None:
+    """The lookup's answers are stored rows: their real R (``stored_rows``) is the R of the row's stored
+    features against the target, computed here independently from the store (the row the lookup picks is the
+    one whose features reach the highest R), with no re-simulation."""
+    from invphys.core.dataset import DatasetStore
+    from invphys.core.masked_recovery import masked_recovery
+    from invphys.inverter import load_inverter
+
+    bench = load("bench_user_targets")
+    out = tmp_path / "out.json"
+    assert bench.main(["--bundle", QUICK_BUNDLE, "--targets", f"quick={QUICK_STORE}", "--all-data", QUICK_STORE,
+                       "--methods", "gc_ppo_vae", "--limit", "5", "--no-truth", "--out", str(out)]) == 0
+    rows = json.loads(out.read_text())["sets"]["quick"]["methods"]
+    stored = rows["nearest_neighbour_all"]["stored_rows"]
+    inv = load_inverter(QUICK_BUNDLE)
+    arrays = DatasetStore(QUICK_STORE).arrays(ok_only=True)
+    expected = []
+    for i in range(5):  # each target against every other row of the store (its own row left out)
+        others = np.delete(arrays.y, i, axis=0)
+        r = masked_recovery(others, arrays.y[i], inv.bundle.scales, None, inv.bundle.kappa)
+        expected.append(r.max())
+    assert stored["n"] == 5 and np.isclose(stored["r_mean"], np.mean(expected))
+    assert np.isclose(stored["r_worst"], min(expected)) and stored["r_ci95"][0] <= stored["r_mean"]
+    assert "stored_rows" not in rows["gc_ppo_vae"]  # the policy's answers are new parameters: R unknown
