@@ -130,19 +130,26 @@ def _with_stored(inv: Any, result: Any, features: np.ndarray) -> Any:
 
 
 def _invert(inv: Any, y: np.ndarray, method: str, seed: int) -> list[Any]:
-    """``invert_many`` with ``method``; ``pool:KEY=VALUE,...`` is the pool with other settings (e.g.
-    ``pool:lam=0,moves=0``), so that variants are answered, and validated, side by side."""
+    """``invert_many`` with ``method``; ``POOL:KEY=VALUE,...`` is a pool (``pool`` or a bundle's pool entry, e.g.
+    ``pool_nsf4``) with other settings (e.g. ``pool:lam=0,moves=0``, ``pool_nsf4:exact=true,margin=0.03``; an
+    entry's own settings still apply over them), so that variants are answered, and validated, side by side."""
     name, _, opts = method.partition(":")
-    if name != "pool" or not opts:
+    if not opts or not _is_pool(inv, name):
         return list(inv.invert_many(y, method=method, seed=seed))
     from invphys.inverter.pool import PoolSettings
 
     kw = {k: _pool_value(k, v) for k, v in (o.split("=", 1) for o in opts.split(","))}
     default, inv.pool_settings = inv.pool_settings, PoolSettings().with_(**kw)
     try:
-        return list(inv.invert_many(y, method="pool", seed=seed))
+        return list(inv.invert_many(y, method=name, seed=seed))
     finally:
         inv.pool_settings = default
+
+
+def _is_pool(inv: Any, name: str) -> bool:
+    from invphys.inverter.pool import POOL_METHOD
+
+    return name == POOL_METHOD or (inv.bundle.methods.get(name) or {}).get("type") == POOL_METHOD
 
 
 def _pool_value(key: str, text: str) -> Any:

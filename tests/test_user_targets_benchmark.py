@@ -149,3 +149,17 @@ def test_the_lookup_over_all_data_is_scored_by_its_stored_features_without_a_sim
     assert stored["n"] == 5 and np.isclose(stored["r_mean"], np.mean(expected))
     assert np.isclose(stored["r_worst"], min(expected)) and stored["r_ci95"][0] <= stored["r_mean"]
     assert "stored_rows" not in rows["gc_ppo_vae"]  # the policy's answers are new parameters: R unknown
+
+
+def test_a_bundle_pool_entry_is_answered_with_other_settings(tmp_path: Path) -> None:
+    """``POOL:KEY=VALUE`` works for a bundle's own pool entry too (``pool_nsf4``): with its stored rows scored
+    exactly and a margin no surrogate-scored candidate can overcome, every answer is a stored row (its real R
+    known); the entry as shipped answers with its own settings."""
+    bench = load("bench_user_targets")
+    out = tmp_path / "out.json"
+    assert bench.main(["--bundle", "inverters/orange_peel_paper_all", "--targets",
+                       "edge=datasets/orange_peel_paper_fresh_edge", "--methods", "pool_nsf4",
+                       "pool_nsf4:exact=true,margin=0.99", "--limit", "3", "--no-truth", "--out", str(out)]) == 0
+    rows = json.loads(out.read_text())["sets"]["edge"]["methods"]
+    assert rows["pool_nsf4:exact=true,margin=0.99"]["stored_rows"]["n"] == 3
+    assert rows["pool_nsf4"]["r_surrogate_mean"] > rows["pool_nsf4:exact=true,margin=0.99"]["r_surrogate_mean"]
