@@ -197,6 +197,7 @@ def plan(a: argparse.Namespace, n_train: int) -> list[dict[str, Any]]:
                     "max_epochs": a.small_max_epochs if small and a.small_max_epochs else a.max_epochs})
     if a.extra_train:
         pts.append({**full, "label": f"n={n_train}+extra", "base_rows": n_train, "extra": True})
+    on_extra = bool(a.extra_train) and a.variants_on_extra
     for v in a.variant:
         name, _, text = v.partition("=")
         try:
@@ -205,7 +206,6 @@ def plan(a: argparse.Namespace, n_train: int) -> list[dict[str, Any]]:
             update = None
         if not name or not isinstance(update, dict):
             raise InvphysError(f"--variant wants NAME='{{setting: value, ...}}', got {v!r}")
-        on_extra = bool(a.extra_train) and a.variants_on_extra
         pts.append({**full, "label": f"n={n_train}{'+extra' if on_extra else ''}:{name}", "base_rows": n_train,
                     "update": update, "extra": on_extra})
     return pts

@@ -111,10 +111,9 @@ def _lookup_all(inv: Any, stores: list[str], targets: np.ndarray,
     y = np.concatenate([a.y for a in blocks])[keep]
     nn = NearestNeighbour({"k": 1, "metric": "r_gt"})
     nn.fit(theta, y, inv.bundle.scales)
-    chosen = nn.answer(targets).theta
-    row_of = {t.tobytes(): i for i, t in enumerate(np.asarray(theta, dtype=np.float64))}
-    rows = [row_of[np.asarray(t, dtype=np.float64).tobytes()] for t in chosen]
-    return chosen, y[rows], len(theta)
+    ans = nn.answer(targets)
+    rows = np.asarray(ans.info["rows"])[:, 0]  # the nearest row of each target: the answer
+    return ans.theta, y[rows], len(theta)
 
 
 def _with_stored(inv: Any, result: Any, features: np.ndarray) -> Any:

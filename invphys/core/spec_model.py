@@ -398,8 +398,8 @@ class ExperimentSpec(_Section):
             if label in taken:
                 raise ValueError(f"pools.{label}: label already used (optimizers, baselines or methods)")
             posterior, extra = pool.get("posterior"), pool.get("extra", [])
-            if isinstance(extra, str):
-                extra = [extra]
+            if isinstance(extra, str):  # one name: kept as the list every later reader takes
+                extra = pool["extra"] = [extra]
             if not isinstance(extra, list):
                 raise ValueError(f"pools.{label}.extra: must be a list of optimizers labels, got {extra!r}")
             if posterior is None:

@@ -110,9 +110,7 @@ def pool_config(label: str, block: dict[str, Any]) -> dict[str, Any]:
     (one clear error naming the pool otherwise)."""
     from invphys.inverter.pool import PoolSettings
 
-    config = dict(block)
-    if isinstance(config.get("extra"), str):
-        config["extra"] = [config["extra"]]
+    config = dict(block)  # `extra` is a list: the spec's validation made it one
     try:
         PoolSettings(**{k: v for k, v in config.items() if k != "posterior"}).checked()
     except TypeError:
