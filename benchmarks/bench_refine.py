@@ -218,8 +218,60 @@ def _parser() -> argparse.ArgumentParser:
                    help="keep each (set, strategy) refine's runs in DIR/refine_<set>_<strategy>_<first>.npz: a run "
                         "stopped early (a time limit) is resumed by the same command, its logged runs replayed "
                         "(counted in replayed_runs; the timings then cover the new runs only)")
+    p.add_argument("--answers-out", type=Path, default=None,
+                   help="answer only (no simulator): write each target's starts to this JSON file and stop")
+    p.add_argument("--answers-in", type=Path, default=None,
+                   help="refine the starts of an --answers-out file instead of answering (no sbi needed)")
     p.add_argument("--out", type=Path, default=None)
     return p
+
+
+def _answer_sets(inv: Any, sets: dict[str, str], a: argparse.Namespace) -> dict[str, Any]:
+    """Per set: its targets' features and the bundle's answers (``--starts`` candidates each), or the starts
+    an ``--answers-in`` file gave for the same targets, re-scored as candidates by this bundle."""
+    from invphys.core.dataset import DatasetStore
+
+    given = _read_starts(a.answers_in, a) if a.answers_in else {}
+    out: dict[str, Any] = {}
+    for name, path in sets.items():
+        y = DatasetStore(path).arrays(ok_only=True).y[a.first:a.first + a.limit]
+        t0 = time.perf_counter()
+        if name in given:
+            starts = given[name]
+            if len(starts) != len(y):
+                raise SystemExit(f"error: {a.answers_in} holds {len(starts)} targets of set {name!r}, not {len(y)}")
+            results = [inv.evaluate(theta=t, target=v, label=a.method or "given") for t, v in zip(starts, y, strict=True)]
+        elif a.answers_in:
+            raise SystemExit(f"error: {a.answers_in} holds no set {name!r}")
+        else:
+            results = inv.invert_many(y, method=a.method, top_k=a.starts, seed=a.seed)
+        out[name] = (y, results, time.perf_counter() - t0)
+    return out
+
+
+def _read_starts(path: Path, a: argparse.Namespace) -> dict[str, list[np.ndarray]]:
+    import json
+
+    data = json.loads(path.read_text())
+    if data.get("benchmark") != "refine_starts":
+        raise SystemExit(f"error: {path} is not a starts file of this benchmark (--answers-out)")
+    if (data["bundle"], data["first"], data["limit"]) != (a.bundle, a.first, a.limit):
+        raise SystemExit(f"error: {path} answers {data['bundle']} targets {data['first']}+{data['limit']}, "
+                         f"not {a.bundle} {a.first}+{a.limit}")
+    a.method = data["method"]
+    return {name: [np.asarray(t, dtype=np.float64) for t in s["starts"]] for name, s in data["sets"].items()}
+
+
+def _write_starts(answered: dict[str, Any], a: argparse.Namespace) -> None:
+    import json
+
+    sets = {name: {"starts": [[c.theta.tolist() for c in r.candidates] for r in results], "answer_s": dt}
+            for name, (_, results, dt) in answered.items()}
+    method = next((r.method for _, results, _ in answered.values() for r in results), a.method)
+    a.answers_out.parent.mkdir(parents=True, exist_ok=True)
+    a.answers_out.write_text(json.dumps({"benchmark": "refine_starts", "bundle": a.bundle, "method": method,
+                                         "first": a.first, "limit": a.limit, "starts_per_target": a.starts,
+                                         "seed": a.seed, "sets": sets}) + "\n")
 
 
 def _refine_one(inv: Any, results: list[Any], strategy: str, a: argparse.Namespace, overrides: dict[str, Any],
@@ -259,11 +311,14 @@ def main(argv: list[str] | None = None) -> int:
     if a.log_dir is not None:
         a.log_dir.mkdir(parents=True, exist_ok=True)
     import invphys
-    from invphys.core.dataset import DatasetStore
     from invphys.core.interfaces import Simulator
 
     sets = _target_sets(a.targets)
     inv = invphys.load_inverter(a.bundle)
+    answered = _answer_sets(inv, sets, a)
+    if a.answers_out:
+        _write_starts(answered, a)
+        return 0
     overrides = _machine().sim_options(a.sim_option)
     sim = inv.simulator(overrides)
     ext = inv.extractor(sim)
@@ -289,12 +344,12 @@ def main(argv: list[str] | None = None) -> int:
         "extract_workers": a.extract_workers, "extract_threads": a.extract_threads or None,
         "ask_workers": a.ask_workers, "first": a.first, "strategies": a.strategy, "budget": a.budget, "warmup": warm,
         "stop": a.stop, "patience": a.patience, "min_gain": a.min_gain, "sets": {}}
+    if a.answers_in:
+        result["answers_in"] = str(a.answers_in)
     for n_set, (name, path) in enumerate(sets.items()):
-        y = DatasetStore(path).arrays(ok_only=True).y[a.first:a.first + a.limit]
-        t0 = time.perf_counter()
-        results = inv.invert_many(y, method=a.method, top_k=a.starts, seed=a.seed)
-        result["answer_s"] = result.get("answer_s", 0.0) + time.perf_counter() - t0
-        result["method"] = results[0].method if results else a.method
+        y, results, answer_s = answered[name]
+        result["answer_s"] = result.get("answer_s", 0.0) + answer_s
+        result["method"] = a.method if a.answers_in else (results[0].method if results else a.method)
         blocks: dict[str, dict[str, Any]] = {}
         entry = result["sets"][name] = {"path": path, "targets": len(y), "first": a.first, "strategies": blocks}
         for n_strat, strategy in enumerate(a.strategy):

@@ -12,7 +12,8 @@ The evaluation protocol's user-like sets (docs/evaluation.md): each target store
 
 * ``nearest_neighbour_all``: a 1-NN lookup (R_gt metric) over ALL the rows the ``--all-data`` stores hold
   except the targets' own rows (the baseline every answer must beat); its answers are stored rows, so their
-  real R is known without re-simulating them (``stored_rows``: also without ``--validate``, on a CPU), and
+  real R is known without re-simulating them (``stored_rows``, also without ``--validate`` on a CPU; with
+  ``--validate`` their stored features are their R_actual: they are not re-simulated), and
 * ``truth``: the targets' own parameters re-simulated (the noise floor).
 
 Per set and method: mean R_actual with a bootstrap 95 % interval, the worst answer, the paired difference
@@ -130,19 +131,25 @@ def _with_stored(inv: Any, result: Any, features: np.ndarray) -> Any:
 
 def _invert(inv: Any, y: np.ndarray, method: str, seed: int) -> list[Any]:
     """``invert_many`` with ``method``; ``POOL:KEY=VALUE,...`` is a pool (``pool`` or a bundle's pool entry, e.g.
-    ``pool_nsf4``) with other settings (e.g. ``pool:lam=0,moves=0``, ``pool_nsf4:exact=true,margin=0.03``; an
-    entry's own settings still apply over them), so that variants are answered, and validated, side by side."""
+    ``pool_nsf4``) with other settings (e.g. ``pool:lam=0,moves=0``, ``pool_nsf4:exact=false``; they win over an
+    entry's own settings, the entry's others stay), so that variants are answered, and validated, side by side."""
     name, _, opts = method.partition(":")
     if not opts or not _is_pool(inv, name):
         return list(inv.invert_many(y, method=method, seed=seed))
     from invphys.inverter.pool import PoolSettings
 
     kw = {k: _pool_value(k, v) for k, v in (o.split("=", 1) for o in opts.split(","))}
+    entry = inv.bundle.methods.get(name)  # None for the built-in pool
+    own = None if entry is None else entry.get("config")
     default, inv.pool_settings = inv.pool_settings, PoolSettings().with_(**kw)
+    if entry is not None:
+        entry["config"] = {**(own or {}), **{k: list(v) if isinstance(v, tuple) else v for k, v in kw.items()}}
     try:
         return list(inv.invert_many(y, method=name, seed=seed))
     finally:
         inv.pool_settings = default
+        if entry is not None:
+            entry["config"] = own
 
 
 def _is_pool(inv: Any, name: str) -> bool:
@@ -201,9 +208,22 @@ def _answers(inv: Any, arrays: Any, methods: list[str], all_data: list[str], see
 
 
 def _score(results: list[Any], validated: bool) -> np.ndarray:
+    """R per answer: the surrogate's without ``--validate``; validated, the re-simulated R, or for an answer
+    that is a stored row and was not re-simulated, its stored features' R (a real simulation too)."""
     if not validated:
         return np.array([r.r_surrogate for r in results], dtype=np.float64)
-    return np.array([0.0 if r.r_actual is None else float(r.r_actual) for r in results], dtype=np.float64)
+    return np.array([_real_r(r) for r in results], dtype=np.float64)
+
+
+def _real_r(result: Any) -> float:
+    if result.r_actual is not None:
+        return float(result.r_actual)
+    return 0.0 if result.r_known is None else float(result.r_known)
+
+
+def _to_simulate(answers: dict[str, list[Any]]) -> list[Any]:
+    """The answers ``--validate`` re-simulates: all but the stored rows (their R is already a simulator's)."""
+    return [r for res in answers.values() for r in res if r.r_known is None]
 
 
 #: the out-of-distribution warning of a bundle with diagnostics (invphys.inverter.diagnosed)
@@ -295,10 +315,12 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _per_target(arrays: Any, answers: dict[str, list[Any]]) -> dict[str, Any]:
-    """One set's targets and, per method, each answer (normalised), its R_actual (None unless validated),
-    R_surrogate and warnings: the rows a failure warning is fitted and checked on."""
+    """One set's targets and, per method, each answer (normalised), its R_actual (None unless validated or a
+    stored row), R_surrogate and warnings: the rows a failure warning is fitted and checked on."""
     def r_actual(r: Any) -> float | None:
-        return None if r.r_actual is None else float(r.r_actual)
+        if r.r_actual is None:
+            return None if r.r_known is None else float(r.r_known)
+        return float(r.r_actual)
 
     return {"keys": [str(k) for k in arrays.keys], "y": arrays.y.tolist(), "truth_theta": arrays.theta.tolist(),
             "methods": {m: {"theta": [r.theta.tolist() for r in res], "r_actual": [r_actual(r) for r in res],
@@ -373,7 +395,7 @@ def main(argv: list[str] | None = None) -> int:
                          "answer_ms_per_target": timing[m]} for m in methods}}
         t0 = time.perf_counter()
         if a.validate:
-            inv.validate([r for res in answers.values() for r in res], overrides=overrides, batch_size=a.sim_batch)
+            inv.validate(_to_simulate(answers), overrides=overrides, batch_size=a.sim_batch)
         rows = summarise(answers, a.validate, truth_theta=arrays.theta)
         per_target[name] = _per_target(arrays, answers)
         for m, ms in timing.items():

@@ -72,3 +72,34 @@ def test_bench_refine_resumes_from_its_log_dir(tmp_path_factory, tmp_path, monke
     assert [t["replayed_runs"] for t in recs[0]] == [0, 0]
     assert [t["replayed_runs"] for t in recs[1]] == [t["runs"] for t in recs[1]] and recs[1][0]["runs"] > 0
     assert [t["r_actual"] for t in recs[1]] == [t["r_actual"] for t in recs[0]]
+
+
+def test_starts_answered_on_one_machine_are_refined_on_another(tmp_path_factory, tmp_path, monkeypatch) -> None:
+    """``--answers-out`` answers only (no simulator) and writes each target's starts; ``--answers-in`` refines
+    exactly those starts without answering (the GPU machine needs no sbi): the same refine as answering there.
+    A file for other targets is refused."""
+    import pytest
+
+    run = toy_run(tmp_path_factory.getbasetemp())
+    store = str(next((run / "dataset").rglob("_manifest.json")).parent)
+    bench = load("bench_refine")
+    common = ["--bundle", str(run / "inverter"), "--targets", f"a={store}", "--limit", "3", "--starts", "2",
+              "--budget", "8", "--popsize", "4", "--sim-batch", "4", "--strategy", "corrected", "--skip-dataset",
+              "--bootstrap", "50", "--stop", "0", "--ask-workers", "0"]
+    starts = tmp_path / "starts.json"
+    monkeypatch.setattr(sys, "argv", ["benchmarks/bench_refine.py"])
+    assert bench.main([*common, "--answers-out", str(starts), "--out", str(tmp_path / "none.json")]) == 0
+    assert not (tmp_path / "none.json").exists()  # answering only: nothing refined
+    saved = json.loads(starts.read_text())
+    assert saved["benchmark"] == "refine_starts" and len(saved["sets"]["a"]["starts"]) == 3
+    assert all(len(s) == 2 for s in saved["sets"]["a"]["starts"])
+    recs = {}
+    for name, extra in (("here", []), ("given", ["--answers-in", str(starts)])):
+        out = tmp_path / f"{name}.json"
+        assert bench.main([*common, *extra, "--out", str(out)]) == 0
+        recs[name] = json.loads(out.read_text())
+    key = [[(t["start_r_actual"], t["r_actual"], t["runs"]) for t in
+            recs[n]["sets"]["a"]["strategies"]["corrected"]["per_target"]] for n in ("here", "given")]
+    assert key[0] == key[1] and recs["given"]["answers_in"] == str(starts)
+    with pytest.raises(SystemExit, match="targets 0\\+3, not .* 1\\+3"):
+        bench.main([*common, "--first", "1", "--answers-in", str(starts), "--out", str(tmp_path / "x.json")])

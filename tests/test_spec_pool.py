@@ -109,3 +109,94 @@ def test_the_cli_reports_a_bad_default_in_one_line(store: Path, tmp_path: Path) 
                           capture_output=True, text=True, cwd=Path(__file__).parent)
     assert proc.returncode == 2, proc.stderr
     assert "default_method: 'npe_z' is no optimizers or pools label" in proc.stderr
+
+
+def test_changed_pools_rewrite_the_cached_runs_bundle_without_refitting(store: Path, tmp_path: Path) -> None:
+    """Pools, default and description are read by the bundle alone: changing them keeps train and invert
+    cached (no model refits) yet the run's bundle follows the spec (the old code said "cached" and kept the
+    old pool, silently); a second run with the same spec rewrites nothing."""
+    import shutil
+
+    from rich.console import Console
+
+    from invphys.core.spec import validate_spec
+    from invphys.pipeline.runner import run_spec
+
+    first = _spec(store, pools={"pool_ab": {"posterior": "npe_a", "extra": ["npe_b"]}}, default_method="pool_ab")
+    out = tmp_path / "run"
+    run_spec(validate_spec(first), out, progress=False, console=Console(file=io.StringIO()))
+    policy = out / "invert" / "policies" / "npe_a"
+    weights = {p: p.stat().st_mtime_ns for p in policy.rglob("*") if p.is_file()}
+    changed = _spec(store, pools={"pool_x": {"posterior": "npe_b", "moves": 4, "exact": True, "margin": 0.03}},
+                    default_method="pool_x", description="the pool over npe_b")
+    seen: list[tuple[str, str]] = []
+    log = io.StringIO()
+    run_spec(validate_spec(changed), out, progress=False, console=Console(file=log, width=200),
+             on_stage=lambda stage, state, _: seen.append((stage, state)))
+    assert seen == [("train", "cached"), ("invert", "cached")]
+    assert {p: p.stat().st_mtime_ns for p in policy.rglob("*") if p.is_file()} == weights  # nothing refitted
+    m = yaml.safe_load((out / "inverter" / "manifest.yaml").read_text())
+    assert m["default_method"] == "pool_x" and "pool_ab" not in m["methods"]
+    assert m["methods"]["pool_x"]["config"] == {"posterior": "npe_b", "moves": 4, "exact": True, "margin": 0.03}
+    assert m["description"] == "the pool over npe_b" and "bundle rewritten" in log.getvalue()
+    # the same spec again: nothing to rewrite
+    bundle = out / "inverter" / "manifest.yaml"
+    before = bundle.stat().st_mtime_ns
+    log2 = io.StringIO()
+    run_spec(validate_spec(changed), out, progress=False, console=Console(file=log2, width=200))
+    assert bundle.stat().st_mtime_ns == before and "bundle rewritten" not in log2.getvalue()
+    shutil.rmtree(out)
+
+
+def test_diagnose_judges_an_exact_pools_stored_row_answers_by_their_real_r(bundle: Path, tmp_path: Path) -> None:
+    """A default pool with ``exact`` answers with stored rows: diagnose's "does not reproduce" label takes their
+    real R (known, no surrogate), not the surrogate's R at their parameters (the old code used R_surr for all)."""
+    import shutil
+
+    from invphys.evaluation import diagnose as dg
+    from invphys.inverter import load_inverter
+    from invphys.inverter.manifest import write_manifest
+
+    exact = tmp_path / "exact"
+    shutil.copytree(bundle, exact)
+    m = yaml.safe_load((exact / "manifest.yaml").read_text())
+    m["methods"]["pool_ab"]["config"].update(exact=True, margin=0.99)  # every answer a stored row
+    write_manifest(exact, m)
+    inv = load_inverter(exact)
+    y = np.load(exact / "data" / "test.npz")["y"][:6]
+    theta, known = dg._answers(inv, y)
+    results = inv.invert_many(y, draws=1)
+    assert np.isfinite(known).all()
+    np.testing.assert_array_equal(known, [r.r_known for r in results])
+    np.testing.assert_array_equal(theta, [r.theta for r in results])
+    _, plain = dg._answers(load_inverter(bundle), y)  # the surrogate-scored pool: no stored-row R
+    assert np.isnan(plain).all()
+    report = dg.diagnose(inv, draws=20).report
+    ood = report["ood"]
+    assert ood["failure"]["stored_rows_by_real_r"] == report["heldout"]["rows"] > 0
+    assert ood["default_answer"]["mean_r_reproduced"] != ood["default_answer"]["mean_r_surr"]
+
+
+def test_the_ood_warning_is_chosen_among_scores_a_target_alone_gives(bundle: Path, monkeypatch: Any) -> None:
+    """A score that needs the answer (ensemble spread, draws) cannot be computed by the answer-time warning, which
+    then never fires: diagnose picks among the target-only scores even when another ranks failures better (the
+    old code picked it and shipped a bundle whose warning was silently off)."""
+    from invphys.evaluation import diagnose as dg
+    from invphys.evaluation.ood import NEEDS
+    from invphys.inverter import load_inverter
+
+    real, components, marked = dg.auroc, dg.score_components, 7.0
+
+    def answer_scores_rank_best(*args: Any, **kwargs: Any) -> Any:
+        out = components(*args, **kwargs)
+        out["ensemble_std"] = np.full(len(out["knn"]), marked)  # recognisable below
+        return out
+
+    def auroc(score: Any, failed: Any) -> float:
+        return 1.0 if np.all(np.asarray(score) == marked) else min(float(np.nan_to_num(real(score, failed))), 0.9)
+
+    monkeypatch.setattr(dg, "score_components", answer_scores_rank_best)
+    monkeypatch.setattr(dg, "auroc", auroc)
+    ood = dg.diagnose(load_inverter(bundle), draws=20).report["ood"]
+    assert not NEEDS.get(ood["chosen"]) and ood["chosen"] == "knn"
+    assert ood["candidates"]["ensemble_std"]["r_surr"]["fit"] == 1.0  # reported, not chosen

@@ -154,12 +154,45 @@ def test_the_lookup_over_all_data_is_scored_by_its_stored_features_without_a_sim
 def test_a_bundle_pool_entry_is_answered_with_other_settings(tmp_path: Path) -> None:
     """``POOL:KEY=VALUE`` works for a bundle's own pool entry too (``pool_nsf4``): with its stored rows scored
     exactly and a margin no surrogate-scored candidate can overcome, every answer is a stored row (its real R
-    known); the entry as shipped answers with its own settings."""
+    known); the entry as shipped answers with its own settings, and a variant's settings win over them."""
     bench = load("bench_user_targets")
     out = tmp_path / "out.json"
     assert bench.main(["--bundle", "inverters/orange_peel_paper_all", "--targets",
                        "edge=datasets/orange_peel_paper_fresh_edge", "--methods", "pool_nsf4",
-                       "pool_nsf4:exact=true,margin=0.99", "--limit", "3", "--no-truth", "--out", str(out)]) == 0
+                       "pool_nsf4:exact=true,margin=0.99", "pool_nsf4:exact=false,margin=0", "--limit", "3",
+                       "--no-truth", "--out", str(out)]) == 0
     rows = json.loads(out.read_text())["sets"]["edge"]["methods"]
     assert rows["pool_nsf4:exact=true,margin=0.99"]["stored_rows"]["n"] == 3
+    # the variant's settings win over the entry's own (it ships exact): no answer is scored as a stored row
+    assert "stored_rows" not in rows["pool_nsf4:exact=false,margin=0"]
     assert rows["pool_nsf4"]["r_surrogate_mean"] > rows["pool_nsf4:exact=true,margin=0.99"]["r_surrogate_mean"]
+
+
+def test_validating_re_simulates_new_answers_but_scores_stored_rows_by_their_features(
+        tmp_path: Path, monkeypatch: Any) -> None:
+    """With ``--validate`` the lookup's answers (stored rows: already simulated) are not re-simulated; their
+    stored features' R is their R_actual, next to the policy's re-simulated answers (the old code re-ran every
+    stored row too: four runs here instead of two)."""
+    from invphys.inverter.inverter import Inverter
+
+    bench = load("bench_user_targets")
+    simulated: list[str] = []
+    real_validate = Inverter.validate
+
+    def counting(self: Any, results: Any, **kwargs: Any) -> Any:
+        simulated.extend(r.method for r in results)
+        return real_validate(self, results, **kwargs)
+
+    monkeypatch.setattr(Inverter, "validate", counting)
+    out, per = tmp_path / "out.json", tmp_path / "per.json"
+    assert bench.main(["--bundle", QUICK_BUNDLE, "--targets", f"quick={QUICK_STORE}", "--all-data", QUICK_STORE,
+                       "--methods", "gc_ppo_vae", "--limit", "2", "--no-truth", "--validate",
+                       "--per-target-out", str(per), "--out", str(out)]) == 0
+    assert sorted(simulated) == ["gc_ppo_vae", "gc_ppo_vae"]
+    rows = json.loads(out.read_text())["sets"]["quick"]["methods"]
+    lookup = rows["nearest_neighbour_all"]
+    assert lookup["r_mean"] == pytest.approx(lookup["stored_rows"]["r_mean"])
+    rec = json.loads(per.read_text())["sets"]["quick"]["methods"]
+    assert all(r is not None for r in rec["gc_ppo_vae"]["r_actual"] + rec["nearest_neighbour_all"]["r_actual"])
+    diff = rows["gc_ppo_vae"]["vs_nearest_neighbour_all"]["mean_diff"]
+    assert diff == pytest.approx(rows["gc_ppo_vae"]["r_mean"] - lookup["r_mean"])

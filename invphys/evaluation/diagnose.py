@@ -27,7 +27,7 @@ from invphys.core.errors import InvphysError
 from invphys.evaluation import calibration as cal
 from invphys.evaluation import recalibration_folds as rf
 from invphys.evaluation.heldout import HeldOut, heldout_rows
-from invphys.evaluation.ood import SCORES, auroc, score_components
+from invphys.evaluation.ood import NEEDS, SCORES, auroc, score_components
 from invphys.evaluation.surrogate_errors import error_bar_coverage, fit_error_scales
 
 _LOG = logging.getLogger("invphys.diagnose")
@@ -42,8 +42,8 @@ FAILURE_R = 0.8
 #: leaving room for sampling noise under the 10 % allowed)
 OOD_QUANTILE = 0.92
 #: the failure label that picks the OOD score: the answer does not reproduce the target's features
-#: (R_surr < FAILURE_R), the held-out stand-in for R_actual < 0.8; ``misfit`` (1 - R_surr) is that
-#: label itself, so it cannot be picked by it
+#: (R_surr < FAILURE_R, or for an answer that is a stored row its real R), the held-out stand-in for
+#: R_actual < 0.8; ``misfit`` (1 - R_surr) is that label itself, so it cannot be picked by it
 CHOOSE_BY = "r_surr"
 #: which parameters are recalibrated (:mod:`~invphys.evaluation.recalibration_folds`)
 RECALIBRATION_RULE = ("a parameter is recalibrated (quantile map + location shift) only when its coverage error "
@@ -135,10 +135,16 @@ def _surrogate(bundle: Any, held: HeldOut, fit: np.ndarray) -> dict[str, Any]:
             "check_after": error_bar_coverage(mean[chk], std[chk], held.y[chk], scales)}
 
 
-def _answers(inverter: Any, y: np.ndarray) -> np.ndarray | None:
-    """The default method's answers in one batch, or None when it has no batched answer (a search)."""
+def _answers(inverter: Any, y: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The default method's answers in one batch and, per answer that is a stored row (a pool with
+    ``exact``), its real R against the target (NaN for the others); None when it has no batched answer."""
     try:
-        return np.asarray(inverter.invert_array(y), dtype=np.float64)
+        if inverter.bundle.methods[inverter.default_method].get("type") == "pool":
+            results = inverter.invert_many(y, draws=1)
+            known = [np.nan if r.r_known is None else r.r_known for r in results]
+            return np.array([r.theta for r in results]), np.asarray(known, dtype=np.float64)
+        theta = np.asarray(inverter.invert_array(y), dtype=np.float64)
+        return theta, np.full(len(theta), np.nan)
     except InvphysError:
         return None
 
@@ -147,7 +153,8 @@ def _ood(inverter: Any, held: HeldOut, draws: Any, identified: np.ndarray, fit: 
          ) -> tuple[dict[str, Any], dict[str, Any]]:
     """AUROC of every candidate score for failing default answers; the best one (on the fit half) kept.
     Without batched answers only ``knn`` is scored (its threshold still calibrated on the fit half)."""
-    answers = _answers(inverter, held.y)
+    answered = _answers(inverter, held.y)
+    answers = None if answered is None else answered[0]
     scores = score_components(inverter.bundle, held.y, answers, draws, SCORES)
     report: dict[str, Any] = {"candidates": {}, "chosen": "knn", "default_answer": {"method": inverter.default_method}}
     labels: dict[str, np.ndarray] = {}
@@ -155,18 +162,22 @@ def _ood(inverter: Any, held: HeldOut, draws: Any, identified: np.ndarray, fit: 
         cols = identified if identified.any() else np.ones(held.theta.shape[1], dtype=bool)
         err = np.sqrt(np.mean((answers[:, cols] - held.theta[:, cols]) ** 2, axis=1))
         r_surr = 1.0 - scores["misfit"]
-        labels = {"parameter_error": err > FAILURE_ERROR, "r_surr": r_surr < FAILURE_R}
+        known = answered[1]  # an answer that is a stored row: its real R, not the surrogate's
+        reproduced = np.where(np.isfinite(known), known, r_surr)
+        labels = {"parameter_error": err > FAILURE_ERROR, "r_surr": reproduced < FAILURE_R}
         table = {name: {lab: {"fit": auroc(sc[fit], f[fit]), "check": auroc(sc[~fit], f[~fit])}
                         for lab, f in labels.items()} for name, sc in scores.items()}
-        best = max((n for n in scores if n != "misfit"),
-                   key=lambda n: np.nan_to_num(table[n][CHOOSE_BY]["fit"], nan=0.0))
+        usable = [n for n in scores if n != "misfit" and not NEEDS.get(n)]  # what the warning computes from a target
+        best = max(usable, key=lambda n: np.nan_to_num(table[n][CHOOSE_BY]["fit"], nan=0.0))
         report.update(candidates=table, chosen=best,
                       failure={"parameter_error_above": FAILURE_ERROR, "over": "identified parameters",
-                               "r_surr_below": FAILURE_R,
+                               "r_surr_below": FAILURE_R, "stored_rows_by_real_r": int(np.isfinite(known).sum()),
                                "rate_check": {k: float(v[~fit].mean()) for k, v in labels.items()}},
-                      chosen_by=f"AUROC on the fit rows for the {CHOOSE_BY!r} failures (misfit excluded: it is "
-                                f"that label)", note="misfit is 1 - R_surr: its AUROC on the r_surr label is that label")
-        report["default_answer"].update(mean_r_surr=float(r_surr.mean()), mean_error_identified=float(err.mean()))
+                      chosen_by=f"AUROC on the fit rows for the {CHOOSE_BY!r} failures, among the scores the "
+                                f"warning computes from the target alone ({', '.join(usable)}); the others are "
+                                f"reported only", note="misfit is 1 - R_surr: its AUROC on the r_surr label is that label")
+        report["default_answer"].update(mean_r_surr=float(r_surr.mean()), mean_r_reproduced=float(reproduced.mean()),
+                                        mean_error_identified=float(err.mean()))
     else:
         report["note"] = "the default method has no batched answer: only knn is scored, no AUROC measured"
     best = report["chosen"]

@@ -115,11 +115,17 @@ def _ood_line(o: dict[str, Any]) -> str:
         return f"Out-of-distribution score: `{o['chosen']}` (not measured against failures: {o.get('note')}); {fires}."
     auc = o["candidates"][o["chosen"]]
     return (f"Out-of-distribution score: `{o['chosen']}`, AUROC on the check rows {_f2(auc['r_surr']['check'])} "
-            f"for answers that do not reproduce their target (R_surr < {o['failure']['r_surr_below']:g}), "
+            f"for answers that do not reproduce their target (R_surr < {o['failure']['r_surr_below']:g}"
+            f"{_stored_note(o['failure'])}), "
             f"{_f2(auc['parameter_error']['check'])} for answers whose error over the identified parameters "
             f"exceeds {o['failure']['parameter_error_above']:g}; {fires} and on "
             f"{_pct(o['check']['recall_r_surr']) if o['check'].get('recall_r_surr') is not None else 'n/a (none)'} "
             f"of those whose answer does not reproduce the target.")
+
+
+def _stored_note(failure: dict[str, Any]) -> str:
+    n = failure.get("stored_rows_by_real_r") or 0
+    return f"; {n} answers that are stored rows by their real R" if n else ""
 
 
 def failure_line(f: dict[str, Any]) -> str:

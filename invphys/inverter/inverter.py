@@ -479,17 +479,20 @@ class Inverter:
     def evaluate(self, parameters: Any = None, target: Any = None, partial: bool = False, label: str = "given",
                  theta: Any = None) -> InversionResult:
         """An :class:`InversionResult` for given parameters (a ``{name: value}`` mapping or a physical
-        vector; or normalised ``theta``) against a target, e.g. to validate known parameters."""
+        vector; or normalised ``theta``: one vector, or one row per candidate) against a target, e.g. to
+        validate known parameters or to refine starts answered elsewhere."""
         if target is None or (parameters is None) == (theta is None):
             raise InvphysError("evaluate() needs a target and either parameters or theta")
         t = self.targets(target, partial)
         space = self.bundle.space
         if theta is not None:
-            theta = space.check_unit(np.asarray(theta, dtype=np.float64).reshape(1, -1))
+            theta = space.check_unit(np.atleast_2d(np.asarray(theta, dtype=np.float64)))
+            if theta.ndim != 2:
+                raise InvphysError(f"theta: one vector or one row per candidate, got shape {theta.shape}")
         else:
             phys = space.from_mapping(parameters) if isinstance(parameters, Mapping) else space.check(parameters)
             theta = space.normalize(phys).reshape(1, -1)
-        cands = self._calibrate_error_bars(self._candidates(theta, [label], t.values[0], t.mask[0]))
+        cands = self._calibrate_error_bars(self._candidates(theta, [label] * len(theta), t.values[0], t.mask[0]))
         return InversionResult(label=t.labels[0], method=label, target=t.values[0], mask=t.mask[0], candidates=cands,
                                parameter_names=self.parameter_names,
                                parameter_units=tuple(p.unit for p in space.parameters),

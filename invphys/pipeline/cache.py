@@ -117,6 +117,9 @@ SEEDING_ENTRY = "answers (seeding)"
 SEEDING = "per-target-1"
 #: sections whose stages make (or re-use) seeded answers
 SEEDING_SECTIONS: tuple[str, ...] = ("optimizers", "evaluation", "active")
+#: the spec's sections only the run's bundle reads (no model depends on them): the stages that write the
+#: bundle rewrite it when these change and keep their work cached (``REFRESHED_BY`` of train and invert)
+BUNDLE_SECTIONS: tuple[str, ...] = ("name", "description", "pools", "default_method")
 
 
 def plugin_versions(spec: Any, sections: tuple[str, ...], registry: Any) -> dict[str, str]:

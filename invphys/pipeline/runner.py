@@ -142,6 +142,7 @@ def _run_stages(spec: ExperimentSpec, out: Path, selected: list[str], force: Seq
         if stage not in force and current:
             summary = cache.read_done(out / stage / SUMMARY_FILE)
             if summary is not None:
+                _refresh(module, ctx, done_path, quiet)
                 summaries[stage] = summary
                 if on_stage:
                     on_stage(stage, "cached", summary)
@@ -160,13 +161,38 @@ def _run_stages(spec: ExperimentSpec, out: Path, selected: list[str], force: Seq
             fp = cache.digest({"components": components, "stage": stage})
         run_id = uuid.uuid4().hex[:12]
         write_json(done_path, {"fingerprint": fp, "components": components, "run_id": run_id,
-                               "finished_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())})
+                               "finished_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                               **_refresh_key(module, spec)})
         upstream[stage] = [fp, run_id]
         legacy_upstream[stage] = [None, run_id]  # a re-run stage has no legacy key: later stages re-run too
         summaries[stage] = summary
         _track_stage(tracker, stage, out / stage, summary)
         if on_stage:
             on_stage(stage, "done", summary)
+
+
+def _refresh_key(module: Any, spec: ExperimentSpec) -> dict[str, str]:
+    """``{"refresh": digest}`` of the spec sections a stage's output reads without them keying its work
+    (``REFRESHED_BY``: e.g. the bundle's description and pools), or ``{}`` for a stage without any."""
+    from invphys.pipeline import cache
+
+    sections = tuple(getattr(module, "REFRESHED_BY", ()))
+    return {"refresh": cache.digest(spec.section_dump(sections))} if sections else {}
+
+
+def _refresh(module: Any, ctx: StageContext, done_path: Path, quiet: bool) -> None:
+    """A cached stage whose ``REFRESHED_BY`` sections changed since it ran rewrites what they shape
+    (``module.refresh``, seconds: e.g. the run's bundle with new pools), without re-running its work."""
+    from invphys.pipeline import cache
+
+    key = _refresh_key(module, ctx.spec)
+    done = (cache.read_done(done_path) or {}) if key else {}
+    if not key or done.get("refresh") == key["refresh"]:
+        return
+    if module.refresh(ctx) and not quiet:
+        ctx.console.print(f"[dim]{ctx.stage}:[/] cached; its bundle rewritten for the spec's "
+                          f"{', '.join(module.REFRESHED_BY)}")
+    write_json(done_path, {**done, **key})
 
 
 def spec_params(spec: ExperimentSpec) -> dict[str, Any]:

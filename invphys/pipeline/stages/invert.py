@@ -26,12 +26,22 @@ import numpy as np
 
 from invphys.core.errors import InvphysError
 from invphys.pipeline.artifacts import objectives, write_inverter
+from invphys.pipeline.cache import BUNDLE_SECTIONS
 from invphys.pipeline.stage_files import RESULTS_FILE, TARGETS_FILE, summarise
 
 if TYPE_CHECKING:
     from invphys.pipeline.context import StageContext
 
 DEPENDS_ON: tuple[str, ...] = ("dataset", "surrogate", "latent_models", "optimizers", "objectives", "targets")
+#: what the bundle alone reads: a change rewrites the cached stage's bundle (:func:`refresh`), no re-run
+REFRESHED_BY: tuple[str, ...] = BUNDLE_SECTIONS
+
+
+def refresh(ctx: StageContext) -> bool:
+    """Rewrite the run's bundle from the finished stage's policies (the spec's pools, default or
+    description changed): seconds, where re-running the stage would refit every policy."""
+    write_inverter(ctx, with_policies=True)
+    return True
 
 
 def select(ctx: StageContext) -> dict[str, Any]:

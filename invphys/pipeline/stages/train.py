@@ -24,11 +24,25 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from invphys.core.errors import InvphysError
+from invphys.pipeline.cache import BUNDLE_SECTIONS
 
 if TYPE_CHECKING:
     from invphys.pipeline.context import StageContext
 
 DEPENDS_ON: tuple[str, ...] = ("dataset", "surrogate", "latent_models")
+#: what the bundle alone reads: a change rewrites the cached stage's bundle (:func:`refresh`), no re-run
+REFRESHED_BY: tuple[str, ...] = BUNDLE_SECTIONS
+
+
+def refresh(ctx: StageContext) -> bool:
+    """Rewrite the run's bundle from the trained models, unless the invert stage has finished (its
+    bundle, with the policies, is the run's then; it refreshes it itself). True when rewritten."""
+    from invphys.pipeline.artifacts import write_inverter
+
+    if (ctx.stage_dir_of("invert") / "DONE.json").is_file():
+        return False
+    write_inverter(ctx, with_policies=False)
+    return True
 
 METRICS_JSON = "metrics.json"
 METRICS_MD = "metrics.md"
