@@ -141,8 +141,10 @@ def _invert(inv: Any, y: np.ndarray, method: str, seed: int) -> list[Any]:
     kw = {k: _pool_value(k, v) for k, v in (o.split("=", 1) for o in opts.split(","))}
     entry = inv.bundle.methods.get(name)  # None for the built-in pool
     own = None if entry is None else entry.get("config")
-    default, inv.pool_settings = inv.pool_settings, PoolSettings().with_(**kw)
-    if entry is not None:
+    default = inv.pool_settings
+    if entry is None:
+        inv.pool_settings = PoolSettings().with_(**kw)
+    else:  # checked with the entry's own settings (a margin needs the entry's exact)
         entry["config"] = {**(own or {}), **{k: list(v) if isinstance(v, tuple) else v for k, v in kw.items()}}
     try:
         return list(inv.invert_many(y, method=name, seed=seed))
