@@ -17,7 +17,9 @@ target, and per stage (exclusive time, milliseconds per target):
 * ``result objects``: candidates, error bars, warnings and the :class:`InversionResult` per target;
 * ``other``: the rest (conditions, seeds, batching).
 
-No simulator runs: the answers are only timed. ``default`` is the bundle's default method.
+No simulator runs: the answers are only timed. ``default`` is the bundle's default method. ``flow_inverse``
+says which code drew each flow's rows: invphys' spline sampler (sbi's ``nsf``, the same bits as nflows'
+inverse; tests/test_npe_draw_speed.py) or nflows' own inverse.
 """
 
 from __future__ import annotations
@@ -138,6 +140,20 @@ def time_method(inv: Any, method: str, sets: dict[str, np.ndarray], repeat: int,
     return out
 
 
+def flow_inverse(inv: Any) -> dict[str, str]:
+    """Per posterior method the answers drew from: which code ran its flow's inverse."""
+    from invphys.inverter import draws
+    from invphys.plugins.baselines.npe import spline_sampler
+
+    out = {}
+    for label, (plugin, _) in sorted(inv._plugins.items()):
+        if draws.has_posterior(plugin):
+            net = draws._flow(plugin._posterior.posterior_estimator)
+            out[label] = ("sbi sample" if net is None else
+                          "invphys spline sampler" if spline_sampler(net) is not None else "nflows inverse")
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--bundle", default="inverters/orange_peel_paper_all")
@@ -172,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
     m.emit({"device": f"cpu ({m.cpu_name()}), {os.cpu_count()} cores", "bundle": a.bundle,
             "default_method": inv.default_method, "targets": {k: len(v) for k, v in sets.items()},
             "repeat": a.repeat, "interval_draws": a.draws or "invert's default (256)", "flow_threads": draws.THREADS,
-            "torch_threads": torch.get_num_threads(),
+            "torch_threads": torch.get_num_threads(), "flow_inverse": flow_inverse(inv),
             "load_average": {"before": [round(x, 2) for x in load0], "after": [round(x, 2) for x in os.getloadavg()]},
             "methods": results}, a.out)
     return 0

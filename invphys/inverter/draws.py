@@ -16,6 +16,9 @@ of the call (checked by tests/test_inverter_pool.py and tests/test_pool_speed.py
 bit-for-bit those of a target drawn alone, and the same as sbi's own ``sample`` under the target's
 seed. Where nobody reads the outside fraction (``whole_rounds=False``: a pool's extra members) a
 round's rows go through the flow only until the target has its draws: the same draws, fewer rows.
+For sbi's ``nsf`` the flow's inverse is :class:`~invphys.plugins.baselines.npe.SplineSampler`'s: the
+same operations on the same operands as nflows' inverse (so the same bits), without the log-determinant
+and the spline's masked selections, each target's context gates computed once.
 One torch thread (:data:`THREADS`): on a 2-core machine whose other core is busy, two threads ran
 many times slower.
 
@@ -44,13 +47,17 @@ CAP_FACTOR = 50
 CHUNK_ROUNDS = 16
 #: completions of a partial target's missing features (training rows nearest in the given features)
 COMPLETIONS = 16
-#: torch threads while drawing (the same draws with more: a row's arithmetic is split by rows); 1 because
-#: on a 2-core machine whose other core is busy two threads ran many times slower
+#: torch threads while drawing; 1 because on a 2-core machine whose other core is busy two threads ran many
+#: times slower (on an idle one, 1.5x faster). Two gave the same draws through the spline sampler (300 fresh
+#: targets, the paper bundle's four nsf flows: its one elementwise transcendental call stays under a thread's
+#: grain), not through nflows' inverse (its calls split across threads: 1 or 2 of 64 targets differed)
 THREADS = 1
 #: padding rows after the last real row of a flow call (its vector loops' scalar tail falls on them)
 PAD = 16
-#: the share of a target's raw draws expected inside the box before any was made (rounds in part only)
-FIRST_RATE = 0.7
+#: the share of a target's raw draws expected inside the box before any was made (rounds in part only):
+#: 1, the first pass asks for the draws (x 1.1, + 4) as if all fell inside (0.7 transformed rows past the
+#: n-th draw inside on most targets: 15 % more time on the fresh uniform targets, the same draws)
+FIRST_RATE = 1.0
 _LOG = logging.getLogger("invphys.inverter")
 
 
@@ -184,6 +191,8 @@ class _Stream:
     rounds: int = 0
     noise: Any = None
     done: int = 0
+    #: the row of its first condition in the call's table of embedded conditions (:class:`_Fast`)
+    first: int = 0
 
     def rows(self, n: int, whole: bool) -> int:
         """Rows (per completion) of the current round to run next: the rest of the round, or (not
@@ -208,6 +217,7 @@ def _together(net: Any, conditions: Sequence[np.ndarray], seeds: Sequence[int], 
         for c, seed in zip(conditions, seeds, strict=True):
             emb = net._embedding_net(torch.as_tensor(c, dtype=torch.float32))  # as sbi embeds them
             streams.append(_Stream(torch.Generator().manual_seed(seed), emb, len(c), max(1, ROUND // len(c)), [], []))
+        fast = _Fast.of(net, streams)
         while True:
             plan = []
             for st in streams:
@@ -221,7 +231,7 @@ def _together(net: Any, conditions: Sequence[np.ndarray], seeds: Sequence[int], 
                 plan.append((st, st.rows(n, whole)))
             if not plan:
                 break
-            out = _run(net, plan)
+            out = _run(net, plan, fast)
             a = 0
             for st, take in plan:
                 s = out[a:a + st.k * take].reshape(st.k, take, d)
@@ -241,17 +251,52 @@ def _padded(x: Any) -> Any:
     return torch.cat([x, x[:1].expand(size - len(x), -1)])
 
 
-def _run(net: Any, plan: list[tuple[_Stream, int]]) -> np.ndarray:
+@dataclass
+class _Fast:
+    """What :class:`~invphys.plugins.baselines.npe.SplineSampler` needs for one :func:`_together`: the
+    sampler, every stream's embedded conditions stacked (``table``, row ``first`` on: a stream's) and
+    their residual blocks' gates (row for row)."""
+
+    sampler: Any
+    table: Any
+    gates: list[Any]
+
+    @classmethod
+    def of(cls, net: Any, streams: list[_Stream]) -> _Fast | None:
+        """For a flow the sampler computes (sbi's nsf), else None (nflows' own inverse)."""
+        import torch
+
+        from invphys.plugins.baselines.npe import spline_sampler
+
+        sampler = spline_sampler(net)
+        if sampler is None or not streams:
+            return None
+        first = 0
+        for st in streams:
+            st.first, first = first, first + st.k
+        table = torch.cat([st.emb for st in streams])
+        return cls(sampler, table, sampler.gates(_padded(table)))
+
+
+def _run(net: Any, plan: list[tuple[_Stream, int]], fast: _Fast | None = None) -> np.ndarray:
     """The flow on the planned rows of every target (rows ``done .. done + take`` of each completion
     block of its round), in calls of :data:`CHUNK_ROUNDS` x :data:`ROUND` rows, each padded
-    (:func:`_padded`); (rows, d) float64, completion-major per target."""
+    (:func:`_padded`); (rows, d) float64, completion-major per target. With ``fast``, the spline
+    sampler draws them (the same bits as nflows' inverse, tests/test_npe_draw_speed.py)."""
     import torch
 
     noise = torch.cat([st.noise.view(st.k, st.per_round, -1)[:, st.done:st.done + take].reshape(st.k * take, -1)
                        for st, take in plan])
-    ctx = torch.cat([st.emb.repeat_interleave(take, dim=0) for st, take in plan])
     step = CHUNK_ROUNDS * ROUND
     outs = []
+    if fast is not None:  # each row's condition by its index into the table (and so its gates)
+        rows = torch.cat([torch.arange(st.first, st.first + st.k).repeat_interleave(take) for st, take in plan])
+        for a in range(0, len(noise), step):
+            z, r = noise[a:a + step], _padded(rows[a:a + step, None])[:, 0]
+            outs.append(fast.sampler.inverse(_padded(z), fast.table.index_select(0, r),
+                                             [g.index_select(0, r) for g in fast.gates])[:len(z)])
+        return torch.cat(outs).numpy().astype(np.float64)
+    ctx = torch.cat([st.emb.repeat_interleave(take, dim=0) for st, take in plan])
     for a in range(0, len(noise), step):
         z, c = noise[a:a + step], ctx[a:a + step]
         outs.append(net._transform.inverse(_padded(z), context=_padded(c))[0][:len(z)])

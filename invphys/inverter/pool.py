@@ -107,7 +107,9 @@ def nearest_rows(z_train: np.ndarray, values: np.ndarray, mask: np.ndarray, scal
     if k <= 0 or not len(z_train):
         return np.zeros(0, dtype=np.int64)
     zt = np.where(mask, values, 0.0) / np.maximum(scales, 1e-12)
-    diff = np.where(mask[None, :], z_train - zt[None, :], 0.0)
+    diff = z_train - zt[None, :]
+    if not mask.all():  # a complete target keeps them all (no second N x M temporary: the same d2, faster)
+        diff = np.where(mask[None, :], diff, 0.0)
     d2 = np.einsum("ij,ij->i", diff, diff)
     return nearest_first(np.where(np.isfinite(d2), d2, np.inf), k).astype(np.int64)
 
