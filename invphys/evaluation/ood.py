@@ -33,6 +33,8 @@ SCORES: tuple[str, ...] = ("knn", "misfit", "ensemble_std", "outside_fraction", 
 NEEDS: dict[str, str] = {"misfit": "answers", "ensemble_std": "answers", "outside_fraction": "draws",
                          "posterior_std": "draws"}
 _TREES: weakref.WeakKeyDictionary[Any, Any] = weakref.WeakKeyDictionary()
+#: per bundle: its standardised finite training rows and their indices (:func:`standardised_train`)
+_TRAIN: weakref.WeakKeyDictionary[Any, tuple[np.ndarray, np.ndarray]] = weakref.WeakKeyDictionary()
 
 
 class FeatureMismatch(TargetError):
@@ -105,11 +107,17 @@ def _feature_stats(bundle: Any) -> tuple[np.ndarray, np.ndarray]:
 
 
 def standardised_train(bundle: Any) -> tuple[np.ndarray, np.ndarray]:
-    """(standardised features of the bundle's finite training rows, their indices in ``data("train")``)."""
-    mean, std = _feature_stats(bundle)
-    train = (bundle.data("train")[1] - mean) / std
-    keep = np.flatnonzero(np.all(np.isfinite(train), axis=1))
-    return train[keep], keep
+    """(standardised features of the bundle's finite training rows, their indices in ``data("train")``),
+    computed once per bundle (read-only arrays: every target's score reads them)."""
+    if bundle not in _TRAIN:
+        mean, std = _feature_stats(bundle)
+        train = (bundle.data("train")[1] - mean) / std
+        keep = np.flatnonzero(np.all(np.isfinite(train), axis=1))
+        rows = train[keep]
+        for a in (rows, keep):
+            a.setflags(write=False)
+        _TRAIN[bundle] = (rows, keep)
+    return _TRAIN[bundle]
 
 
 def _tree(bundle: Any, cols: tuple[int, ...], data: np.ndarray) -> Any:
