@@ -143,7 +143,7 @@ def time_method(inv: Any, method: str, sets: dict[str, np.ndarray], repeat: int,
 def flow_inverse(inv: Any) -> dict[str, str]:
     """Per posterior method the answers drew from: which code ran its flow's inverse."""
     from invphys.inverter import draws
-    from invphys.plugins.baselines.npe import spline_sampler
+    from invphys.plugins.baselines.spline_sampler import spline_sampler
 
     out = {}
     for label, (plugin, _) in sorted(inv._plugins.items()):

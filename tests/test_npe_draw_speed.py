@@ -1,7 +1,7 @@
 """The spline sampler draws what nflows and sbi draw, to the last bit (shipped orange_peel_paper_all flows).
 
 The inverter's posterior draws of sbi's ``nsf`` flows (``pool_nsf4``'s four members) go through
-:class:`~invphys.plugins.baselines.npe.SplineSampler` instead of nflows' own inverse
+:class:`~invphys.plugins.baselines.spline_sampler.SplineSampler` instead of nflows' own inverse
 (:mod:`invphys.inverter.draws`). These tests fail when one of its draws differs in any bit from nflows'
 inverse, from sbi's ``sample_batched`` under the target's seed, or between a target drawn alone, in a batch
 and in a reversed batch.
@@ -51,7 +51,8 @@ def _seeds(n: int) -> list[int]:
 
 
 def test_the_sampler_computes_sbis_nsf_only(flows) -> None:
-    from invphys.plugins.baselines.npe import NPEBaseline, spline_sampler
+    from invphys.plugins.baselines.npe import NPEBaseline
+    from invphys.plugins.baselines.spline_sampler import spline_sampler
 
     for plugin in flows.values():
         assert spline_sampler(_net(plugin)) is not None
@@ -64,7 +65,7 @@ def test_its_rows_are_nflows_rows(flows, targets, label) -> None:
     """Padded calls of several sizes, base noise up to 3 sigma wider (entries past the splines' tail bound)
     and the gates of 1,500 conditions at once: every real row equals nflows' inverse."""
     from invphys.inverter import draws as D
-    from invphys.plugins.baselines.npe import spline_sampler
+    from invphys.plugins.baselines.spline_sampler import spline_sampler
 
     net = _net(flows[label])
     sampler = spline_sampler(net)
@@ -85,16 +86,16 @@ def test_its_rows_are_nflows_rows(flows, targets, label) -> None:
 @pytest.fixture()
 def counted(monkeypatch):
     """Calls of the sampler's inverse (so that an equality below is not nflows against itself)."""
-    from invphys.plugins.baselines import npe
+    from invphys.plugins.baselines import spline_sampler as ss
 
     calls = []
-    inverse = npe.SplineSampler.inverse
+    inverse = ss.SplineSampler.inverse
 
     def wrapped(self, *a, **kw):
         calls.append(1)
         return inverse(self, *a, **kw)
 
-    monkeypatch.setattr(npe.SplineSampler, "inverse", wrapped)
+    monkeypatch.setattr(ss.SplineSampler, "inverse", wrapped)
     return calls
 
 
@@ -103,7 +104,7 @@ def test_draws_are_nflows_draws(flows, targets, label, counted, monkeypatch) -> 
     """Through the inverter's sampling (whole rounds and rounds in part, complete and partial targets):
     draws, outside fractions, clipped and raw counts equal those of nflows' own inverse."""
     from invphys.inverter import draws as D
-    from invphys.plugins.baselines import npe
+    from invphys.plugins.baselines import spline_sampler as ss
 
     plugin = flows[label]
     held = np.load(BUNDLE / "data" / "test.npz")["y"]
@@ -119,7 +120,7 @@ def test_draws_are_nflows_draws(flows, targets, label, counted, monkeypatch) -> 
         fast = D.sample_posterior(plugin, conds, seeds, n, whole_rounds=whole)
         assert counted, "the spline sampler did not draw"
         with monkeypatch.context() as m:
-            m.setattr(npe, "spline_sampler", lambda net: None)
+            m.setattr(ss, "spline_sampler", lambda net: None)
             plain = D.sample_posterior(plugin, conds, seeds, n, whole_rounds=whole)
         for key in ("samples", "outside_fraction", "clipped", "raw_draws", "completions"):
             np.testing.assert_array_equal(getattr(fast, key), getattr(plain, key), err_msg=f"{key}, {n} draws")
@@ -146,7 +147,7 @@ def test_the_first_round_is_sbis_own_sample(flows, targets, label) -> None:
     """sbi's ``sample_batched`` (no rejection) under the target's seed: its rows are the sampler's first
     round, and those inside the box are the target's first draws, in order."""
     from invphys.inverter import draws as D
-    from invphys.plugins.baselines.npe import spline_sampler
+    from invphys.plugins.baselines.spline_sampler import spline_sampler
 
     plugin = flows[label]
     post, net = plugin._posterior, _net(plugin)

@@ -16,7 +16,7 @@ of the call (checked by tests/test_inverter_pool.py and tests/test_pool_speed.py
 bit-for-bit those of a target drawn alone, and the same as sbi's own ``sample`` under the target's
 seed. Where nobody reads the outside fraction (``whole_rounds=False``: a pool's extra members) a
 round's rows go through the flow only until the target has its draws: the same draws, fewer rows.
-For sbi's ``nsf`` the flow's inverse is :class:`~invphys.plugins.baselines.npe.SplineSampler`'s: the
+For sbi's ``nsf`` the flow's inverse is :class:`~invphys.plugins.baselines.spline_sampler.SplineSampler`'s: the
 same operations on the same operands as nflows' inverse (so the same bits), without the log-determinant
 and the spline's masked selections, each target's context gates computed once.
 One torch thread (:data:`THREADS`): on a 2-core machine whose other core is busy, two threads ran
@@ -253,7 +253,7 @@ def _padded(x: Any) -> Any:
 
 @dataclass
 class _Fast:
-    """What :class:`~invphys.plugins.baselines.npe.SplineSampler` needs for one :func:`_together`: the
+    """What :class:`~invphys.plugins.baselines.spline_sampler.SplineSampler` needs for one :func:`_together`: the
     sampler, every stream's embedded conditions stacked (``table``, row ``first`` on: a stream's) and
     their residual blocks' gates (row for row)."""
 
@@ -266,7 +266,7 @@ class _Fast:
         """For a flow the sampler computes (sbi's nsf), else None (nflows' own inverse)."""
         import torch
 
-        from invphys.plugins.baselines.npe import spline_sampler
+        from invphys.plugins.baselines.spline_sampler import spline_sampler
 
         sampler = spline_sampler(net)
         if sampler is None or not streams:
