@@ -31,7 +31,9 @@ of one set on several processes or GPUs. ``--extract-threads`` is each extractio
 replays the logged runs and simulates the rest). ``--patience N --min-gain D``: a target also stops once its best R_actual gained < D over its last N told runs
 (the refine's stall rule; off by default); the result records both, each strategy's ``stalled`` count, and
 per target ``stalled`` and ``batches`` (its told generations' sizes), which
-``benchmarks/bench_refine_replay.py`` uses to replay stop rules exactly.
+``benchmarks/bench_refine_replay.py`` uses to replay stop rules exactly. ``--answers-out FILE`` only answers
+(no simulator; e.g. on a CPU with sbi) and writes each target's starts; ``--answers-in FILE`` refines those
+starts instead of answering (a GPU machine without sbi), the same refine as answering there.
 """
 
 from __future__ import annotations

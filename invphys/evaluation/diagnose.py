@@ -168,7 +168,7 @@ def _ood(inverter: Any, held: HeldOut, draws: Any, identified: np.ndarray, fit: 
         table = {name: {lab: {"fit": auroc(sc[fit], f[fit]), "check": auroc(sc[~fit], f[~fit])}
                         for lab, f in labels.items()} for name, sc in scores.items()}
         usable = [n for n in scores if n != "misfit" and not NEEDS.get(n)]  # what the warning computes from a target
-        best = max(usable, key=lambda n: np.nan_to_num(table[n][CHOOSE_BY]["fit"], nan=0.0))
+        best = max(usable, key=lambda n: np.nan_to_num(table[n][CHOOSE_BY]["fit"], nan=0.0), default="knn")
         report.update(candidates=table, chosen=best,
                       failure={"parameter_error_above": FAILURE_ERROR, "over": "identified parameters",
                                "r_surr_below": FAILURE_R, "stored_rows_by_real_r": int(np.isfinite(known).sum()),
