@@ -320,9 +320,7 @@ def _per_target(arrays: Any, answers: dict[str, list[Any]]) -> dict[str, Any]:
     """One set's targets and, per method, each answer (normalised), its R_actual (None unless validated or a
     stored row), R_surrogate and warnings: the rows a failure warning is fitted and checked on."""
     def r_actual(r: Any) -> float | None:
-        if r.r_actual is None:
-            return None if r.r_known is None else float(r.r_known)
-        return float(r.r_actual)
+        return None if r.r_actual is None and r.r_known is None else _real_r(r)
 
     return {"keys": [str(k) for k in arrays.keys], "y": arrays.y.tolist(), "truth_theta": arrays.theta.tolist(),
             "methods": {m: {"theta": [r.theta.tolist() for r in res], "r_actual": [r_actual(r) for r in res],

@@ -138,8 +138,10 @@ def _surrogate(bundle: Any, held: HeldOut, fit: np.ndarray) -> dict[str, Any]:
 def _answers(inverter: Any, y: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """The default method's answers in one batch and, per answer that is a stored row (a pool with
     ``exact``), its real R against the target (NaN for the others); None when it has no batched answer."""
+    from invphys.inverter.pool import POOL_METHOD
+
     try:
-        if inverter.bundle.methods[inverter.default_method].get("type") == "pool":
+        if inverter.bundle.methods.get(inverter.default_method, {}).get("type") == POOL_METHOD:
             results = inverter.invert_many(y, draws=1)
             known = [np.nan if r.r_known is None else r.r_known for r in results]
             return np.array([r.theta for r in results]), np.asarray(known, dtype=np.float64)

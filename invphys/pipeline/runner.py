@@ -186,8 +186,10 @@ def _refresh(module: Any, ctx: StageContext, done_path: Path, quiet: bool) -> No
     from invphys.pipeline import cache
 
     key = _refresh_key(module, ctx.spec)
-    done = (cache.read_done(done_path) or {}) if key else {}
-    if not key or done.get("refresh") == key["refresh"]:
+    if not key:
+        return
+    done = cache.read_done(done_path) or {}
+    if done.get("refresh") == key["refresh"]:
         return
     if module.refresh(ctx) and not quiet:
         ctx.console.print(f"[dim]{ctx.stage}:[/] cached; its bundle rewritten for the spec's "
