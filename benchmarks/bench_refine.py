@@ -4,9 +4,9 @@ Answers the first ``--limit`` rows of a target store with the bundle (top ``--st
 then on one warm simulator: (1) ``invphys.inverter.refine.refine`` with ``--budget`` runs per target,
 all targets in one open stream (``Simulator.simulate_feed``), (2) dataset generation of the very runs
 the (first) refine simulated (``simulate_stream``, the same slots, features extracted as runs end; with
-``--random-dataset`` also as many uniformly random runs). Reports wall
-seconds per run of each and their ratio, and R_actual before (the amortised answer; the best of its
-starts) and after the refine. A simulator with its own ``simulate_feed`` (the AnisoMPM foods:
+``--random-dataset`` also as many uniformly random runs; ``--dataset-runs N``: of the refine's first N runs
+only). Reports wall seconds per run of each and their ratio, and R_actual before (the amortised answer; the
+best of its starts) and after the refine. A simulator with its own ``simulate_feed`` (the AnisoMPM foods:
 ``Engine.stream_feed``, slots refilled as runs end) streams through it; ``--no-native-feed`` measures the
 default instead (chunks of what is ready). Example (GPU)::
 
@@ -206,6 +206,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--sim-batch", type=int, default=64, help="runs in flight (slots) for both measurements")
     p.add_argument("--native-feed", action=argparse.BooleanOptionalAction, default=True)
     p.add_argument("--skip-dataset", action="store_true", help="measure the refine only")
+    p.add_argument("--dataset-runs", type=int, default=None,
+                   help="time dataset generation on the first N runs the refine fed (default: all of them)")
     p.add_argument("--random-dataset", action="store_true",
                    help="also time dataset generation of as many uniformly random runs")
     p.add_argument("--extract-workers", type=int, default=0,
@@ -308,6 +310,8 @@ def main(argv: list[str] | None = None) -> int:
     a = _parser().parse_args(argv)
     if a.first < 0 or a.limit < 0 or a.extract_threads < 0 or a.ask_workers < 0:
         raise SystemExit("error: --first, --limit, --extract-threads and --ask-workers must be >= 0")
+    if a.dataset_runs is not None and a.dataset_runs < 1:
+        raise SystemExit("error: --dataset-runs must be >= 1")
     if a.min_gain is not None and a.patience is None:
         raise SystemExit("error: --min-gain needs --patience N")
     if a.log_dir is not None:
@@ -373,7 +377,7 @@ def _first(result: dict[str, Any], block: dict[str, Any], records: list[dict[str
     """The first refine's timing against dataset generation of the very runs it simulated (same parameters,
     so the same cost per run), and its top-level record (the keys this benchmark always wrote)."""
     space = sim.parameter_space()
-    data = None if a.skip_dataset else _dataset(sim, ext, fed, a.sim_batch, pool)
+    data = None if a.skip_dataset else _dataset(sim, ext, fed[:a.dataset_runs], a.sim_batch, pool)
     rand = _dataset(sim, ext, space.denormalize(rng.random((len(fed), space.dim))), a.sim_batch, pool) \
         if a.random_dataset else None
     ref = {"targets": len(records), "budget": a.budget, "starts": a.starts, "popsize": a.popsize,

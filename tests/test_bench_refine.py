@@ -16,6 +16,8 @@ def test_bench_refine_writes_one_json(tmp_path_factory, tmp_path, monkeypatch, c
     argv = ["--bundle", str(run / "inverter"), "--targets", str(stores[0]), "--limit", "3", "--budget", "8",
             "--starts", "2", "--popsize", "4", "--sim-batch", "4", "--out", str(out)]
     monkeypatch.setattr(sys, "argv", ["benchmarks/bench_refine.py", *argv])
+    assert load("bench_refine").main([*argv, "--dataset-runs", "10"]) == 0
+    assert json.loads(out.read_text())["dataset"]["runs"] == 10   # the first 10 of the refine's runs
     assert load("bench_refine").main(argv) == 0
     rec = json.loads(out.read_text())
     assert rec["command"].startswith("python benchmarks/bench_refine.py --bundle")
