@@ -377,15 +377,20 @@ def _first(result: dict[str, Any], block: dict[str, Any], records: list[dict[str
     """The first refine's timing against dataset generation of the very runs it simulated (same parameters,
     so the same cost per run), and its top-level record (the keys this benchmark always wrote)."""
     space = sim.parameter_space()
-    data = None if a.skip_dataset else _dataset(sim, ext, fed[:a.dataset_runs], a.sim_batch, pool)
-    rand = _dataset(sim, ext, space.denormalize(rng.random((len(fed), space.dim))), a.sim_batch, pool) \
-        if a.random_dataset else None
     ref = {"targets": len(records), "budget": a.budget, "starts": a.starts, "popsize": a.popsize,
            "sigma0": a.sigma0, "strategy": a.strategy[0],
            **{k: block[k] for k in ("runs", "wall_s", "s_per_run", "simulator_s")}, **_summary(records)}
-    result.update({"dataset": data, "dataset_random": rand, "refine": ref,
-                   "refine_over_dataset": None if data is None else ref["s_per_run"] / data["s_per_run"],
+    result.update({"dataset": None, "dataset_random": None, "refine": ref, "refine_over_dataset": None,
                    "per_target": [{k: v for k, v in r.items() if k not in ("call", "settings")} for r in records]})
+    _write(result, a.out)   # the refine is kept if the dataset timing below is cut short
+    if not len(fed):   # every run replayed from --log-dir: no runs of this process to time
+        result["dataset"] = "not timed: every refine run was replayed from --log-dir"
+    elif not a.skip_dataset:
+        result["dataset"] = data = _dataset(sim, ext, fed[:a.dataset_runs], a.sim_batch, pool)
+        result["refine_over_dataset"] = ref["s_per_run"] / data["s_per_run"]
+    if a.random_dataset and len(fed):
+        result["dataset_random"] = _dataset(sim, ext, space.denormalize(rng.random((len(fed), space.dim))),
+                                            a.sim_batch, pool)
 
 
 if __name__ == "__main__":

@@ -62,14 +62,16 @@ def test_bench_refine_resumes_from_its_log_dir(tmp_path_factory, tmp_path, monke
     store = str(next((run / "dataset").rglob("_manifest.json")).parent)
     bench = load("bench_refine")
     argv = ["--bundle", str(run / "inverter"), "--targets", f"a={store}", "--limit", "2", "--budget", "8",
-            "--starts", "2", "--popsize", "4", "--sim-batch", "4", "--strategy", "corrected", "--skip-dataset",
+            "--starts", "2", "--popsize", "4", "--sim-batch", "4", "--strategy", "corrected",
             "--bootstrap", "50", "--log-dir", str(tmp_path / "logs")]
     monkeypatch.setattr(sys, "argv", ["benchmarks/bench_refine.py", *argv])
-    recs = []
+    recs, data = [], []
     for i in range(2):
         out = tmp_path / f"r{i}.json"
         assert bench.main([*argv, "--out", str(out)]) == 0
         recs.append(json.loads(out.read_text())["sets"]["a"]["strategies"]["corrected"]["per_target"])
+        data.append(json.loads(out.read_text())["dataset"])
+    assert data[0]["runs"] > 0 and data[1].startswith("not timed")   # nothing of the second run's own to time
     assert (tmp_path / "logs" / "refine_a_corrected_0.npz").is_file()
     assert [t["replayed_runs"] for t in recs[0]] == [0, 0]
     assert [t["replayed_runs"] for t in recs[1]] == [t["runs"] for t in recs[1]] and recs[1][0]["runs"] > 0
