@@ -303,7 +303,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="bundle methods (default: the bundle's default); with --answers-in: the files' methods to score")
     p.add_argument("--validate", action="store_true", help="re-simulate every answer (a GPU for the paper preset)")
     p.add_argument("--sim-option", nargs="*", default=[], help="KEY=VALUE simulator overrides (e.g. arch=cpu)")
-    p.add_argument("--sim-batch", type=int, default=64)
+    p.add_argument("--sim-batch", type=int, default=64, help="--validate's runs in flight")
+    p.add_argument("--extract-workers", type=int, default=0,
+                   help="--validate's feature-extraction processes (0: in the simulator's thread)")
     p.add_argument("--limit", type=int, default=None, help="first N targets of each set (a quick check)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--label", default="", help="with --answers-out: name methods LABEL:METHOD in the file")
@@ -393,15 +395,19 @@ def main(argv: list[str] | None = None) -> int:
         saved["sets"][name] = {"store": path, "n_targets": len(arrays.y), "methods": {
             prefix + m: {"theta": [r.theta.tolist() for r in answers[m]], "warnings": [r.warnings for r in answers[m]],
                          "answer_ms_per_target": timing[m]} for m in methods}}
-        t0 = time.perf_counter()
+        t0, runs = time.perf_counter(), 0
         if a.validate:
-            inv.validate(_to_simulate(answers), overrides=overrides, batch_size=a.sim_batch)
+            todo = _to_simulate(answers)
+            inv.validate(todo, overrides=overrides, batch_size=a.sim_batch, extract_workers=a.extract_workers)
+            runs = sum(len(r.candidates) for r in todo)
+        validate_s = time.perf_counter() - t0
         rows = summarise(answers, a.validate, truth_theta=arrays.theta)
         per_target[name] = _per_target(arrays, answers)
         for m, ms in timing.items():
             rows[m]["answer_ms_per_target"] = ms
-        result["sets"][name] = {"store": path, "n_targets": len(arrays.y), "validate_s": time.perf_counter() - t0,
-                                "methods": rows}
+        result["sets"][name] = {"store": path, "n_targets": len(arrays.y), "validate_s": validate_s,
+                                "validate_runs": runs, "validate_s_per_run": validate_s / runs if runs else None,
+                                "sim_batch": a.sim_batch, "extract_workers": a.extract_workers, "methods": rows}
         _write(a, result, saved, per_target)  # after every set: a run cut short keeps the sets it finished
     for name, s in result["sets"].items():
         for m, row in s["methods"].items():

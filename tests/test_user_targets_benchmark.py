@@ -181,15 +181,18 @@ def test_validating_re_simulates_new_answers_but_scores_stored_rows_by_their_fea
 
     def counting(self: Any, results: Any, **kwargs: Any) -> Any:
         simulated.extend(r.method for r in results)
+        assert kwargs["extract_workers"] == 1   # --extract-workers reaches the validation
         return real_validate(self, results, **kwargs)
 
     monkeypatch.setattr(Inverter, "validate", counting)
     out, per = tmp_path / "out.json", tmp_path / "per.json"
     assert bench.main(["--bundle", QUICK_BUNDLE, "--targets", f"quick={QUICK_STORE}", "--all-data", QUICK_STORE,
                        "--methods", "gc_ppo_vae", "--limit", "2", "--no-truth", "--validate",
-                       "--per-target-out", str(per), "--out", str(out)]) == 0
+                       "--extract-workers", "1", "--per-target-out", str(per), "--out", str(out)]) == 0
     assert sorted(simulated) == ["gc_ppo_vae", "gc_ppo_vae"]
-    rows = json.loads(out.read_text())["sets"]["quick"]["methods"]
+    quick = json.loads(out.read_text())["sets"]["quick"]
+    assert quick["validate_runs"] == 2 and quick["extract_workers"] == 1 and quick["validate_s_per_run"] > 0
+    rows = quick["methods"]
     lookup = rows["nearest_neighbour_all"]
     assert lookup["r_mean"] == pytest.approx(lookup["stored_rows"]["r_mean"])
     rec = json.loads(per.read_text())["sets"]["quick"]["methods"]

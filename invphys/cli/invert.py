@@ -46,6 +46,9 @@ def invert(
                                          help="simulator config KEY=VALUE for --validate and --polish"),
     sim_batch: int = typer.Option(16, "--sim-batch", min=1,
                                   help="rows per simulator call for --validate and --polish (on a GPU: 64-200)"),
+    validate_workers: int = typer.Option(0, "--validate-workers", min=0, max=256,
+                                         help="feature-extraction processes for --validate (0: in the "
+                                              "simulator's thread; on a GPU: about the CPU cores)"),
     polish: int | None = typer.Option(None, "--polish", help="CMA-ES on the simulator from each validated answer: "
                                       "N new simulator runs per target (implies --validate)"),
     polish_below: float | None = typer.Option(None, "--polish-below", help="only targets with R_actual below R"),
@@ -109,7 +112,8 @@ def invert(
     results = inv.invert_many(targets, method=method, top_k=top_k, refine=refine, seed=seed, level=level,
                               draws=max(samples or 0, INTERVAL_DRAWS))
     _check_results(results, samples)
-    records = _simulate(inv, results, sim_option or [], seed, sim_batch, validate, polish_settings, refine_settings)
+    records = _simulate(inv, results, sim_option or [], seed, sim_batch, validate, polish_settings, refine_settings,
+                        validate_workers)
     _write_files(results, samples, files)
     _emit_results(bundle, results, records, seed, level, as_json)
 
@@ -125,11 +129,12 @@ def _check_results(results: list[Any], samples: int | None) -> None:
 
 
 def _simulate(inv: Any, results: list[Any], sim_option: list[str], seed: int, sim_batch: int, validate: bool,
-              polish_settings: dict[str, Any], refine_settings: dict[str, Any]) -> list[dict[str, Any]]:
+              polish_settings: dict[str, Any], refine_settings: dict[str, Any], validate_workers: int = 0
+              ) -> list[dict[str, Any]]:
     """``--validate``, ``--polish`` and ``--sim-refine`` on the simulator, in that order; the refine records."""
     overrides = _options(sim_option)
     if validate or polish_settings:
-        _validate(inv, results, overrides, sim_batch)
+        _validate(inv, results, overrides, sim_batch, validate_workers)
     if polish_settings:
         _polish(inv, results, overrides, seed, batch_size=sim_batch, **polish_settings)
     return _sim_refine(inv, results, overrides, seed, sim_batch, **refine_settings) if refine_settings else []
@@ -150,14 +155,16 @@ def _emit_results(bundle: Path, results: list[Any], records: list[dict[str, Any]
     emit(data, as_json, render)
 
 
-def _validate(inv: Any, results: list[Any], overrides: dict[str, Any], batch_size: int = 16) -> None:
+def _validate(inv: Any, results: list[Any], overrides: dict[str, Any], batch_size: int = 16,
+              extract_workers: int = 0) -> None:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     total = sum(len(r.candidates) for r in results)
     with Progress(TextColumn("validating"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=console, transient=False) as bar:
         task = bar.add_task("validating", total=total)
-        inv.validate(results, overrides=overrides, batch_size=batch_size, on_run=lambda _i: bar.advance(task))
+        inv.validate(results, overrides=overrides, batch_size=batch_size, on_run=lambda _i: bar.advance(task),
+                     extract_workers=extract_workers)
 
 
 _POLISH_NAMES = {"budget": "--polish", "below": "--polish-below", "sigma0": "--polish-sigma",

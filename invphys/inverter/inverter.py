@@ -524,18 +524,21 @@ class Inverter:
 
     # -- validation ---------------------------------------------------------------------------------
     def validate(self, results: InversionResult | Sequence[InversionResult], overrides: Mapping[str, Any] | None = None,
-                 batch_size: int = 16, on_run: Callable[[int], None] | None = None
+                 batch_size: int = 16, on_run: Callable[[int], None] | None = None, extract_workers: int = 0
                  ) -> InversionResult | list[InversionResult]:
         """Re-run every candidate through the simulator: fills ``actual``, ``r_actual`` and ``gap``.
 
         ``overrides`` change the recorded simulator config (e.g. ``{"arch": "cpu"}``); ``on_run(i)`` is
-        called as each run finishes. Returns ``results`` (updated in place).
+        called as each run finishes. ``batch_size``: runs in flight (a simulator with a continuous-batching
+        stream, e.g. the AnisoMPM foods on a GPU, runs every candidate in one stream, as dataset generation
+        does; others take chunks of it); ``extract_workers``: feature-extraction processes while the simulator
+        goes on (0: in its thread). Returns ``results`` (updated in place).
         """
         from invphys.inverter.simulate import simulate, simulation
 
         items: list[InversionResult] = [results] if isinstance(results, InversionResult) else list(results)
-        simulate(self, [(r, c) for r in items for c in r.candidates], *simulation(self, overrides, batch_size),
-                 on_run=on_run)
+        simulate(self, [(r, c) for r in items for c in r.candidates],
+                 *simulation(self, overrides, batch_size, extract_workers), on_run=on_run)
         return items[0] if isinstance(results, InversionResult) else items
 
     # -- simulator-in-the-loop polish -------------------------------------------------------------------

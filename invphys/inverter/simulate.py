@@ -24,13 +24,17 @@ from invphys.inverter.settings import PolishSettings
 _LOG = logging.getLogger("invphys.inverter")
 
 
-def simulation(inv: Any, overrides: Mapping[str, Any] | None, batch_size: int) -> tuple[Any, Any, Any]:
-    """(simulator, extractor, simulator validator) for re-running candidates."""
-    if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
-        raise InvphysError(f"batch_size must be >= 1, got {batch_size!r}")
+def simulation(inv: Any, overrides: Mapping[str, Any] | None, batch_size: int, extract_workers: int = 0
+               ) -> tuple[Any, Any, Any]:
+    """(simulator, extractor, simulator validator) for re-running candidates (``extract_workers``: feature
+    extraction in that many processes while the simulator goes on; 0: in its thread)."""
+    for name, v, low in (("batch_size", batch_size, 1), ("extract_workers", extract_workers, 0)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
+            raise InvphysError(f"{name} must be >= {low}, got {v!r}")
     sim = inv.simulator(overrides)
     ext = inv.extractor(sim)
-    return sim, ext, inv.bundle.registry.create("validator", {"type": "simulator", "batch_size": int(batch_size)})
+    return sim, ext, inv.bundle.registry.create("validator", {"type": "simulator", "batch_size": int(batch_size),
+                                                              "extract_workers": int(extract_workers)})
 
 
 def simulate(inv: Any, cands: list[tuple[InversionResult, Candidate]], sim: Any, ext: Any, validator: Any,

@@ -44,7 +44,8 @@ class SimulatorValidator(Validator):
         overrides: dict[str, Any] = Field(default_factory=dict,
                                           description="simulator config keys to change for validation")
         kappa: float = Field(3.0, gt=0, description="sharpness of R_gt")
-        batch_size: int = Field(16, ge=1, description="parameter vectors per simulator call")
+        batch_size: int = Field(16, ge=1, description="runs in flight on a simulator with a continuous-batching "
+                                                      "stream (else parameter vectors per simulator call)")
         extract_workers: int = Field(0, ge=0, le=256,
                                      description="extract features in this many worker processes while the "
                                                  "simulator goes on (0: in the simulator's thread)")
@@ -75,6 +76,9 @@ class SimulatorValidator(Validator):
         run finishes (progress bars). ``on_record(row, features or None, failure, stats)`` is called once
         per row as soon as its outcome is known: as the run finishes when the simulator reports runs one by
         one (``on_result``), else when its batch returns (a caller that stores rows loses no finished run).
+        A simulator with its own continuous-batching stream (``native_stream``: the AnisoMPM foods) runs
+        every row in one stream of ``batch_size`` slots, as dataset generation does, so no chunk waits on
+        its slowest run; the others (and the rows of a stream that raised) go in chunks of ``batch_size``.
         """
         sim = self.simulator_for(simulator)
         theta = np.atleast_2d(np.asarray(theta, dtype=np.float64))
@@ -109,8 +113,7 @@ class SimulatorValidator(Validator):
                 res, fut = pending.pop(r)
                 settle(r, res, fut)
 
-        def finished(rows: list[int], i: int, res: Any) -> None:
-            r = rows[i]
+        def finished(r: int, res: Any) -> None:
             if pool is not None and r not in settled and r not in pending and isinstance(res, SimulationResult) \
                     and res.ok and res.features is None and res.trajectory is not None:
                 pending[r] = (res, pool.extract(res.trajectory))
@@ -123,10 +126,12 @@ class SimulatorValidator(Validator):
                 on_run(r)
 
         bs = self.config.batch_size
-        for start in range(0, len(theta), bs):
-            rows = list(range(start, min(start + bs, len(theta))))
+        left = self._streamed(sim, params, bs, finished) if getattr(sim, "native_stream", False) \
+            else list(range(len(theta)))
+        for start in range(0, len(left), bs):
+            rows = left[start:start + bs]
             try:
-                results = sim.simulate(params[rows], on_result=lambda i, res, rows=rows: finished(rows, i, res))
+                results = sim.simulate(params[rows], on_result=lambda i, res, rows=rows: finished(rows[i], res))
             except SimulationFailed:
                 results = []
                 for r in rows:  # isolate the failing row(s); rows already reported keep their outcome
@@ -142,6 +147,23 @@ class SimulatorValidator(Validator):
                 if res is not None:
                     settle(r, res)
         return SimulatedFeatures(out, failures, stats, trajs)
+
+    @staticmethod
+    def _streamed(sim: Simulator, params: np.ndarray, slots: int, finished: Callable[[int, Any], None]) -> list[int]:
+        """Run every row through the simulator's continuous-batching stream (``slots`` runs in flight, the next
+        row starting as soon as one ends, as dataset generation runs them), handing each result to
+        ``finished(row, result)``; return the rows it did not return (the stream raised: a run that blew up
+        or a device error), which then go through :meth:`Simulator.simulate` in chunks, a failing row alone."""
+        seen: set[int] = set()
+        try:
+            for i, res in sim.simulate_stream(params, slots):
+                seen.add(int(i))
+                finished(int(i), res)
+        except InvphysError:
+            raise
+        except Exception:  # the rows it did not return are re-run in chunks, a failing row alone
+            pass
+        return [r for r in range(len(params)) if r not in seen]
 
     def _pool(self, extractor: FeatureExtractor) -> Any:
         """The worker processes of ``extract_workers`` (None: extract in this thread), kept for later calls
