@@ -126,8 +126,10 @@ class SimulatorValidator(Validator):
                 on_run(r)
 
         bs = self.config.batch_size
-        left = self._streamed(sim, params, bs, finished) if getattr(sim, "native_stream", False) \
-            else list(range(len(theta)))
+        left = list(range(len(theta)))
+        if getattr(sim, "native_stream", False):
+            left = self._streamed(sim, params, bs, finished)
+            collect(True)   # the streamed rows' features still in the extraction workers
         for start in range(0, len(left), bs):
             rows = left[start:start + bs]
             try:
