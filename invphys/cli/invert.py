@@ -42,15 +42,11 @@ def invert(
     top_k: int = typer.Option(1, "--top-k", "-k", min=1, help="diverse candidates per target"),
     refine: int = typer.Option(0, "--refine", min=0, help="CMA-ES surrogate evaluations refining each candidate"),
     validate: bool = typer.Option(False, "--validate", help="re-run the simulator on the answers (R_actual)"),
-    sim_option: list[str] = typer.Option(None, "--sim-option",
-                                         help="simulator config KEY=VALUE for --validate and --polish"),
+    sim_option: list[str] = typer.Option(None, "--sim-option", help="simulator KEY=VALUE for --validate/--polish"),
     sim_batch: int = typer.Option(16, "--sim-batch", min=1,
                                   help="rows per simulator call for --validate and --polish (on a GPU: 64-200)"),
-    validate_workers: int = typer.Option(0, "--validate-workers", min=0, max=256,
-                                         help="feature-extraction processes for --validate (0: in the "
-                                              "simulator's thread; on a GPU: about the CPU cores)"),
-    polish: int | None = typer.Option(None, "--polish", help="CMA-ES on the simulator from each validated answer: "
-                                      "N new simulator runs per target (implies --validate)"),
+    validate_workers: int = typer.Option(0, "--validate-workers", min=0, max=256, help="feature extractors in parallel"),
+    polish: int | None = typer.Option(None, "--polish", help="N CMA-ES runs per target on the simulator (+validate)"),
     polish_below: float | None = typer.Option(None, "--polish-below", help="only targets with R_actual below R"),
     polish_sigma: float | None = typer.Option(None, "--polish-sigma", help="step in the [0, 1] cube (default 0.012)"),
     polish_popsize: int | None = typer.Option(None, "--polish-popsize", help="points per generation (default 8)"),

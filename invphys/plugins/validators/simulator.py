@@ -132,23 +132,32 @@ class SimulatorValidator(Validator):
             collect(True)   # the streamed rows' features still in the extraction workers
         for start in range(0, len(left), bs):
             rows = left[start:start + bs]
-            try:
-                results = sim.simulate(params[rows], on_result=lambda i, res, rows=rows: finished(rows[i], res))
-            except SimulationFailed:
-                results = []
-                for r in rows:  # isolate the failing row(s); rows already reported keep their outcome
-                    if r in settled or r in pending:
-                        results.append(None)
-                        continue
-                    try:
-                        results += sim.simulate(params[r:r + 1])
-                    except SimulationFailed as exc:
-                        results.append(exc)
+            results = self._chunk(sim, params, rows, finished, lambda r: r in settled or r in pending)
             collect(True)
             for r, res in zip(rows, results, strict=True):
                 if res is not None:
                     settle(r, res)
         return SimulatedFeatures(out, failures, stats, trajs)
+
+    @staticmethod
+    def _chunk(sim: Simulator, params: np.ndarray, rows: list[int], finished: Callable[[int, Any], None],
+               reported: Callable[[int], bool]) -> list[Any]:
+        """One :meth:`Simulator.simulate` call on ``rows`` (each run handed to ``finished(row, result)`` as it
+        ends); if it raises :class:`SimulationFailed`, the rows not ``reported`` yet are re-run one by one, a
+        failing row giving its exception. Returns one result (or exception, or None: reported) per row."""
+        try:
+            return sim.simulate(params[rows], on_result=lambda i, res: finished(rows[i], res))
+        except SimulationFailed:
+            results: list[Any] = []
+            for r in rows:  # isolate the failing row(s); rows already reported keep their outcome
+                if reported(r):
+                    results.append(None)
+                    continue
+                try:
+                    results += sim.simulate(params[r:r + 1])
+                except SimulationFailed as exc:
+                    results.append(exc)
+            return results
 
     @staticmethod
     def _streamed(sim: Simulator, params: np.ndarray, slots: int, finished: Callable[[int, Any], None]) -> list[int]:
