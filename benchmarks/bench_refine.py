@@ -156,7 +156,17 @@ def _strategy_block(records: list[dict[str, Any]], wall: float, n_boot: int) -> 
             "r_refined_ci": bootstrap(_r_values(records, "r_actual"), n_boot),
             "r_best_start_ci": bootstrap(_r_values(records, "start_r_actual"), n_boot),
             "below_half": int(sum(r["warning"] is not None for r in records)),
+            "target_done_s": _done_s(records),
             "per_target": [{k: v for k, v in r.items() if k not in ("call",)} for r in records]}
+
+
+def _done_s(records: list[dict[str, Any]]) -> dict[str, float] | None:
+    """When the targets' last generations came back (seconds into the refine): the median, 90th percentile and
+    last target against the wall time show whether a refine is bound by its longest chains of generations."""
+    done = [r["generations_back_s"][-1] for r in records if r.get("generations_back_s")]
+    if not done:
+        return None
+    return {"median": float(np.median(done)), "p90": float(np.percentile(done, 90)), "max": float(max(done))}
 
 
 def _paired(blocks: dict[str, dict[str, Any]], n_boot: int) -> dict[str, Any]:

@@ -26,6 +26,10 @@ def test_bench_refine_writes_one_json(tmp_path_factory, tmp_path, monkeypatch, c
     assert rec["refine_over_dataset"] > 0 and rec["refine"]["never_worse"]
     assert rec["refine"]["r_refined"] >= rec["refine"]["r_best_start"] >= 0
     assert len(rec["per_target"]) == 3
+    done = rec["sets"][next(iter(rec["sets"]))]["strategies"]["cma"]["target_done_s"]
+    backs = [t["generations_back_s"] for t in rec["per_target"]]
+    assert all(len(b) == len(t["batches"]) and b == sorted(b) for b, t in zip(backs, rec["per_target"], strict=True))
+    assert 0 < done["median"] <= done["p90"] <= done["max"] == max(b[-1] for b in backs)
 
 
 def test_bench_refine_shards_a_set_with_first_and_records_the_asks(tmp_path_factory, tmp_path, monkeypatch) -> None:

@@ -25,7 +25,7 @@ def test_bench_refine_compares_strategies_on_two_target_sets(tmp_path_factory, t
     monkeypatch.setattr(bench, "_write", lambda result, o: (writes.append(json.dumps(result)), real_write(result, o)))
     assert bench.main(argv) == 0
     rec = json.loads(out.read_text())
-    assert len(writes) == 4   # after every strategy of every set
+    assert len(writes) == 5   # after every strategy of every set, and the first refine before its dataset timing
     assert rec["refine"]["strategy"] == "cma" and rec["refine"]["runs"] == 48 and rec["dataset"] is None
     for name in ("a", "b"):
         s = rec["sets"][name]

@@ -162,6 +162,7 @@ class TargetRefine:
     bests: list[float] = field(default_factory=list)   # best score after 0, 1, 2, ... told runs
     ask_s: float = 0.0             # seconds its search spent proposing and being told (wall, between runs)
     ask_cpu_s: float = 0.0         # the same blocks' CPU seconds of the thread running them (ask_s >> it: waited)
+    back_s: list[float] = field(default_factory=list)  # seconds into the refine when each generation was all back
 
 
 _GLOBAL_RANDOM = threading.RLock()   # NumPy's global random state, swapped by CMASearch
@@ -300,6 +301,7 @@ def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int
     stop = stop if stop is not None and 0.0 < stop < 1.0 else None
     searches = [_Search(t, budget, popsize, sigma0, d, strategy, stop, patience, min_gain) for t in targets]
     asks = _Asks(searches, log, score, on_run or (lambda _n, _r: None), int(ask_workers))
+    t_start = time.perf_counter()
     try:
         for k, s in enumerate(searches):
             _start_known(s, score)
@@ -312,6 +314,7 @@ def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int
             s.results[j] = (np.asarray(y, float), float(seconds), device, False)
             asks.back += 1
             if all(r is not None for r in s.results):
+                s.t.back_s.append(time.perf_counter() - t_start)
                 asks.submit(k)
         asks.drain()
     finally:

@@ -286,7 +286,7 @@ def _apply(inv: Any, r: InversionResult, t: Any, budget: int, settings: dict[str
         return float(v) if np.isfinite(v) else None
 
     return {"budget": budget, "runs": t.runs, "stopped": t.stopped, "stalled": t.stalled, "batches": list(t.batches),
-            "replayed_runs": t.replayed,
+            "replayed_runs": t.replayed, "generations_back_s": [round(v, 3) for v in t.back_s],
             "simulator_s": t.seconds, "ask_s": t.ask_s, "ask_cpu_s": t.ask_cpu_s, "r_answer": f(first),
             "start_source": source, "start_r_actual": f(start_r),
             "r_actual": f(t.score), "improved": improved, "known_starts": int(len(t.starts) - n), "warning": warning,
