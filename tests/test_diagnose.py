@@ -238,6 +238,10 @@ def test_diagnose_writes_its_report_and_stores_it_in_the_bundle(bundle, tmp_path
     assert 0.0 <= report["check_after"]["tarp"]["levels"]["0.9"]["rate"] <= 1.0
     assert 0.0 <= report["outside_box"]["clipped_share"] <= 1.0
     assert set(report["ood"]["candidates"]) >= {"knn", "misfit", "ensemble_std", "outside_fraction"}
+    failing = report["ood"]["failure"]["failing_check"]   # the failing check rows each AUROC rests on
+    assert set(failing) == {"parameter_error", "r_surr"} and all(isinstance(n, int) and n >= 0 for n in failing.values())
+    assert f"({failing['r_surr']} failing rows" in (out / "summary.md").read_text() or \
+        f"on only {failing['r_surr']} failing rows" in (out / "summary.md").read_text()
     for f in ("report.json", "calibration.json", "summary.md", "rank_histograms.png", "coverage.png"):
         assert (out / f).is_file(), f
     calib = json.loads((out / "calibration.json").read_text())
@@ -298,3 +302,11 @@ def test_diagnose_fits_the_failure_warning_from_validated_answers_and_keeps_it(b
     from invphys.inverter.bundle import Bundle
 
     assert _failure(type("Inv", (), {"bundle": Bundle(bundle, verify=False)})(), None) is None
+
+
+def test_an_auroc_on_few_failing_rows_says_so() -> None:
+    from invphys.evaluation.diagnose_report import FEW_FAILING, _auc
+
+    assert _auc(0.99, 3) == "0.99 (on only 3 failing rows: too few to rank the score)"
+    assert _auc(0.81, FEW_FAILING) == f"0.81 ({FEW_FAILING} failing rows)"
+    assert _auc(0.5, None) == "0.50"   # a report written before the counts: the number alone

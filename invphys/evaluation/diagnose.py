@@ -174,7 +174,8 @@ def _ood(inverter: Any, held: HeldOut, draws: Any, identified: np.ndarray, fit: 
         report.update(candidates=table, chosen=best,
                       failure={"parameter_error_above": FAILURE_ERROR, "over": "identified parameters",
                                "r_surr_below": FAILURE_R, "stored_rows_by_real_r": int(np.isfinite(known).sum()),
-                               "rate_check": {k: float(v[~fit].mean()) for k, v in labels.items()}},
+                               "rate_check": {k: float(v[~fit].mean()) for k, v in labels.items()},
+                               "failing_check": {k: int(v[~fit].sum()) for k, v in labels.items()}},
                       chosen_by=f"AUROC on the fit rows for the {CHOOSE_BY!r} failures, among the scores the "
                                 f"warning computes from the target alone ({', '.join(usable)}); the others are "
                                 f"reported only", note="misfit is 1 - R_surr: its AUROC on the r_surr label is that label")

@@ -113,14 +113,29 @@ def _ood_line(o: dict[str, Any]) -> str:
     fires = f"warning above {o['threshold']:.3g}: fires on {_pct(o['check']['fire_rate'])} of check rows"
     if not o["candidates"]:
         return f"Out-of-distribution score: `{o['chosen']}` (not measured against failures: {o.get('note')}); {fires}."
-    auc = o["candidates"][o["chosen"]]
-    return (f"Out-of-distribution score: `{o['chosen']}`, AUROC on the check rows {_f2(auc['r_surr']['check'])} "
+    auc, failing = o["candidates"][o["chosen"]], o["failure"].get("failing_check") or {}
+    return (f"Out-of-distribution score: `{o['chosen']}`, AUROC on the check rows "
+            f"{_auc(auc['r_surr']['check'], failing.get('r_surr'))} "
             f"for answers that do not reproduce their target (R_surr < {o['failure']['r_surr_below']:g}"
             f"{_stored_note(o['failure'])}), "
-            f"{_f2(auc['parameter_error']['check'])} for answers whose error over the identified parameters "
+            f"{_auc(auc['parameter_error']['check'], failing.get('parameter_error'))} for answers whose error over "
+            f"the identified parameters "
             f"exceeds {o['failure']['parameter_error_above']:g}; {fires} and on "
             f"{_pct(o['check']['recall_r_surr']) if o['check'].get('recall_r_surr') is not None else 'n/a (none)'} "
             f"of those whose answer does not reproduce the target.")
+
+
+#: fewer failing check rows than this and an AUROC says little (one row moves it by 1 / n)
+FEW_FAILING = 10
+
+
+def _auc(value: float | None, failing: int | None) -> str:
+    """An AUROC with the number of failing rows it rests on (reports without the count: the number alone)."""
+    if failing is None:
+        return _f2(value)
+    if failing < FEW_FAILING:
+        return f"{_f2(value)} (on only {failing} failing rows: too few to rank the score)"
+    return f"{_f2(value)} ({failing} failing rows)"
 
 
 def _stored_note(failure: dict[str, Any]) -> str:
