@@ -95,3 +95,16 @@ def test_inverter_validate_extracts_in_worker_processes_with_the_same_answers(tm
     assert r_actual[0] == r_actual[1] and all(np.isfinite(r_actual[0]))
     with pytest.raises(InvphysError, match="extract_workers must be >= 0"):
         inv.validate(inv.invert_many(y[:1]), extract_workers=-1)
+
+
+def test_an_error_of_the_callers_callback_is_not_taken_for_a_broken_stream() -> None:
+    """Only the stream's own failures send rows to the chunked path; a progress callback that raises stops the
+    validation with its error (swallowed, its row would have stayed NaN without a failure)."""
+    import pytest
+
+    def on_run(row: int) -> None:
+        raise ValueError("progress bar broke")
+
+    with pytest.raises(ValueError, match="progress bar broke"):
+        SimulatorValidator(batch_size=2).simulate_features(_theta(3), StreamingOscillator(substeps=8), ToyFeatures(),
+                                                           on_run=on_run)

@@ -166,14 +166,18 @@ class SimulatorValidator(Validator):
         ``finished(row, result)``; return the rows it did not return (the stream raised: a run that blew up
         or a device error), which then go through :meth:`Simulator.simulate` in chunks, a failing row alone."""
         seen: set[int] = set()
-        try:
-            for i, res in sim.simulate_stream(params, slots):
-                seen.add(int(i))
-                finished(int(i), res)
-        except InvphysError:
-            raise
-        except Exception:  # the rows it did not return are re-run in chunks, a failing row alone
-            pass
+        stream = iter(sim.simulate_stream(params, slots))
+        while True:
+            try:
+                i, res = next(stream)
+            except StopIteration:
+                break
+            except InvphysError:
+                raise
+            except Exception:  # the stream broke: the rows it did not return are re-run in chunks
+                break
+            seen.add(int(i))
+            finished(int(i), res)   # what this raises is the caller's, as on the chunked path
         return [r for r in range(len(params)) if r not in seen]
 
     def _pool(self, extractor: FeatureExtractor) -> Any:
