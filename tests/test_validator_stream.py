@@ -102,8 +102,12 @@ def test_an_error_of_the_callers_callback_is_not_taken_for_a_broken_stream() -> 
     validation with its error (swallowed, its row would have stayed NaN without a failure)."""
     import pytest
 
-    def on_run(row: int) -> None:
-        raise ValueError("progress bar broke")
+    calls: list[int] = []
+
+    def on_run(row: int) -> None:   # breaks once (the old code swallowed it and returned that row as NaN)
+        calls.append(row)
+        if len(calls) == 1:
+            raise ValueError("progress bar broke")
 
     with pytest.raises(ValueError, match="progress bar broke"):
         SimulatorValidator(batch_size=2).simulate_features(_theta(3), StreamingOscillator(substeps=8), ToyFeatures(),
