@@ -112,3 +112,32 @@ def test_an_error_of_the_callers_callback_is_not_taken_for_a_broken_stream() -> 
     with pytest.raises(ValueError, match="progress bar broke"):
         SimulatorValidator(batch_size=2).simulate_features(_theta(3), StreamingOscillator(substeps=8), ToyFeatures(),
                                                            on_run=on_run)
+
+
+def test_invert_validate_workers_on_the_command_line(tmp_path_factory) -> None:
+    """``invphys invert --validate --validate-workers 1`` validates through an extraction process with the
+    in-thread answer; a negative count is one error line, exit 2."""
+    import json
+
+    from test_inverter_support import toy_run
+    from typer.testing import CliRunner
+
+    from invphys.cli import app
+    from invphys.core.dataset import DatasetStore
+
+    run = toy_run(tmp_path_factory.getbasetemp())
+    bundle = run / "inverter"
+    y = DatasetStore(next((run / "dataset").rglob("_manifest.json")).parent).arrays(ok_only=True).y[0]
+    import invphys
+
+    names = invphys.load_inverter(bundle).feature_names
+    feats = [a for n, v in zip(names, y, strict=True) for a in ("--feature", f"{n}={v}")]
+    runner = CliRunner()
+    r_actual = []
+    for workers in ("0", "1"):
+        out = runner.invoke(app, ["invert", str(bundle), *feats, "--validate", "--validate-workers", workers, "--json"])
+        assert out.exit_code == 0, out.output
+        r_actual.append(json.loads(out.stdout)["results"][0]["candidates"][0]["r_actual"])
+    assert r_actual[0] == r_actual[1] and r_actual[0] > 0
+    out = runner.invoke(app, ["invert", str(bundle), *feats, "--validate", "--validate-workers", "-1"])
+    assert out.exit_code == 2 and "--validate-workers" in out.output and "Traceback" not in out.output, out.output
