@@ -15,6 +15,7 @@ import numpy as np
 
 from invphys.core.errors import InvphysError
 from invphys.core.results import RunStats, SimulationResult
+from invphys.core.stream import stream_until_broken, unreturned
 from invphys.plugins.executors import _deadline
 from invphys.plugins.executors._extract_pool import DEFAULT_TIMEOUT_S
 
@@ -128,7 +129,8 @@ def stream_rows(simulator: Any, extractor: Any, params: np.ndarray, batch_size: 
     simulator), features extracted and trajectories dropped as runs finish (with a ``pool``: in worker
     processes, each row yielded once its features are back, so rows may come out of finishing order).
     If the stream raises (other than an :class:`InvphysError`), the rows it has not returned go through
-    :func:`simulate_batch` instead, so one bad row fails alone as on the batch path."""
+    :func:`simulate_batch` instead, so one bad row fails alone as on the batch path
+    (:func:`~invphys.core.stream.stream_until_broken`)."""
     params = np.atleast_2d(np.asarray(params, dtype=np.float64))
     seen: set[int] = set()
     pending: dict[int, tuple[SimulationResult, Any]] = {}
@@ -138,25 +140,18 @@ def stream_rows(simulator: Any, extractor: Any, params: np.ndarray, batch_size: 
             res, fut = pending.pop(j)
             yield j, pool.resolve(res, fut)
 
-    try:
-        for i, res in simulator.simulate_stream(params, batch_size):
-            seen.add(int(i))
-            if pool is None or extractor is None:
-                _finish(res, extractor, timeout_s)
-                yield int(i), res
-            else:
-                pending[int(i)] = (res, pool.submit(res))
-                yield from ready(False)
-    except InvphysError:
-        raise
-    except Exception:
-        yield from ready(True)
-        rest = np.array([i for i in range(len(params)) if i not in seen], dtype=np.int64)
-        if len(rest):
-            yield from zip(rest.tolist(), simulate_batch(simulator, extractor, params[rest], isolate_failures, pool,
-                                                         timeout_s), strict=True)
-        return
+    for i, res in stream_until_broken(simulator, params, batch_size, seen):
+        if pool is None or extractor is None:
+            _finish(res, extractor, timeout_s)
+            yield i, res
+        else:
+            pending[i] = (res, pool.submit(res))
+            yield from ready(False)
     yield from ready(True)
+    rest = np.array(unreturned(len(params), seen), dtype=np.int64)
+    if len(rest):
+        yield from zip(rest.tolist(), simulate_batch(simulator, extractor, params[rest], isolate_failures, pool,
+                                                     timeout_s), strict=True)
 
 
 def run_batch(simulator_spec: dict[str, Any], extractor_spec: dict[str, Any] | None, params: np.ndarray,

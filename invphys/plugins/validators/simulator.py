@@ -13,6 +13,7 @@ from invphys.core.errors import InvphysError, SimulationFailed
 from invphys.core.interfaces import FeatureExtractor, PluginConfig, Simulator, Validator
 from invphys.core.objectives import recovery_reward
 from invphys.core.results import RunStats, SimulationResult, ValidationRecord
+from invphys.core.stream import stream_until_broken, unreturned
 from invphys.plugins.executors import _deadline
 from invphys.plugins.executors._extract_pool import DEFAULT_TIMEOUT_S
 
@@ -166,19 +167,9 @@ class SimulatorValidator(Validator):
         ``finished(row, result)``; return the rows it did not return (the stream raised: a run that blew up
         or a device error), which then go through :meth:`Simulator.simulate` in chunks, a failing row alone."""
         seen: set[int] = set()
-        stream = iter(sim.simulate_stream(params, slots))
-        while True:
-            try:
-                i, res = next(stream)
-            except StopIteration:
-                break
-            except InvphysError:
-                raise
-            except Exception:  # the stream broke: the rows it did not return are re-run in chunks
-                break
-            seen.add(int(i))
-            finished(int(i), res)   # what this raises is the caller's, as on the chunked path
-        return [r for r in range(len(params)) if r not in seen]
+        for i, res in stream_until_broken(sim, params, slots, seen):
+            finished(i, res)   # what this raises is the caller's, as on the chunked path
+        return unreturned(len(params), seen)
 
     def _pool(self, extractor: FeatureExtractor) -> Any:
         """The worker processes of ``extract_workers`` (None: extract in this thread), kept for later calls
