@@ -15,6 +15,9 @@ from invphys.core.errors import InvphysError
 from invphys.core.spec import ExperimentSpec
 from invphys.tracking import NullTracker, Tracker
 
+#: a finished stage's record: the fingerprint of the inputs it used (see :mod:`invphys.pipeline.runner`)
+DONE_FILE = "DONE.json"
+
 
 @dataclass
 class StageContext:
@@ -42,6 +45,10 @@ class StageContext:
 
     def stage_dir_of(self, stage: str) -> Path:
         return self.out / stage
+
+    def finished(self, stage: str) -> bool:
+        """Whether ``stage`` has finished in this run directory (its :data:`DONE_FILE` is written)."""
+        return (self.stage_dir_of(stage) / DONE_FILE).is_file()
 
     @property
     def logger(self) -> logging.Logger:

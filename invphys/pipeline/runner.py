@@ -31,11 +31,10 @@ import yaml
 from invphys.core.atomic import output_directory, write_json
 from invphys.core.errors import InvphysError, did_you_mean
 from invphys.core.spec import STAGES, ExperimentSpec, check_output_directory, load_spec
-from invphys.pipeline.context import StageContext
+from invphys.pipeline.context import DONE_FILE, StageContext
 
 __all__ = ["StageContext", "fingerprint", "run_spec", "stage_module"]
 
-DONE_FILE = "DONE.json"
 SUMMARY_FILE = "summary.json"
 #: most figures of one stage sent to the tracker as images (its top level, then one folder down)
 MAX_IMAGES = 64

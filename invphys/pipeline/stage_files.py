@@ -78,7 +78,7 @@ def load_evaluation_rows(ctx: StageContext) -> list[dict[str, Any]]:
 def load_active(ctx: StageContext) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[dict[str, Any]]]:
     """(rows, validation rows, rounds) written by the active stage, or empty lists when it has not run."""
     d = ctx.stage_dir_of("active")
-    if not (d / "DONE.json").is_file():
+    if not ctx.finished("active"):
         return [], [], []
     return (json.loads((d / "rows.json").read_text()), json.loads((d / "validation.json").read_text()),
             json.loads((d / ROUNDS_FILE).read_text()))
@@ -97,7 +97,9 @@ def baselines(ctx: StageContext, targets: dict[str, Any]) -> tuple[list[dict[str
     blocks = ctx.spec.evaluation.baselines
     if not blocks:
         return [], {}
-    done = ctx.stage_dir_of("train") / "DONE.json"
+    from invphys.pipeline.context import DONE_FILE
+
+    done = ctx.stage_dir_of("train") / DONE_FILE
     # the seeding: answers cached before posterior draws were seeded per target are not served again
     what = {"baselines": blocks, "rows": targets["rows"], "features": targets["features"],
             "dataset": ctx.spec.section_dump(["dataset"]), "seed": ctx.seed,

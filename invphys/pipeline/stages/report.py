@@ -424,7 +424,7 @@ def _evaluation_rows(ctx: StageContext, targets: dict[str, Any]) -> list[dict[st
     """The validate stage's evaluation rows; without a validate stage, the baselines answered here."""
     from invphys.pipeline.stage_files import baselines, load_evaluation_rows
 
-    if (ctx.stage_dir_of("validate") / "DONE.json").is_file():
+    if ctx.finished("validate"):
         return load_evaluation_rows(ctx)
     if not ctx.spec.evaluation.baselines or ctx.spec.surrogate is None:
         return []

@@ -39,7 +39,7 @@ def refresh(ctx: StageContext) -> bool:
     bundle, with the policies, is the run's then; it refreshes it itself). True when rewritten."""
     from invphys.pipeline.artifacts import write_inverter
 
-    if (ctx.stage_dir_of("invert") / "DONE.json").is_file():
+    if ctx.finished("invert"):
         return False
     write_inverter(ctx, with_policies=False)
     return True
