@@ -245,7 +245,7 @@ def _answer_sets(inv: Any, sets: dict[str, str], a: argparse.Namespace) -> dict[
     an ``--answers-in`` file gave for the same targets, re-scored as candidates by this bundle."""
     from invphys.core.dataset import DatasetStore
 
-    given = _read_starts(a.answers_in, a) if a.answers_in else {}
+    given_method, given = _read_starts(a.answers_in, a) if a.answers_in else (None, {})
     out: dict[str, Any] = {}
     for name, path in sets.items():
         y = DatasetStore(path).arrays(ok_only=True).y[a.first:a.first + a.limit]
@@ -254,7 +254,8 @@ def _answer_sets(inv: Any, sets: dict[str, str], a: argparse.Namespace) -> dict[
             starts = given[name]
             if len(starts) != len(y):
                 raise SystemExit(f"error: {a.answers_in} holds {len(starts)} targets of set {name!r}, not {len(y)}")
-            results = [inv.evaluate(theta=t, target=v, label=a.method or "given") for t, v in zip(starts, y, strict=True)]
+            results = [inv.evaluate(theta=t, target=v, label=given_method or "given")
+                       for t, v in zip(starts, y, strict=True)]
         elif a.answers_in:
             raise SystemExit(f"error: {a.answers_in} holds no set {name!r}")
         else:
@@ -263,7 +264,8 @@ def _answer_sets(inv: Any, sets: dict[str, str], a: argparse.Namespace) -> dict[
     return out
 
 
-def _read_starts(path: Path, a: argparse.Namespace) -> dict[str, list[np.ndarray]]:
+def _read_starts(path: Path, a: argparse.Namespace) -> tuple[str | None, dict[str, list[np.ndarray]]]:
+    """(the method that answered, each set's starts per target) of an ``--answers-out`` file for these targets."""
     import json
 
     data = json.loads(path.read_text())
@@ -272,8 +274,8 @@ def _read_starts(path: Path, a: argparse.Namespace) -> dict[str, list[np.ndarray
     if (data["bundle"], data["first"], data["limit"]) != (a.bundle, a.first, a.limit):
         raise SystemExit(f"error: {path} answers {data['bundle']} targets {data['first']}+{data['limit']}, "
                          f"not {a.bundle} {a.first}+{a.limit}")
-    a.method = data["method"]
-    return {name: [np.asarray(t, dtype=np.float64) for t in s["starts"]] for name, s in data["sets"].items()}
+    return data["method"], {name: [np.asarray(t, dtype=np.float64) for t in s["starts"]]
+                             for name, s in data["sets"].items()}
 
 
 def _write_starts(answered: dict[str, Any], a: argparse.Namespace) -> None:
@@ -365,7 +367,7 @@ def main(argv: list[str] | None = None) -> int:
     for n_set, (name, path) in enumerate(sets.items()):
         y, results, answer_s = answered[name]
         result["answer_s"] = result.get("answer_s", 0.0) + answer_s
-        result["method"] = a.method if a.answers_in else (results[0].method if results else a.method)
+        result["method"] = results[0].method if results else a.method   # the starts' own (an --answers-in file's)
         blocks: dict[str, dict[str, Any]] = {}
         entry = result["sets"][name] = {"path": path, "targets": len(y), "first": a.first, "strategies": blocks}
         for n_strat, strategy in enumerate(a.strategy):

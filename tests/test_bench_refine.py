@@ -109,5 +109,6 @@ def test_starts_answered_on_one_machine_are_refined_on_another(tmp_path_factory,
     key = [[(t["start_r_actual"], t["r_actual"], t["runs"]) for t in
             recs[n]["sets"]["a"]["strategies"]["corrected"]["per_target"]] for n in ("here", "given")]
     assert key[0] == key[1] and recs["given"]["answers_in"] == str(starts)
+    assert recs["given"]["method"] == recs["here"]["method"] == saved["method"]   # the starts' method, recorded
     with pytest.raises(SystemExit, match=r"targets 0\+3, not .* 1\+3"):
         bench.main([*common, "--first", "1", "--answers-in", str(starts), "--out", str(tmp_path / "x.json")])
