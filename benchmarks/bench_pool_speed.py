@@ -2,7 +2,7 @@
 
     python benchmarks/bench_pool_speed.py --bundle inverters/orange_peel_paper_all \\
         --targets uniform=datasets/orange_peel_paper_fresh_uniform edge=datasets/orange_peel_paper_fresh_edge \\
-        --methods default pool_nsf4 --out benchmarks/results/pool_speed_paper_all_cpu.json
+        --methods default pool_nsf4 --workers 2 --out benchmarks/results/pool_speed_paper_all_cpu.json
 
 Every set is answered as one batch (``invert_many``, the default interval draws) ``--repeat`` times per
 method; the fastest repeat counts (the machine may be shared). Per method and set: milliseconds per
@@ -16,6 +16,9 @@ target, and per stage (exclusive time, milliseconds per target):
 * ``uncertainty``: the draws' recalibration (the intervals);
 * ``result objects``: candidates, error bars, warnings and the :class:`InversionResult` per target;
 * ``other``: the rest (conditions, seeds, batching).
+
+``--workers N``: all sets together answered by N worker processes (``invert_many(workers=N)``): the first call
+(processes started, each loading the bundle) and the fastest later call (processes kept), per method.
 
 No simulator runs: the answers are only timed. ``default`` is the bundle's default method. ``flow_inverse``
 says which code drew each flow's rows: invphys' spline sampler (sbi's ``nsf``, the same bits as nflows'
@@ -140,6 +143,21 @@ def time_method(inv: Any, method: str, sets: dict[str, np.ndarray], repeat: int,
     return out
 
 
+def time_workers(inv: Any, method: str, y: np.ndarray, workers: int, repeat: int, seed: int,
+                 kw: dict[str, Any]) -> dict[str, Any]:
+    """All targets ``y`` in one ``invert_many(workers=...)`` call: the first call (processes started, each
+    loading the bundle) and the fastest of ``repeat`` later calls (the processes kept), ms per target."""
+    def once() -> float:
+        t0 = time.perf_counter()
+        inv.invert_many(y, method=method, seed=seed, workers=workers, **kw)
+        return time.perf_counter() - t0
+
+    first = once()
+    later = min(once() for _ in range(repeat))
+    return {"workers": workers, "targets": len(y), "first_call_ms_per_target": round(1000 * first / len(y), 3),
+            "later_calls_ms_per_target": round(1000 * later / len(y), 3)}
+
+
 def flow_inverse(inv: Any) -> dict[str, str]:
     """Per posterior method the answers drew from: which code ran its flow's inverse."""
     from invphys.inverter import draws
@@ -165,6 +183,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--draws", type=int, default=None, help="interval draws per target (default: invert's)")
     p.add_argument("--flow-threads", type=int, default=None, help="torch threads while drawing (default: draws.THREADS)")
+    p.add_argument("--workers", type=int, nargs="*", default=[],
+                   help="also time all targets answered by N worker processes (invert_many(workers=N))")
     p.add_argument("--out", type=Path, default=None)
     a = p.parse_args(argv)
     import torch
@@ -184,6 +204,10 @@ def main(argv: list[str] | None = None) -> int:
         n = sum(v["targets"] for v in r.values())
         r["all"] = {"targets": n, "ms_per_target": round(sum(v["ms_per_target"] * v["targets"]
                                                              for v in r.values()) / n, 3)}
+    y_all = np.concatenate(list(sets.values()))
+    for meth, r in results.items():
+        for w in a.workers:
+            r.setdefault("workers", []).append(time_workers(inv, meth, y_all, w, a.repeat, a.seed, kw))
     m = _machine()
     m.emit({"device": f"cpu ({m.cpu_name()}), {os.cpu_count()} cores", "bundle": a.bundle,
             "default_method": inv.default_method, "targets": {k: len(v) for k, v in sets.items()},

@@ -41,6 +41,7 @@ def invert(
     method: str | None = typer.Option(None, "--method", "-m", help="bundle method or installed optimiser"),
     top_k: int = typer.Option(1, "--top-k", "-k", min=1, help="diverse candidates per target"),
     refine: int = typer.Option(0, "--refine", min=0, help="CMA-ES surrogate evaluations refining each candidate"),
+    workers: int = typer.Option(0, "--workers", min=0, max=256, help="answer in N processes (hundreds of targets)"),
     validate: bool = typer.Option(False, "--validate", help="re-run the simulator on the answers (R_actual)"),
     sim_option: list[str] = typer.Option(None, "--sim-option", help="simulator KEY=VALUE for --validate/--polish"),
     sim_batch: int = typer.Option(16, "--sim-batch", min=1,
@@ -57,8 +58,7 @@ def invert(
     polish_confirm_candidates: int | None = typer.Option(
         None, "--polish-confirm-candidates", help="candidates per target that --polish-confirm re-simulates "
         "(default 4; cost: candidates x K runs per target)"),
-    sim_refine: int | None = typer.Option(None, "--sim-refine", help="refine each answer on the simulator with N "
-                                          "runs per target, all targets in one continuous-batching stream"),
+    sim_refine: int | None = typer.Option(None, "--sim-refine", help="N simulator runs per target refining answers"),
     sim_refine_starts: int = typer.Option(4, "--sim-refine-starts", min=1,
                                           help="candidates per target that --sim-refine starts from (default 4)"),
     sim_refine_popsize: int | None = typer.Option(None, "--sim-refine-popsize", help="points per batch (default 8)"),
@@ -106,7 +106,7 @@ def invert(
         console.print(f"[yellow]warning:[/] {escape(note)}", soft_wrap=True)
     top_k = max(top_k, sim_refine_starts) if refine_settings else top_k
     results = inv.invert_many(targets, method=method, top_k=top_k, refine=refine, seed=seed, level=level,
-                              draws=max(samples or 0, INTERVAL_DRAWS))
+                              draws=max(samples or 0, INTERVAL_DRAWS), workers=workers)
     _check_results(results, samples)
     records = _simulate(inv, results, sim_option or [], seed, sim_batch, validate, polish_settings, refine_settings,
                         validate_workers)

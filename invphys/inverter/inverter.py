@@ -327,10 +327,13 @@ class Inverter:
 
     def invert_many(self, targets: Any, method: str | None = None, top_k: int = 1, refine: int = 0,
                     partial: bool = False, seed: int = 0, level: float = DEFAULT_LEVEL,
-                    draws: int = INTERVAL_DRAWS) -> list[InversionResult]:
+                    draws: int = INTERVAL_DRAWS, workers: int = 0) -> list[InversionResult]:
         """Answer several targets; each answer depends on its target, the method and ``seed`` only (never
-        on the other targets or their order)."""
-        seed = check_seed(seed)
+        on the other targets or their order). ``workers`` > 1: answered by that many processes, each loading
+        the bundle (:mod:`invphys.inverter.parallel`; the same answers, for hundreds of targets)."""
+        from invphys.inverter.parallel import answer_in_processes, check_workers
+
+        seed, workers = check_seed(seed), check_workers(workers)
         level = check_level(level)
         for name, v, low in (("top_k", top_k, 1), ("refine", refine, 0), ("draws", draws, 1)):
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
@@ -339,6 +342,10 @@ class Inverter:
             raise InvphysError(f"draws must be at most {MAX_DRAWS} per target, got {draws}")
         t = self.targets(targets, partial)
         label, entry = self._entry(method)
+        if workers > 1 and len(t) > 1:
+            return answer_in_processes(self, t, workers, {"method": method, "top_k": top_k, "refine": refine,
+                                                           "seed": seed, "level": level, "draws": draws},
+                                       load_inverter)
         with quiet(), blas_threads(self.threads if len(t) >= BLAS_LIMIT_ROWS or t.noisy().any() else None):
             answers = self._answers(label, entry)
             answers.check_top_k(top_k)

@@ -1,0 +1,106 @@
+"""Answering many targets in worker processes: :meth:`Inverter.invert_many` with ``workers=N``.
+
+Each worker loads the same bundle once and answers contiguous slices of the targets; the slices come back in
+order. Every answer depends on its target, the method and the seed only (never on the other targets, the
+batch or the order), so the answers are those of one process, bit for bit; only the per-target timings
+differ. Workers start with ``spawn`` (a forked torch is not safe) and each pays the bundle's load and its
+first answer (a few seconds), so processes pay off for hundreds of targets, not a handful.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import warnings
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from invphys.core.errors import InvphysError
+from invphys.core.user_targets import UserTargets
+
+#: slices per worker: a few each, so a worker that drew slow targets does not hold the others up
+SLICES_PER_WORKER = 4
+#: most worker processes
+MAX_WORKERS = 256
+
+_INVERTER: Any = None
+
+
+def check_workers(workers: Any) -> int:
+    """``workers`` as a count (0 or 1: this process), or one line."""
+    if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or not 0 <= workers <= MAX_WORKERS:
+        raise InvphysError(f"workers must be a whole number in 0 .. {MAX_WORKERS}, got {workers!r}")
+    return int(workers)
+
+
+def slices(n: int, workers: int) -> list[np.ndarray]:
+    """Rows ``0..n-1`` cut into contiguous slices, about :data:`SLICES_PER_WORKER` per worker."""
+    k = max(1, min(n, workers * SLICES_PER_WORKER))
+    return [s for s in np.array_split(np.arange(n), k) if len(s)]
+
+
+def take(t: UserTargets, rows: np.ndarray) -> UserTargets:
+    """The targets ``rows`` of ``t``."""
+    return replace(t, values=t.values[rows], mask=t.mask[rows], labels=[t.labels[i] for i in rows],
+                   std=None if t.std is None else t.std[rows])
+
+
+def answer_in_processes(inv: Any, t: UserTargets, workers: int, options: dict[str, Any],
+                        loader: Callable[..., Any]) -> list[Any]:
+    """``inv.invert_many(t, **options)`` answered by ``workers`` processes, results in target order; each
+    process loads the bundle with ``loader`` (``load_inverter``, handed in by reference). The processes stay up
+    for the inverter's later calls with as many workers (their start is paid once)."""
+    if inv.bundle._registry is not None and not _default_registry(inv.bundle._registry):
+        raise InvphysError("workers: this bundle was loaded with a registry of its own; worker processes "
+                           "load plugins from installed entry points only (answer with workers=0)")
+    pool = _pool(inv, workers, loader)
+    try:
+        futures = [pool.submit(_answer, take(t, rows), options, inv.pool_settings, inv.threads)
+                   for rows in slices(len(t), workers)]
+        return [r for f in futures for r in f.result()]
+    except BrokenProcessPool as exc:   # a worker died (killed, out of memory): the next call starts afresh
+        inv.__dict__.pop("_answer_pool", None)
+        raise InvphysError(f"a worker process died while answering ({exc}); answer with fewer workers or "
+                           "workers=0") from None
+
+
+def _pool(inv: Any, workers: int, loader: Callable[..., Any]) -> ProcessPoolExecutor:
+    """The inverter's worker processes (started with ``spawn``), kept while it asks for as many."""
+    kept = inv.__dict__.get("_answer_pool")
+    if kept is not None and kept[0] == workers:
+        return kept[1]
+    if kept is not None:
+        kept[1].shutdown()
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_load,
+                               initargs=(loader, str(Path(inv.bundle.root).resolve())))
+    inv.__dict__["_answer_pool"] = (workers, pool)
+    return pool
+
+
+def _default_registry(registry: Any) -> bool:
+    from invphys import registry as reg
+
+    return registry is reg.default_registry()
+
+
+def _load(loader: Callable[..., Any], root: str) -> None:
+    """In a worker: load the bundle once (its checks were the parent's; their warnings are not repeated)."""
+    global _INVERTER
+    logging.getLogger("invphys").setLevel(logging.ERROR)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _INVERTER = loader(root, strict=False)
+
+
+def _answer(t: UserTargets, options: dict[str, Any], pool_settings: Any, threads: int | None) -> list[Any]:
+    _INVERTER.pool_settings, _INVERTER.threads = pool_settings, threads
+    return list(_INVERTER.invert_many(t, workers=0, **options))
+
+
+__all__ = ["MAX_WORKERS", "answer_in_processes", "check_workers", "slices", "take"]

@@ -1,0 +1,79 @@
+"""``invert_many(workers=N)`` and ``invphys invert --workers N``: targets answered by worker processes that each
+load the bundle give the answers of one process, in target order (shipped paper bundle, a private copy;
+the toy bundle on the command line)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from test_inverter_support import paper_inverter, toy_run
+
+from invphys.core.errors import InvphysError
+from invphys.inverter.parallel import check_workers, slices
+
+
+@pytest.fixture(scope="module")
+def inv(tmp_path_factory):
+    return paper_inverter(tmp_path_factory.getbasetemp())
+
+
+def _key(results) -> list:
+    return [(r.label, r.method, r.theta.tolist(), r.r_surrogate,
+             [(c.theta.tolist(), c.r_surrogate) for c in r.candidates]) for r in results]
+
+
+def test_workers_give_the_answers_of_one_process_in_target_order(inv) -> None:
+    _, y = inv.bundle.data("test")
+    y = y[:9]
+    serial = inv.invert_many(y, top_k=2)
+    assert _key(inv.invert_many(y, top_k=2, workers=2)) == _key(serial)
+    pool = inv.__dict__["_answer_pool"][1]
+    # the processes are kept for the next call, which carries the inverter's current pool settings
+    from dataclasses import replace
+
+    inv.pool_settings = replace(inv.pool_settings, draws=32)
+    try:
+        assert _key(inv.invert_many(y[:5], method="pool", workers=2)) == _key(inv.invert_many(y[:5], method="pool"))
+        assert inv.__dict__["_answer_pool"][1] is pool
+    finally:
+        inv.pool_settings = replace(inv.pool_settings, draws=64)
+
+
+def test_a_bad_worker_count_is_one_line(inv) -> None:
+    for bad in (-1, 1.5, True, 10_000):
+        with pytest.raises(InvphysError, match="workers must be a whole number"):
+            inv.invert_many(np.zeros((2, len(inv.feature_names))), workers=bad)
+    assert check_workers(0) == 0 and check_workers(np.int64(3)) == 3
+
+
+def test_slices_are_contiguous_and_cover_every_target_once() -> None:
+    got = slices(10, 2)
+    assert len(got) == 8 and np.concatenate(got).tolist() == list(range(10))
+    assert [len(s) for s in slices(3, 4)] == [1, 1, 1]
+
+
+def test_invert_workers_on_the_command_line(tmp_path_factory, tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    import invphys
+    from invphys.cli import app
+    from invphys.core.dataset import DatasetStore
+
+    run = toy_run(tmp_path_factory.getbasetemp())
+    bundle = run / "inverter"
+    y = DatasetStore(next((run / "dataset").rglob("_manifest.json")).parent).arrays(ok_only=True).y[:6]
+    names = invphys.load_inverter(bundle).feature_names
+    targets = tmp_path / "targets.json"
+    targets.write_text(json.dumps([dict(zip(names, map(float, row), strict=True)) for row in y]))
+    runner = CliRunner()
+    answers = []
+    for workers in ("0", "2"):
+        out = runner.invoke(app, ["invert", str(bundle), "--target", str(targets), "--workers", workers, "--json"])
+        assert out.exit_code == 0, out.output
+        answers.append([(r["candidates"][0]["parameters"], r["candidates"][0]["r_surrogate"])
+                        for r in json.loads(out.stdout)["results"]])
+    assert answers[0] == answers[1] and len(answers[0]) == 6
+    out = runner.invoke(app, ["invert", str(bundle), "--target", str(targets), "--workers", "-1"])
+    assert out.exit_code == 2 and "--workers" in out.output and "Traceback" not in out.output, out.output
