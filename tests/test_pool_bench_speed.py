@@ -26,7 +26,7 @@ def test_stages_add_up_to_the_answer_time(bundle, tmp_path) -> None:
     out = tmp_path / "speed.json"
     assert bench.main(["--bundle", str(bundle), "--targets", f"uniform={FRESH}",
                        "--methods", "pool", "default", "--limit", "3", "--repeat", "1", "--draws", "64",
-                       "--out", str(out)]) == 0
+                       "--workers", "2", "--out", str(out)]) == 0
     data = json.loads(out.read_text())
     assert data["device"].startswith("cpu") and data["targets"] == {"uniform": 3}
     assert set(data["methods"]) == {"pool", "npe_best64"}
@@ -35,4 +35,8 @@ def test_stages_add_up_to_the_answer_time(bundle, tmp_path) -> None:
         got = data["methods"][method]["uniform"]
         assert stages <= set(got["stages_ms_per_target"])
         assert sum(got["stages_ms_per_target"].values()) == pytest.approx(got["ms_per_target"], rel=1e-2, abs=0.01)
+    for method in ("pool", "npe_best64"):   # all targets answered by 2 worker processes, first and later calls
+        (w,) = data["methods"][method]["workers"]
+        assert w["workers"] == 2 and w["targets"] == 3
+        assert w["first_call_ms_per_target"] > 0 and w["later_calls_ms_per_target"] > 0
     assert (draws.sample_posterior, pool.nearest_rows, pool.PoolAnswers.__dict__["score"]) == before
