@@ -27,8 +27,10 @@ def _key(results) -> list:
 def test_workers_give_the_answers_of_one_process_in_target_order(inv) -> None:
     _, y = inv.bundle.data("test")
     y = y[:9]
-    serial = inv.invert_many(y, top_k=2)
-    assert _key(inv.invert_many(y, top_k=2, workers=2)) == _key(serial)
+    ticks: dict[str, list[int]] = {"serial": [], "workers": []}
+    serial = inv.invert_many(y, top_k=2, on_answer=ticks["serial"].append)
+    assert _key(inv.invert_many(y, top_k=2, workers=2, on_answer=ticks["workers"].append)) == _key(serial)
+    assert ticks["serial"] == [1] * 9 and sum(ticks["workers"]) == 9 and len(ticks["workers"]) == 8  # per slice
     pool = inv.__dict__["_answer_pool"][1]
     # the processes are kept for the next call, which carries the inverter's current pool settings
     from dataclasses import replace
@@ -72,6 +74,7 @@ def test_invert_workers_on_the_command_line(tmp_path_factory, tmp_path) -> None:
     for workers in ("0", "2"):
         out = runner.invoke(app, ["invert", str(bundle), "--target", str(targets), "--workers", workers, "--json"])
         assert out.exit_code == 0, out.output
+        assert "answering" in out.stderr and "6/6" in out.stderr   # the progress bar, on stderr
         answers.append([(r["candidates"][0]["parameters"], r["candidates"][0]["r_surrogate"])
                         for r in json.loads(out.stdout)["results"]])
     assert answers[0] == answers[1] and len(answers[0]) == 6

@@ -105,13 +105,25 @@ def invert(
     for note in inv.notes:
         console.print(f"[yellow]warning:[/] {escape(note)}", soft_wrap=True)
     top_k = max(top_k, sim_refine_starts) if refine_settings else top_k
-    results = inv.invert_many(targets, method=method, top_k=top_k, refine=refine, seed=seed, level=level,
-                              draws=max(samples or 0, INTERVAL_DRAWS), workers=workers)
+    results = _answer(inv, targets, dict(method=method, top_k=top_k, refine=refine, seed=seed, level=level,
+                                         draws=max(samples or 0, INTERVAL_DRAWS), workers=workers))
     _check_results(results, samples)
     records = _simulate(inv, results, sim_option or [], seed, sim_batch, validate, polish_settings, refine_settings,
                         validate_workers)
     _write_files(results, samples, files)
     _emit_results(bundle, results, records, seed, level, as_json)
+
+
+def _answer(inv: Any, targets: Any, options: dict[str, Any]) -> list[Any]:
+    """``inv.invert_many(targets, **options)``, with a progress bar (stderr) for more than one target."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    if len(targets) < 2:
+        return list(inv.invert_many(targets, **options))
+    with Progress(TextColumn("answering"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=console, transient=False) as bar:
+        task = bar.add_task("answering", total=len(targets))
+        return list(inv.invert_many(targets, on_answer=lambda n: bar.advance(task, n), **options))
 
 
 def _check_results(results: list[Any], samples: int | None) -> None:

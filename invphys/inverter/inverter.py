@@ -327,10 +327,12 @@ class Inverter:
 
     def invert_many(self, targets: Any, method: str | None = None, top_k: int = 1, refine: int = 0,
                     partial: bool = False, seed: int = 0, level: float = DEFAULT_LEVEL,
-                    draws: int = INTERVAL_DRAWS, workers: int = 0) -> list[InversionResult]:
+                    draws: int = INTERVAL_DRAWS, workers: int = 0,
+                    on_answer: Callable[[int], None] | None = None) -> list[InversionResult]:
         """Answer several targets; each answer depends on its target, the method and ``seed`` only (never
         on the other targets or their order). ``workers`` > 1: answered by that many processes, each loading
-        the bundle (:mod:`invphys.inverter.parallel`; the same answers, for hundreds of targets)."""
+        the bundle (:mod:`invphys.inverter.parallel`; the same answers, for hundreds of targets).
+        ``on_answer(n)``: called as ``n`` more targets are answered (progress bars)."""
         from invphys.inverter.parallel import answer_in_processes, check_workers
 
         seed, workers = check_seed(seed), check_workers(workers)
@@ -345,7 +347,7 @@ class Inverter:
         if workers > 1 and len(t) > 1:
             return answer_in_processes(self, t, workers, {"method": method, "top_k": top_k, "refine": refine,
                                                            "seed": seed, "level": level, "draws": draws},
-                                       load_inverter)
+                                       load_inverter, on_answer)
         with quiet(), blas_threads(self.threads if len(t) >= BLAS_LIMIT_ROWS or t.noisy().any() else None):
             answers = self._answers(label, entry)
             answers.check_top_k(top_k)
@@ -355,6 +357,8 @@ class Inverter:
             for i, ans in enumerate(answers.answer_all(t.values, t.mask, top_k, seed, draws)):
                 out.append(self._answer_one(answers, ans, t, i, refine, seed, level, top_k, t0))
                 t0 = time.perf_counter()
+                if on_answer is not None:
+                    on_answer(1)
             return out
 
     def _answer_one(self, answers: MethodAnswers, ans: tuple[Pool, Any], t: UserTargets, i: int, refine: int,

@@ -13,7 +13,7 @@ import logging
 import multiprocessing
 import warnings
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import replace
 from pathlib import Path
@@ -52,10 +52,11 @@ def take(t: UserTargets, rows: np.ndarray) -> UserTargets:
 
 
 def answer_in_processes(inv: Any, t: UserTargets, workers: int, options: dict[str, Any],
-                        loader: Callable[..., Any]) -> list[Any]:
+                        loader: Callable[..., Any], on_answer: Callable[[int], None] | None = None) -> list[Any]:
     """``inv.invert_many(t, **options)`` answered by ``workers`` processes, results in target order; each
-    process loads the bundle with ``loader`` (``load_inverter``, handed in by reference). The processes stay up
-    for the inverter's later calls with as many workers (their start is paid once)."""
+    process loads the bundle with ``loader`` (``load_inverter``, handed in by reference); ``on_answer(n)`` as
+    a slice of ``n`` targets comes back. The processes stay up for the inverter's later calls with as many
+    workers (their start is paid once)."""
     if inv.bundle._registry is not None and not _default_registry(inv.bundle._registry):
         raise InvphysError("workers: this bundle was loaded with a registry of its own; worker processes "
                            "load plugins from installed entry points only (answer with workers=0)")
@@ -63,6 +64,9 @@ def answer_in_processes(inv: Any, t: UserTargets, workers: int, options: dict[st
     try:
         futures = [pool.submit(_answer, take(t, rows), options, inv.pool_settings, inv.threads)
                    for rows in slices(len(t), workers)]
+        for done in as_completed(futures):
+            if on_answer is not None:
+                on_answer(len(done.result()))
         return [r for f in futures for r in f.result()]
     except BrokenProcessPool as exc:   # a worker died (killed, out of memory): the next call starts afresh
         inv.__dict__.pop("_answer_pool", None)
