@@ -80,3 +80,19 @@ def test_invert_workers_on_the_command_line(tmp_path_factory, tmp_path) -> None:
     assert answers[0] == answers[1] and len(answers[0]) == 6
     out = runner.invoke(app, ["invert", str(bundle), "--target", str(targets), "--workers", "-1"])
     assert out.exit_code == 2 and "--workers" in out.output and "Traceback" not in out.output, out.output
+
+
+def test_a_script_without_a_main_guard_gets_one_line_that_says_so(inv, tmp_path) -> None:
+    """Spawned workers import the calling script; one without ``if __name__ == "__main__":`` kills them at start."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "unguarded.py"
+    script.write_text("import invphys\n"
+                      f"inv = invphys.load_inverter({str(inv.bundle.root)!r})\n"
+                      "_, y = inv.bundle.data('test')\n"
+                      "inv.invert_many(y[:4], workers=2)\n")
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=600)
+    assert done.returncode != 0
+    assert "InvphysError: a worker process died while answering" in done.stderr
+    assert "if __name__ == \"__main__\":" in done.stderr.splitlines()[-1]

@@ -70,8 +70,9 @@ def answer_in_processes(inv: Any, t: UserTargets, workers: int, options: dict[st
         return [r for f in futures for r in f.result()]
     except BrokenProcessPool as exc:   # a worker died (killed, out of memory): the next call starts afresh
         inv.__dict__.pop("_answer_pool", None)
-        raise InvphysError(f"a worker process died while answering ({exc}); answer with fewer workers or "
-                           "workers=0") from None
+        raise InvphysError(f"a worker process died while answering ({exc}); a script that asks for workers "
+                           "needs 'if __name__ == \"__main__\":' around its work, else answer with fewer workers "
+                           "or workers=0") from None
 
 
 def _pool(inv: Any, workers: int, loader: Callable[..., Any]) -> ProcessPoolExecutor:
