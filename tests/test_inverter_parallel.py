@@ -39,6 +39,12 @@ def test_workers_give_the_answers_of_one_process_in_target_order(inv) -> None:
     try:
         assert _key(inv.invert_many(y[:5], method="pool", workers=2)) == _key(inv.invert_many(y[:5], method="pool"))
         assert inv.__dict__["_answer_pool"][1] is pool
+        from invphys.inverter.parallel import close_workers
+
+        close_workers(inv)   # the processes are shut down; the next call with workers starts new ones
+        assert "_answer_pool" not in inv.__dict__
+        assert _key(inv.invert_many(y[:3], top_k=2, workers=2)) == _key(serial[:3])
+        assert inv.__dict__["_answer_pool"][1] is not pool
     finally:
         inv.pool_settings = replace(inv.pool_settings, draws=64)
 

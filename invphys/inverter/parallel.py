@@ -80,12 +80,18 @@ def _pool(inv: Any, workers: int, loader: Callable[..., Any]) -> ProcessPoolExec
     kept = inv.__dict__.get("_answer_pool")
     if kept is not None and kept[0] == workers:
         return kept[1]
-    if kept is not None:
-        kept[1].shutdown()
+    close_workers(inv)
     pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_load,
                                initargs=(loader, str(Path(inv.bundle.root).resolve())))
     inv.__dict__["_answer_pool"] = (workers, pool)
     return pool
+
+
+def close_workers(inv: Any) -> None:
+    """Shut down the worker processes ``inv`` keeps (its next call with workers starts new ones)."""
+    kept = inv.__dict__.pop("_answer_pool", None)
+    if kept is not None:
+        kept[1].shutdown()
 
 
 def _default_registry(registry: Any) -> bool:
@@ -108,4 +114,4 @@ def _answer(t: UserTargets, options: dict[str, Any], pool_settings: Any, threads
     return list(_INVERTER.invert_many(t, workers=0, **options))
 
 
-__all__ = ["MAX_WORKERS", "answer_in_processes", "check_workers", "slices", "take"]
+__all__ = ["MAX_WORKERS", "answer_in_processes", "check_workers", "close_workers", "slices", "take"]

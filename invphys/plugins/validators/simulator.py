@@ -164,8 +164,8 @@ class SimulatorValidator(Validator):
     def _streamed(sim: Simulator, params: np.ndarray, slots: int, finished: Callable[[int, Any], None]) -> list[int]:
         """Run every row through the simulator's continuous-batching stream (``slots`` runs in flight, the next
         row starting as soon as one ends, as dataset generation runs them), handing each result to
-        ``finished(row, result)``; return the rows it did not return (the stream raised: a run that blew up
-        or a device error), which then go through :meth:`Simulator.simulate` in chunks, a failing row alone."""
+        ``finished(row, result)``; return the rows it did not return (the stream raised, a run that blew up
+        or a device error, or ended short), which then go through :meth:`Simulator.simulate` in chunks, a failing row alone."""
         seen: set[int] = set()
         for i, res in stream_until_broken(sim, params, slots, seen):
             finished(i, res)   # what this raises is the caller's, as on the chunked path
