@@ -149,6 +149,7 @@ def _strategy_block(records: list[dict[str, Any]], wall: float, n_boot: int) -> 
             "runs_per_target": spent / n, "simulator_s_per_target": float(sum(r["simulator_s"] for r in records)) / n,
             "stopped": int(sum(bool(r.get("stopped")) for r in records)),
             "stalled": int(sum(bool(r.get("stalled")) for r in records)),
+            "capped": int(sum(bool(r.get("capped")) for r in records)),
             "r_at_runs": r_at_runs(records, records[0]["budget"] if records else 0),
             "ask_s": ask, "ask_s_per_run": ask / max(spent, 1),
             "ask_cpu_s": float(sum(r.get("ask_cpu_s", 0.0) for r in records)),
@@ -209,6 +210,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--patience", type=int, default=None,
                    help="a target stops once its best R gained < --min-gain over its last N runs (default: off)")
     p.add_argument("--min-gain", type=float, default=None, help="the stall rule's gain (default: the refine's own)")
+    p.add_argument("--cost-budget", type=float, default=None,
+                   help="a target's most estimated simulator cost, in typical runs (default: none)")
     p.add_argument("--popsize", type=int, default=8)
     p.add_argument("--sigma0", type=float, default=0.012)
     p.add_argument("--method", default=None)
@@ -305,7 +308,7 @@ def _refine_one(inv: Any, results: list[Any], strategy: str, a: argparse.Namespa
                      strategy=strategy, known_starts=a.known_starts, strategy_options=opts or None,
                      **({} if a.stop is None else {"stop": a.stop}),
                      **({} if a.patience is None else {"patience": a.patience}),
-                     **({} if a.min_gain is None else {"min_gain": a.min_gain}))
+                     **({} if a.min_gain is None else {"min_gain": a.min_gain}), cost_budget=a.cost_budget)
     return records, time.perf_counter() - t0
 
 
@@ -361,7 +364,7 @@ def main(argv: list[str] | None = None) -> int:
         "method": a.method, "targets": a.targets[0] if len(a.targets) == 1 else sets, "sim_batch": a.sim_batch,
         "extract_workers": a.extract_workers, "extract_threads": a.extract_threads or None,
         "ask_workers": a.ask_workers, "first": a.first, "strategies": a.strategy, "budget": a.budget, "warmup": warm,
-        "stop": a.stop, "patience": a.patience, "min_gain": a.min_gain, "sets": {}}
+        "stop": a.stop, "patience": a.patience, "min_gain": a.min_gain, "cost_budget": a.cost_budget, "sets": {}}
     if a.answers_in:
         result["answers_in"] = str(a.answers_in)
     for n_set, (name, path) in enumerate(sets.items()):

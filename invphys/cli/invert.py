@@ -72,6 +72,7 @@ def invert(
     sim_refine_stop: float | None = typer.Option(None, "--sim-refine-stop", help="a target stops at this R_actual (0.98)"),
     sim_refine_patience: int | None = typer.Option(None, "--sim-refine-patience", help="stop once N runs gain < min gain"),
     sim_refine_min_gain: float | None = typer.Option(None, "--sim-refine-min-gain", help="the patience's gain (0.01)"),
+    sim_refine_cost: float | None = typer.Option(None, "--sim-refine-cost", help="cost cap in average runs (N; 0: off)"),
     seed: int = typer.Option(0, "--seed", help="seed of every random draw (with the target and the method it "
                              "decides the answer; a target's position in the file does not)"),
     level: float = typer.Option(0.9, "--level", help="level of the central intervals (posterior methods)"),
@@ -87,7 +88,6 @@ def invert(
     as_json: bool = typer.Option(False, "--json", help="machine-readable output on stdout"),
 ) -> None:
     """Answer targets (features by name) with material parameters from a trained inverter bundle."""
-    from invphys.inverter import load_inverter
     from invphys.inverter.inverter import INTERVAL_DRAWS
     from invphys.inverter.seeds import check_seed
     from invphys.inverter.target_input import cli_targets
@@ -98,12 +98,10 @@ def invert(
                                        polish_confirm, polish_confirm_candidates)
     refine_settings = _refine_settings(sim_refine, sim_refine_popsize, sim_refine_sigma, sim_refine_log,
                                        sim_refine_workers, sim_refine_strategy, sim_refine_known, sim_refine_stop)
-    refine_settings.update(_stall_settings(sim_refine, sim_refine_patience, sim_refine_min_gain))
+    refine_settings.update(_stall_settings(sim_refine, sim_refine_patience, sim_refine_min_gain, sim_refine_cost))
     files = _output_files(samples, samples_out, plot, csv_out)
-    inv = load_inverter(bundle, strict=not allow_mismatch)
+    inv = _load(bundle, allow_mismatch)
     targets = cli_targets(inv, target, feature or [], observed or [], partial)  # a bad target: its one line only
-    for note in inv.notes:
-        console.print(f"[yellow]warning:[/] {escape(note)}", soft_wrap=True)
     top_k = max(top_k, sim_refine_starts) if refine_settings else top_k
     results = _answer(inv, targets, dict(method=method, top_k=top_k, refine=refine, seed=seed, level=level,
                                          draws=max(samples or 0, INTERVAL_DRAWS), workers=workers))
@@ -112,6 +110,16 @@ def invert(
                         validate_workers)
     _write_files(results, samples, files)
     _emit_results(bundle, results, records, seed, level, as_json)
+
+
+def _load(bundle: Path, allow_mismatch: bool) -> Any:
+    """The bundle's inverter, its load notes printed as warnings."""
+    from invphys.inverter import load_inverter
+
+    inv = load_inverter(bundle, strict=not allow_mismatch)
+    for note in inv.notes:
+        console.print(f"[yellow]warning:[/] {escape(note)}", soft_wrap=True)
+    return inv
 
 
 def _answer(inv: Any, targets: Any, options: dict[str, Any]) -> list[Any]:
@@ -315,7 +323,7 @@ def _refine_settings(budget: int | None, popsize: int | None, sigma: float | Non
     if stop is not None and not 0 <= stop <= 1:
         raise InvphysError(f"--sim-refine-stop must be an R_actual in [0, 1] (0 or 1: never stop), got {stop}")
     if log is not None:
-        from invphys.evaluators.stream_refine import RunLog
+        from invphys.evaluators.refine_log import RunLog
 
         RunLog(log, key=None)  # the file and its place, before anything runs (what it was made for: on use)
     return {"budget": budget, "popsize": popsize or REFINE_POPSIZE, "sigma0": sigma or REFINE_SIGMA0, "log": log,
@@ -323,11 +331,14 @@ def _refine_settings(budget: int | None, popsize: int | None, sigma: float | Non
             "stop": REFINE_STOP if stop is None else stop}
 
 
-def _stall_settings(budget: int | None, patience: int | None, min_gain: float | None) -> dict[str, Any]:
-    """``--sim-refine-patience`` and ``--sim-refine-min-gain`` as refine's ``patience`` and ``min_gain``."""
+def _stall_settings(budget: int | None, patience: int | None, min_gain: float | None, cost: float | None = None
+                    ) -> dict[str, Any]:
+    """``--sim-refine-patience``, ``--sim-refine-min-gain`` and ``--sim-refine-cost`` as refine's ``patience``,
+    ``min_gain`` and ``cost_budget`` (default: the run budget, where the simulator estimates run costs)."""
     from invphys.inverter.refine import REFINE_MIN_GAIN
 
-    given = [n for n, v in (("--sim-refine-patience", patience), ("--sim-refine-min-gain", min_gain)) if v is not None]
+    given = [n for n, v in (("--sim-refine-patience", patience), ("--sim-refine-min-gain", min_gain),
+                            ("--sim-refine-cost", cost)) if v is not None]
     if budget is None and given:
         raise InvphysError(f"{', '.join(given)} needs --sim-refine N (simulator runs per target)")
     if min_gain is not None and patience is None:
@@ -336,8 +347,14 @@ def _stall_settings(budget: int | None, patience: int | None, min_gain: float | 
         raise InvphysError(f"--sim-refine-patience must be in 1 .. 100000 runs, got {patience}")
     if min_gain is not None and not 0 <= min_gain <= 1:
         raise InvphysError(f"--sim-refine-min-gain must be an R_actual gain in [0, 1], got {min_gain}")
-    return {} if patience is None else {"patience": patience,
-                                        "min_gain": REFINE_MIN_GAIN if min_gain is None else min_gain}
+    if budget is None:
+        return {}
+    if cost is not None and not 0 <= cost <= 1e9:
+        raise InvphysError(f"--sim-refine-cost must be a number of average runs in 0 .. 1e9 (0: off), got {cost}")
+    out: dict[str, Any] = {"cost_budget": "budget" if cost is None else (cost or None)}
+    if patience is not None:
+        out.update(patience=patience, min_gain=REFINE_MIN_GAIN if min_gain is None else min_gain)
+    return out
 
 
 def _sim_refine(inv: Any, results: list[Any], overrides: dict[str, Any], seed: int, batch_size: int,
@@ -358,6 +375,7 @@ def _sim_refine(inv: Any, results: list[Any], overrides: dict[str, Any], seed: i
                       f"({escape(rec['start_source'])}) -> {_r(_none_nan(rec['r_actual']))} ({rec['runs']} simulator runs, {rec['simulator_s']:.1f} "
                       f"simulator-s{', stopped at the stop R' if rec['stopped'] else ''}"
                       f"{', stopped: stalled' if rec.get('stalled') else ''}"
+                      f"{', stopped: cost budget spent' if rec.get('capped') else ''}"
                       f"{'' if rec['improved'] else ', start kept'})", soft_wrap=True)
     for r, rec in zip(results, records, strict=True):  # the refine's warnings (the others were printed before it)
         if rec.get("warning"):

@@ -19,122 +19,18 @@ the sizes of its told generations, so a replay of the per-run bests knows the de
 
 from __future__ import annotations
 
-import io
 import json
-import os
 import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from invphys.core.errors import InvphysError
-from invphys.core.safe_read import UserFileError
-
-REFINE_LOG_FORMAT = "invphys.refine_log"
-REFINE_LOG_VERSION = 1
-_ARRAYS = {"format", "version", "key", "tid", "seq", "theta", "y", "seconds", "device"}
-
-
-def _log_error(path: Path, problem: str) -> UserFileError:
-    return UserFileError("refine log", path, problem)
-
-
-class RunLog:
-    """Every finished run of a refine, by (target id, run number); appended atomically every ``flush`` runs.
-
-    ``key`` names what the runs depend on besides the target (bundle, simulator config): a log made for
-    another key is refused, as is any existing file that is not a refine log (it is never overwritten);
-    ``key`` None checks the file alone (before anything runs).
-    """
-
-    def __init__(self, path: str | Path | None, key: str | None, flush: int = 16) -> None:
-        self.path = None if path is None else Path(path)
-        self.key, self.flush = key, max(1, int(flush))
-        self.rows: dict[tuple[str, int], tuple[np.ndarray, np.ndarray, float, str]] = {}
-        self._unsaved = 0
-        if self.path is not None:
-            self._check()
-            if self.path.exists():
-                self._read()
-
-    def _check(self) -> None:
-        p = self.path
-        assert p is not None
-        if p.is_symlink() or p.is_dir():
-            raise _log_error(p, "name a regular file (e.g. refine.npz)")
-        parent = p.absolute().parent
-        if not parent.is_dir():
-            raise _log_error(p, f"{str(parent)!r} is not a directory")
-        if not os.access(parent, os.W_OK | os.X_OK):
-            raise _log_error(p, f"cannot write in {str(parent)!r} (permission denied)")
-
-    def _read(self) -> None:
-        from invphys.core import safe_read
-
-        p = self.path
-        assert p is not None
-        safe_read.check_regular_file(p, what="refine log", max_bytes=safe_read.NPZ_MAX_BYTES)
-        with open(p, "rb") as fh:
-            if fh.read(4) != b"PK\x03\x04":
-                raise _log_error(p, "it exists and is not a refine log written by invphys; refusing to overwrite "
-                                    "it (name another file)")
-        z = safe_read.load_user_npz(p, what="refine log")
-        if set(z) != _ARRAYS or str(z["format"]) != REFINE_LOG_FORMAT:
-            raise _log_error(p, "it exists and is not a refine log written by invphys; refusing to overwrite it "
-                                "(name another file)")
-        if int(z["version"]) > REFINE_LOG_VERSION:
-            raise _log_error(p, f"format version {int(z['version'])} is newer than this invphys reads; upgrade")
-        if self.key is not None and str(z["key"]) != self.key:
-            raise _log_error(p, "it was made for another bundle or simulator config; name another file, or remove "
-                                "this one to refine afresh")
-        try:
-            tid, seq, theta, y = z["tid"], z["seq"], np.asarray(z["theta"], float), np.asarray(z["y"], float)
-            sec, dev = np.asarray(z["seconds"], float), z["device"]
-            if not (len(tid) == len(seq) == len(theta) == len(y) == len(sec) == len(dev)) or theta.ndim != 2:
-                raise ValueError("its arrays differ in length")
-            for i in range(len(tid)):
-                self.rows[(str(tid[i]), int(seq[i]))] = (theta[i], y[i], float(sec[i]), str(dev[i]))
-        except (ValueError, TypeError, IndexError) as exc:
-            raise _log_error(p, f"corrupt refine log ({exc}); move it away or name another file") from None
-
-    def get(self, tid: str, seq: int, theta: np.ndarray) -> tuple[np.ndarray, float, str] | None:
-        """The logged features, seconds and device of run ``seq`` of target ``tid`` at ``theta`` (else None)."""
-        row = self.rows.get((tid, seq))
-        if row is None or row[0].shape != theta.shape or not np.allclose(row[0], theta, rtol=0.0, atol=1e-9):
-            return None
-        return row[1], row[2], row[3]
-
-    def add(self, tid: str, seq: int, theta: np.ndarray, y: np.ndarray, seconds: float, device: str) -> None:
-        self.rows[(tid, seq)] = (np.array(theta, float), np.array(y, float), float(seconds), device)
-        self._unsaved += 1
-        if self._unsaved >= self.flush:
-            self.save()
-
-    def save(self) -> None:
-        """Write every run so far (atomically)."""
-        if self.path is None or not self._unsaved:
-            return
-        from invphys.core.atomic import atomic_write_bytes
-
-        keys = sorted(self.rows)
-        vals = [self.rows[k] for k in keys]
-        buf = io.BytesIO()
-        np.savez_compressed(buf, format=np.array(REFINE_LOG_FORMAT), version=np.array(REFINE_LOG_VERSION),
-                            key=np.array(self.key or ""), tid=np.array([k[0] for k in keys], dtype=str),
-                            seq=np.array([k[1] for k in keys], dtype=np.int64),
-                            theta=np.stack([v[0] for v in vals]), y=np.stack([v[1] for v in vals]),
-                            seconds=np.array([v[2] for v in vals], float),
-                            device=np.array([v[3] for v in vals], dtype=str))
-        try:
-            atomic_write_bytes(self.path, buf.getvalue())
-        except OSError as exc:
-            raise _log_error(self.path, f"cannot write it: {exc.strerror or exc}") from None
-        self._unsaved = 0
+from invphys.evaluators.refine_log import RunLog
 
 
 @dataclass
@@ -158,6 +54,8 @@ class TargetRefine:
     start_scores: np.ndarray | None = None
     stopped: bool = False          # it reached the stop score with runs left
     stalled: bool = False          # it stopped with runs left because its best gained < min_gain in patience runs
+    cost: float = 0.0              # estimated cost of its asked runs, in typical runs (with a cost budget)
+    capped: bool = False           # its cost budget cut a generation short: it asks no more runs
     batches: list[int] = field(default_factory=list)   # the sizes of its told generations (starts first), in order
     bests: list[float] = field(default_factory=list)   # best score after 0, 1, 2, ... told runs
     ask_s: float = 0.0             # seconds its search spent proposing and being told (wall, between runs)
@@ -210,6 +108,16 @@ class CMASearch:
             np.random.set_state(outer)
 
 
+@dataclass(frozen=True)
+class RunCost:
+    """A cost budget per target: ``of(points (k, d) normalised) -> (k,)`` each run's estimated cost (in
+    typical runs: 1.0 is an average run of the parameter box) and ``budget``, the most a target may spend.
+    Costs are estimated from the parameters alone, so where a target stops does not depend on timing."""
+
+    of: Callable[[np.ndarray], np.ndarray]
+    budget: float
+
+
 #: ``strategy(target, runs left) -> search`` with ``ask(left) -> (k, d)`` and ``tell(points, features,
 #: scores, best score before)``; made once a target's starts are in (its best start in ``target.theta``)
 Strategy = Callable[[TargetRefine, int], Any]
@@ -225,9 +133,9 @@ class _Search:
 
     def __init__(self, t: TargetRefine, budget: int, popsize: int, sigma0: float, d: int,
                  strategy: Strategy | None = None, stop: float | None = None, patience: int = 0,
-                 min_gain: float = 0.0) -> None:
+                 min_gain: float = 0.0, cost: RunCost | None = None) -> None:
         self.t, self.budget, self.d, self.stop = t, budget, d, stop
-        self.patience, self.min_gain = patience, min_gain
+        self.patience, self.min_gain, self.cost = patience, min_gain, cost
         self.strategy = strategy or cma_strategy(popsize, sigma0)
         self.search: Any = None
         self.asked = np.empty((0, d))
@@ -240,8 +148,8 @@ class _Search:
         left = self.budget - self.t.runs
         if self.phase == "starts":
             todo = ~np.all(np.isfinite(self.t.known), axis=1)
-            return self.t.starts[todo][:max(left, 0)]
-        if left <= 0:
+            return self._afford(self.t.starts[todo][:max(left, 0)])
+        if left <= 0 or self.t.capped:
             return np.empty((0, self.d))
         if self.stop is not None and self.t.score >= self.stop:   # reached: no more runs
             self.t.stopped = True
@@ -256,7 +164,19 @@ class _Search:
         pts = self.search.ask(left)
         self.t.ask_s += time.perf_counter() - t0
         self.t.ask_cpu_s += time.thread_time() - c0
-        return np.clip(np.asarray(pts, float).reshape(-1, self.d)[:left], 0.0, 1.0)
+        return self._afford(np.clip(np.asarray(pts, float).reshape(-1, self.d)[:left], 0.0, 1.0))
+
+    def _afford(self, pts: np.ndarray) -> np.ndarray:
+        """The longest head of ``pts`` whose estimated cost fits what is left of the target's cost budget
+        (all of them without one); a cut marks the target ``capped``."""
+        if self.cost is None or not len(pts):
+            return pts
+        c = np.asarray(self.cost.of(pts), float).reshape(len(pts))
+        keep = int(np.sum(self.t.cost + np.cumsum(c) <= self.cost.budget * (1 + 1e-12)))
+        if keep < len(pts):
+            self.t.capped = True
+        self.t.cost += float(np.sum(c[:keep]))
+        return pts[:keep]
 
     def tell(self, ys: np.ndarray, scores: np.ndarray) -> None:
         if self.search is not None:
@@ -273,7 +193,7 @@ def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int
                   on_run: Callable[[int, bool], None] | None = None,
                   strategy: Strategy | None = None, stop: float | None = None, ask_workers: int = 1,
                   stats: dict[str, float] | None = None, patience: int | None = 0,
-                  min_gain: float = 0.0) -> list[TargetRefine]:
+                  min_gain: float = 0.0, cost: RunCost | None = None) -> list[TargetRefine]:
     """Refine every target with ``budget`` simulator runs (its unsimulated starts included), one open stream.
 
     ``simulate(feeder)`` yields ``(i, features (M,) or NaN, seconds, device)`` for the rows (normalised,
@@ -284,7 +204,9 @@ def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int
     ``stop``: a target whose best score (its starts included) reaches it asks for no further generation
     (None, or outside (0, 1): never; the starts are always simulated). ``patience`` (runs; 0 or None: off) and
     ``min_gain``: a target asks no further generation once it stalls (:func:`stalled`), again from its own
-    told runs only, so its runs are a prefix of the same target's without the rule.
+    told runs only, so its runs are a prefix of the same target's without the rule. ``cost``
+    (:class:`RunCost`): a generation (its starts too) is cut to the longest head whose estimated cost fits the
+    target's cost budget, and a cut target asks no more: again a prefix of the same target's runs without it.
     ``ask_workers``: threads that tell a target its generation and ask its next one while the simulator
     goes on (0: in the stream's own loop, between launches); the feeder hands out whatever rows are ready
     and waits for an ask only when no row is in flight. The answers are the same for any number.
@@ -299,7 +221,7 @@ def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int
     patience, min_gain = check_stall(patience, min_gain)
     d = targets[0].starts.shape[1] if targets else 0
     stop = stop if stop is not None and 0.0 < stop < 1.0 else None
-    searches = [_Search(t, budget, popsize, sigma0, d, strategy, stop, patience, min_gain) for t in targets]
+    searches = [_Search(t, budget, popsize, sigma0, d, strategy, stop, patience, min_gain, cost) for t in targets]
     asks = _Asks(searches, log, score, on_run or (lambda _n, _r: None), int(ask_workers))
     t_start = time.perf_counter()
     try:

@@ -55,7 +55,8 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
            simulator: Any = None, extract_workers: int = 0, strategy: str = REFINE_STRATEGIES[0],
            known_starts: int | None = None, strategy_options: Mapping[str, Any] | None = None,
            stop: float = REFINE_STOP, ask_workers: int = 1, extract_threads: int | None = 1,
-           patience: int | None = 0, min_gain: float = REFINE_MIN_GAIN) -> list[dict[str, Any]]:
+           patience: int | None = 0, min_gain: float = REFINE_MIN_GAIN,
+           cost_budget: float | str | None = None) -> list[dict[str, Any]]:
     """Refine ``items`` in place (answer first); return one record per result (runs, seconds, R before/after).
 
     ``budget``: simulator runs per target, its unsimulated candidates included; ``batch_size``: runs in
@@ -72,15 +73,13 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
     ``extract_threads``: native threads per extraction worker (None: one per core). ``patience`` (runs; 0 or
     None: off) and ``min_gain``: a target stalls, and asks no more runs, once its best R_actual gained less than
     ``min_gain`` over its last ``patience`` told runs (record: ``stalled``; ``batches``: the sizes of its told
-    generations in order, so a replay of ``best_r_by_run`` knows where it could have stopped).
+    generations in order, so a replay of ``best_r_by_run`` knows where it could have stopped). ``cost_budget``
+    (typical runs; None: off): a target spends at most this estimated simulator cost (:func:`run_cost`), so
+    targets whose runs are slow (near the box's faces) get fewer runs (record: ``cost``, ``capped``);
+    ``"budget"``: as many typical runs as ``budget``, where the simulator estimates run costs (else off).
     """
-    from invphys.evaluators.stream_refine import (
-        RunLog,
-        check_stall,
-        feed_features,
-        log_key,
-        stream_refine,
-    )
+    from invphys.evaluators.refine_log import RunLog
+    from invphys.evaluators.stream_refine import check_stall, feed_features, log_key, stream_refine
 
     if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or not 1 <= budget <= 100_000:
         raise InvphysError(f"refine budget must be a whole number in 1 .. 100000 runs per target, got {budget!r}")
@@ -90,6 +89,9 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
     stop = check_stop(stop)
     patience, min_gain = check_stall(patience, min_gain)
     sim = simulator if simulator is not None else inv.simulator(overrides)
+    if cost_budget == "budget":
+        cost_budget = budget if _estimates_costs(sim) else None
+    cost = None if cost_budget is None else run_cost(sim, cost_budget)
     ext = inv.extractor(sim)
     m = inv.bundle.manifest
     key = log_key({"bundle": m.get("bundle_id", ""), "files": m.get("files", {}),
@@ -106,7 +108,7 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
     try:
         stream_refine(targets, feed_features(sim, ext, batch_size, pool), masked_score(inv), budget, popsize,
                       sigma0, log=runlog, on_run=on_run, strategy=search, stop=stop, ask_workers=ask_workers,
-                      stats=stats, patience=patience, min_gain=min_gain)
+                      stats=stats, patience=patience, min_gain=min_gain, cost=cost)
     finally:
         if pool is not None:
             pool.close()
@@ -116,18 +118,60 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
         records.append(_apply(inv, r, t, budget, {"popsize": popsize, "sigma0": sigma0, "seed": seed,
                                                    "strategy": strategy, "known_starts": known_starts, "stop": stop,
                                                    "patience": patience, "min_gain": min_gain,
+                                                   "cost_budget": cost_budget,
                                                    **({"options": dict(strategy_options)} if strategy_options else {})}))
-    total = sum(t.runs for t in targets)
-    call = {"targets": len(items), "runs": total, "replayed_runs": sum(t.replayed for t in targets),
-            "simulator_s": float(sum(t.seconds for t in targets)), "wall_time_s": wall,
-            "ask_s": float(sum(t.ask_s for t in targets)), "ask_cpu_s": float(sum(t.ask_cpu_s for t in targets)),
-            "ask_wait_s": float(stats.get("ask_wait_s", 0.0)), "ask_workers": int(ask_workers),
-            "extract_threads": extract_threads if extract_workers else None, "stopped": int(sum(t.stopped for t in targets)),
-            "stalled": int(sum(t.stalled for t in targets)),
-            "log": None if log is None else str(log)}
+    call = _call_record(targets, wall, stats, ask_workers, extract_threads if extract_workers else None, log)
     for rec in records:
         rec["call"] = call
     return records
+
+
+#: the parameter-box sample whose mean estimated run cost is one typical run (fixed: costs never change)
+COST_REFERENCE_ROWS, COST_REFERENCE_SEED = 256, 0
+
+
+def run_cost(sim: Any, budget: Any) -> Any:
+    """A :class:`~invphys.evaluators.stream_refine.RunCost` of ``budget`` typical runs from ``sim``'s
+    :meth:`~invphys.core.interfaces.Simulator.estimate_cost`: a run's cost over the mean cost of a fixed
+    uniform sample of the parameter box (so 1.0 is an average run). One error line when the simulator
+    estimates no cost or the budget is not a positive number."""
+    from invphys.evaluators.stream_refine import RunCost
+
+    if isinstance(budget, bool) or not isinstance(budget, (int, float, np.integer, np.floating)) \
+            or not 0 < float(budget) <= 1e9:
+        raise InvphysError(f"refine cost budget must be a number of typical runs in (0, 1e9], got {budget!r}")
+    space = sim.parameter_space()
+    ref = np.random.default_rng(COST_REFERENCE_SEED).random((COST_REFERENCE_ROWS, space.dim))
+    est = sim.estimate_cost(space.denormalize(ref))
+    if est is None:
+        raise InvphysError(f"simulator {getattr(sim, 'name', type(sim).__name__)!r} estimates no run cost "
+                           "(Simulator.estimate_cost), so a refine cost budget cannot apply to it")
+    typical = float(np.mean(np.asarray(est, float)))
+    if not (np.isfinite(typical) and typical > 0):
+        raise InvphysError(f"the simulator's estimated run cost is not a positive number ({typical!r})")
+
+    def of(points: np.ndarray) -> np.ndarray:
+        return np.asarray(sim.estimate_cost(space.denormalize(np.clip(points, 0.0, 1.0))), float) / typical
+
+    return RunCost(of, float(budget))
+
+
+def _call_record(targets: list[Any], wall: float, stats: dict[str, float], ask_workers: int,
+                 extract_threads: int | None, log: str | Path | None) -> dict[str, Any]:
+    """What one refine call did, over all its targets (every record's ``call``)."""
+    return {"targets": len(targets), "runs": sum(t.runs for t in targets),
+            "replayed_runs": sum(t.replayed for t in targets),
+            "simulator_s": float(sum(t.seconds for t in targets)), "wall_time_s": wall,
+            "ask_s": float(sum(t.ask_s for t in targets)), "ask_cpu_s": float(sum(t.ask_cpu_s for t in targets)),
+            "ask_wait_s": float(stats.get("ask_wait_s", 0.0)), "ask_workers": int(ask_workers),
+            "extract_threads": extract_threads, "stopped": int(sum(t.stopped for t in targets)),
+            "stalled": int(sum(t.stalled for t in targets)), "capped": int(sum(t.capped for t in targets)),
+            "log": None if log is None else str(log)}
+
+
+def _estimates_costs(sim: Any) -> bool:
+    space = sim.parameter_space()
+    return sim.estimate_cost(space.denormalize(np.full((1, space.dim), 0.5))) is not None
 
 
 def _extraction_pool(extractor: Any, workers: int, threads: int | None = 1) -> Any:
@@ -285,7 +329,8 @@ def _apply(inv: Any, r: InversionResult, t: Any, budget: int, settings: dict[str
     def f(v: float) -> float | None:  # JSON has no NaN: a failed simulation is None
         return float(v) if np.isfinite(v) else None
 
-    return {"budget": budget, "runs": t.runs, "stopped": t.stopped, "stalled": t.stalled, "batches": list(t.batches),
+    return {"budget": budget, "runs": t.runs, "stopped": t.stopped, "stalled": t.stalled, "capped": t.capped,
+            "cost": t.cost, "batches": list(t.batches),
             "replayed_runs": t.replayed, "generations_back_s": [round(v, 3) for v in t.back_s],
             "simulator_s": t.seconds, "ask_s": t.ask_s, "ask_cpu_s": t.ask_cpu_s, "r_answer": f(first),
             "start_source": source, "start_r_actual": f(start_r),
