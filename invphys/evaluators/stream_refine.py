@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from invphys.core.counts import is_count
 from invphys.core.errors import InvphysError
 from invphys.evaluators.refine_log import RunLog
 
@@ -216,7 +217,7 @@ def stream_refine(targets: list[TargetRefine], simulate: Callable[[Callable[[int
     if budget < 0 or popsize < 2 or not sigma0 > 0:
         raise InvphysError(f"refine: budget >= 0, popsize >= 2 and sigma0 > 0 needed, got {budget}, {popsize}, "
                            f"{sigma0}")
-    if isinstance(ask_workers, bool) or not isinstance(ask_workers, (int, np.integer)) or not 0 <= ask_workers <= 64:
+    if not is_count(ask_workers, 0, 64):
         raise InvphysError(f"refine: ask workers must be a whole number in 0 .. 64, got {ask_workers!r}")
     patience, min_gain = check_stall(patience, min_gain)
     d = targets[0].starts.shape[1] if targets else 0
@@ -254,7 +255,7 @@ def check_stall(patience: Any, min_gain: Any) -> tuple[int, float]:
     """``patience`` (a whole number of runs in 0 .. 100000; None: 0, off) and ``min_gain`` (an R_actual gain in
     [0, 1]) checked, else one error line."""
     patience = 0 if patience is None else patience
-    if isinstance(patience, bool) or not isinstance(patience, (int, np.integer)) or not 0 <= patience <= 100_000:
+    if not is_count(patience, 0, 100_000):
         raise InvphysError(f"refine patience must be a whole number of runs in 0 .. 100000 (0: off), got {patience!r}")
     if not in_unit_interval(min_gain):
         raise InvphysError(f"refine min gain must be an R_actual gain in [0, 1], got {min_gain!r}")

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from invphys.core.counts import is_count
 from invphys.core.errors import InvphysError, did_you_mean
 from invphys.core.masked_recovery import MaskedRecovery, masked_recovery
 from invphys.core.user_targets import UserTargets, from_array, from_mappings
@@ -295,7 +296,7 @@ class Inverter:
         diagnose --write``) unless ``recalibrate`` is False (the posterior's own draws, which ``diagnose``
         measures; the first k of n of those are the same for any n >= k)."""
         seed = check_seed(seed)
-        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 1 <= n <= MAX_DRAWS:
+        if not is_count(n, 1, MAX_DRAWS):
             raise InvphysError(f"posterior draws must be a whole number in 1 .. {MAX_DRAWS}, got {n!r}")
         t = self.targets(targets, partial)
         label = self.posterior_method(method)
@@ -338,7 +339,7 @@ class Inverter:
         seed, workers = check_seed(seed), check_workers(workers)
         level = check_level(level)
         for name, v, low in (("top_k", top_k, 1), ("refine", refine, 0), ("draws", draws, 1)):
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
+            if not is_count(v, low):
                 raise InvphysError(f"{name} must be a whole number >= {low}, got {v!r}")
         if draws > MAX_DRAWS:
             raise InvphysError(f"draws must be at most {MAX_DRAWS} per target, got {draws}")

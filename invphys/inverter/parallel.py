@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from invphys.core.counts import is_count
 from invphys.core.errors import InvphysError
 from invphys.core.user_targets import UserTargets
 
@@ -34,7 +35,7 @@ _INVERTER: Any = None
 
 def check_workers(workers: Any) -> int:
     """``workers`` as a count (0 or 1: this process), or one line."""
-    if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or not 0 <= workers <= MAX_WORKERS:
+    if not is_count(workers, 0, MAX_WORKERS):
         raise InvphysError(f"workers must be a whole number in 0 .. {MAX_WORKERS}, got {workers!r}")
     return int(workers)
 

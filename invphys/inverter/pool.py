@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from invphys.core.counts import is_count
 from invphys.core.errors import InvphysError
 from invphys.core.masked_recovery import masked_recovery
 from invphys.core.nearest import nearest_first
@@ -73,7 +74,7 @@ class PoolSettings:
         """``self``, or :class:`InvphysError` naming the first setting out of range."""
         for name, low in (("draws", 1), ("neighbours", 0), ("moves", 0), ("starts", 1)):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
+            if not is_count(v, low):
                 raise InvphysError(f"pool {name} must be a whole number >= {low}, got {v!r}")
         for name, ok, rule in (("step", lambda x: 0 < x <= 0.5, "in (0, 0.5]"), ("lam", lambda x: x >= 0, ">= 0")):
             v = getattr(self, name)

@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from invphys.core.counts import is_count
 from invphys.core.errors import InvphysError
 from invphys.inverter.result import InversionResult
 from invphys.inverter.seeds import target_seed
@@ -81,7 +82,7 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
     from invphys.evaluators.refine_log import RunLog
     from invphys.evaluators.stream_refine import check_stall, feed_features, log_key, stream_refine
 
-    if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or not 1 <= budget <= 100_000:
+    if not is_count(budget, 1, 100_000):
         raise InvphysError(f"refine budget must be a whole number in 1 .. 100000 runs per target, got {budget!r}")
     if batch_size is not None and (isinstance(batch_size, bool) or int(batch_size) < 1):
         raise InvphysError(f"batch size must be >= 1, got {batch_size!r}")
@@ -175,7 +176,7 @@ def _estimates_costs(sim: Any) -> bool:
 
 
 def _extraction_pool(extractor: Any, workers: int, threads: int | None = 1) -> Any:
-    if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or not 0 <= workers <= 256:
+    if not is_count(workers, 0, 256):
         raise InvphysError(f"extract workers must be a whole number in 0 .. 256, got {workers!r}")
     if not workers:
         return None
@@ -198,8 +199,7 @@ def _check_strategy(strategy: str, known_starts: int | None) -> int:
         raise InvphysError(f"unknown refine strategy {strategy!r} (choose from: {', '.join(REFINE_STRATEGIES)})")
     if known_starts is None:
         return KNOWN_STARTS[strategy]
-    if isinstance(known_starts, bool) or not isinstance(known_starts, (int, np.integer)) \
-            or not 0 <= known_starts <= 10_000:
+    if not is_count(known_starts, 0, 10_000):
         raise InvphysError(f"known starts must be a whole number in 0 .. 10000, got {known_starts!r}")
     return int(known_starts)
 

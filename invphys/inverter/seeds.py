@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from invphys.core.counts import is_count
 from invphys.core.errors import InvphysError
 
 #: seeds are whole numbers in [0, MAX_SEED]
@@ -21,7 +22,7 @@ MAX_SEED = 2**63 - 1
 
 def check_seed(seed: Any) -> int:
     """``seed`` as an int, or :class:`InvphysError` (negative, too large, not a whole number)."""
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= int(seed) <= MAX_SEED:
+    if not is_count(seed, 0, MAX_SEED):
         raise InvphysError(f"seed must be a whole number in 0 .. 2^63-1, got {seed!r}")
     return int(seed)
 

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from invphys.core.counts import is_count
 from invphys.core.errors import InvphysError
 
 #: polish's CMA-ES step in [0, 1]^d: the simulator is sharp in its parameters (orange peel, paper
@@ -36,7 +36,7 @@ class PolishSettings(BaseModel):
     @field_validator("budget", "popsize", "confirm", "confirm_candidates", mode="before")
     @classmethod
     def _whole(cls, value: Any) -> Any:
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        if not is_count(value, None):
             raise ValueError("must be a whole number")
         return int(value)
 

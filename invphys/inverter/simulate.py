@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from invphys.core.counts import is_count
 from invphys.core.errors import InvphysError
 from invphys.core.masked_recovery import masked_recovery
 from invphys.inverter.result import Candidate, InversionResult
@@ -29,7 +30,7 @@ def simulation(inv: Any, overrides: Mapping[str, Any] | None, batch_size: int, e
     """(simulator, extractor, simulator validator) for re-running candidates (``extract_workers``: feature
     extraction in that many processes while the simulator goes on; 0: in its thread)."""
     for name, v, low in (("batch_size", batch_size, 1), ("extract_workers", extract_workers, 0)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
+        if not is_count(v, low):
             raise InvphysError(f"{name} must be >= {low}, got {v!r}")
     sim = inv.simulator(overrides)
     ext = inv.extractor(sim)
