@@ -132,3 +132,16 @@ def test_the_cli_option(inv, bundle) -> None:
         assert out.exit_code == 0, out.output
         rec = json.loads(out.stdout)["results"][0]["sim_refine"]
         assert rec["runs"] == 8 and not rec["capped"] and rec["settings"]["cost_budget"] is None
+
+
+def test_a_capped_refines_log_replays_into_one_without_the_cap(inv, tmp_path) -> None:
+    _, y = inv.bundle.data("test")
+    y = y[:6]
+    log = tmp_path / "refine.npz"
+    _, capped = _run(inv, y, cost_budget=8.0, log=log)
+    assert any(rec["capped"] for rec in capped)
+    res, recs = _run(inv, y, log=log)   # no cap: the capped runs replay, the rest are simulated
+    fresh_res, fresh = _run(inv, y)
+    assert recs[0]["call"]["replayed_runs"] == sum(rec["runs"] for rec in capped)
+    assert [rec["best_r_by_run"] for rec in recs] == [rec["best_r_by_run"] for rec in fresh]
+    assert [tuple(r.best.theta) for r in res] == [tuple(r.best.theta) for r in fresh_res]
