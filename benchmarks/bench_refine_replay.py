@@ -13,7 +13,10 @@ A rule that would go on past a recorded target's last run (it stopped there unde
 cannot be replayed there: such targets are counted as ``cut_short`` (keep the grid's ``stop`` at or
 below the measured one). Per set and rule: mean R_actual with a 95 % bootstrap interval over targets, the
 mean runs, the lowest R, targets stalled / stopped, and the GPU-s per target projected as mean runs x the
-set's measured wall seconds per run (a projection: the rule must be validated on the GPU). Example::
+set's measured wall seconds per run (a projection: the rule must be validated on the GPU). ``--cost-budget C
+...`` also replays cost budgets (typical runs) on records that hold each run's estimated cost (``cost_by_run``:
+a target stops at the last run whose cumulative cost fits, inside a generation too, as the refine does).
+Example::
 
     python benchmarks/bench_refine_replay.py benchmarks/results/refine_paper_h200.json \\
         --out benchmarks/results/refine_replay_paper_h200.json
@@ -79,25 +82,40 @@ def batches_of(rec: dict[str, Any], starts: int, popsize: int) -> tuple[list[int
     return out, False
 
 
-def replay(rec: dict[str, Any], batches: list[int], stop: float | None, patience: int, min_gain: float
-           ) -> tuple[int, float, str]:
-    """(runs, final best R, how it ended: ``stalled``, ``stopped``, ``ran`` (all its recorded runs) or
-    ``cut_short`` (the rule would run past the record's last run, where the measured rule stopped it))."""
+def replay(rec: dict[str, Any], batches: list[int], stop: float | None, patience: int, min_gain: float,
+           cap: float | None = None) -> tuple[int, float, str]:
+    """(runs, final best R, how it ended: ``stalled``, ``stopped``, ``capped`` (its runs' recorded costs,
+    ``cost_by_run``, passed ``cap`` typical runs: the refine keeps the head of a generation that fits),
+    ``ran`` (all its recorded runs) or ``cut_short`` (the rule would run past the record's last run, where the
+    measured rule stopped it))."""
     best = [-np.inf if v is None else float(v) for v in rec.get("best_r_by_run") or []]
     free = rec.get("best_r_free")
     bests = [-np.inf if free is None else float(free), *best]
-    runs, ended = len(best), bool(rec.get("stopped") or rec.get("stalled"))
+    n, why = _by_rule(bests, batches, bool(rec.get("stopped") or rec.get("stalled")), stop, patience, min_gain)
+    if cap is not None:
+        k = int(np.sum(np.cumsum(rec["cost_by_run"]) <= cap * (1 + 1e-12)))
+        if k < n:
+            return k, bests[k], "capped"
+        if why == "ran" and rec.get("capped"):
+            why = "cut_short"
+    return n, bests[n], why
+
+
+def _by_rule(bests: list[float], batches: list[int], ended: bool, stop: float | None, patience: int,
+             min_gain: float) -> tuple[int, str]:
+    """Where the stop and stall rules end a target whose best R after 0, 1, ... runs is ``bests``."""
+    runs = len(bests) - 1
     n = batches[0] if batches else 0
     for size in [*batches[1:], 0]:
         if n > runs or (n == runs and not ended):   # no runs left: no decision
             break
         why = decide(bests[:n + 1], stop, patience, min_gain)
         if why:
-            return n, bests[n], why
+            return n, why
         if n == runs:
-            return n, bests[n], "cut_short"
+            return n, "cut_short"
         n += size
-    return runs, bests[runs], "ran"
+    return runs, "ran"
 
 
 def decide(bests: list[float], stop: float | None, patience: int, min_gain: float) -> str:
@@ -112,15 +130,16 @@ def decide(bests: list[float], stop: float | None, patience: int, min_gain: floa
 
 
 def rule_row(recs: list[dict[str, Any]], batches: list[list[int]], s_per_run: float | None, stop: float | None,
-             patience: int, min_gain: float, n_boot: int, base: np.ndarray | None = None) -> dict[str, Any]:
+             patience: int, min_gain: float, n_boot: int, base: np.ndarray | None = None,
+             cap: float | None = None) -> dict[str, Any]:
     """One rule on one set: mean R with its interval, mean runs, lowest R, ends, projected GPU-s per target."""
-    out = [replay(r, b, stop, patience, min_gain) for r, b in zip(recs, batches, strict=True)]
+    out = [replay(r, b, stop, patience, min_gain, cap) for r, b in zip(recs, batches, strict=True)]
     r = np.array([v if np.isfinite(v) else 0.0 for _, v, _ in out])   # no successful run: 0, as bench_refine
     runs = np.array([n for n, _, _ in out], float)
-    row = {"stop": stop, "patience": patience, "min_gain": min_gain if patience else None,
+    row = {"stop": stop, "patience": patience, "min_gain": min_gain if patience else None, "cost_budget": cap,
            "r": bootstrap(r, n_boot), "runs_per_target": float(runs.mean()) if len(runs) else None,
            "r_min": float(r.min()) if len(r) else None,
-           **{k: sum(e == k for _, _, e in out) for k in ("stalled", "stopped", "cut_short")},
+           **{k: sum(e == k for _, _, e in out) for k in ("stalled", "stopped", "capped", "cut_short")},
            "gpu_s_per_target": float(runs.mean() * s_per_run) if len(runs) and s_per_run else None}
     if base is not None:
         row["r_minus_measured"] = bootstrap(r - base, n_boot, seed=1)
@@ -142,8 +161,9 @@ def _s_per_run(doc: dict[str, Any], name: str, pairs: list[tuple[dict[str, Any],
 
 def run(doc: dict[str, Any], stops: list[float | None], patiences: list[int], gains: list[float],
         strategy: str | None = None, starts: int | None = None, popsize: int | None = None,
-        n_boot: int = 2000) -> dict[str, Any]:
-    """Every rule of the grid on every set of ``doc``."""
+        n_boot: int = 2000, caps: list[float] | None = None) -> dict[str, Any]:
+    """Every rule of the grid on every set of ``doc`` (each with no cost budget, then each of ``caps`` where
+    every target recorded its runs' costs)."""
     ref = doc.get("refine") or next((s.get("refine") for _, s in _sources(doc) if s.get("refine")), {}) or {}
     starts = starts or int(ref.get("starts") or 4)
     popsize = popsize or int(ref.get("popsize") or 8)
@@ -154,7 +174,9 @@ def run(doc: dict[str, Any], stops: list[float | None], patiences: list[int], ga
         batches, recorded = [b for b, _ in got], sum(k for _, k in got)
         spr = _s_per_run(doc, name, pairs)
         base = np.array([0.0 if r.get("r_actual") is None else float(r["r_actual"]) for r in recs])
+        costed = all(len(r.get("cost_by_run") or []) == r["runs"] for r in recs)
         rules = [(s, 0, 0.0) for s in stops] + [(s, p, g) for s in stops for p in patiences if p for g in gains]
+        rules = [(*rule, c) for c in [None, *(caps or [] if costed else [])] for rule in rules]
         out[name] = {
             "targets": len(recs), "s_per_run": spr, "measured": bootstrap(base, n_boot),
             "measured_runs_per_target": float(np.mean([r["runs"] for r in recs])),
@@ -163,19 +185,21 @@ def run(doc: dict[str, Any], stops: list[float | None], patiences: list[int], ga
             f"one generation, then generations of {popsize} (decision points approximate)",
             "best_r_free": "recorded" if all("best_r_free" in r for r in recs) else
             "not recorded for some targets: their free starts' best is taken as -inf (no stall decided against it)",
-            "rules": [rule_row(recs, batches, spr, s, p, g, n_boot, base) for s, p, g in rules]}
+            "cost_by_run": "recorded" if costed else "not recorded for every target: no cost budget replayed",
+            "rules": [rule_row(recs, batches, spr, s, p, g, n_boot, base, c) for s, p, g, c in rules]}
     return out
 
 
 def _table(sets: dict[str, Any]) -> str:
-    lines = ["| set | stop | patience | min gain | mean R [95 % CI] | runs | min R | stalled | GPU-s/target (projected) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| set | stop | patience | min gain | cost budget | mean R [95 % CI] | runs | min R | stalled | capped | "
+             "GPU-s/target (projected) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, s in sets.items():
         for r in s["rules"]:
             ci, gpu = r["r"], r["gpu_s_per_target"]
             lines.append(f"| {name} | {r['stop']} | {r['patience'] or 'off'} | {r['min_gain'] or '-'} | "
-                         f"{ci['mean']:.3f} [{ci['lo']:.3f}, {ci['hi']:.3f}] | {r['runs_per_target']:.1f} | "
-                         f"{r['r_min']:.3f} | {r['stalled']} | {'-' if gpu is None else f'{gpu:.1f}'} |")
+                         f"{r['cost_budget'] or 'off'} | {ci['mean']:.3f} [{ci['lo']:.3f}, {ci['hi']:.3f}] | "
+                         f"{r['runs_per_target']:.1f} | {r['r_min']:.3f} | {r['stalled']} | {r['capped']} | "
+                         f"{'-' if gpu is None else f'{gpu:.1f}'} |")
     return "\n".join(lines)
 
 
@@ -188,6 +212,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--strategy", default=None, help="the strategy's records (default: the result's)")
     p.add_argument("--starts", type=int, default=None, help="starts per target when batches are not recorded")
     p.add_argument("--popsize", type=int, default=None, help="generation size when batches are not recorded")
+    p.add_argument("--cost-budget", type=float, nargs="*", default=[],
+                   help="cost budgets (typical runs) to replay too, where the records hold cost_by_run")
     p.add_argument("--bootstrap", type=int, default=2000)
     p.add_argument("--out", type=Path, default=None)
     a = p.parse_args(argv)
@@ -197,8 +223,10 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"error: cannot read {a.result}: {exc}") from None
     if any(x < 0 for x in a.patience) or any(not 0 <= g <= 1 for g in a.min_gain) or any(not 0 <= s <= 1 for s in a.stop):
         raise SystemExit("error: --patience >= 0, --min-gain and --stop in [0, 1]")
+    if any(not 0 < c <= 1e9 for c in a.cost_budget):
+        raise SystemExit("error: --cost-budget values must be in (0, 1e9] typical runs")
     stops = [s if 0 < s < 1 else None for s in a.stop]
-    sets = run(doc, stops, a.patience, a.min_gain, a.strategy, a.starts, a.popsize, a.bootstrap)
+    sets = run(doc, stops, a.patience, a.min_gain, a.strategy, a.starts, a.popsize, a.bootstrap, a.cost_budget)
     if not sets:
         raise SystemExit(f"error: {a.result} holds no per-target records with best_r_by_run")
     result = {
@@ -216,7 +244,7 @@ def main(argv: list[str] | None = None) -> int:
     print(_table(sets))
     for name, s in sets.items():
         print(f"{name}: {s['targets']} targets, {s['s_per_run']} s per run; batches {s['batches']}; free starts' "
-              f"best {s['best_r_free']}")
+              f"best {s['best_r_free']}; costs {s['cost_by_run']}")
     if a.out:
         a.out.parent.mkdir(parents=True, exist_ok=True)
         a.out.write_text(json.dumps(result, indent=1) + "\n")

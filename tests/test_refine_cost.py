@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from benchmark_modules import load
 from test_inverter_support import toy_bundle_fixture, toy_inverter_fixture  # noqa: F401 (fixtures bundle, inv)
 
 from invphys.core.errors import InvphysError
@@ -67,8 +68,12 @@ def test_a_capped_target_stops_where_its_costs_say_and_its_runs_are_a_prefix(inv
         full_res += r
         full += rec
         thetas.append(_thetas(tmp_path / f"{k}.npz"))
-    assert all(rec["runs"] == BUDGET and not rec["capped"] and rec["cost"] == 0.0 for rec in full)  # not counted
+    assert all(rec["runs"] == BUDGET and not rec["capped"] and rec["settings"]["cost_budget"] is None
+               for rec in full)
     of = run_cost(CostedToy(inv.simulator()), 1.0).of
+    for rec, th in zip(full, thetas, strict=True):   # without a cap the costs are recorded all the same
+        assert rec["cost_by_run"] == pytest.approx(of(th).tolist(), rel=1e-12)
+        assert rec["cost"] == pytest.approx(sum(rec["cost_by_run"]), rel=1e-12)
     costs = sorted(float(np.sum(of(th))) for th in thetas)
     assert costs[0] > 0 and costs[0] < costs[-1]
     cap = float(np.median(costs))   # about half the targets are cut
@@ -80,8 +85,13 @@ def test_a_capped_target_stops_where_its_costs_say_and_its_runs_are_a_prefix(inv
         assert rec["best_r_by_run"] == ref["best_r_by_run"][:rec["runs"]]   # the same runs, cut short
         assert rec["cost"] <= cap * (1 + 1e-12) and sum(rec["batches"]) == rec["runs"]
         assert r.best.r_actual == rec["r_actual"] == max(ref["best_r_by_run"][:rec["runs"]])
-        assert rec["settings"]["cost_budget"] == cap
+        assert rec["settings"]["cost_budget"] == cap and rec["cost_by_run"] == ref["cost_by_run"][:rec["runs"]]
     assert 0 < sum(rec["capped"] for rec in recs) < len(recs)
+    # the replay benchmark, on the uncapped refine's records (their cost_by_run), gives the capped refine
+    rp = load("bench_refine_replay")
+    assert [rp.replay(ref, ref["batches"], None, 0, 0.0, cap)[:2] for ref in full] == \
+        [(rec["runs"], rec["r_actual"]) for rec in recs]
+    assert {rp.replay(ref, ref["batches"], None, 0, 0.0, cap)[2] for ref in full} == {"capped", "ran"}
     assert recs[0]["call"]["capped"] == sum(rec["capped"] for rec in recs)
     key = [(tuple(r.best.theta), rec["runs"], rec["cost"]) for r, rec in zip(res, recs, strict=True)]
     for batch, workers in ((3, 2), (7, 0)):
@@ -132,6 +142,7 @@ def test_the_cli_option(inv, bundle) -> None:
         assert out.exit_code == 0, out.output
         rec = json.loads(out.stdout)["results"][0]["sim_refine"]
         assert rec["runs"] == 8 and not rec["capped"] and rec["settings"]["cost_budget"] is None
+        assert rec["cost"] == 0.0 and rec["cost_by_run"] == []   # the toy estimates no run cost
 
 
 def test_a_capped_refines_log_replays_into_one_without_the_cap(inv, tmp_path) -> None:

@@ -55,7 +55,8 @@ class TargetRefine:
     start_scores: np.ndarray | None = None
     stopped: bool = False          # it reached the stop score with runs left
     stalled: bool = False          # it stopped with runs left because its best gained < min_gain in patience runs
-    cost: float = 0.0              # estimated cost of its asked runs, in typical runs (with a cost budget)
+    cost: float = 0.0              # estimated cost of its asked runs, in typical runs (with a RunCost)
+    costs: list[float] = field(default_factory=list)   # each asked run's estimated cost, in ask order
     capped: bool = False           # its cost budget cut a generation short: it asks no more runs
     batches: list[int] = field(default_factory=list)   # the sizes of its told generations (starts first), in order
     bests: list[float] = field(default_factory=list)   # best score after 0, 1, 2, ... told runs
@@ -112,7 +113,8 @@ class CMASearch:
 @dataclass(frozen=True)
 class RunCost:
     """A cost budget per target: ``of(points (k, d) normalised) -> (k,)`` each run's estimated cost (in
-    typical runs: 1.0 is an average run of the parameter box) and ``budget``, the most a target may spend.
+    typical runs: 1.0 is an average run of the parameter box) and ``budget``, the most a target may spend
+    (``inf``: costs recorded, never capped).
     Costs are estimated from the parameters alone, so where a target stops does not depend on timing."""
 
     of: Callable[[np.ndarray], np.ndarray]
@@ -176,6 +178,7 @@ class _Search:
         keep = int(np.sum(self.t.cost + np.cumsum(c) <= self.cost.budget * (1 + 1e-12)))
         if keep < len(pts):
             self.t.capped = True
+        self.t.costs += c[:keep].tolist()
         self.t.cost += float(np.sum(c[:keep]))
         return pts[:keep]
 

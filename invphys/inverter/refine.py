@@ -23,6 +23,7 @@ the batch size or how a stopped refine was resumed from its log.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -75,9 +76,10 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
     None: off) and ``min_gain``: a target stalls, and asks no more runs, once its best R_actual gained less than
     ``min_gain`` over its last ``patience`` told runs (record: ``stalled``; ``batches``: the sizes of its told
     generations in order, so a replay of ``best_r_by_run`` knows where it could have stopped). ``cost_budget``
-    (typical runs; None: off): a target spends at most this estimated simulator cost (:func:`run_cost`), so
-    targets whose runs are slow (near the box's faces) get fewer runs (record: ``cost``, ``capped``);
-    ``"budget"``: as many typical runs as ``budget``, where the simulator estimates run costs (else off).
+    (typical runs; None: off): a target spends at most this estimated simulator cost (:func:`run_costs`), so
+    targets whose runs are slow (near the box's faces) get fewer runs (record: ``capped``; ``cost`` and
+    ``cost_by_run``, recorded wherever the simulator estimates run costs, cap or not); ``"budget"``: as many
+    typical runs as ``budget``, where the simulator estimates run costs (else off).
     """
     from invphys.evaluators.refine_log import RunLog
     from invphys.evaluators.stream_refine import check_stall, feed_features, log_key, stream_refine
@@ -90,9 +92,7 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
     stop = check_stop(stop)
     patience, min_gain = check_stall(patience, min_gain)
     sim = simulator if simulator is not None else inv.simulator(overrides)
-    if cost_budget == "budget":
-        cost_budget = budget if _estimates_costs(sim) else None
-    cost = None if cost_budget is None else run_cost(sim, cost_budget)
+    cost = _cost(sim, cost_budget, budget)
     ext = inv.extractor(sim)
     m = inv.bundle.manifest
     key = log_key({"bundle": m.get("bundle_id", ""), "files": m.get("files", {}),
@@ -119,7 +119,7 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
         records.append(_apply(inv, r, t, budget, {"popsize": popsize, "sigma0": sigma0, "seed": seed,
                                                    "strategy": strategy, "known_starts": known_starts, "stop": stop,
                                                    "patience": patience, "min_gain": min_gain,
-                                                   "cost_budget": cost_budget,
+                                                   "cost_budget": _cap(cost),
                                                    **({"options": dict(strategy_options)} if strategy_options else {})}))
     call = _call_record(targets, wall, stats, ask_workers, extract_threads if extract_workers else None, log)
     for rec in records:
@@ -131,22 +131,15 @@ def refine(inv: Any, items: list[InversionResult], budget: int, popsize: int = R
 COST_REFERENCE_ROWS, COST_REFERENCE_SEED = 256, 0
 
 
-def run_cost(sim: Any, budget: Any) -> Any:
-    """A :class:`~invphys.evaluators.stream_refine.RunCost` of ``budget`` typical runs from ``sim``'s
+def run_costs(sim: Any) -> Callable[[np.ndarray], np.ndarray] | None:
+    """Each normalised point's estimated run cost in typical runs, from ``sim``'s
     :meth:`~invphys.core.interfaces.Simulator.estimate_cost`: a run's cost over the mean cost of a fixed
-    uniform sample of the parameter box (so 1.0 is an average run). One error line when the simulator
-    estimates no cost or the budget is not a positive number."""
-    from invphys.evaluators.stream_refine import RunCost
-
-    if isinstance(budget, bool) or not isinstance(budget, (int, float, np.integer, np.floating)) \
-            or not 0 < float(budget) <= 1e9:
-        raise InvphysError(f"refine cost budget must be a number of typical runs in (0, 1e9], got {budget!r}")
+    uniform sample of the parameter box (so 1.0 is an average run); None where the simulator estimates none."""
     space = sim.parameter_space()
     ref = np.random.default_rng(COST_REFERENCE_SEED).random((COST_REFERENCE_ROWS, space.dim))
     est = sim.estimate_cost(space.denormalize(ref))
     if est is None:
-        raise InvphysError(f"simulator {getattr(sim, 'name', type(sim).__name__)!r} estimates no run cost "
-                           "(Simulator.estimate_cost), so a refine cost budget cannot apply to it")
+        return None
     typical = float(np.mean(np.asarray(est, float)))
     if not (np.isfinite(typical) and typical > 0):
         raise InvphysError(f"the simulator's estimated run cost is not a positive number ({typical!r})")
@@ -154,7 +147,36 @@ def run_cost(sim: Any, budget: Any) -> Any:
     def of(points: np.ndarray) -> np.ndarray:
         return np.asarray(sim.estimate_cost(space.denormalize(np.clip(points, 0.0, 1.0))), float) / typical
 
+    return of
+
+
+def run_cost(sim: Any, budget: Any) -> Any:
+    """A :class:`~invphys.evaluators.stream_refine.RunCost` of ``budget`` typical runs (:func:`run_costs`); one
+    error line when the simulator estimates no cost or the budget is not a positive number."""
+    from invphys.evaluators.stream_refine import RunCost
+
+    if isinstance(budget, bool) or not isinstance(budget, (int, float, np.integer, np.floating)) \
+            or not 0 < float(budget) <= 1e9:
+        raise InvphysError(f"refine cost budget must be a number of typical runs in (0, 1e9], got {budget!r}")
+    of = run_costs(sim)
+    if of is None:
+        raise InvphysError(f"simulator {getattr(sim, 'name', type(sim).__name__)!r} estimates no run cost "
+                           "(Simulator.estimate_cost), so a refine cost budget cannot apply to it")
     return RunCost(of, float(budget))
+
+
+def _cost(sim: Any, cost_budget: float | str | None, budget: int) -> Any:
+    """The refine's :class:`~invphys.evaluators.stream_refine.RunCost`: ``cost_budget`` typical runs
+    (``"budget"``: ``budget``), or none that only records the costs; None where the simulator estimates none
+    (then ``"budget"`` is off, and a number one error line)."""
+    from invphys.evaluators.stream_refine import RunCost
+
+    if cost_budget is not None and cost_budget != "budget":
+        return run_cost(sim, cost_budget)
+    of = run_costs(sim)
+    if of is None:
+        return None
+    return RunCost(of, float(budget) if cost_budget == "budget" else math.inf)
 
 
 def _call_record(targets: list[Any], wall: float, stats: dict[str, float], ask_workers: int,
@@ -170,9 +192,9 @@ def _call_record(targets: list[Any], wall: float, stats: dict[str, float], ask_w
             "log": None if log is None else str(log)}
 
 
-def _estimates_costs(sim: Any) -> bool:
-    space = sim.parameter_space()
-    return sim.estimate_cost(space.denormalize(np.full((1, space.dim), 0.5))) is not None
+def _cap(cost: Any) -> float | None:
+    """The cost budget a refine applied (None: none)."""
+    return None if cost is None or not np.isfinite(cost.budget) else float(cost.budget)
 
 
 def _extraction_pool(extractor: Any, workers: int, threads: int | None = 1) -> Any:
@@ -330,7 +352,7 @@ def _apply(inv: Any, r: InversionResult, t: Any, budget: int, settings: dict[str
         return float(v) if np.isfinite(v) else None
 
     return {"budget": budget, "runs": t.runs, "stopped": t.stopped, "stalled": t.stalled, "capped": t.capped,
-            "cost": t.cost, "batches": list(t.batches),
+            "cost": t.cost, "cost_by_run": [float(c) for c in t.costs], "batches": list(t.batches),
             "replayed_runs": t.replayed, "generations_back_s": [round(v, 3) for v in t.back_s],
             "simulator_s": t.seconds, "ask_s": t.ask_s, "ask_cpu_s": t.ask_cpu_s, "r_answer": f(first),
             "start_source": source, "start_r_actual": f(start_r),
