@@ -156,3 +156,19 @@ def test_a_capped_refines_log_replays_into_one_without_the_cap(inv, tmp_path) ->
     assert recs[0]["call"]["replayed_runs"] == sum(rec["runs"] for rec in capped)
     assert [rec["best_r_by_run"] for rec in recs] == [rec["best_r_by_run"] for rec in fresh]
     assert [tuple(r.best.theta) for r in res] == [tuple(r.best.theta) for r in fresh_res]
+
+
+def test_a_broken_cost_estimate_is_one_error(inv) -> None:
+    _, y = inv.bundle.data("test")
+
+    class Broken(CostedToy):
+        def estimate_cost(self, params):
+            c = super().estimate_cost(params)
+            return c if len(c) == 256 else np.full(len(c) + self.extra, np.nan)   # the reference sample passes
+
+    for extra, msg in ((0, "estimate_cost gave a negative or non-finite run cost"),
+                       (1, "estimate_cost gave 4 costs for 3 rows")):
+        sim = Broken(inv.simulator())
+        sim.extra = extra
+        with pytest.raises(InvphysError, match=msg):
+            refine(inv, inv.invert_many(y[:1], top_k=3), 4, popsize=POP, simulator=sim, cost_budget=8)

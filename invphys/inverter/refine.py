@@ -145,7 +145,12 @@ def run_costs(sim: Any) -> Callable[[np.ndarray], np.ndarray] | None:
         raise InvphysError(f"the simulator's estimated run cost is not a positive number ({typical!r})")
 
     def of(points: np.ndarray) -> np.ndarray:
-        return np.asarray(sim.estimate_cost(space.denormalize(np.clip(points, 0.0, 1.0))), float) / typical
+        c = np.asarray(sim.estimate_cost(space.denormalize(np.clip(points, 0.0, 1.0))), float).reshape(-1)
+        if c.shape != (len(points),):
+            raise InvphysError(f"the simulator's estimate_cost gave {c.shape[0]} costs for {len(points)} rows")
+        if not np.all(np.isfinite(c) & (c >= 0)):
+            raise InvphysError("the simulator's estimate_cost gave a negative or non-finite run cost")
+        return c / typical
 
     return of
 
