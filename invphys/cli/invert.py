@@ -90,7 +90,6 @@ def invert(
     """Answer targets (features by name) with material parameters from a trained inverter bundle."""
     from invphys.inverter.inverter import INTERVAL_DRAWS
     from invphys.inverter.seeds import check_seed
-    from invphys.inverter.target_input import cli_targets
     from invphys.inverter.uncertainty import check_level
 
     check_seed(seed), check_level(level)
@@ -100,8 +99,7 @@ def invert(
                                        sim_refine_workers, sim_refine_strategy, sim_refine_known, sim_refine_stop)
     refine_settings.update(_stall_settings(sim_refine, sim_refine_patience, sim_refine_min_gain, sim_refine_cost))
     files = _output_files(samples, samples_out, plot, csv_out)
-    inv = _load(bundle, allow_mismatch)
-    targets = cli_targets(inv, target, feature or [], observed or [], partial)  # a bad target: its one line only
+    inv, targets = _load(bundle, allow_mismatch, target, feature or [], observed or [], partial)
     top_k = max(top_k, sim_refine_starts) if refine_settings else top_k
     results = _answer(inv, targets, dict(method=method, top_k=top_k, refine=refine, seed=seed, level=level,
                                          draws=max(samples or 0, INTERVAL_DRAWS), workers=workers))
@@ -112,14 +110,18 @@ def invert(
     _emit_results(bundle, results, records, seed, level, as_json)
 
 
-def _load(bundle: Path, allow_mismatch: bool) -> Any:
-    """The bundle's inverter, its load notes printed as warnings."""
+def _load(bundle: Path, allow_mismatch: bool, target: str | None, feature: list[str], observed: list[str],
+          partial: bool) -> tuple[Any, Any]:
+    """The bundle's inverter and the targets; its load notes printed as warnings once the targets are read
+    (a bad target: its one error line only)."""
     from invphys.inverter import load_inverter
+    from invphys.inverter.target_input import cli_targets
 
     inv = load_inverter(bundle, strict=not allow_mismatch)
+    targets = cli_targets(inv, target, feature, observed, partial)
     for note in inv.notes:
         console.print(f"[yellow]warning:[/] {escape(note)}", soft_wrap=True)
-    return inv
+    return inv, targets
 
 
 def _answer(inv: Any, targets: Any, options: dict[str, Any]) -> list[Any]:
