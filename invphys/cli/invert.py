@@ -72,7 +72,8 @@ def invert(
     sim_refine_stop: float | None = typer.Option(None, "--sim-refine-stop", help="a target stops at this R_actual (0.98)"),
     sim_refine_patience: int | None = typer.Option(None, "--sim-refine-patience", help="stop once N runs gain < min gain"),
     sim_refine_min_gain: float | None = typer.Option(None, "--sim-refine-min-gain", help="the patience's gain (0.01)"),
-    sim_refine_cost: float | None = typer.Option(None, "--sim-refine-cost", help="cost cap in average runs (N; 0: off)"),
+    sim_refine_cost: float | None = typer.Option(None, "--sim-refine-cost", help="most estimated simulator time "
+                                                 "per target, in average runs (default: N of --sim-refine; 0: off)"),
     seed: int = typer.Option(0, "--seed", help="seed of every random draw (with the target and the method it "
                              "decides the answer; a target's position in the file does not)"),
     level: float = typer.Option(0.9, "--level", help="level of the central intervals (posterior methods)"),
