@@ -100,5 +100,6 @@ def test_a_script_without_a_main_guard_gets_one_line_that_says_so(inv, tmp_path)
                       "inv.invert_many(y[:4], workers=2)\n")
     done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=600)
     assert done.returncode != 0
-    assert "InvphysError: a worker process died while answering" in done.stderr
-    assert "if __name__ == \"__main__\":" in done.stderr.splitlines()[-1]
+    error = [line for line in done.stderr.splitlines() if line.startswith("invphys.core.errors.InvphysError: ")]
+    assert len(error) == 1 and "a worker process died while answering" in error[0]
+    assert "if __name__ == \"__main__\":" in error[0]   # (the interpreter may warn after it at exit)

@@ -70,7 +70,7 @@ def answer_in_processes(inv: Any, t: UserTargets, workers: int, options: dict[st
                 on_answer(len(done.result()))
         return [r for f in futures for r in f.result()]
     except BrokenProcessPool as exc:   # a worker died (killed, out of memory): the next call starts afresh
-        inv.__dict__.pop("_answer_pool", None)
+        close_workers(inv)   # the broken pool's queues and locks released now, not left to interpreter exit
         raise InvphysError(f"a worker process died while answering ({exc}); a script that asks for workers "
                            "needs 'if __name__ == \"__main__\":' around its work, else answer with fewer workers "
                            "or workers=0") from None
@@ -92,7 +92,7 @@ def close_workers(inv: Any) -> None:
     """Shut down the worker processes ``inv`` keeps (its next call with workers starts new ones)."""
     kept = inv.__dict__.pop("_answer_pool", None)
     if kept is not None:
-        kept[1].shutdown()
+        kept[1].shutdown(wait=True, cancel_futures=True)
 
 
 def _default_registry(registry: Any) -> bool:
