@@ -98,7 +98,7 @@ def invert(
                                        polish_confirm, polish_confirm_candidates)
     refine_settings = _refine_settings(sim_refine, sim_refine_popsize, sim_refine_sigma, sim_refine_log,
                                        sim_refine_workers, sim_refine_strategy, sim_refine_known, sim_refine_stop)
-    refine_settings.update(_stall_settings(sim_refine, sim_refine_patience, sim_refine_min_gain, sim_refine_cost))
+    refine_settings.update(_stop_settings(sim_refine, sim_refine_patience, sim_refine_min_gain, sim_refine_cost))
     files = _output_files(samples, samples_out, plot, csv_out)
     inv, targets = _load(bundle, allow_mismatch, target, feature or [], observed or [], partial)
     top_k = max(top_k, sim_refine_starts) if refine_settings else top_k
@@ -334,7 +334,7 @@ def _refine_settings(budget: int | None, popsize: int | None, sigma: float | Non
             "stop": REFINE_STOP if stop is None else stop}
 
 
-def _stall_settings(budget: int | None, patience: int | None, min_gain: float | None, cost: float | None = None
+def _stop_settings(budget: int | None, patience: int | None, min_gain: float | None, cost: float | None = None
                     ) -> dict[str, Any]:
     """``--sim-refine-patience``, ``--sim-refine-min-gain`` and ``--sim-refine-cost`` as refine's ``patience``,
     ``min_gain`` and ``cost_budget`` (default: the run budget, where the simulator estimates run costs)."""
