@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -56,6 +56,11 @@ class UserTargets:
     labels: list[str]
     feature_names: tuple[str, ...]
     std: np.ndarray | None = None
+
+    def take(self, rows: np.ndarray) -> UserTargets:
+        """The targets ``rows`` (indices, in that order)."""
+        return replace(self, values=self.values[rows], mask=self.mask[rows], labels=[self.labels[i] for i in rows],
+                       std=None if self.std is None else self.std[rows])
 
     def __len__(self) -> int:
         return int(self.values.shape[0])

@@ -15,7 +15,6 @@ import warnings
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -46,12 +45,6 @@ def slices(n: int, workers: int) -> list[np.ndarray]:
     return [s for s in np.array_split(np.arange(n), k) if len(s)]
 
 
-def take(t: UserTargets, rows: np.ndarray) -> UserTargets:
-    """The targets ``rows`` of ``t``."""
-    return replace(t, values=t.values[rows], mask=t.mask[rows], labels=[t.labels[i] for i in rows],
-                   std=None if t.std is None else t.std[rows])
-
-
 def answer_in_processes(inv: Any, t: UserTargets, workers: int, options: dict[str, Any],
                         loader: Callable[..., Any], on_answer: Callable[[int], None] | None = None) -> list[Any]:
     """``inv.invert_many(t, **options)`` answered by ``workers`` processes, results in target order; each
@@ -63,7 +56,7 @@ def answer_in_processes(inv: Any, t: UserTargets, workers: int, options: dict[st
                            "load plugins from installed entry points only (answer with workers=0)")
     pool = _pool(inv, workers, loader)
     try:
-        futures = [pool.submit(_answer, take(t, rows), options, inv.pool_settings, inv.threads)
+        futures = [pool.submit(_answer, t.take(rows), options, inv.pool_settings, inv.threads)
                    for rows in slices(len(t), workers)]
         for done in as_completed(futures):
             if on_answer is not None:
@@ -115,4 +108,4 @@ def _answer(t: UserTargets, options: dict[str, Any], pool_settings: Any, threads
     return list(_INVERTER.invert_many(t, workers=0, **options))
 
 
-__all__ = ["MAX_WORKERS", "answer_in_processes", "check_workers", "close_workers", "slices", "take"]
+__all__ = ["MAX_WORKERS", "answer_in_processes", "check_workers", "close_workers", "slices"]

@@ -92,13 +92,12 @@ def baselines(ctx: StageContext, targets: dict[str, Any]) -> tuple[list[dict[str
     from invphys.evaluation.answers import baseline_rows
     from invphys.pipeline.artifacts import to_params
     from invphys.pipeline.cache import SEEDING
+    from invphys.pipeline.context import DONE_FILE
     from invphys.pipeline.runner import fingerprint
 
     blocks = ctx.spec.evaluation.baselines
     if not blocks:
         return [], {}
-    from invphys.pipeline.context import DONE_FILE
-
     done = ctx.stage_dir_of("train") / DONE_FILE
     # the seeding: answers cached before posterior draws were seeded per target are not served again
     what = {"baselines": blocks, "rows": targets["rows"], "features": targets["features"],
