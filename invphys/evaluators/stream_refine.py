@@ -20,6 +20,7 @@ the sizes of its told generations, so a replay of the per-run bests knows the de
 from __future__ import annotations
 
 import json
+import math
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -55,14 +56,18 @@ class TargetRefine:
     start_scores: np.ndarray | None = None
     stopped: bool = False          # it reached the stop score with runs left
     stalled: bool = False          # it stopped with runs left because its best gained < min_gain in patience runs
-    cost: float = 0.0              # estimated cost of its asked runs, in typical runs (with a RunCost)
-    costs: list[float] = field(default_factory=list)   # each asked run's estimated cost, in ask order
+    costs: list[float] = field(default_factory=list)   # each asked run's estimated cost (with a RunCost), in ask order
     capped: bool = False           # its cost budget cut a generation short: it asks no more runs
     batches: list[int] = field(default_factory=list)   # the sizes of its told generations (starts first), in order
     bests: list[float] = field(default_factory=list)   # best score after 0, 1, 2, ... told runs
     ask_s: float = 0.0             # seconds its search spent proposing and being told (wall, between runs)
     ask_cpu_s: float = 0.0         # the same blocks' CPU seconds of the thread running them (ask_s >> it: waited)
     back_s: list[float] = field(default_factory=list)  # seconds into the refine when each generation was all back
+
+    @property
+    def cost(self) -> float:
+        """The estimated cost of its asked runs, in typical runs (0 without a :class:`RunCost`)."""
+        return math.fsum(self.costs)
 
 
 _GLOBAL_RANDOM = threading.RLock()   # NumPy's global random state, swapped by CMASearch
@@ -179,7 +184,6 @@ class _Search:
         if keep < len(pts):
             self.t.capped = True
         self.t.costs += c[:keep].tolist()
-        self.t.cost += float(np.sum(c[:keep]))
         return pts[:keep]
 
     def tell(self, ys: np.ndarray, scores: np.ndarray) -> None:
