@@ -49,6 +49,24 @@ def test_workers_give_the_answers_of_one_process_in_target_order(inv) -> None:
         inv.pool_settings = replace(inv.pool_settings, draws=64)
 
 
+def test_workers_run_native_pools_on_the_inverters_threads(inv) -> None:
+    """Each worker's BLAS/OpenMP/torch pools get the inverter's ``threads`` (default one) for its whole life,
+    however few targets a slice holds: left at one per core, 16 workers on a 16-core host ran 256 threads."""
+    from invphys.core.threads import native_threads
+
+    _, y = inv.bundle.data("test")
+    inv.invert_many(y[:4], top_k=2, workers=2)   # slices of 1 row: below the batches that limit BLAS
+    got = inv.__dict__["_answer_pool"][1].submit(native_threads).result()
+    assert got["pools"] == [1] and got["torch"] == 1 and got["env"]["OMP_NUM_THREADS"] == "1"
+    inv.threads = 2
+    try:
+        inv.invert_many(y[:4], top_k=2, workers=2)   # other threads: new workers
+        got = inv.__dict__["_answer_pool"][1].submit(native_threads).result()
+        assert got["pools"] == [2] and got["torch"] == 2
+    finally:
+        inv.threads = 1
+
+
 def test_a_bad_worker_count_is_one_line(inv) -> None:
     for bad in (-1, 1.5, True, 10_000):
         with pytest.raises(InvphysError, match="workers must be a whole number"):

@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import os
 import signal
 import threading
 import time
@@ -51,6 +50,7 @@ import numpy as np
 
 from invphys.core.errors import InvphysError, SimulationFailed
 from invphys.core.results import SimulationResult
+from invphys.core.threads import limit_threads, native_threads
 from invphys.plugins.executors._deadline import ExtractionTimedOut
 
 _LOG = logging.getLogger(__name__)
@@ -59,40 +59,15 @@ _LOG = logging.getLogger(__name__)
 DEFAULT_TIMEOUT_S = 600.0
 #: native (BLAS / OpenMP / torch) threads per extraction worker process
 DEFAULT_THREADS = 1
-_THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS",
-                "VECLIB_MAXIMUM_THREADS")
-
 _WORKER_EXTRACTOR: Any = None
 _WORKER_INIT_ERROR: InvphysError | None = None   # why this worker could not build the extractor
 _WORKER_TIMEOUT_S: float | None = None
+#: in a worker (for tests and benchmarks): its native pools' thread counts
+worker_threads = native_threads
 
 _CANNOT_BUILD = ("the feature-extraction processes cannot build the extractor ({}); a plugin registered by hand in "
                  "this process is not seen there (name it 'module:Class' or by an entry point), or set "
                  "extract_workers: 0 to extract in this process")
-
-
-def _limit_threads(threads: int | None) -> None:
-    """In a worker: native thread pools on ``threads`` threads (None: leave them), for the libraries loaded
-    already (threadpoolctl, torch) and those loaded later (the environment)."""
-    if threads is None:
-        return
-    for var in _THREAD_VARS:
-        os.environ[var] = str(threads)
-    with contextlib.suppress(ImportError):
-        from threadpoolctl import threadpool_limits
-
-        threadpool_limits(limits=threads)
-    torch = __import__("sys").modules.get("torch")
-    if torch is not None:
-        torch.set_num_threads(threads)
-
-
-def worker_threads() -> dict[str, Any]:
-    """In a worker (for tests and benchmarks): the thread counts of its native pools (threadpoolctl's view)."""
-    from threadpoolctl import threadpool_info
-
-    return {"env": {v: os.environ.get(v) for v in _THREAD_VARS},
-            "pools": sorted({int(p["num_threads"]) for p in threadpool_info()})}
 
 
 def _init_worker(extractor: Any, timeout_s: float | None = None, threads: int | None = DEFAULT_THREADS) -> None:
@@ -100,7 +75,7 @@ def _init_worker(extractor: Any, timeout_s: float | None = None, threads: int | 
     break the pool, which then reads as a worker that died). ``SIGALRM`` ends the process (the timeout).
     Native thread pools get ``threads`` threads before the extractor is built."""
     global _WORKER_EXTRACTOR, _WORKER_INIT_ERROR, _WORKER_TIMEOUT_S
-    _limit_threads(threads)
+    limit_threads(threads)
     if timeout_s is not None and hasattr(signal, "setitimer"):
         signal.signal(signal.SIGALRM, signal.SIG_DFL)
         _WORKER_TIMEOUT_S = timeout_s
