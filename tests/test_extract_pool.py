@@ -452,13 +452,14 @@ def test_workers_run_native_pools_on_the_threads_given():
     """Each worker's BLAS/OpenMP pools get ``threads`` threads (default one), not one per core of the host:
     six workers on a 16-core GPU host would otherwise start 96 threads and starve the simulator's process."""
 
-    from invphys.plugins.executors._extract_pool import ExtractionPool, worker_threads
+    from invphys.core.threads import native_threads
+    from invphys.plugins.executors._extract_pool import ExtractionPool
 
     with ExtractionPool({"type": FEATURES}, 1, min_shared_bytes=None) as pool:
-        info = pool._pool.submit(worker_threads).result()
+        info = pool._pool.submit(native_threads).result()
     assert pool.threads == 1
     assert info["pools"] == [1] and info["env"]["OMP_NUM_THREADS"] == "1"
     with ExtractionPool({"type": FEATURES}, 1, min_shared_bytes=None, threads=2) as pool:
-        assert pool._pool.submit(worker_threads).result()["pools"] == [2]
+        assert pool._pool.submit(native_threads).result()["pools"] == [2]
     with pytest.raises(Exception, match="extraction threads"):
         ExtractionPool({"type": FEATURES}, 1, threads=0)

@@ -50,7 +50,7 @@ import numpy as np
 
 from invphys.core.errors import InvphysError, SimulationFailed
 from invphys.core.results import SimulationResult
-from invphys.core.threads import limit_threads, native_threads
+from invphys.core.threads import limit_threads
 from invphys.plugins.executors._deadline import ExtractionTimedOut
 
 _LOG = logging.getLogger(__name__)
@@ -62,8 +62,6 @@ DEFAULT_THREADS = 1
 _WORKER_EXTRACTOR: Any = None
 _WORKER_INIT_ERROR: InvphysError | None = None   # why this worker could not build the extractor
 _WORKER_TIMEOUT_S: float | None = None
-#: in a worker (for tests and benchmarks): its native pools' thread counts
-worker_threads = native_threads
 
 _CANNOT_BUILD = ("the feature-extraction processes cannot build the extractor ({}); a plugin registered by hand in "
                  "this process is not seen there (name it 'module:Class' or by an entry point), or set "
