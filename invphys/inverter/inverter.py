@@ -76,7 +76,8 @@ def load_inverter(path: str | Path, strict: bool = True, registry: Any = None, t
     """Load the bundle at ``path`` (checks format, file hashes, simulator version and features).
 
     ``strict=False`` turns a simulator-version or feature mismatch into a warning
-    (:attr:`Inverter.notes`) instead of an error. ``threads``: BLAS threads while inverting (None: leave).
+    (:attr:`Inverter.notes`) instead of an error. ``threads``: BLAS threads while inverting, and each answering
+    worker's native threads (None: leave).
     """
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
