@@ -93,7 +93,9 @@ def replay(rec: dict[str, Any], batches: list[int], stop: float | None, patience
     bests = [-np.inf if free is None else float(free), *best]
     n, why = _by_rule(bests, batches, bool(rec.get("stopped") or rec.get("stalled")), stop, patience, min_gain)
     if cap is not None:
-        k = int(np.sum(np.cumsum(rec["cost_by_run"]) <= cap * (1 + 1e-12)))
+        from invphys.evaluators.stream_refine import affordable
+
+        k = affordable(0.0, np.asarray(rec["cost_by_run"], float), cap)   # the refine's own rule
         if k < n:
             return k, bests[k], "capped"
         if why == "ran" and rec.get("capped"):

@@ -126,6 +126,12 @@ class RunCost:
     budget: float
 
 
+def affordable(spent: float, costs: np.ndarray, budget: float) -> int:
+    """How many leading runs of ``costs`` (each >= 0) fit a cost ``budget`` of which ``spent`` is gone (a
+    relative 1e-12 of slack, so a budget met exactly by rounded sums still fits)."""
+    return int(np.sum(spent + np.cumsum(costs) <= budget * (1 + 1e-12)))
+
+
 #: ``strategy(target, runs left) -> search`` with ``ask(left) -> (k, d)`` and ``tell(points, features,
 #: scores, best score before)``; made once a target's starts are in (its best start in ``target.theta``)
 Strategy = Callable[[TargetRefine, int], Any]
@@ -180,7 +186,7 @@ class _Search:
         if self.cost is None or not len(pts):
             return pts
         c = np.asarray(self.cost.of(pts), float).reshape(len(pts))
-        keep = int(np.sum(self.t.cost + np.cumsum(c) <= self.cost.budget * (1 + 1e-12)))
+        keep = affordable(self.t.cost, c, self.cost.budget)
         if keep < len(pts):
             self.t.capped = True
         self.t.costs += c[:keep].tolist()
