@@ -147,18 +147,20 @@ class NPEBaseline(DatasetBaseline):
         return int(self._posterior.posterior_estimator.input_shape[0])
 
     def _draw_one(self, target: np.ndarray, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-        """(S, d) unclipped draws and their (S,) log-probs at one target, under torch stream ``seed``."""
+        """(S, d) unclipped draws and their (S,) log-probs at one target, under torch stream ``seed``: the
+        estimator's own draws and densities, as sbi's ``DirectPosterior.sample_batched`` and
+        ``log_prob_batched`` give them without rejection or leakage normalisation (a poorly fitted flow can
+        leak most of its mass outside the box, and rejection then never ends), -inf outside the prior's support."""
         import torch
 
+        est = self._posterior.posterior_estimator
         x = torch.as_tensor(target[None, :], dtype=torch.float32)
-        with torch.random.fork_rng(devices=[]), torch.no_grad(), warnings.catch_warnings():
+        with torch.random.fork_rng(devices=[]), torch.no_grad():
             torch.manual_seed(seed)
-            warnings.filterwarnings("ignore", message=".*outside the prior support.*")
-            # no rejection (a poorly fitted flow can leak most of its mass outside the box, and rejection
-            # then never ends) and no leakage normalisation (it only shifts each target's log-probs)
-            s = self._posterior.sample_batched((n,), x=x, show_progress_bars=False,
-                                               reject_outside_prior=False)  # (S, 1, d)
-            lp = self._posterior.log_prob_batched(s, x=x, norm_posterior=False)  # (S, 1)
+            s = est.sample(torch.Size([n]), condition=x)  # (S, 1, d)
+            lp = est.log_prob(s, condition=x)  # (S, 1)
+        inside = ~torch.isnan(s).any(dim=-1) if self.config.transform == "logit" else ((s >= 0) & (s <= 1)).all(dim=-1)
+        lp = torch.where(inside, lp, torch.tensor(float("-inf"), dtype=torch.float32))
         samples = s.numpy().astype(np.float64)[:, 0, :]
         logp = lp.numpy().astype(np.float64)[:, 0]
         if self.config.transform == "logit":  # back to theta, with the change of variables' Jacobian
@@ -208,9 +210,10 @@ class NPEBaseline(DatasetBaseline):
 
     @classmethod
     def load(cls, directory: str | Path) -> NPEBaseline:
-        """Rebuild a posterior saved by :meth:`save`: the network from code (sbi's builder, the saved
-        architecture), its weights from ``npe_weights.npz`` (``allow_pickle=False``, strict shapes), the
-        prior from the config. Nothing is unpickled; an older pickled save is refused."""
+        """Rebuild a posterior saved by :meth:`save`: the network from code (the saved architecture; maf and
+        nsf without importing sbi, :mod:`~invphys.plugins.baselines.npe_flows`), its weights from
+        ``npe_weights.npz`` (``allow_pickle=False``, strict shapes), the prior from the config. Nothing is
+        unpickled; an older pickled save is refused."""
         d = Path(directory)
         if not (d / CONFIG_FILE).is_file():
             raise InvphysError(f"no saved npe baseline in {d}")
@@ -250,8 +253,19 @@ class NPEBaseline(DatasetBaseline):
                                f"numbers; refusing to build it")
 
     def _rebuild(self, theta_dim: int, x_dim: int, state: dict[str, np.ndarray], where: Path) -> Any:
-        """The posterior of a saved flow: sbi's builder on dummy data of the saved shapes, the saved
-        weights loaded strictly, and the prior the estimator was trained with."""
+        """The posterior of a saved flow: its network built here without sbi where this builder makes the
+        saved layout (:mod:`~invphys.plugins.baselines.npe_flows`: maf and nsf), else by sbi's builder on dummy
+        data of the saved shapes; the saved weights loaded strictly, and the prior the estimator was trained with."""
+        from invphys.plugins.baselines.npe_flows import LoadedPosterior, load_estimator
+
+        c = self.config
+        est = load_estimator(c.estimator, c.hidden_features, c.num_transforms, theta_dim, x_dim, state)
+        if est is not None:
+            return LoadedPosterior(est, self._prior(theta_dim, light=True))
+        return self._rebuild_with_sbi(theta_dim, x_dim, state, where)
+
+    def _rebuild_with_sbi(self, theta_dim: int, x_dim: int, state: dict[str, np.ndarray], where: Path) -> Any:
+        """:meth:`_rebuild` through sbi's builder (``mdn``, or a layout of another sbi release)."""
         import torch
 
         sbi = self._imports()
@@ -275,14 +289,17 @@ class NPEBaseline(DatasetBaseline):
         finally:
             torch.set_rng_state(rng_state)
 
-    def _prior(self, d: int) -> Any:
-        """The prior of the trained variable: U(0, 1)^d, or its logit (the standard logistic) for ``logit``."""
+    def _prior(self, d: int, light: bool = False) -> Any:
+        """The prior of the trained variable: U(0, 1)^d (sbi's ``BoxUniform``, or the same distribution from
+        torch alone with ``light``), or its logit (the standard logistic) for ``logit``."""
         import torch
 
         if self.config.transform == "logit":
             base = torch.distributions.Uniform(torch.zeros(d), torch.ones(d))
             return torch.distributions.Independent(torch.distributions.TransformedDistribution(
                 base, [torch.distributions.transforms.SigmoidTransform().inv]), 1)
+        if light:
+            return torch.distributions.Independent(torch.distributions.Uniform(torch.zeros(d), torch.ones(d)), 1)
         return self._imports().utils.BoxUniform(torch.zeros(d), torch.ones(d))
 
     @classmethod
