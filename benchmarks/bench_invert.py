@@ -31,7 +31,7 @@ from pathlib import Path
 
 from _machine import cpu_name
 
-HEAVY = ("torch", "stable_baselines3", "taichi", "warp", "zuko", "cma")
+HEAVY = ("torch", "stable_baselines3", "taichi", "warp", "zuko", "cma", "sbi", "sklearn", "scipy.stats")
 
 
 def _git() -> str:
