@@ -67,6 +67,21 @@ def test_npe_draws_and_answers_depend_on_the_target_and_the_seed_only(inv, rows)
     assert d.samples.shape == (3, 300, 9) and d.samples.min() >= 0 and d.samples.max() <= 1
 
 
+def test_a_posterior_answer_does_not_depend_on_the_intervals_draws(inv) -> None:
+    """A held-out target whose posterior lies almost wholly outside the box (~99 % of raw draws rejected, so a
+    run stops at its cap with clipped draws): its answer is the same for 1, 64, 256 or 1,000 interval draws
+    and through invert_array (the cap grows with a run's length, and the answer used to follow it)."""
+    _, y = inv.bundle.data("test")
+    t = y[112][None, :]
+    assert inv.posterior(t, n=64, method="npe_best64").clipped[0] > 0  # the case this test is about
+    answers = [inv.invert_many(t, method="npe_best64", draws=d)[0].theta for d in (1, 64, 256, 1000)]
+    for theta in answers[1:]:
+        np.testing.assert_array_equal(theta, answers[0])
+    np.testing.assert_array_equal(inv.invert_array(t, method="npe_best64")[0], answers[0])
+    pool = [inv.invert_many(t, method="pool", draws=d)[0].theta for d in (1, 1000)]
+    np.testing.assert_array_equal(pool[0], pool[1])
+
+
 def test_searches_and_refine_are_seeded_by_the_target(inv, rows) -> None:
     a = inv.invert_many(rows[:2], method="cma_es_540", seed=3, refine=20, top_k=2)
     b = inv.invert_many(rows[:2][::-1], method="cma_es_540", seed=3, refine=20, top_k=2)[::-1]

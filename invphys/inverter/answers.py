@@ -53,6 +53,10 @@ MAX_TOP_K = 64
 DRAW_BATCH = 64
 #: most draws (targets x draws per target) held at once
 DRAW_ROWS = 2**18
+#: a posterior answer chooses among the first draws of a run of (at least) this many, whatever the intervals'
+#: draws: a run's rejection cap grows with its length, so where most of a target's posterior lies outside the
+#: box the first draws of a shorter run hold more clipped ones (the default intervals' 256: one run)
+ANSWER_RUN_DRAWS = 256
 
 
 @contextlib.contextmanager
@@ -149,19 +153,27 @@ class PosteriorAnswers(MethodAnswers):
 
     def answer_all(self, values: np.ndarray, masks: np.ndarray, top_k: int, seed: int, draws: int
                    ) -> Iterator[tuple[Pool, Uncertainty]]:
-        n = max(self.answer_draws, draws)
+        """Each target's pool and uncertainty. The answer comes from a run of :data:`ANSWER_RUN_DRAWS` draws
+        (or its own ``samples``, if more), so it does not depend on ``draws``; the intervals keep the first
+        ``max(samples, draws)`` draws of the same run (and a pool's extra members' draws), or of their own longer
+        one."""
+        kept = max(self.answer_draws, draws)
+        na = max(self.answer_draws, ANSWER_RUN_DRAWS)
+        n = max(na, kept)
         step = max(1, min(DRAW_BATCH, DRAW_ROWS // n))
         for a in range(0, len(values), step):
             v, m = values[a:a + step], masks[a:a + step]
             self._noise_rows = None if self.noise is None else self.noise[a:a + step]
             conds, d = self.draw(v, m, seed, n)
+            answer_draws = d.samples if n == na else self.draw(v, m, seed, na)[1].samples
+            kept_cols = d.samples.shape[1] - (n - kept)  # a run longer than asked: its last draws are not kept
             for i in range(len(v)):
                 std = None if self._noise_rows is None else self._noise_rows[i]
                 noisy = std is not None and bool(np.nan_to_num(std, nan=0.0).max() > 0)
                 self._noisy_now = (v[i], m[i], std) if noisy and std is not None else None
-                unc = Uncertainty("posterior", d.samples[i], outside_fraction=float(d.outside_fraction[i]),
+                unc = Uncertainty("posterior", d.samples[i][:kept_cols], outside_fraction=float(d.outside_fraction[i]),
                                   clipped=int(d.clipped[i]), completions=int(d.completions[i]))
-                yield self.from_draws(v[i], m[i], top_k, seed, d.samples[i], conds[i]), unc
+                yield self.from_draws(v[i], m[i], top_k, seed, answer_draws[i], conds[i]), unc
 
     def from_draws(self, values: np.ndarray, mask: np.ndarray, top_k: int, seed: int, samples: np.ndarray,
                    cond: np.ndarray) -> Pool:
