@@ -28,7 +28,7 @@ def extrap(x: np.ndarray, xp: np.ndarray, fp: np.ndarray, lo_slope: float, hi_sl
 
 def row_levels(s: int) -> np.ndarray:
     """Normal scores of the levels (i + 0.5) / s of a row's sorted draws (``ndtri`` is ``scipy.stats.norm.ppf``'s
-    own function, without importing ``scipy.stats``: a second of a one-target answer's start)."""
+    own function, without importing ``scipy.stats``, most of a second of a one-target answer's start)."""
     from scipy.special import ndtri
 
     return np.asarray(ndtri((np.arange(s) + 0.5) / s))
