@@ -46,18 +46,6 @@ def _net(plugin):
     return D._flow(plugin._posterior.posterior_estimator)
 
 
-def _sbi_posterior(label: str):
-    """The flow's save rebuilt through sbi's builder: sbi's ``DirectPosterior`` (a bundle loads it without sbi)."""
-    import json
-
-    from invphys.models.base import read_weights_npz
-    from invphys.plugins.baselines.npe import NPEBaseline
-
-    d = BUNDLE / "policies" / label
-    arch = json.loads((d / "npe.json").read_text())["architecture"]
-    return NPEBaseline.load(d)._rebuild_with_sbi(arch["theta_dim"], arch["x_dim"], read_weights_npz(d / "npe_weights.npz"), d)
-
-
 def _seeds(n: int) -> list[int]:
     return [1000 + 7 * i for i in range(n)]
 
@@ -164,7 +152,9 @@ def test_the_first_round_is_sbis_own_sample(flows, targets, label) -> None:
     from invphys.plugins.baselines.spline_sampler import spline_sampler
 
     plugin = flows[label]
-    post, net = _sbi_posterior(label), _net(plugin)
+    from test_npe_flows import sbi_posterior
+
+    post, net = sbi_posterior(label), _net(plugin)
     sampler = spline_sampler(net)
     logit = plugin.config.transform == "logit"
     for i in (0, 3, 8, 12):

@@ -26,17 +26,25 @@ BUNDLE = ROOT / "inverters" / "orange_peel_paper_all"
 FLOWS = ("npe_nsf", "npe_nsfLogit", "npe_best64")
 
 
-def _both(label: str):
-    """The flow loaded (the light builder) and the same save rebuilt through sbi's builder."""
+def sbi_posterior(label: str):
+    """The shipped flow ``label``'s save rebuilt through sbi's builder: sbi's ``DirectPosterior`` (a bundle loads
+    it without sbi)."""
     import json
 
     from invphys.models.base import read_weights_npz
     from invphys.plugins.baselines.npe import NPEBaseline
 
     d = BUNDLE / "policies" / label
-    light, heavy = NPEBaseline.load(d), NPEBaseline.load(d)
     arch = json.loads((d / "npe.json").read_text())["architecture"]
-    heavy._posterior = heavy._rebuild_with_sbi(arch["theta_dim"], arch["x_dim"], read_weights_npz(d / "npe_weights.npz"), d)
+    return NPEBaseline.load(d)._rebuild_with_sbi(arch["theta_dim"], arch["x_dim"], read_weights_npz(d / "npe_weights.npz"), d)
+
+
+def _both(label: str):
+    """The flow loaded (the light builder) and the same save rebuilt through sbi's builder."""
+    from invphys.plugins.baselines.npe import NPEBaseline
+
+    light, heavy = NPEBaseline.load(BUNDLE / "policies" / label), NPEBaseline.load(BUNDLE / "policies" / label)
+    heavy._posterior = sbi_posterior(label)
     return light, heavy
 
 

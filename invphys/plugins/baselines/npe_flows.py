@@ -85,8 +85,7 @@ def build_estimator(estimator: str, hidden_features: int, num_transforms: int, t
     if estimator not in ESTIMATORS:
         raise ValueError(f"no light builder for the {estimator!r} estimator (only {', '.join(ESTIMATORS)})")
     layers = (_nsf_layers if estimator == "nsf" else _maf_layers)(theta_dim, x_dim, hidden_features, num_transforms)
-    ones = torch.ones(theta_dim)
-    standardise = transforms.PointwiseAffineTransform(shift=torch.zeros(theta_dim), scale=ones)
+    standardise = transforms.PointwiseAffineTransform(shift=torch.zeros(theta_dim), scale=torch.ones(theta_dim))
     base = distributions.StandardNormal((theta_dim,))
     base._log_z = base._log_z.to(torch.float32)  # as sbi's get_base_dist
     embedding = nn.Sequential(Standardize(x_dim), nn.Identity())
